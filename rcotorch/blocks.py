@@ -1,0 +1,173 @@
+"""The block protocol and the simple static blocks (gain, sum).
+
+A block is an ``nn.Module`` with named input and output ports of fixed widths. Signals are batch-first
+``(B, width)`` tensors. A step at time k runs in two phases so that a graph can order blocks by their
+direct-feedthrough paths:
+
+* ``output(port, inputs)`` returns the value of one output port at time k. ``inputs`` holds at least the
+  input ports listed in ``feedthrough()[port]``.
+* ``update(inputs)`` advances the block's state from k to k+1, given all of its inputs at time k.
+
+``step(**inputs)`` does both for a block used on its own. State lives in registered buffers, created for a
+batch size by ``reset(batch_size)``, so ``state_dict()`` checkpoints a block and ``.to()`` moves it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from torch import nn
+
+from .errors import ConfigError, DimensionError, PortError
+
+DEFAULT_DTYPE = torch.float64
+
+
+def as_batched_matrix(value, name: str, block: str, dtype=DEFAULT_DTYPE, rows: int | None = None,
+                      cols: int | None = None) -> torch.Tensor:
+    """Return ``value`` as a ``(Bp, rows, cols)`` tensor: a matrix shared by the batch (Bp = 1) or one per member."""
+    t = torch.as_tensor(value, dtype=dtype)
+    if t.dim() == 0:
+        t = t.reshape(1, 1, 1)
+    elif t.dim() == 1:
+        t = t.reshape(1, 1, -1) if rows == 1 else t.reshape(1, -1, 1) if cols == 1 else t.reshape(1, 1, -1)
+    elif t.dim() == 2:
+        t = t.unsqueeze(0)
+    elif t.dim() != 3:
+        raise DimensionError(f"block '{block}': {name} must be a matrix or a batch of matrices, got shape "
+                             f"{tuple(t.shape)}")
+    if (rows is not None and t.shape[1] != rows) or (cols is not None and t.shape[2] != cols):
+        raise DimensionError(f"block '{block}': {name} has shape {tuple(t.shape[1:])}, expected "
+                             f"({rows if rows is not None else '*'}, {cols if cols is not None else '*'})")
+    return t
+
+
+def matvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``M x`` for a batch of vectors x (B, n) and a shared (1, m, n) or per-member (B, m, n) matrix M."""
+    if M.shape[0] == 1:
+        return x @ M[0].mT
+    return torch.bmm(M, x.unsqueeze(-1)).squeeze(-1)
+
+
+class Block(nn.Module):
+    """Base class of all blocks. Subclasses set ``inputs``/``outputs`` (port name -> width) and override
+    ``output``, and ``update`` and ``reset`` if they hold state."""
+
+    def __init__(self, name: str, inputs: Mapping[str, int], outputs: Mapping[str, int]):
+        super().__init__()
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ConfigError(f"block name {name!r} must be an identifier (letters, digits, '_')")
+        self.name = name
+        self.inputs = dict(inputs)
+        self.outputs = dict(outputs)
+        for kind, ports in (("input", self.inputs), ("output", self.outputs)):
+            for port, width in ports.items():
+                if not isinstance(width, int) or width < 1:
+                    raise DimensionError(f"block '{name}': {kind} port '{port}' has width {width!r}, "
+                                         "expected a positive integer")
+        self.batch_size = 0
+        self.optional_inputs: set[str] = set()
+
+    # --- protocol -------------------------------------------------------------------------------------
+    def feedthrough(self) -> dict[str, tuple[str, ...]]:
+        """Input ports each output port depends on at the same time step (default: all of them)."""
+        return {port: tuple(self.inputs) for port in self.outputs}
+
+    def reset(self, batch_size: int) -> None:
+        """Create or zero the state for ``batch_size`` parallel members."""
+        if batch_size < 1:
+            raise ConfigError(f"block '{self.name}': batch size must be positive, got {batch_size}")
+        self.batch_size = batch_size
+
+    def output(self, port: str, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        raise NotImplementedError
+
+    def update(self, inputs: Mapping[str, torch.Tensor]) -> None:
+        """Advance the state one step (stateless blocks do nothing)."""
+
+    def set_state(self, **tensors: torch.Tensor) -> None:
+        """Replace registered buffers (state) without nn.Module's per-assignment bookkeeping."""
+        self._buffers.update(tensors)
+
+    # --- helpers --------------------------------------------------------------------------------------
+    @property
+    def dtype(self) -> torch.dtype:
+        for t in self.buffers():
+            if t.is_floating_point():
+                return t.dtype
+        return DEFAULT_DTYPE
+
+    @property
+    def device(self) -> torch.device:
+        for t in self.buffers():
+            return t.device
+        return torch.device("cpu")
+
+    def check_batch(self, t: torch.Tensor, what: str) -> None:
+        """Per-member parameters must have a leading size of 1 or the batch size."""
+        if self.batch_size and t.shape[0] not in (1, self.batch_size):
+            raise DimensionError(f"block '{self.name}': {what} is given for {t.shape[0]} members, but the "
+                                 f"batch has {self.batch_size}")
+
+    def check_inputs(self, inputs: Mapping[str, torch.Tensor]) -> None:
+        unknown = set(inputs) - set(self.inputs)
+        if unknown:
+            raise PortError(f"block '{self.name}' has no input port(s) {sorted(unknown)}; "
+                            f"its inputs are {list(self.inputs)}")
+        for port, value in inputs.items():
+            want = (self.batch_size, self.inputs[port])
+            if tuple(value.shape) != want:
+                raise DimensionError(f"block '{self.name}', input '{port}': expected shape {want} "
+                                     f"(batch, width), got {tuple(value.shape)}")
+
+    def step(self, **inputs: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Compute every output at time k, then advance to k+1. For a block used on its own."""
+        if not self.batch_size:
+            raise ConfigError(f"block '{self.name}': call reset(batch_size) before step()")
+        self.check_inputs(inputs)
+        missing = set(self.inputs) - set(inputs) - self.optional_inputs
+        if missing:
+            raise PortError(f"block '{self.name}': step() is missing input(s) {sorted(missing)}")
+        out = {port: self.output(port, inputs) for port in self.outputs}
+        self.update(inputs)
+        return out
+
+    def extra_repr(self) -> str:
+        ins = ", ".join(f"{p}[{w}]" for p, w in self.inputs.items())
+        outs = ", ".join(f"{p}[{w}]" for p, w in self.outputs.items())
+        return f"name={self.name!r}, inputs=({ins}), outputs=({outs})"
+
+
+class Gain(Block):
+    """Static gain ``out = K in``; K is (m, n) or one per member (B, m, n)."""
+
+    def __init__(self, K, name: str = "gain", dtype=DEFAULT_DTYPE):
+        K = as_batched_matrix(K, "K", name, dtype)
+        super().__init__(name, {"in": K.shape[2]}, {"out": K.shape[1]})
+        self.register_buffer("K", K)
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        self.check_batch(self.K, "K")
+
+    def output(self, port, inputs):
+        return matvec(self.K, inputs["in"])
+
+
+class Sum(Block):
+    """Summing junction ``out = sum_i sign_i in_i``, e.g. ``Sum({'y': 1, 'y_hat': -1}, 1)`` for z = y - y_hat."""
+
+    def __init__(self, signs: Mapping[str, float], width: int, name: str = "sum"):
+        super().__init__(name, {p: width for p in signs}, {"out": width})
+        for port, s in signs.items():
+            if s not in (1, -1):
+                raise ConfigError(f"block '{name}': sign of input '{port}' must be +1 or -1, got {s!r}")
+        self.signs = dict(signs)
+
+    def output(self, port, inputs):
+        total = None
+        for p, s in self.signs.items():
+            v = inputs[p] if s == 1 else -inputs[p]
+            total = v if total is None else total + v
+        return total

@@ -1,0 +1,70 @@
+"""Command line: ``rcotorch list`` and ``rcotorch run NAME [options]``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .errors import RcoError
+
+
+def _settings(pairs: list[str]) -> dict[str, str]:
+    out = {}
+    for item in pairs:
+        if "=" not in item:
+            raise RcoError(f"--set expects KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rcotorch", description="Model refinement by retrospective cost "
+                                     "optimization, batched in PyTorch.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("list", help="list the scenarios")
+    run = sub.add_parser("run", help="run a scenario and write runs/NAME/")
+    run.add_argument("name", nargs="?", help="scenario name (see `rcotorch list`)")
+    run.add_argument("--steps", type=int, help="number of steps (default: the scenario's)")
+    run.add_argument("--batch", type=int, default=1, help="parallel refinements B (default 1)")
+    run.add_argument("--seed", type=int, help="excitation seed (default: the scenario's)")
+    run.add_argument("--device", default="cpu", help="cpu or cuda")
+    run.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    run.add_argument("--out", help="output directory (default runs/NAME)")
+    run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                     help="override a scenario setting (repeatable)")
+    run.add_argument("--checkpoint-every", type=int, help="save a checkpoint every N steps")
+    run.add_argument("--resume", metavar="DIR", help="resume from DIR/checkpoint.pt (--steps may extend it)")
+    run.add_argument("--no-figures", action="store_true", help="skip the PNG/TensorBoard figures")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+
+    try:
+        from . import scenario as scenarios
+        from .runner import Run, result_table
+        if args.command == "list":
+            for name, sc in sorted(scenarios.available().items()):
+                print(f"{name:<28} {('[' + sc.section + '] ') if sc.section else ''}{sc.description}")
+            return 0
+        if args.resume:
+            r = Run.resume(args.resume, steps=args.steps, device=args.device if args.device != "cpu" else None,
+                           out=args.out)
+        else:
+            if not args.name:
+                parser.error("run needs a scenario NAME (or --resume DIR)")
+            r = Run(args.name, steps=args.steps, batch=args.batch, seed=args.seed, device=args.device,
+                    dtype=args.dtype, out=args.out, overrides=_settings(args.overrides))
+            r.clear_outputs()
+        r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every)
+        summary = r.finish(figures=not args.no_figures)
+        print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
+              f"{summary['device']} -> {r.out}")
+        print(result_table(summary))
+        return 0 if all(c["pass"] for c in summary["requirements"].values()) else 1
+    except RcoError as e:
+        print(f"rcotorch: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,28 @@
+"""Exceptions raised by rcotorch. Each names the block, port, file, row or shape at fault."""
+
+
+class RcoError(Exception):
+    """Base class of every rcotorch error."""
+
+
+class PortError(RcoError, KeyError):
+    """An unknown, missing or doubly connected port."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0]) if self.args else ""
+
+
+class DimensionError(RcoError, ValueError):
+    """A tensor or port has the wrong shape."""
+
+
+class AlgebraicLoopError(RcoError, ValueError):
+    """Direct-feedthrough paths form a cycle, so a step cannot be ordered."""
+
+
+class ConfigError(RcoError, ValueError):
+    """A setting has a bad value (name, range or type)."""
+
+
+class DataError(RcoError, ValueError):
+    """Recorded data is missing, malformed or non-finite."""

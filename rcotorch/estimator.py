@@ -1,0 +1,332 @@
+"""The retrospective-cost (RCO) estimator: the identified subsystem and its adaptive update.
+
+The identified subsystem is the linear controller (seed eqs. 6-8)
+
+    u(k) = theta(k) phi(k),
+    phi(k) = [ s_1(k-l) for l in lags ; ... ; s_m(k-l) for l in lags ; u(k-1) .. u(k-nc) ]
+
+over regressor signals s_i (input ports such as y0 or w). ``lags`` are 1..nc (strictly proper) or 0..nc
+(``proper=True``; lag 0 only with nc = 0 gives the exactly proper static gain u(k) = theta s(k)).
+The retrospective error (seed eq. 9) uses the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z:
+
+    z_hat(theta_hat, k) = z(k) + sum_i beta_i [theta_hat - theta(k-i)] phi(k-i)
+                        = zeta(k) + Psi(k)^T Theta_hat,  zeta(k) = z(k) - sum_i beta_i u(k-i),
+
+with Theta = theta flattened row-major (entry (i, j) at i * n_phi + j), so Psi^T has entries
+sum_i beta_i[z, a] phi(k-i)[j] at column a * n_phi + j. Theta is then updated by ``rls_update`` on
+z_R(k) = z_hat(theta(k), k). A mask pins entries of theta to zero: they are left out of Theta and P.
+
+A member whose z, Psi or theta becomes non-finite, or whose P loses definiteness, is frozen (theta and P
+held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where the optional ``valid`` input is
+0 (a skipped measurement) the update is skipped, theta and P held.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import control
+import numpy as np
+import torch
+
+from .blocks import DEFAULT_DTYPE, Block
+from .errors import ConfigError, DimensionError
+from .rls import rls_update
+
+
+class RCOEstimator(Block):
+    """Identified subsystem u = theta phi with the retrospective-cost RLS update.
+
+    Args:
+        signals: regressor input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or
+            ``{'y0': 1, 'w': 1}``. Which signals feed phi decides identifiability (see DESIGN.md).
+        n_u: width of u (the identified subsystem's output).
+        n_z: width of z (the model error).
+        nc: controller order (number of past samples of each signal and of u).
+        proper: also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
+        feed_u: put past u into phi (the controller's poles); False gives an FIR controller.
+        mask: bool (n_u, n_phi), True where theta is free; False pins that entry to zero.
+        p0: initial covariance P(0) = p0 I, scalar or one per member.
+        lam: forgetting factor in (0, 1], scalar or one per member.
+        R: weight on z (scalar or n_z x n_z).
+        theta0: initial theta (n_u, n_phi) or (B, n_u, n_phi); zero by default.
+        markov: beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u); with its relative
+            degree ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
+        dt: sample time (for transfer functions and frequency responses).
+    """
+
+    def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
+                 proper: bool = False, feed_u: bool = True, mask=None, p0=1.0, lam=1.0, R=1.0,
+                 theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
+                 name: str = "identified", dtype=DEFAULT_DTYPE):
+        signals = dict(signals)
+        if "z" in signals or "valid" in signals or "u" in signals:
+            raise ConfigError(f"block '{name}': 'z', 'u' and 'valid' are reserved port names")
+        super().__init__(name, {**signals, "z": n_z, "valid": 1}, {"u": n_u})
+        self.optional_inputs = {"valid"}
+        if not isinstance(nc, int) or nc < 0:
+            raise ConfigError(f"block '{name}': nc must be a non-negative integer, got {nc!r}")
+        self.signals, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
+        self.proper, self.feed_u = bool(proper), bool(feed_u and nc > 0)
+        self.lags = list(range(0 if proper else 1, nc + 1))
+        if not self.lags or not signals:
+            raise ConfigError(f"block '{name}': phi is empty (signals={list(signals)}, nc={nc}, "
+                              f"proper={proper}); use nc >= 1 or proper=True")
+        self.n_sig = sum(signals.values())
+        self.n_phi = len(self.lags) * self.n_sig + (nc * n_u if self.feed_u else 0)
+        self.phi_names = self._phi_names()
+        self.dt = dt
+        mask = torch.ones(n_u, self.n_phi, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
+        if tuple(mask.shape) != (n_u, self.n_phi):
+            raise DimensionError(f"block '{name}': mask has shape {tuple(mask.shape)}, expected "
+                                 f"(n_u, n_phi) = ({n_u}, {self.n_phi}) for phi = {self.phi_names}")
+        self.mask = mask.bool()
+        self.free = torch.nonzero(self.mask.flatten()).flatten()
+        self.all_free = bool(self.mask.all())
+        self.n_theta = int(self.free.numel())
+        if self.n_theta == 0:
+            raise ConfigError(f"block '{name}': the mask leaves no free entry of theta")
+        self.theta_names = [f"{i}:{self.phi_names[j]}" if n_u > 1 else self.phi_names[j]
+                            for i in range(n_u) for j in range(self.n_phi) if self.mask[i, j]]
+        for key, value in (("p0", p0), ("lam", lam)):
+            t = torch.as_tensor(value, dtype=dtype).reshape(-1)
+            if key == "p0" and bool((t <= 0).any()):
+                raise ConfigError(f"block '{name}': p0 must be positive, got {value!r}")
+            if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
+                raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
+            self.register_buffer(key, t)
+        R = torch.as_tensor(R, dtype=dtype)
+        R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
+        if tuple(R.shape) != (n_z, n_z):
+            raise DimensionError(f"block '{name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
+        self.register_buffer("r_inv", torch.linalg.inv(R))
+        theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
+            torch.as_tensor(theta0, dtype=dtype).reshape(-1, n_u, self.n_phi)
+        self.register_buffer("theta0", theta0 * self.mask)
+        self.register_buffer("free_idx", self.free.clone())
+        self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
+        self.register_buffer("beta_t", torch.zeros(1, 0, 0, dtype=dtype))  # beta as (Bp, n_z * n_u, nu)
+        self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
+        self.window = 1
+        if markov is not None:
+            self.set_markov(markov, first_delay)
+        # Per-member state (created by reset).
+        for key, shape in (("theta", (0, n_u, self.n_phi)), ("P", (0, self.n_theta, self.n_theta)),
+                           ("past", (0, max(nc, 1), self.n_sig)), ("past_u", (0, max(nc, 1), n_u)),
+                           ("win", (0, 1, self.n_phi + n_u)),
+                           ("phi_now", (0, self.n_phi)), ("u_now", (0, n_u)), ("z_r", (0, n_z))):
+            self.register_buffer(key, torch.zeros(shape, dtype=dtype))
+        self.register_buffer("alive", torch.zeros(0, dtype=torch.bool))
+        self.register_buffer("diverged_at", torch.zeros(0, dtype=torch.int64))
+        self.register_buffer("k", torch.zeros((), dtype=torch.int64))
+        self.register_buffer("_gather", self._phi_gather())
+
+    @classmethod
+    def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
+        """Exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...)."""
+        return cls(signals, n_u=n_u, n_z=n_z, nc=0, proper=True, feed_u=False, **kwargs)
+
+    # --- layout ---------------------------------------------------------------------------------------
+    def _phi_names(self) -> list[str]:
+        names = []
+        for s, w in self.signals.items():
+            for lag in self.lags:
+                for c in range(w):
+                    sig = f"{s}[{c}]" if w > 1 else s
+                    names.append(f"{sig}(k)" if lag == 0 else f"{sig}(k-{lag})")
+        if self.feed_u:
+            for lag in range(1, self.nc + 1):
+                for c in range(self.n_u):
+                    names.append(f"u[{c}](k-{lag})" if self.n_u > 1 else f"u(k-{lag})")
+        return names
+
+    def _phi_gather(self) -> torch.Tensor:
+        """Index map from [s(k) | past s(k-1..k-nc) | past u(k-1..k-nc)] (flattened) to phi's order."""
+        nc1 = max(self.nc, 1)
+        cur, past0, upast0 = 0, self.n_sig, self.n_sig + nc1 * self.n_sig
+        idx, offset = [], 0
+        for _s, w in self.signals.items():
+            for lag in self.lags:
+                for c in range(w):
+                    idx.append(cur + offset + c if lag == 0 else past0 + (lag - 1) * self.n_sig + offset + c)
+            offset += w
+        if self.feed_u:
+            for lag in range(1, self.nc + 1):
+                idx += [upast0 + (lag - 1) * self.n_u + c for c in range(self.n_u)]
+        return torch.tensor(idx, dtype=torch.int64)
+
+    def set_markov(self, markov, first_delay: int = 1) -> None:
+        """Set beta_d..beta_(d+nu-1) of the map u -> z (sign included): (nu, n_z, n_u) or (B, nu, n_z, n_u)."""
+        beta = torch.as_tensor(markov, dtype=self.theta0.dtype, device=self.theta0.device)
+        beta = beta.unsqueeze(0) if beta.dim() == 3 else beta
+        if beta.dim() != 4 or tuple(beta.shape[2:]) != (self.n_z, self.n_u) or beta.shape[1] < 1:
+            raise DimensionError(f"block '{self.name}': Markov parameters must be (nu, n_z, n_u) = "
+                                 f"(nu, {self.n_z}, {self.n_u}) with nu >= 1, got {tuple(beta.shape)}")
+        if first_delay < 0:
+            raise ConfigError(f"block '{self.name}': first_delay must be >= 0, got {first_delay}")
+        if first_delay == 0 and self.proper:
+            raise ConfigError(f"block '{self.name}': u acts on z at once (beta_0 != 0) and the identified "
+                              "subsystem is proper: the step has an algebraic loop")
+        self.beta = beta
+        self.beta_t = beta.flatten(2).mT.contiguous()
+        self.first_delay = int(first_delay)
+        self.delays = torch.arange(first_delay, first_delay + beta.shape[1], device=beta.device)
+        self.window = first_delay + beta.shape[1]
+
+    @property
+    def nu(self) -> int:
+        return int(self.beta.shape[1])
+
+    # --- block protocol -------------------------------------------------------------------------------
+    def feedthrough(self):
+        return {"u": tuple(self.signals) if self.proper else ()}
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        if self.beta.shape[1] == 0:
+            raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov= or build the graph "
+                              "with rcotorch.refinement, which derives them from the known model")
+        for key in ("p0", "lam", "theta0", "beta"):
+            self.check_batch(getattr(self, key), key)
+        B, dt, dev = batch_size, self.theta0.dtype, self.theta0.device
+        self.theta = self.theta0.expand(B, -1, -1).clone()
+        eye = torch.eye(self.n_theta, dtype=dt, device=dev)
+        self.P = (self.p0.reshape(-1, 1, 1) * eye).expand(B, -1, -1).clone()
+        nc1 = max(self.nc, 1)
+        self.past = torch.zeros(B, nc1, self.n_sig, dtype=dt, device=dev)
+        self.past_u = torch.zeros(B, nc1, self.n_u, dtype=dt, device=dev)
+        self.win = torch.zeros(B, self.window, self.n_phi + self.n_u, dtype=dt, device=dev)
+        self.phi_now = torch.zeros(B, self.n_phi, dtype=dt, device=dev)
+        self.u_now = torch.zeros(B, self.n_u, dtype=dt, device=dev)
+        self.z_r = torch.zeros(B, self.n_z, dtype=dt, device=dev)
+        self.alive = torch.ones(B, dtype=torch.bool, device=dev)
+        self.diverged_at = torch.full((B,), -1, dtype=torch.int64, device=dev)
+        self.k = torch.zeros((), dtype=torch.int64, device=dev)
+
+    def _current(self, inputs) -> torch.Tensor:
+        if self.proper:
+            return torch.cat([inputs[s] for s in self.signals], dim=1)
+        return self.past.new_zeros(self.batch_size, self.n_sig)
+
+    def output(self, port, inputs):
+        flat = torch.cat([self._current(inputs), self.past.flatten(1), self.past_u.flatten(1)], dim=1)
+        phi = flat.index_select(1, self._gather)
+        u = torch.bmm(self.theta, phi.unsqueeze(-1)).squeeze(-1)
+        u = torch.where(self.alive.unsqueeze(1), u, 0.0)
+        self.set_state(phi_now=phi, u_now=u)
+        return u
+
+    def update(self, inputs):
+        B, n_phi = self.batch_size, self.n_phi
+        # Ring buffer of [phi(k-i), u(k-i)]: position k mod window holds time k.
+        self.win[:, self.k % self.window] = torch.cat([self.phi_now, self.u_now], dim=1)
+        past = self.win.index_select(1, (self.k - self.delays) % self.window)   # (B, nu, n_phi + n_u)
+        # One product gives sum_i beta_i[z, a] phi(k-i)[j] and sum_i beta_i[z, a] u(k-i)[c]: (B, z, a, j|c).
+        prod = (self.beta_t @ past).reshape(B, self.n_z, self.n_u, n_phi + self.n_u)
+        psi_t = prod[..., :n_phi].reshape(B, self.n_z, -1)                      # Psi^T, Theta row-major
+        zeta = inputs["z"] - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)  # z - sum_i beta_i u(k-i)
+        theta_flat = self.theta.reshape(B, -1)
+        if not self.all_free:
+            psi_t, theta_flat = psi_t.index_select(2, self.free_idx), theta_flat.index_select(1, self.free_idx)
+        z_r = zeta + (psi_t @ theta_flat.unsqueeze(-1)).squeeze(-1)
+        finite = torch.isfinite(z_r.sum(1) + psi_t.sum((1, 2)))
+        active = self.alive & finite
+        if "valid" in inputs:
+            valid = inputs["valid"].reshape(B) > 0.5
+            active, finite = active & valid, finite | ~valid
+        theta_flat, P, ok = rls_update(theta_flat, self.P, psi_t.mT, z_r, self.lam, self.r_inv, active)
+        alive = self.alive & ok & finite
+        if not self.all_free:
+            theta_flat = self.theta.reshape(B, -1).index_copy(1, self.free_idx, theta_flat)
+        self.set_state(P=P, theta=theta_flat.reshape(self.theta.shape), z_r=z_r, alive=alive,
+                       diverged_at=torch.where(self.alive & ~alive, self.k, self.diverged_at))
+        if self.nc:  # shift the regressor histories
+            cur = torch.cat([inputs[s] for s in self.signals], dim=1).unsqueeze(1)
+            self.set_state(past=torch.cat([cur, self.past[:, :-1]], dim=1),
+                           past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
+        self.k += 1
+
+    # --- the identified subsystem -----------------------------------------------------------------------
+    def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """theta split by lag: N (B, n_lags, n_u, n_sig) for the signals at ``lags``, M (B, nc, n_u, n_u)
+        for past u (zeros if ``feed_u`` is False): u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l)."""
+        B, theta = self.theta.shape[0], self.theta
+        N = theta.new_zeros(B, len(self.lags), self.n_u, self.n_sig)
+        j, offset = 0, 0
+        for _s, w in self.signals.items():
+            for li in range(len(self.lags)):
+                N[:, li, :, offset:offset + w] = theta[:, :, j:j + w]
+                j += w
+            offset += w
+        M = theta.new_zeros(B, max(self.nc, 1), self.n_u, self.n_u)
+        if self.feed_u:
+            M[:, : self.nc] = theta[:, :, j:].reshape(B, self.n_u, self.nc, self.n_u).permute(0, 2, 1, 3)
+        return N, M
+
+    def frequency_response(self, omega) -> torch.Tensor:
+        """Identified subsystem at z = exp(j omega dt): complex (B, len(omega), n_u, n_sig)."""
+        if not self.dt:
+            raise ConfigError(f"block '{self.name}': dt is needed for a frequency response")
+        N, M = self.coefficients()
+        omega = torch.as_tensor(omega, dtype=N.dtype, device=N.device)
+        zinv = torch.exp(-1j * omega * self.dt)                                 # (F,)
+        lags = torch.as_tensor(self.lags, device=N.device)
+        num = torch.einsum("fl,blij->bfij", zinv.unsqueeze(1) ** lags, N.to(zinv.dtype))
+        ulags = torch.arange(1, M.shape[1] + 1, device=N.device)
+        den = torch.eye(self.n_u, dtype=zinv.dtype, device=N.device) - \
+            torch.einsum("fl,blij->bfij", zinv.unsqueeze(1) ** ulags, M.to(zinv.dtype))
+        return torch.linalg.solve(den, num)
+
+    def dc_gain(self) -> torch.Tensor:
+        """DC gain of the identified subsystem, (B, n_u, n_sig): (I - sum M_l)^-1 sum N_l."""
+        N, M = self.coefficients()
+        eye = torch.eye(self.n_u, dtype=N.dtype, device=N.device)
+        return torch.linalg.solve(eye - M.sum(1), N.sum(1))
+
+    def to_control(self, member: int = 0) -> control.TransferFunction:
+        """The identified subsystem of one member as a discrete python-control ``TransferFunction`` (dt),
+        from the regressor signals (inputs, in port order) to u (outputs)."""
+        if self.n_u != 1 and self.feed_u:
+            # A MIMO controller with shared poles: build it in state space and convert.
+            return control.ss2tf(self._to_ss(member))
+        N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
+        L = self.nc if self.feed_u else max(self.lags)
+        den = np.zeros(L + 1)
+        den[0] = 1.0
+        if self.feed_u:
+            den[1: self.nc + 1] = -M[: self.nc, 0, 0]
+        nums, dens = [], []
+        for i in range(self.n_u):
+            row_n, row_d = [], []
+            for j in range(self.n_sig):
+                num = np.zeros(L + 1)
+                for li, lag in enumerate(self.lags):
+                    num[lag] = N[li, i, j]
+                row_n.append(num)
+                row_d.append(den)
+            nums.append(row_n)
+            dens.append(row_d)
+        return control.tf(nums, dens, self.dt if self.dt else True)
+
+    def _to_ss(self, member: int) -> control.StateSpace:
+        """State space of u(k) = sum N_l s(k-l) + sum M_l u(k-l), state = past s and past u."""
+        N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
+        nc, m, p = self.nc, self.n_sig, self.n_u
+        n = nc * (m + p)
+        A, Bm = np.zeros((n, n)), np.zeros((n, m))
+        C, D = np.zeros((p, n)), np.zeros((p, m))
+        for li, lag in enumerate(self.lags):
+            if lag == 0:
+                D += N[li]
+            else:
+                C[:, (lag - 1) * m: lag * m] += N[li]
+        for lag in range(1, nc + 1):
+            C[:, nc * m + (lag - 1) * p: nc * m + lag * p] += M[lag - 1]
+        # shift registers: s-part gets s(k), u-part gets u(k) = C x + D s
+        Bm[:m] = np.eye(m)
+        for lag in range(1, nc):
+            A[lag * m:(lag + 1) * m, (lag - 1) * m: lag * m] = np.eye(m)
+            A[nc * m + lag * p: nc * m + (lag + 1) * p, nc * m + (lag - 1) * p: nc * m + lag * p] = np.eye(p)
+        A[nc * m: nc * m + p] += C
+        Bm[nc * m: nc * m + p] += D
+        return control.ss(A, Bm, C, D, self.dt if self.dt else True)

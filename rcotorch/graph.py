@@ -1,0 +1,369 @@
+"""Graphs of blocks wired by port name, and the seed paper's Figure-1 interconnection.
+
+A ``Graph`` is checked when it is built: every name resolves (with a suggestion when it does not), every
+required input is driven exactly once, widths agree, and direct-feedthrough paths have no cycle (an
+algebraic loop). Each step evaluates the output ports in an order that respects feedthrough, then advances
+every block. ``print(graph)`` shows the blocks and the connection table.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+import torch
+from torch import nn
+
+from .blocks import DEFAULT_DTYPE, Block, Sum
+from .errors import AlgebraicLoopError, ConfigError, DimensionError, PortError
+from .estimator import RCOEstimator
+from .lti import LTI
+
+Signal = tuple[str, str]
+
+
+def _split(ref: str) -> Signal:
+    if not isinstance(ref, str) or ref.count(".") != 1:
+        raise PortError(f"signal reference {ref!r} must read 'block.port'")
+    b, p = ref.split(".")
+    return b.strip(), p.strip()
+
+
+def _suggest(name: str, choices: Iterable[str]) -> str:
+    close = difflib.get_close_matches(name, list(choices), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+class Graph(nn.Module):
+    """Blocks wired by port name.
+
+    Args:
+        blocks: the blocks (names must be unique).
+        connections: pairs ``("src_block.out_port", "dst_block.in_port")`` or strings ``"src.out -> dst.in"``.
+        batch_size: number of parallel members B.
+        dtype, device: one dtype and device for every block (float64 by default).
+    """
+
+    def __init__(self, blocks: Sequence[Block], connections: Iterable, batch_size: int = 1,
+                 dtype: torch.dtype = DEFAULT_DTYPE, device: str | torch.device = "cpu"):
+        super().__init__()
+        if dtype not in (torch.float64, torch.float32):
+            raise ConfigError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
+        self.blocks = nn.ModuleDict()
+        for blk in blocks:
+            if not isinstance(blk, Block):
+                raise ConfigError(f"graph: {blk!r} is not a rcotorch Block")
+            if blk.name in self.blocks:
+                raise ConfigError(f"graph: two blocks are named '{blk.name}'")
+            self.blocks[blk.name] = blk
+        self.sources: dict[Signal, Signal] = {}
+        for conn in connections:
+            src, dst = self._parse(conn)
+            self._connect(src, dst)
+        for name, blk in self.blocks.items():
+            for port in blk.inputs:
+                if (name, port) not in self.sources and port not in blk.optional_inputs:
+                    raise PortError(f"graph: input '{name}.{port}' is not connected")
+        self.order = self._schedule()
+        self.register_buffer("k", torch.zeros((), dtype=torch.int64))
+        self.to(device=device, dtype=dtype)
+        self.reset(batch_size)
+        self.last: dict[Signal, torch.Tensor] = {}
+
+    # --- building -------------------------------------------------------------------------------------
+    @staticmethod
+    def _parse(conn) -> tuple[Signal, Signal]:
+        if isinstance(conn, str):
+            if "->" not in conn:
+                raise PortError(f"connection {conn!r} must read 'src.port -> dst.port'")
+            a, b = conn.split("->")
+            return _split(a), _split(b)
+        try:
+            a, b = conn
+        except (TypeError, ValueError):
+            raise PortError(f"connection {conn!r} must be a pair ('src.port', 'dst.port')") from None
+        return _split(a), _split(b)
+
+    def _port(self, sig: Signal, kind: str) -> int:
+        b, p = sig
+        if b not in self.blocks:
+            raise PortError(f"graph: no block '{b}'{_suggest(b, self.blocks)}; blocks are {list(self.blocks)}")
+        ports = self.blocks[b].inputs if kind == "input" else self.blocks[b].outputs
+        if p not in ports:
+            raise PortError(f"graph: block '{b}' has no {kind} port '{p}'{_suggest(p, ports)}; its {kind}s "
+                            f"are {list(ports)}")
+        return ports[p]
+
+    def _connect(self, src: Signal, dst: Signal) -> None:
+        w_out, w_in = self._port(src, "output"), self._port(dst, "input")
+        if dst in self.sources:
+            s = self.sources[dst]
+            raise PortError(f"graph: input '{dst[0]}.{dst[1]}' is driven twice (by '{s[0]}.{s[1]}' and "
+                            f"'{src[0]}.{src[1]}')")
+        if w_out != w_in:
+            raise DimensionError(f"graph: '{src[0]}.{src[1]}' has width {w_out} but '{dst[0]}.{dst[1]}' "
+                                 f"expects width {w_in}")
+        self.sources[dst] = src
+
+    def _schedule(self) -> list[Signal]:
+        """Order the output ports so each is computed after the inputs it feeds through (Kahn's algorithm)."""
+        deps: dict[Signal, list[Signal]] = {}
+        self._feedthrough = {name: blk.feedthrough() for name, blk in self.blocks.items()}
+        for name, blk in self.blocks.items():
+            ft = self._feedthrough[name]
+            for port in blk.outputs:
+                deps[(name, port)] = [self.sources[(name, p)] for p in ft.get(port, ()) if (name, p) in self.sources]
+        order, state = [], {}
+
+        def visit(node: Signal, path: list[Signal]):
+            if state.get(node) == 2:
+                return
+            if state.get(node) == 1:
+                cycle = path[path.index(node):] + [node]
+                raise AlgebraicLoopError("graph: algebraic loop through direct-feedthrough ports: " +
+                                         " -> ".join(f"{b}.{p}" for b, p in cycle))
+            state[node] = 1
+            for dep in deps[node]:
+                visit(dep, path + [node])
+            state[node] = 2
+            order.append(node)
+
+        for node in deps:
+            visit(node, [])
+        return order
+
+    # --- running --------------------------------------------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return next(iter(self.blocks.values())).batch_size
+
+    def reset(self, batch_size: int | None = None) -> None:
+        """Reset every block's state (for ``batch_size`` members) and the step counter."""
+        B = batch_size or self.batch_size
+        for blk in self.blocks.values():
+            blk.reset(B)
+        self.k.zero_()
+
+    @property
+    def max_steps(self) -> int | None:
+        """The most steps the sources can deliver (recorded data), or None."""
+        limits = [blk.max_steps for blk in self.blocks.values() if getattr(blk, "max_steps", None) is not None]
+        return min(limits) if limits else None
+
+    def _inputs(self, name: str, ports: Iterable[str], signals) -> dict[str, torch.Tensor]:
+        return {p: signals[self.sources[(name, p)]] for p in ports if (name, p) in self.sources}
+
+    def step(self, overrides: Mapping[Signal, torch.Tensor] | None = None,
+             frozen: Iterable[str] = ()) -> dict[Signal, torch.Tensor]:
+        """Advance every block one step; return all output signals at time k as {(block, port): tensor}.
+
+        ``overrides`` replaces output ports by given values, ``frozen`` blocks are not advanced (used to
+        probe the graph, e.g. for Markov parameters)."""
+        signals: dict[Signal, torch.Tensor] = {}
+        for name, port in self.order:
+            if overrides and (name, port) in overrides:
+                signals[(name, port)] = overrides[(name, port)]
+                continue
+            blk = self.blocks[name]
+            signals[(name, port)] = blk.output(port, self._inputs(name, self._feedthrough[name][port], signals))
+        for name, blk in self.blocks.items():
+            if name not in frozen:
+                blk.update(self._inputs(name, blk.inputs, signals))
+        self.k += 1
+        self.last = signals
+        return signals
+
+    def run(self, steps: int, record: Mapping[str, str | Callable] | None = None, every: int = 1,
+            progress: bool = False) -> dict[str, torch.Tensor]:
+        """Run ``steps`` steps; return traces {name: (T, ...)} of the recorded signals ('block.port', or a
+        callable of the graph), taken every ``every`` steps after the step."""
+        self.check_steps(steps)
+        record = dict(record or {})
+        getters = {}
+        for key, ref in record.items():
+            if callable(ref):
+                getters[key] = ref
+            else:
+                sig = _split(ref)
+                self._port(sig, "output")
+                getters[key] = (lambda g, s=sig: g.last[s])
+        traces: dict[str, list] = {k: [] for k in getters}
+        it = range(steps)
+        if progress:
+            from tqdm import tqdm
+            it = tqdm(it, desc="steps", unit="step", mininterval=0.5)
+        for i in it:
+            self.step()
+            if (i + 1) % every == 0:
+                for key, get in getters.items():
+                    traces[key].append(get(self).detach().clone())
+        return {k: torch.stack(v) if v else torch.empty(0) for k, v in traces.items()}
+
+    def check_steps(self, steps: int) -> None:
+        limit = self.max_steps
+        if limit is not None and int(self.k) + steps > limit:
+            raise ConfigError(f"graph: {int(self.k) + steps} steps asked for, but the recorded data gives "
+                              f"{limit} samples")
+
+    def markov(self, src: str, dst: str, n: int, eps: float = 1.0) -> torch.Tensor:
+        """Markov parameters of the map ``src`` (an output port) -> ``dst`` (an output port) by probing a
+        copy of the graph: impulses of size ``eps`` in each channel of ``src`` against a baseline run, with
+        the block owning ``src`` frozen. Exact for linear paths. Returns (B, n, width(dst), width(src))."""
+        s, d = _split(src), _split(dst)
+        w_in, w_out = self._port(s, "output"), self._port(d, "output")
+        B = self.batch_size
+        probe = copy.deepcopy(self)
+        runs = []
+        for j in range(-1, w_in):
+            probe.reset(B)
+            trace = []
+            for i in range(n):
+                u = torch.zeros(B, w_in, dtype=_dtype(probe), device=self.k.device)
+                if i == 0 and j >= 0:
+                    u[:, j] = eps
+                trace.append(probe.step(overrides={s: u}, frozen=(s[0],))[d])
+            runs.append(torch.stack(trace, dim=1))                       # (B, n, w_out)
+        base = runs[0]
+        H = torch.stack([(r - base) / eps for r in runs[1:]], dim=-1)    # (B, n, w_out, w_in)
+        return H
+
+    # --- display --------------------------------------------------------------------------------------
+    def table(self) -> str:
+        lines = [f"Graph: {len(self.blocks)} blocks, batch {self.batch_size}, {_dtype(self)}"]
+        for name, blk in self.blocks.items():
+            ins = ", ".join(f"{p}[{w}]" for p, w in blk.inputs.items()) or "-"
+            outs = ", ".join(f"{p}[{w}]" for p, w in blk.outputs.items()) or "-"
+            lines.append(f"  {name:<12} {type(blk).__name__:<14} in: {ins:<28} out: {outs}")
+        lines.append("Connections (source -> destination, width):")
+        used = set(self.sources.values())
+        for (db, dp), (sb, sp) in self.sources.items():
+            lines.append(f"  {sb + '.' + sp:<22} -> {db + '.' + dp:<22} {self.blocks[db].inputs[dp]}")
+        unused = [f"{n}.{p}" for n, b in self.blocks.items() for p in b.outputs if (n, p) not in used]
+        if unused:
+            lines.append("Unconnected outputs: " + ", ".join(unused))
+        lines.append("Evaluation order: " + ", ".join(f"{b}.{p}" for b, p in self.order))
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.table()
+
+
+def _dtype(g: nn.Module) -> torch.dtype:
+    for t in g.buffers():
+        if t.is_floating_point():
+            return t.dtype
+    return DEFAULT_DTYPE
+
+
+def refinement(known: LTI, identified: RCOEstimator, *, truth: Block | None = None,
+               physical: Block | None = None, data: Block | None = None, excitation: Block | None = None,
+               nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
+               device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
+               measured: str = "y", feeds: Mapping[str, str] | None = None) -> Graph:
+    """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
+
+    The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
+    outputs ``y`` (measured) and the signals the unknown subsystem sees (e.g. ``y0``). The physical system is
+    one of:
+
+    * ``truth``: the true unknown subsystem (one input, one output port); the physical system is then a
+      copy of ``known`` (block ``plant``) with ``truth`` (block ``unknown``) in feedback from
+      ``plant.y0`` to ``plant.u``;
+    * ``physical``: any block with input ``w`` and output ``y`` (e.g. a continuous truth discretized whole);
+    * ``data``: recorded measurements, a source with outputs ``w`` and ``y`` (and ``valid`` if it has gaps).
+
+    The simulated system is ``known`` in feedback with ``identified`` (the RCO estimator); its regressor
+    ports are fed by the known model's outputs of the same name (or ``w``), or as mapped by ``feeds``
+    ({estimator port: 'block.port'}). Unless the estimator already has Markov parameters, ``nu`` of them
+    are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its relative degree d on.
+    """
+    given = [x is not None for x in (truth, physical, data)]
+    if sum(given) != 1:
+        raise ConfigError("refinement: give exactly one of truth=, physical= or data=")
+    for port in (exogenous, actuation):
+        if port not in known.inputs:
+            raise PortError(f"refinement: known model '{known.name}' has no input '{port}'; its inputs are "
+                            f"{list(known.inputs)}")
+    if measured not in known.outputs:
+        raise PortError(f"refinement: known model '{known.name}' has no output '{measured}'; its outputs are "
+                        f"{list(known.outputs)}")
+    if known.name != "known" or identified.name != "identified":
+        raise ConfigError("refinement: name the known model 'known' and the estimator 'identified' "
+                          f"(got '{known.name}', '{identified.name}')")
+    blocks: list[Block] = [known, identified]
+    conns: list[tuple[str, str]] = []
+    if data is not None:
+        if data.name != "data":
+            raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
+        blocks.append(data)
+        w_src, y_src = f"data.{exogenous}", f"data.{measured}"
+        for p in (exogenous, measured):
+            if p not in data.outputs:
+                raise PortError(f"refinement: data block has no output '{p}'; its outputs are {list(data.outputs)}")
+    else:
+        if excitation is None:
+            raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
+        excitation.name = "excitation"
+        blocks.append(excitation)
+        w_src = "excitation.out"
+        if truth is not None:
+            plant = copy.deepcopy(known)
+            plant.name = "plant"
+            truth.name = "unknown"
+            (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
+            sees = [p for p in known.outputs if p != measured]
+            if len(sees) != 1:
+                raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
+                                  f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
+            blocks += [plant, truth]
+            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"unknown.{t_in}"),
+                      (f"unknown.{t_out}", f"plant.{actuation}")]
+            y_src = f"plant.{measured}"
+        else:
+            physical.name = "plant"
+            blocks.append(physical)
+            conns.append((w_src, f"plant.{exogenous}"))
+            y_src = f"plant.{measured}"
+    width = known.outputs[measured]
+    blocks.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
+    conns += [(y_src, "error.y"), (f"known.{measured}", "error.y_hat"), (w_src, f"known.{exogenous}"),
+              ("identified.u", f"known.{actuation}"), ("error.out", "identified.z")]
+    feeds = dict(feeds or {})
+    for port in identified.signals:
+        if port in feeds:
+            conns.append((feeds[port], f"identified.{port}"))
+        elif port == exogenous:
+            conns.append((w_src, f"identified.{port}"))
+        elif port in known.outputs:
+            conns.append((f"known.{port}", f"identified.{port}"))
+        else:
+            raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
+                            f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
+    if data is not None and "valid" in data.outputs:
+        conns.append(("data.valid", "identified.valid"))
+    if identified.beta.shape[1] == 0:
+        if nu is None:
+            raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
+        beta, d = derive_markov(known, actuation, measured, nu)
+        identified.set_markov(beta, d)
+    if identified.dt is None:
+        identified.dt = known.dt
+    return Graph(blocks, conns, batch_size=batch_size, dtype=dtype, device=device)
+
+
+def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12
+                  ) -> tuple[torch.Tensor, int]:
+    """beta_d..beta_(d+nu-1) of u -> z for z = y - y_hat (minus the known model's Markov parameters) and the
+    relative degree d (the first nonzero one, relative to the largest in a long horizon)."""
+    if nu < 1:
+        raise ConfigError(f"nu must be at least 1, got {nu}")
+    horizon = max(4 * nu, 64)
+    H = known.markov(actuation, measured, horizon + nu)
+    scale = H.abs().amax()
+    if not bool(scale > 0):
+        raise ConfigError(f"known model '{known.name}': u -> {measured} has zero Markov parameters; "
+                          "the unknown subsystem cannot be seen in the measurement")
+    nonzero = (H.abs().flatten(2).amax(2).amax(0) > tol * scale).nonzero()
+    d = int(nonzero[0])
+    return -H[:, d:d + nu], d

@@ -1,0 +1,168 @@
+"""Linear time-invariant blocks: discrete state space, and continuous systems discretized by zero-order hold.
+
+    x(k+1) = A x(k) + B u(k)
+    y(k)   = C x(k) + D u(k)
+
+u stacks the input ports in the order given, y the output ports. Each matrix is shared by the batch or
+given per member (leading batch dimension), so a sweep over physical parameters is one batched block.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import control
+import numpy as np
+import torch
+
+from .blocks import DEFAULT_DTYPE, Block, as_batched_matrix, matvec
+from .errors import ConfigError, DimensionError
+
+
+def _ports(spec, total: int, what: str, name: str) -> dict[str, int]:
+    """Port layout from a mapping name -> width, or a list of names of width 1."""
+    if isinstance(spec, str):
+        spec = [spec]
+    ports = dict(spec) if isinstance(spec, Mapping) else {p: 1 for p in spec}
+    if sum(ports.values()) != total:
+        raise DimensionError(f"block '{name}': {what} ports {ports} have total width {sum(ports.values())}, "
+                             f"but the system has {total} {what}s")
+    return ports
+
+
+def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Zero-order-hold discretization of (A, B), batched: exp([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]]."""
+    A = torch.as_tensor(A, dtype=dtype)
+    B = torch.as_tensor(B, dtype=dtype)
+    n, m = A.shape[-1], B.shape[-1]
+    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    M = torch.zeros(*batch, n + m, n + m, dtype=dtype)
+    M[..., :n, :n] = A
+    M[..., :n, n:] = B
+    E = torch.linalg.matrix_exp(M * dt)
+    return E[..., :n, :n], E[..., :n, n:]
+
+
+class LTI(Block):
+    """Discrete LTI block with named input and output ports.
+
+    Args:
+        A, B, C, D: state-space matrices, each (rows, cols) or (batch, rows, cols).
+        inputs: port name -> width (or a list of width-1 names), in the column order of B and D.
+        outputs: port name -> width, in the row order of C and D.
+        dt: sample time in seconds (recorded; the block steps once per sample).
+        x0: initial state (n,) or (batch, n); zero by default.
+    """
+
+    def __init__(self, A, B, C, D, inputs, outputs, dt: float, name: str = "lti", x0=None,
+                 dtype=DEFAULT_DTYPE):
+        A = as_batched_matrix(A, "A", name, dtype)
+        n = A.shape[-1]
+        if A.shape[1] != n:
+            raise DimensionError(f"block '{name}': A must be square, got shape {tuple(A.shape[1:])}")
+        B = as_batched_matrix(B, "B", name, dtype, rows=n)
+        C = as_batched_matrix(C, "C", name, dtype, cols=n)
+        D = as_batched_matrix(D, "D", name, dtype, rows=C.shape[1], cols=B.shape[2])
+        super().__init__(name, _ports(inputs, B.shape[2], "input", name),
+                         _ports(outputs, C.shape[1], "output", name))
+        if not dt or dt <= 0:
+            raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+        self.dt = float(dt)
+        self.n_states = n
+        for key, M in (("A", A), ("B", B), ("C", C), ("D", D)):
+            self.register_buffer(key, M)
+        x0 = torch.zeros(1, n, dtype=dtype) if x0 is None else torch.as_tensor(x0, dtype=dtype).reshape(-1, n)
+        self.register_buffer("x0", x0)
+        self.register_buffer("x", torch.zeros(0, n, dtype=dtype))
+        self._in_slices = self._slices(self.inputs)
+        self._out_slices = self._slices(self.outputs)
+        # Structural feedthrough: input p reaches output q at once where D's (q, p) block is nonzero.
+        self._feedthrough = {
+            q: tuple(p for p, cs in self._in_slices.items() if bool(D[:, rs, cs].abs().amax() > 0))
+            for q, rs in self._out_slices.items()}
+
+    @staticmethod
+    def _slices(ports: Mapping[str, int]) -> dict[str, slice]:
+        out, start = {}, 0
+        for p, w in ports.items():
+            out[p] = slice(start, start + w)
+            start += w
+        return out
+
+    # --- constructors ---------------------------------------------------------------------------------
+    @classmethod
+    def from_control(cls, sys, inputs, outputs, dt: float | None = None, name: str = "lti", x0=None,
+                     dtype=DEFAULT_DTYPE) -> LTI:
+        """From a python-control ``StateSpace`` or ``TransferFunction``. A continuous system is discretized
+        by zero-order hold at ``dt``; a discrete one keeps its own sample time (``dt`` must agree)."""
+        if isinstance(sys, control.TransferFunction):
+            sys = control.tf2ss(sys)
+        if not isinstance(sys, control.StateSpace):
+            raise ConfigError(f"block '{name}': expected a control.StateSpace or TransferFunction, "
+                              f"got {type(sys).__name__}")
+        if sys.isctime(strict=True):
+            if dt is None:
+                raise ConfigError(f"block '{name}': a continuous system needs dt for its ZOH discretization")
+            sys = control.sample_system(sys, dt, method="zoh")
+        elif sys.dt not in (None, True) and dt is not None and not np.isclose(sys.dt, dt):
+            raise ConfigError(f"block '{name}': system sample time {sys.dt} differs from dt={dt}")
+        dt = dt if dt is not None else sys.dt
+        return cls(sys.A, sys.B, sys.C, sys.D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+
+    @classmethod
+    def continuous(cls, A, B, C, D, inputs, outputs, dt: float, name: str = "lti", x0=None,
+                   dtype=DEFAULT_DTYPE) -> LTI:
+        """From continuous matrices (shared or per member), ZOH-discretized in torch at ``dt``."""
+        if not dt or dt <= 0:
+            raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+        A = as_batched_matrix(A, "A", name, dtype)
+        B = as_batched_matrix(B, "B", name, dtype, rows=A.shape[-1])
+        Ad, Bd = zoh(A, B, dt, dtype)
+        return cls(Ad, Bd, C, D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+
+    # --- block protocol -------------------------------------------------------------------------------
+    def feedthrough(self):
+        return dict(self._feedthrough)
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        for key in ("A", "B", "C", "D", "x0"):
+            self.check_batch(getattr(self, key), key)
+        self.x = self.x0.expand(batch_size, -1).clone()
+
+    def output(self, port, inputs):
+        rows = self._out_slices[port]
+        y = matvec(self.C[:, rows], self.x)
+        for p in self._feedthrough[port]:
+            y = y + matvec(self.D[:, rows, self._in_slices[p]], inputs[p])
+        return y
+
+    def update(self, inputs):
+        x = matvec(self.A, self.x)
+        for p, cs in self._in_slices.items():
+            x = x + matvec(self.B[:, :, cs], inputs[p])
+        self.set_state(x=x)
+
+    # --- analysis -------------------------------------------------------------------------------------
+    def markov(self, input: str, output: str, n: int) -> torch.Tensor:
+        """Markov parameters H_0 = D, H_i = C A^(i-1) B of the map ``input -> output``, i = 0..n-1:
+        a (Bp, n, rows, cols) tensor (impulse response of the discrete system)."""
+        for p, ports, kind in ((input, self._in_slices, "input"), (output, self._out_slices, "output")):
+            if p not in ports:
+                raise ConfigError(f"block '{self.name}' has no {kind} port '{p}'; its {kind}s are {list(ports)}")
+        cs, rs = self._in_slices[input], self._out_slices[output]
+        A, B, C = self.A, self.B[:, :, cs], self.C[:, rs]
+        Bp = max(A.shape[0], B.shape[0], C.shape[0])
+        H = [self.D[:, rs, cs].expand(Bp, -1, -1)]
+        AkB = B.expand(Bp, -1, -1)
+        for _ in range(1, n):
+            H.append(C @ AkB)
+            AkB = A @ AkB
+        return torch.stack(H[:n], dim=1)
+
+    def to_control(self, member: int = 0) -> control.StateSpace:
+        """The discrete system of one batch member as a python-control ``StateSpace`` with its dt."""
+        pick = (lambda M: M[member if M.shape[0] > 1 else 0].detach().cpu().numpy())
+        return control.ss(pick(self.A), pick(self.B), pick(self.C), pick(self.D), self.dt,
+                          inputs=[f"{p}[{i}]" if w > 1 else p for p, w in self.inputs.items() for i in range(w)],
+                          outputs=[f"{p}[{i}]" if w > 1 else p for p, w in self.outputs.items() for i in range(w)])

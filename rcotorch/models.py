@@ -1,0 +1,47 @@
+"""Physical models used as known subsystems: mass-spring-damper structures with named signals."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import control
+import numpy as np
+
+SIGNALS = ("position", "velocity")
+
+
+def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], force_u=None,
+              actuation: bool = True) -> control.StateSpace:
+    """Continuous structure M q'' + C q' + K q = F_w w + F_u u, state [q, q'].
+
+    Outputs are ``measured`` then ``sees`` (the signals the unknown subsystem acts on), each an entry
+    'position[i]' / 'velocity[i]' (or 'position' / 'velocity' for one degree of freedom). Inputs are w and,
+    if ``actuation``, u (the unknown subsystem's forces, F_u = I by default).
+    """
+    M, C, K = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (M, C, K))
+    n = M.shape[0]
+    Minv = np.linalg.inv(M)
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    Fw = np.asarray(force_w, dtype=float).reshape(n, -1)
+    cols = [Fw]
+    if actuation:
+        cols.append(np.eye(n) if force_u is None else np.asarray(force_u, dtype=float).reshape(n, -1))
+    Bm = np.vstack([np.zeros((n, sum(c.shape[1] for c in cols))), Minv @ np.hstack(cols)])
+
+    def row(sig: str) -> np.ndarray:
+        kind, _, idx = sig.partition("[")
+        i = int(idx.rstrip("]")) if idx else 0
+        if kind not in SIGNALS or i >= n:
+            raise ValueError(f"unknown structure signal {sig!r}: use position[i] or velocity[i], i < {n}")
+        r = np.zeros(2 * n)
+        r[i if kind == "position" else n + i] = 1.0
+        return r
+
+    Cm = np.array([row(s) for s in list(measured) + list(sees)])
+    return control.ss(A, Bm, Cm, np.zeros((Cm.shape[0], Bm.shape[1])))
+
+
+def sdof(m: float, c: float, k: float, measured=("velocity",), sees=("position", "velocity"),
+         actuation: bool = True) -> control.StateSpace:
+    """Single-degree-of-freedom m x'' + c x' + k x = w + u."""
+    return structure([[m]], [[c]], [[k]], [1.0], measured, sees, actuation=actuation)

@@ -1,0 +1,56 @@
+"""Counter-based random numbers: a sample is a pure function of (seed, member, step, component).
+
+A stream therefore needs no generator state (checkpoints hold only the step counter), is the same on CPU
+and CUDA, and member b of a batched run draws exactly what a batch-of-one run with the same seed and
+member index draws, so a sweep equals its separate runs member by member.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+_MASK32 = 0xFFFFFFFF
+
+
+def _mul32(x: torch.Tensor, c: int) -> torch.Tensor:
+    """(x * c) mod 2**32 for 0 <= x < 2**32 without int64 overflow (split c into 16-bit halves)."""
+    lo, hi = c & 0xFFFF, c >> 16
+    return (x * lo + (((x * hi) & 0xFFFF) << 16)) & _MASK32
+
+
+def _mix32(x: torch.Tensor) -> torch.Tensor:
+    """A 32-bit integer finalizer with good avalanche (xor-shift-multiply, constants 0x7feb352d, 0x846ca68b)."""
+    x = x ^ (x >> 16)
+    x = _mul32(x, 0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = _mul32(x, 0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def hash32(*keys: torch.Tensor | int) -> torch.Tensor:
+    """Combine integer keys (broadcast) into uniformly distributed 32-bit integers (int64 tensor)."""
+    h = None
+    for key in keys:
+        k = torch.as_tensor(key, dtype=torch.int64) if not isinstance(key, torch.Tensor) else key.long()
+        k = k & _MASK32
+        h = _mix32(k ^ 0x9E3779B9) if h is None else _mix32(h ^ _mix32(k + 0x632BE5AB))
+    return h
+
+
+def uniform(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
+    """Uniform samples in the open interval (0, 1), 53 random bits from two hashes."""
+    a = hash32(*keys, 0x1B873593)
+    b = hash32(*keys, 0x5BD1E995)
+    hi = (a >> 5).to(torch.float64)  # 27 bits
+    lo = (b >> 6).to(torch.float64)  # 26 bits
+    u = (hi * 67108864.0 + lo + 0.5) / 9007199254740992.0
+    return u.to(dtype)
+
+
+def normal(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
+    """Standard normal samples by the Box-Muller transform of two keyed uniforms."""
+    u1 = uniform(*keys, 1, dtype=torch.float64)
+    u2 = uniform(*keys, 2, dtype=torch.float64)
+    return (torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)).to(dtype)

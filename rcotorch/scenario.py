@@ -1,0 +1,143 @@
+"""Scenarios: a named, reproducible refinement with default settings, truth, estimates and acceptance bounds.
+
+A scenario file in ``scenarios/`` defines ``SCENARIO``, an instance of a ``Scenario`` subclass. The runner
+(``rcotorch.runner``) builds its graph, steps it, logs it and writes ``summary.json`` with the keys the
+scenario declares.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .errors import ConfigError
+from .graph import Graph
+
+
+@dataclass(frozen=True)
+class Requirement:
+    """``key`` (e.g. 'estimates.dK' or 'metrics.freq_rel_err_max') must satisfy the bound.
+
+    kind 'abs_err': |value - truth| < bound; 'rel_err': |value - truth| / |truth| < bound;
+    'max': value < bound (or <= when ``inclusive``); 'min': value >= bound.
+    """
+
+    key: str
+    kind: str
+    bound: float
+    inclusive: bool = False
+
+    def check(self, value: float, truth: float | None = None) -> tuple[float, bool]:
+        """Return (the checked quantity, pass)."""
+        if self.kind == "abs_err":
+            q = abs(value - truth)
+        elif self.kind == "rel_err":
+            q = abs(value - truth) / abs(truth)
+        else:
+            q = value
+        if q != q:  # NaN
+            return q, False
+        if self.kind == "min":
+            return q, q >= self.bound
+        return q, (q <= self.bound if self.inclusive else q < self.bound)
+
+    def describe(self) -> str:
+        op = {"abs_err": "|err| <", "rel_err": "rel err <", "max": "<=" if self.inclusive else "<",
+              "min": ">="}[self.kind]
+        return f"{op} {self.bound:g}"
+
+
+class Scenario:
+    """Base class. Subclasses set the class attributes and implement ``build``, ``estimates`` and ``truth``."""
+
+    name: str = ""
+    section: str = ""
+    description: str = ""
+    steps: int = 10000
+    settings: Mapping[str, Any] = {}
+    requirements: tuple[Requirement, ...] = ()
+
+    def resolve(self, overrides: Mapping[str, Any] | None = None, seed: int | None = None) -> dict[str, Any]:
+        """Default settings with overrides applied (unknown names and wrong types rejected)."""
+        out = dict(self.settings)
+        for key, value in dict(overrides or {}).items():
+            if key not in out:
+                raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(out)}")
+            out[key] = _coerce(self.name, key, value, out[key])
+        if seed is not None:
+            out["seed"] = int(seed)
+        return out
+
+    def build(self, settings: Mapping[str, Any], batch: int, dtype: torch.dtype, device) -> Graph:
+        raise NotImplementedError
+
+    def truth(self, settings: Mapping[str, Any]) -> dict[str, float]:
+        return {}
+
+    def estimates(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """Current estimates, each a (B,) tensor (physical units)."""
+        raise NotImplementedError
+
+    def metrics(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """Final metrics, each a (B,) tensor."""
+        return {}
+
+    def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
+        """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
+        return {}
+
+
+def _coerce(scenario: str, key: str, value, default):
+    if isinstance(value, str) and not isinstance(default, str):
+        try:
+            value = type(default)(float(value)) if isinstance(default, (int, float)) and not \
+                isinstance(default, bool) else value
+        except ValueError:
+            raise ConfigError(f"scenario '{scenario}': setting {key}={value!r} is not a number") from None
+        if isinstance(default, bool):
+            value = value.lower() in ("1", "true", "yes")
+    if isinstance(default, int) and not isinstance(default, bool) and isinstance(value, float):
+        if value != int(value):
+            raise ConfigError(f"scenario '{scenario}': setting {key} must be an integer, got {value}")
+        value = int(value)
+    if isinstance(default, (int, float)) and not isinstance(value, (int, float)):
+        raise ConfigError(f"scenario '{scenario}': setting {key} must be a number, got {value!r}")
+    return value
+
+
+def scenario_dirs() -> list[Path]:
+    dirs = [Path(p) for p in os.environ.get("RCOTORCH_SCENARIOS", "").split(os.pathsep) if p]
+    dirs.append(Path(__file__).resolve().parents[1] / "scenarios")
+    return [d for d in dirs if d.is_dir()]
+
+
+def available() -> dict[str, Scenario]:
+    """All scenarios found in the scenario directories, by name."""
+    found: dict[str, Scenario] = {}
+    for d in scenario_dirs():
+        for path in sorted(d.glob("*.py")):
+            if path.name.startswith("_"):
+                continue
+            spec = importlib.util.spec_from_file_location(f"rcotorch_scenario_{path.stem}", path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            sc = getattr(module, "SCENARIO", None)
+            if isinstance(sc, Scenario):
+                found.setdefault(sc.name, sc)
+    return found
+
+
+def get(name: str) -> Scenario:
+    found = available()
+    if name not in found:
+        import difflib
+        close = difflib.get_close_matches(name, list(found), n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise ConfigError(f"no scenario named {name!r}{hint}; available: {sorted(found)}")
+    return found[name]
