@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,6 +122,8 @@ def available() -> dict[str, Scenario]:
     """All scenarios found in the scenario directories, by name."""
     found: dict[str, Scenario] = {}
     for d in scenario_dirs():
+        if str(d) not in sys.path:  # scenario files may build on their siblings
+            sys.path.append(str(d))
         for path in sorted(d.glob("*.py")):
             if path.name.startswith("_"):
                 continue

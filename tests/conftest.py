@@ -1,0 +1,35 @@
+"""Shared models for the rcotorch tests."""
+
+import control
+import numpy as np
+import pytest
+
+import rcotorch as rt
+
+SDOF_A = [[0.0, 1.0], [-30.0, -5.0]]     # m = 1, k = 30, c = 5; states (q, v)
+SDOF_B = [[0.0, 0.0], [1.0, 1.0]]        # inputs w (exogenous force), u (force of the unknown subsystem)
+
+
+@pytest.fixture
+def sdof_known():
+    """Factory for the SDOF known model of the seed paper, ZOH-discretized at ``dt``.
+
+    ``output='velocity'`` measures v and feeds v to the unknown subsystem (y = y0 = v); ``'position'`` uses q.
+    """
+
+    def make(dt=0.1, output="velocity", name="known"):
+        C = [[0.0, 1.0], [0.0, 1.0]] if output == "velocity" else [[1.0, 0.0], [1.0, 0.0]]
+        sys = control.ss(SDOF_A, SDOF_B, C, np.zeros((2, 2)))
+        return rt.LTI.from_control(sys, inputs=["w", "u"], outputs=["y", "y0"], dt=dt, name=name)
+
+    return make
+
+
+@pytest.fixture
+def zoh_first_order():
+    """Factory for ZOH(10 / (s + 2)) at ``dt`` as an LTI block with ports in -> out (the SDOF's unknown part)."""
+
+    def make(dt=0.1):
+        return rt.LTI.from_control(control.tf([10.0], [1.0, 2.0]), inputs=["in"], outputs=["out"], dt=dt)
+
+    return make

@@ -1,0 +1,175 @@
+"""Loading recorded data (CSV, NPZ), its checks, playback with gaps, and a Figure-1 run on data with a gap."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import rcotorch as rt
+
+SILVERBOX = Path(__file__).parents[2] / "shared/data/silverbox/SNLS80mV.csv"
+
+
+def _write(tmp_path, text, name="d.csv"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_csv_header_with_trailing_comma(tmp_path):
+    path = _write(tmp_path, "a,b,\n1,2,\n3,4.5,\n-1e-3,6,\n")
+    rec = rt.load(path, dt=0.5)
+    assert rec.columns == ["a", "b"]
+    np.testing.assert_array_equal(rec.values, [[1, 2], [3, 4.5], [-1e-3, 6]])
+    assert rec.valid is None and rec.dt == 0.5 and rec.first_row == 0 and rec.path == str(path)
+    np.testing.assert_array_equal(rec.column("b"), [2, 4.5, 6])
+
+
+def test_csv_quoted_header_and_spaces(tmp_path):
+    rec = rt.load(_write(tmp_path, '"V1","V2"\n 1.0 , 2.0\n'))
+    assert rec.columns == ["V1", "V2"]
+    np.testing.assert_array_equal(rec.values, [[1.0, 2.0]])
+
+
+def test_csv_empty_field_is_an_error_naming_file_row_column(tmp_path):
+    path = _write(tmp_path, "a,b\n1,2\n3,4\n5,\n7,8\n")
+    with pytest.raises(rt.DataError) as e:
+        rt.load(path)
+    msg = str(e.value)
+    assert str(path) in msg and "row 2" in msg and "'b'" in msg
+
+
+def test_csv_nonfinite_skip_marks_invalid_and_recorded_holds(tmp_path):
+    path = _write(tmp_path, "a,b\n1,2\n3,\n5,nan\n7,8\n")
+    rec = rt.load(path, on_nonfinite="skip")
+    np.testing.assert_array_equal(rec.valid, [[True, True], [True, False], [True, False], [True, True]])
+    blk = rt.Recorded(rec, {"w": "a", "y": "b"})
+    assert blk.outputs == {"w": 1, "y": 1, "valid": 1}
+    blk.reset(2)
+    outs = [blk.step() for _ in range(4)]
+    assert [o["y"][0, 0].item() for o in outs] == [2.0, 2.0, 2.0, 8.0]     # last valid value held
+    assert [o["w"][0, 0].item() for o in outs] == [1.0, 3.0, 5.0, 7.0]
+    assert [o["valid"][0, 0].item() for o in outs] == [1.0, 0.0, 0.0, 1.0]
+    assert outs[1]["y"].shape == (2, 1)
+    with pytest.raises(rt.DataError, match="past the end"):
+        blk.step()
+    # Without on_nonfinite='skip' a Recorded block refuses non-finite samples.
+    with pytest.raises(rt.DataError, match="non-finite"):
+        rt.Recorded(np.array([[1.0, np.inf]]), {"w": 0, "y": 1})
+    with pytest.raises(rt.DataError, match="on_nonfinite"):
+        rt.load(path, on_nonfinite="ignore")
+
+
+def test_csv_bad_number_names_row_and_column(tmp_path):
+    path = _write(tmp_path, "a,b\n1,2\n3,x4\n")
+    with pytest.raises(rt.DataError) as e:
+        rt.load(path)
+    msg = str(e.value)
+    assert str(path) in msg and "row 1" in msg and "'b'" in msg and "'x4'" in msg
+
+
+def test_csv_wrong_field_count_and_empty(tmp_path):
+    with pytest.raises(rt.DataError, match="row 1.*3 fields"):
+        rt.load(_write(tmp_path, "a,b\n1,2\n3,4,5\n"))
+    with pytest.raises(rt.DataError, match="empty"):
+        rt.load(_write(tmp_path, "", "e.csv"))
+    with pytest.raises(rt.DataError, match="no data rows"):
+        rt.load(_write(tmp_path, "a,b\n", "h.csv"))
+
+
+def test_column_selection_by_name_and_index(tmp_path):
+    path = _write(tmp_path, "a,b,c\n1,2,3\n4,5,6\n")
+    rec = rt.load(path, columns=["c", "a"])
+    assert rec.columns == ["c", "a"]
+    np.testing.assert_array_equal(rec.values, [[3, 1], [6, 4]])
+    rec = rt.load(path, columns=[1])
+    assert rec.columns == ["b"]
+    np.testing.assert_array_equal(rec.values, [[2], [5]])
+    with pytest.raises(rt.DataError, match="no column 'd'"):
+        rt.load(path, columns=["d"])
+    with pytest.raises(rt.DataError, match="column index 3 out of range"):
+        rt.load(path, columns=[3])
+    # Recorded picks columns by name or index too.
+    blk = rt.Recorded(rt.load(path), {"w": "c", "y": 0, "v": ["a", "b"]})
+    blk.reset(1)
+    out = blk.step()
+    assert out["w"].item() == 3.0 and out["y"].item() == 1.0 and out["v"].tolist() == [[1.0, 2.0]]
+
+
+def test_rows_split(tmp_path):
+    path = _write(tmp_path, "a,b\n" + "".join(f"{i},{10 * i}\n" for i in range(10)))
+    rec = rt.load(path, rows=(3, 7))
+    np.testing.assert_array_equal(rec.values[:, 0], [3, 4, 5, 6])
+    assert rec.first_row == 3
+    sub = rec.rows(4, 6)
+    np.testing.assert_array_equal(sub.values[:, 1], [40, 50])
+    assert sub.first_row == 4
+    with pytest.raises(rt.DataError, match="outside"):
+        rec.rows(2, 5)
+    with pytest.raises(rt.DataError, match="outside"):
+        rt.load(path, rows=(5, 11))
+    # Rows in errors are rows of the file, not of the split.
+    bad = _write(tmp_path, "a,b\n1,2\n3,4\n5,\n7,8\n", "bad.csv")
+    with pytest.raises(rt.DataError, match="row 2"):
+        rt.load(bad, rows=(1, 4))
+
+
+def test_missing_and_unsupported_file(tmp_path):
+    with pytest.raises(rt.DataError, match="no such file"):
+        rt.load(tmp_path / "nope.csv")
+    with pytest.raises(rt.DataError, match="unsupported"):
+        rt.load(_write(tmp_path, "a\n1\n", "d.txt"))
+
+
+def test_npz_dict_of_vectors_and_single_matrix(tmp_path):
+    x, y = np.arange(5.0), np.arange(5.0) ** 2
+    np.savez(tmp_path / "v.npz", x=x, y=y)
+    rec = rt.load(tmp_path / "v.npz")
+    assert rec.columns == ["x", "y"]
+    np.testing.assert_array_equal(rec.values, np.c_[x, y])
+    M = np.random.default_rng(0).standard_normal((6, 3))
+    np.savez(tmp_path / "m.npz", data=M)
+    rec = rt.load(tmp_path / "m.npz", columns=[2, 0])
+    assert rec.columns == ["data[2]", "data[0]"]
+    np.testing.assert_array_equal(rec.values, M[:, [2, 0]])
+    np.savez(tmp_path / "bad.npz", x=x, y=y[:3])
+    with pytest.raises(rt.DataError, match="different lengths"):
+        rt.load(tmp_path / "bad.npz")
+    np.savez(tmp_path / "bad2.npz", x=x, m=M)
+    with pytest.raises(rt.DataError, match="'m' has shape"):
+        rt.load(tmp_path / "bad2.npz")
+
+
+@pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
+def test_silverbox_file():
+    rec = rt.load(SILVERBOX)
+    assert rec.columns == ["V1", "V2"]
+    assert rec.values.shape == (131072, 2)
+    assert rec.valid is None
+    np.testing.assert_array_equal(rec.values[0], [0.0057756, 0.0093978])
+
+
+def test_figure1_on_data_skips_update_at_gap(tmp_path, sdof_known):
+    rng = np.random.default_rng(4)
+    T, gap = 60, 30
+    w, y = rng.standard_normal(T), rng.standard_normal(T)
+    lines = [f"{a:.17g},{b:.17g}" if k != gap else f"{a:.17g}," for k, (a, b) in enumerate(zip(w, y))]
+    path = _write(tmp_path, "w,y\n" + "\n".join(lines) + "\n")
+    rec = rt.load(path, on_nonfinite="skip", dt=0.1)
+    data = rt.Recorded(rec, {"w": "w", "y": "y"}, name="data")
+    est = rt.RCOEstimator({"y0": 1}, nc=2, p0=100.0)
+    g = rt.refinement(sdof_known(0.1), est, data=data, nu=5, batch_size=2)
+    assert g.sources[("identified", "valid")] == ("data", "valid")
+    assert g.max_steps == T
+    g.run(gap)
+    theta, P = est.theta.clone(), est.P.clone()
+    sig = g.step()                                              # the sample at the gap
+    assert sig[("data", "valid")].flatten().tolist() == [0.0, 0.0]
+    assert sig[("data", "y")].flatten().tolist() == [y[gap - 1]] * 2
+    assert torch.equal(est.theta, theta) and torch.equal(est.P, P)
+    g.step()                                                    # the next, valid sample updates again
+    assert not torch.equal(est.theta, theta)
+    assert bool(est.alive.all())
+    with pytest.raises(rt.ConfigError, match="recorded data gives 60 samples"):
+        g.run(T)

@@ -1,0 +1,204 @@
+"""The RCO estimator: its transfer function, structure (static gain, mask), convergence and divergence handling."""
+
+import control
+import numpy as np
+import pytest
+import torch
+
+import rcotorch as rt
+
+DT = 0.1
+OMEGA = np.array([0.0, 0.05, 0.7, 3.0, 9.0, np.pi / DT - 1e-3])
+
+
+def _fixed(est, theta):
+    """Reset a batch of one and set theta by hand."""
+    est.reset(1)
+    est.theta.copy_(torch.as_tensor(theta, dtype=torch.float64).reshape(est.theta.shape))
+    return est
+
+
+def test_siso_transfer_function_closed_form():
+    # u(k) = 0.5 y0(k-1) + 0.3 u(k-1)  ->  0.5 / (z - 0.3), DC gain 0.5 / 0.7.
+    est = _fixed(rt.RCOEstimator({"y0": 1}, nc=1, markov=[[[1.0]]], dt=DT), [0.5, 0.3])
+    assert est.phi_names == ["y0(k-1)", "u(k-1)"]
+    z = np.exp(1j * OMEGA * DT)
+    ref = 0.5 / (z - 0.3)
+    np.testing.assert_allclose(est.frequency_response(OMEGA)[0, :, 0, 0].numpy(), ref, rtol=1e-13)
+    tf = est.to_control(0)
+    assert tf.dt == DT
+    np.testing.assert_allclose(np.asarray(tf(z)).reshape(-1), ref, rtol=1e-13)
+    np.testing.assert_allclose(est.dc_gain()[0, 0, 0].item(), 0.5 / 0.7, rtol=1e-14)
+    np.testing.assert_allclose(tf.dcgain(), 0.5 / 0.7, rtol=1e-14)
+
+
+def test_controller_output_is_the_transfer_functions_impulse_response():
+    """Stepping the estimator with theta held (valid = 0 skips the update) realizes its own transfer function."""
+    theta = [0.5, -0.2, 0.3, 0.1]                     # y0(k-1), y0(k-2), u(k-1), u(k-2)
+    est = _fixed(rt.RCOEstimator({"y0": 1}, nc=2, markov=[[[1.0]]], dt=DT), theta)
+    n = 15
+    u = []
+    for k in range(n):
+        y0 = torch.full((1, 1), 1.0 if k == 0 else 0.0, dtype=torch.float64)
+        u.append(est.step(y0=y0, z=torch.ones(1, 1, dtype=torch.float64),
+                          valid=torch.zeros(1, 1, dtype=torch.float64))["u"].item())
+    assert torch.equal(est.theta.flatten(), torch.tensor(theta, dtype=torch.float64))
+    ref_tf = control.tf([0.0, 0.5, -0.2], [1.0, -0.3, -0.1], DT)
+    ref = control.impulse_response(ref_tf, T=np.arange(n) * DT).outputs * DT
+    np.testing.assert_allclose(u, ref, rtol=1e-12, atol=1e-15)
+
+
+def test_mimo_frequency_response_and_to_control():
+    rng = np.random.default_rng(3)
+    nc = 2
+    est = rt.RCOEstimator({"a": 1, "b": 1}, n_u=2, nc=nc, markov=np.ones((1, 1, 2)), dt=DT)
+    theta = 0.3 * rng.standard_normal((2, est.n_phi))
+    _fixed(est, theta)
+    # Reference from the definition of phi (by name): u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l).
+    pos = {name: j for j, name in enumerate(est.phi_names)}
+    z = np.exp(1j * OMEGA * DT)
+    ref = []
+    for zk in z:
+        num = np.zeros((2, 2), complex)
+        den = np.eye(2, dtype=complex)
+        for lag in range(1, nc + 1):
+            for j, s in enumerate("ab"):
+                num[:, j] += theta[:, pos[f"{s}(k-{lag})"]] * zk ** -lag
+            for c in range(2):
+                den[:, c] -= theta[:, pos[f"u[{c}](k-{lag})"]] * zk ** -lag
+        ref.append(np.linalg.solve(den, num))
+    ref = np.array(ref)
+    np.testing.assert_allclose(est.frequency_response(OMEGA)[0].numpy(), ref, rtol=1e-11, atol=1e-13)
+    sys = est.to_control(0)
+    resp = np.moveaxis(np.asarray(sys(z)), -1, 0)                    # (F, outputs, inputs)
+    np.testing.assert_allclose(resp, ref, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(est.dc_gain()[0].numpy(), ref[0].real, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(sys.dcgain(), ref[0].real, rtol=1e-8, atol=1e-10)
+
+
+def test_static_gain_structure():
+    est = rt.RCOEstimator.static_gain({"q": 2}, n_u=2, markov=np.ones((3, 1, 2)), dt=DT)
+    assert est.proper and est.nc == 0 and not est.feed_u
+    assert est.phi_names == ["q[0](k)", "q[1](k)"]
+    assert est.feedthrough() == {"u": ("q",)}
+    K = np.array([[2.0, -1.0], [0.5, 3.0]])
+    _fixed(est, K)
+    np.testing.assert_allclose(est.dc_gain()[0].numpy(), K, rtol=0, atol=0)
+    np.testing.assert_allclose(est.frequency_response(OMEGA)[0].numpy(), np.broadcast_to(K, (len(OMEGA), 2, 2)))
+    np.testing.assert_allclose(est.to_control(0).dcgain(), K, rtol=1e-14)
+    # u(k) = K q(k) at once.
+    q = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
+    u = est.step(q=q, z=torch.zeros(1, 1, dtype=torch.float64), valid=torch.zeros(1, 1, dtype=torch.float64))["u"]
+    np.testing.assert_allclose(u.numpy(), q.numpy() @ K.T, rtol=1e-15)
+
+
+def test_mask_pins_entries_to_zero():
+    mask = [[True, False], [False, True]]
+    theta0 = [[1.0, 7.0], [7.0, 2.0]]                                    # masked entries are dropped
+    est = rt.RCOEstimator.static_gain({"q": 2}, n_u=2, n_z=2, mask=mask, theta0=theta0, p0=100.0,
+                                      markov=np.random.default_rng(0).standard_normal((4, 2, 2)))
+    assert est.n_theta == 2 and est.theta_names == ["0:q[0](k)", "1:q[1](k)"]
+    B = 3
+    est.reset(B)
+    assert est.P.shape == (B, 2, 2)
+    assert torch.equal(est.theta[:, 0, 1], torch.zeros(B, dtype=torch.float64))
+    g = torch.Generator().manual_seed(1)
+    for _ in range(50):
+        est.step(q=torch.randn(B, 2, generator=g, dtype=torch.float64),
+                 z=torch.randn(B, 2, generator=g, dtype=torch.float64))
+    assert bool(est.alive.all())
+    assert torch.equal(est.theta[:, 0, 1], torch.zeros(B, dtype=torch.float64))
+    assert torch.equal(est.theta[:, 1, 0], torch.zeros(B, dtype=torch.float64))
+    assert bool((est.theta[:, 0, 0] != 1.0).all()) and bool((est.theta[:, 1, 1] != 2.0).all())
+    assert torch.isfinite(est.theta).all()
+
+
+def test_bad_mask_shape_and_settings():
+    with pytest.raises(rt.DimensionError, match="mask"):
+        rt.RCOEstimator({"y0": 1}, nc=2, mask=[[True, False]])
+    with pytest.raises(rt.ConfigError, match="p0"):
+        rt.RCOEstimator({"y0": 1}, p0=0.0)
+    with pytest.raises(rt.ConfigError, match="lam"):
+        rt.RCOEstimator({"y0": 1}, lam=1.5)
+    with pytest.raises(rt.ConfigError, match="algebraic loop"):
+        rt.RCOEstimator.static_gain({"y0": 1}, markov=[[[1.0]]], first_delay=0)
+    with pytest.raises(rt.ConfigError, match="Markov"):
+        rt.RCOEstimator({"y0": 1}).reset(1)
+
+
+def test_figure1_sdof_converges(sdof_known, zoh_first_order):
+    est = rt.RCOEstimator({"y0": 1}, nc=5, p0=1e8)
+    g = rt.refinement(sdof_known(DT), est, truth=zoh_first_order(DT), excitation=rt.WhiteNoise(1, seed=1),
+                      nu=10, batch_size=1)
+    g.run(3000)
+    assert bool(est.alive.all())
+    assert abs(est.dc_gain()[0, 0, 0].item() - 5.0) < 0.05
+    # The frequency response approaches ZOH(10 / (s + 2)) too.
+    z = np.exp(1j * OMEGA[1:] * DT)
+    ref = np.asarray(control.sample_system(control.tf([10.0], [1.0, 2.0]), DT, "zoh")(z))
+    np.testing.assert_allclose(est.frequency_response(OMEGA[1:])[0, :, 0, 0].numpy(), ref, rtol=1e-2)
+
+
+def test_static_gain_recovers_discrete_truth(sdof_known):
+    """A discrete truth u(k) = -0.5 q(k) lies in the model class of a static gain: the estimate is exact."""
+    est = rt.RCOEstimator.static_gain({"y0": 1}, p0=1e8)
+    g = rt.refinement(sdof_known(0.05, "position"), est, truth=rt.Gain(-0.5),
+                      excitation=rt.WhiteNoise(1, seed=3), nu=20)
+    g.run(1000)
+    assert abs(est.theta.item() + 0.5) < 1e-3
+
+
+# --- divergence ------------------------------------------------------------------------------------------
+
+def _per_member_truth(poles):
+    """ZOH(10 / (s + 2)) at DT per member, with the pole replaced: a pole outside the unit circle blows up."""
+    b = 10.0 * (1.0 - np.exp(-2.0 * DT)) / 2.0
+    n = len(poles)
+    return rt.LTI(np.reshape(poles, (n, 1, 1)), [[b]], [[1.0]], [[0.0]], ["in"], ["out"], DT)
+
+
+def _divergence_run(known, poles, seeds, steps=400):
+    est = rt.RCOEstimator({"y0": 1}, nc=2, p0=1e4)
+    g = rt.refinement(known, est, truth=_per_member_truth(poles), excitation=rt.WhiteNoise(1, seed=seeds),
+                      nu=10, batch_size=len(poles))
+    tr = g.run(steps, record={"u": "identified.u", "z": "error.out", "y": "plant.y"})
+    return est, tr
+
+
+def test_diverging_member_is_frozen_and_others_unaffected(sdof_known):
+    a = np.exp(-2.0 * DT)
+    poles, seeds = [a, 0.9 * a, 10.0, 0.8 * a], [11, 12, 13, 14]
+    good = [0, 1, 3]
+    est4, tr4 = _divergence_run(sdof_known(DT), poles, seeds)
+    est3, tr3 = _divergence_run(sdof_known(DT), [poles[i] for i in good], [seeds[i] for i in good])
+    assert est4.alive.tolist() == [True, True, False, True]
+    assert int(est4.diverged_at[2]) >= 0
+    assert est4.diverged_at[good].tolist() == [-1, -1, -1]
+    assert not torch.isfinite(tr4["y"][:, 2]).all()                  # the bad physical system did blow up
+    assert torch.isfinite(est4.theta).all() and torch.isfinite(est4.P).all()
+    assert torch.isfinite(tr4["u"]).all()
+    assert (tr4["u"][int(est4.diverged_at[2]) + 1:, 2] == 0).all()   # a frozen member outputs u = 0
+    for key in ("u", "z", "y"):
+        assert torch.isfinite(tr4[key][:, good]).all()
+        assert torch.equal(tr4[key][:, good], tr3[key])
+    assert torch.equal(est4.theta[good], est3.theta)
+    assert torch.equal(est4.P[good], est3.P)
+    assert bool(est3.alive.all())
+
+
+def test_nan_measurement_freezes_member(sdof_known):
+    """A NaN injected into one member's z stops that member at that step, theta and P held."""
+    est = rt.RCOEstimator({"y0": 1}, nc=2, p0=1e4, markov=[[[-0.1]]], dt=DT)
+    B = 4
+    est.reset(B)
+    g = torch.Generator().manual_seed(0)
+    for k in range(30):
+        z = torch.randn(B, 1, generator=g, dtype=torch.float64)
+        if k == 20:
+            z[1] = float("nan")
+            theta_before, P_before = est.theta[1].clone(), est.P[1].clone()
+        est.step(y0=torch.randn(B, 1, generator=g, dtype=torch.float64), z=z)
+    assert est.alive.tolist() == [True, False, True, True]
+    assert est.diverged_at.tolist() == [-1, 20, -1, -1]
+    assert torch.equal(est.theta[1], theta_before) and torch.equal(est.P[1], P_before)
+    assert torch.isfinite(est.theta).all()
