@@ -1,12 +1,11 @@
 """rcotorch: data-based model refinement with retrospective cost optimization (RCMR), batched in PyTorch."""
 
-from . import rng
+from . import models, rng
 from .blocks import Block, Gain, Sum
 from .data import Recording, load
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
 from .estimator import RCOEstimator
 from .graph import Graph, derive_markov, refinement
-from . import models
 from .lti import LTI, zoh
 from .rls import rls_update
 from .sources import Recorded, WhiteNoise

@@ -23,7 +23,7 @@ held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where t
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import control
 import numpy as np
@@ -107,7 +107,7 @@ class RCOEstimator(Block):
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
         self.register_buffer("beta_t", torch.zeros(1, 0, 0, dtype=dtype))  # beta as (Bp, n_z * n_u, nu)
         self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
-        self.window = 1
+        self.window = 0  # first_delay + nu once Markov parameters are set
         if markov is not None:
             self.set_markov(markov, first_delay)
         # Per-member state (created by reset).
@@ -183,9 +183,6 @@ class RCOEstimator(Block):
 
     def reset(self, batch_size: int) -> None:
         super().reset(batch_size)
-        if self.beta.shape[1] == 0:
-            raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov= or build the graph "
-                              "with rcotorch.refinement, which derives them from the known model")
         for key in ("p0", "lam", "theta0", "beta"):
             self.check_batch(getattr(self, key), key)
         B, dt, dev = batch_size, self.theta0.dtype, self.theta0.device
@@ -195,7 +192,7 @@ class RCOEstimator(Block):
         nc1 = max(self.nc, 1)
         self.past = torch.zeros(B, nc1, self.n_sig, dtype=dt, device=dev)
         self.past_u = torch.zeros(B, nc1, self.n_u, dtype=dt, device=dev)
-        self.win = torch.zeros(B, self.window, self.n_phi + self.n_u, dtype=dt, device=dev)
+        self.win = torch.zeros(B, max(self.window, 1), self.n_phi + self.n_u, dtype=dt, device=dev)
         self.phi_now = torch.zeros(B, self.n_phi, dtype=dt, device=dev)
         self.u_now = torch.zeros(B, self.n_u, dtype=dt, device=dev)
         self.z_r = torch.zeros(B, self.n_z, dtype=dt, device=dev)
@@ -217,6 +214,12 @@ class RCOEstimator(Block):
         return u
 
     def update(self, inputs):
+        if self.win.shape[1] != self.window:
+            if self.window == 0:
+                raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov=, call set_markov() "
+                                  "(e.g. with Graph.markov('identified.u', 'error.out', n)), or build the graph "
+                                  "with rcotorch.refinement, which derives them from the known model")
+            raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
         B, n_phi = self.batch_size, self.n_phi
         # Ring buffer of [phi(k-i), u(k-i)]: position k mod window holds time k.
         self.win[:, self.k % self.window] = torch.cat([self.phi_now, self.u_now], dim=1)

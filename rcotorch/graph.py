@@ -211,7 +211,8 @@ class Graph(nn.Module):
         copy of the graph: impulses of size ``eps`` in each channel of ``src`` against a baseline run, with
         the block owning ``src`` frozen. Exact for linear paths. Returns (B, n, width(dst), width(src))."""
         s, d = _split(src), _split(dst)
-        w_in, w_out = self._port(s, "output"), self._port(d, "output")
+        w_in = self._port(s, "output")
+        self._port(d, "output")
         B = self.batch_size
         probe = copy.deepcopy(self)
         runs = []

@@ -9,7 +9,7 @@ given per member (leading batch dimension), so a sweep over physical parameters 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import control
 import numpy as np
@@ -162,7 +162,8 @@ class LTI(Block):
 
     def to_control(self, member: int = 0) -> control.StateSpace:
         """The discrete system of one batch member as a python-control ``StateSpace`` with its dt."""
-        pick = (lambda M: M[member if M.shape[0] > 1 else 0].detach().cpu().numpy())
-        return control.ss(pick(self.A), pick(self.B), pick(self.C), pick(self.D), self.dt,
+        A, B, C, D = (M[member if M.shape[0] > 1 else 0].detach().cpu().numpy()
+                      for M in (self.A, self.B, self.C, self.D))
+        return control.ss(A, B, C, D, self.dt,
                           inputs=[f"{p}[{i}]" if w > 1 else p for p, w in self.inputs.items() for i in range(w)],
                           outputs=[f"{p}[{i}]" if w > 1 else p for p, w in self.outputs.items() for i in range(w)])

@@ -95,21 +95,24 @@ class Scenario:
 
 
 def _coerce(scenario: str, key: str, value, default):
-    if isinstance(value, str) and not isinstance(default, str):
+    """Convert an override (often a command-line string) to the type of the default value."""
+    if isinstance(default, bool):
+        if isinstance(value, str):
+            if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                raise ConfigError(f"scenario '{scenario}': setting {key} must be true or false, got {value!r}")
+            return value.lower() in ("1", "true", "yes")
+        return bool(value)
+    if isinstance(default, (int, float)):
         try:
-            value = type(default)(float(value)) if isinstance(default, (int, float)) and not \
-                isinstance(default, bool) else value
-        except ValueError:
-            raise ConfigError(f"scenario '{scenario}': setting {key}={value!r} is not a number") from None
-        if isinstance(default, bool):
-            value = value.lower() in ("1", "true", "yes")
-    if isinstance(default, int) and not isinstance(default, bool) and isinstance(value, float):
-        if value != int(value):
-            raise ConfigError(f"scenario '{scenario}': setting {key} must be an integer, got {value}")
-        value = int(value)
-    if isinstance(default, (int, float)) and not isinstance(value, (int, float)):
-        raise ConfigError(f"scenario '{scenario}': setting {key} must be a number, got {value!r}")
-    return value
+            number = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"scenario '{scenario}': setting {key} must be a number, got {value!r}") from None
+        if isinstance(default, int):
+            if number != int(number):
+                raise ConfigError(f"scenario '{scenario}': setting {key} must be an integer, got {value!r}")
+            return int(number)
+        return number
+    return type(default)(value) if default is not None else value
 
 
 def scenario_dirs() -> list[Path]:

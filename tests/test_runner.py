@@ -1,0 +1,147 @@
+"""Runs end to end: CLI, summary.json keys, TensorBoard events, checkpoint/resume, float32, bad settings."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from rcotorch import ConfigError
+from rcotorch.cli import main
+from rcotorch.runner import Run
+
+
+def _scalars(directory):
+    acc = EventAccumulator(str(directory), size_guidance={"scalars": 0, "histograms": 0, "images": 0})
+    acc.Reload()
+    return acc
+
+
+def test_cli_run_writes_summary_events_and_figures(tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = main(["run", "sdof-stiffness", "--steps", "400", "--out", str(out), "--quiet"])
+    assert rc in (0, 1)  # 400 steps need not meet the requirement
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("scenario", "steps", "batch", "dtype", "device", "estimates", "truth", "metrics", "settings"):
+        assert key in summary
+    assert summary["scenario"] == "sdof-stiffness" and summary["steps"] == 400 and summary["batch"] == 1
+    assert summary["dtype"] == "float64" and summary["device"] == "cpu"
+    assert set(summary["estimates"]) == {"dK", "dC"} and summary["truth"] == {"dK": 0.5, "dC": 0.0}
+    for key in ("Ts", "nc", "p0", "lam", "nu", "seed"):
+        assert key in summary["settings"]
+    assert (out / "estimates.png").stat().st_size > 1000
+    printed = capsys.readouterr().out
+    assert "estimates.dK" in printed and "truth" in printed
+
+
+def test_tensorboard_events_hold_tags_and_values(tmp_path):
+    run = Run("sdof-stiffness", steps=600, batch=2, out=tmp_path, log_every=50)
+    run.advance(progress=False)
+    summary = run.finish()
+    acc = _scalars(tmp_path)
+    tags = set(acc.Tags()["scalars"])
+    for tag in ("z/rms", "z/member_0", "z/member_1", "estimate/dK/mean", "estimate/dK/member_1", "truth/dK",
+                "error/dK", "theta/y0[0](k)", "batch/diverged"):
+        assert tag in tags, (tag, sorted(tags))
+    truth = acc.Scalars("truth/dK")
+    assert len(truth) == 12 and all(e.value == pytest.approx(0.5) for e in truth)
+    assert [e.step for e in truth] == list(range(50, 601, 50))
+    last = acc.Scalars("estimate/dK/member_1")[-1]
+    assert last.step == 600 and last.value == pytest.approx(summary["estimates"]["dK"][1], rel=1e-6)
+    ident = run.graph.blocks["identified"]
+    th = acc.Scalars("theta/y0[1](k)")[-1].value
+    assert th == pytest.approx(float(ident.theta[:, 0, 1].mean()), rel=1e-6)
+    assert "figures/estimates" in acc.Tags()["images"]
+
+
+def test_histograms_for_large_batches(tmp_path):
+    run = Run("sdof-stiffness", steps=200, batch=16, out=tmp_path, log_every=20)
+    run.advance(progress=False)
+    run.finish(figures=False)
+    acc = _scalars(tmp_path)
+    assert "batch/dK" in acc.Tags()["histograms"] and "batch/z_rms" in acc.Tags()["histograms"]
+    assert "z/member_0" not in acc.Tags()["scalars"]  # no per-member traces for a large batch
+    hist = acc.Histograms("batch/dK")[-1].histogram_value
+    assert hist.num == 16
+
+
+def _state(run):
+    return {k: v.clone() for k, v in run.graph.state_dict().items()}
+
+
+@pytest.mark.parametrize("name", ["sdof-dynamic-impedance", "sdof-stiffness-damping"])
+def test_checkpoint_resume_is_bitwise_identical(name, tmp_path):
+    full = Run(name, steps=1300, batch=2, out=tmp_path / "full")
+    full.advance(progress=False)
+    part = Run(name, steps=1300, batch=2, out=tmp_path / "part")
+    part.advance(until=517, progress=False)   # not a multiple of the noise chunk or the log interval
+    part.save()
+    resumed = Run.resume(tmp_path / "part")
+    assert resumed.k == 517
+    resumed.advance(progress=False)
+    a, b = _state(full), _state(resumed)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert full.summary()["estimates"] == resumed.summary()["estimates"]
+    assert full.history.keys() == resumed.history.keys()
+    for key, trace in full.history.items():
+        assert len(trace) == len(resumed.history[key]) > 0, key
+        for x, y in zip(trace, resumed.history[key]):
+            assert torch.equal(torch.as_tensor(x), torch.as_tensor(y)), key
+
+
+def test_cli_resume_extends_a_finished_run(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    main(["run", "sdof-stiffness", "--steps", "800", "--out", str(a), "--quiet", "--no-figures"])
+    main(["run", "sdof-stiffness", "--steps", "400", "--out", str(b), "--quiet", "--no-figures"])
+    main(["run", "--resume", str(b), "--steps", "800", "--quiet", "--no-figures"])
+    sa = json.loads((a / "summary.json").read_text())
+    sb = json.loads((b / "summary.json").read_text())
+    assert sb["steps"] == 800
+    assert sa["estimates"] == sb["estimates"] and sa["metrics"] == sb["metrics"]
+
+
+def test_float32_is_an_explicit_option(tmp_path):
+    run = Run("sdof-stiffness", steps=2000, dtype="float32", out=tmp_path)
+    run.advance(progress=False)
+    for name, t in run.graph.state_dict().items():
+        if t.is_floating_point():
+            assert t.dtype == torch.float32, name
+    summary = run.finish(figures=False)
+    assert summary["dtype"] == "float32"
+    assert abs(summary["estimates"]["dK"] - 0.5) < 0.05
+
+
+def test_bad_settings_are_rejected_before_work(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="unknown setting 'p00'"):
+        Run("sdof-stiffness", overrides={"p00": 1.0}, out=tmp_path)
+    with pytest.raises(ConfigError, match="no scenario named 'sdof-stifness'.*did you mean 'sdof-stiffness'"):
+        Run("sdof-stifness", out=tmp_path)
+    with pytest.raises(ConfigError, match="must be an integer"):
+        Run("sdof-stiffness", overrides={"nc": "1.5"}, out=tmp_path)
+    with pytest.raises(ConfigError, match="dtype"):
+        Run("sdof-stiffness", dtype="float16", out=tmp_path)
+    assert main(["run", "sdof-stiffness", "--set", "lam=2", "--out", str(tmp_path)]) == 2
+    assert "lam must lie in (0, 1]" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main(["run", "sdof-stiffness", "--device", "cuda", "--out", str(tmp_path)]) == 2
+
+
+def test_overrides_reach_the_graph(tmp_path):
+    run = Run("sdof-stiffness-damping", steps=10, overrides={"p0": "1e4", "nu": "7"}, out=tmp_path)
+    ident = run.graph.blocks["identified"]
+    assert float(ident.P[0, 0, 0]) == 1e4 and ident.nu == 7
+    assert np.isclose(run.settings["p0"], 1e4)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu(tmp_path):
+    cpu = Run("sdof-stiffness", steps=500, batch=4, out=tmp_path / "c")
+    cpu.advance(progress=False)
+    gpu = Run("sdof-stiffness", steps=500, batch=4, device="cuda", out=tmp_path / "g")
+    gpu.advance(progress=False)
+    np.testing.assert_allclose(gpu.graph.blocks["identified"].theta.cpu().numpy(),
+                               cpu.graph.blocks["identified"].theta.numpy(), rtol=1e-9, atol=1e-12)
