@@ -145,3 +145,25 @@ def test_cuda_matches_cpu(tmp_path):
     gpu.advance(progress=False)
     np.testing.assert_allclose(gpu.graph.blocks["identified"].theta.cpu().numpy(),
                                cpu.graph.blocks["identified"].theta.numpy(), rtol=1e-9, atol=1e-12)
+
+
+def test_a_diverging_member_is_frozen_and_reported(tmp_path):
+    run = Run("sdof-stiffness", steps=600, batch=3, out=tmp_path)
+    run.advance(until=250, progress=False)
+    known = run.graph.blocks["known"]
+    x = known.x.clone()
+    x[1] = float("nan")                     # member 1's simulated model breaks down
+    known.set_state(x=x)
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    assert summary["diverged"] == [{"member": 1, "step": 250}]
+    dK = summary["estimates"]["dK"]
+    assert dK[1] is not None and dK[0] is not None and dK[2] is not None  # frozen at its last finite value
+    ident = run.graph.blocks["identified"]
+    assert ident.alive.tolist() == [True, False, True]
+    assert torch.isfinite(ident.theta).all() and torch.isfinite(ident.P).all()
+    # the healthy members are untouched: equal to a run without the fault
+    clean = Run("sdof-stiffness", steps=600, batch=3, out=tmp_path / "clean")
+    clean.advance(progress=False)
+    th, th_clean = ident.theta, clean.graph.blocks["identified"].theta
+    assert torch.equal(th[[0, 2]], th_clean[[0, 2]])
