@@ -120,6 +120,10 @@ class Block(nn.Module):
             if tuple(value.shape) != want:
                 raise DimensionError(f"block '{self.name}', input '{port}': expected shape {want} "
                                      f"(batch, width), got {tuple(value.shape)}")
+            own = next((t.dtype for t in self.buffers() if t.is_floating_point()), value.dtype)
+            if value.is_floating_point() and value.dtype != own:
+                raise DimensionError(f"block '{self.name}', input '{port}': dtype {value.dtype} differs from "
+                                     f"the block's {own}")
 
     def step(self, **inputs: torch.Tensor) -> dict[str, torch.Tensor]:
         """Compute every output at time k, then advance to k+1. For a block used on its own."""

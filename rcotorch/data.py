@@ -111,11 +111,12 @@ def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
             raise DataError(f"{path}: header row has empty column names: {header}")
         n = len(names)
         rows = []
-        for r, line in enumerate(reader):
+        for line in reader:
             if len(line) > n and all(s.strip() == "" for s in line[n:]):
                 line = line[:n]
             if not line:
                 continue
+            r = len(rows)  # 0-based data row, blank lines not counted
             if len(line) != n:
                 raise DataError(f"{path}: row {r} (0-based data row) has {len(line)} fields, the header has {n}")
             vals = []

@@ -39,10 +39,7 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
         ok = go.reshape(B)
         if active is not None:
             go = go & active.reshape(B, 1, 1)
-        a = torch.where(go, a, 0.0)                                        # frozen members: no change
-        s = torch.where(go, s, 1.0)
-        step = (a / s).squeeze(-1) * z_r                                   # P Psi S^-1 z_R
-        P_new = P - (a @ a.mT) / s                                         # exactly symmetric
+        step = (a / torch.where(go, s, 1.0)).squeeze(-1) * z_r              # P Psi S^-1 z_R
     else:
         eye = torch.eye(l, dtype=P.dtype, device=P.device)
         r_inv = torch.as_tensor(r_inv, dtype=P.dtype, device=P.device)
@@ -51,15 +48,19 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
         ok = (info == 0) & torch.isfinite(S).flatten(1).all(1)
         go = (ok if active is None else ok & active).reshape(B, 1, 1)
         L = torch.where(go, L, eye)
-        a = torch.where(go, a, 0.0)
-        W = torch.linalg.solve_triangular(L, a.mT, upper=False).mT          # a L^-T, (B, n, l)
+        a = torch.linalg.solve_triangular(L, torch.where(go, a, 0.0).mT, upper=False).mT  # W = a L^-T
         v = torch.linalg.solve_triangular(L, torch.where(go.reshape(B, 1), z_r, 0.0).unsqueeze(-1),
                                           upper=False)                     # L^-1 z_R
-        step = (W @ v).squeeze(-1)
-        P_new = P - W @ W.mT
-    P_new = P_new / torch.where(go, lam, 1.0)
-    theta_new = theta - step
-    finite = torch.isfinite(theta_new.sum(1))
+        step = (a @ v).squeeze(-1)
+    # A member whose update is not finite is left exactly as it was, like an inactive one.
+    finite = torch.isfinite(step.sum(1))
     ok = ok & finite
-    theta_new = torch.where(finite.reshape(B, 1), theta_new, theta)
+    go = go & finite.reshape(B, 1, 1)
+    a = torch.where(go, a, 0.0)
+    if l == 1:
+        P_new = P - (a @ a.mT) / torch.where(go, s, 1.0)                   # exactly symmetric
+    else:
+        P_new = P - a @ a.mT                                               # P - W W^T
+    P_new = P_new / torch.where(go, lam, 1.0)
+    theta_new = torch.where(go.reshape(B, 1), theta - step, theta)
     return theta_new, P_new, ok if active is None else ok | ~active

@@ -55,6 +55,10 @@ class WhiteNoise(Block):
     def feedthrough(self):
         return {"out": ()}
 
+    def _load_from_state_dict(self, *args, **kwargs):
+        super()._load_from_state_dict(*args, **kwargs)
+        self._chunk = None  # cached samples belong to the old streams
+
     def output(self, port, inputs):
         k = int(self.k)
         start = k - k % self.CHUNK

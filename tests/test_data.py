@@ -173,3 +173,25 @@ def test_figure1_on_data_skips_update_at_gap(tmp_path, sdof_known):
     assert bool(est.alive.all())
     with pytest.raises(rt.ConfigError, match="recorded data gives 60 samples"):
         g.run(T)
+
+
+def test_row_numbers_agree_with_blank_lines(tmp_path):
+    text = "a,b\n1,2\n\n3,{}\n5,6\n"
+    assert rt.load(_write(tmp_path, text.format("4"), "ok.csv"), rows=(1, 2)).values.tolist() == [[3.0, 4.0]]
+    with pytest.raises(rt.DataError, match="row 1 "):
+        rt.load(_write(tmp_path, text.format(""), "gap.csv"))
+    with pytest.raises(rt.DataError, match="row 1 "):                   # the same line, a bad number
+        rt.load(_write(tmp_path, text.format("x"), "bad.csv"))
+
+
+def test_recorded_per_member_data():
+    T = 5
+    data = np.stack([np.c_[np.arange(T), 10 + np.arange(T)], np.c_[-np.arange(T), 20 + np.arange(T)]])
+    blk = rt.Recorded(data, {"w": 0, "y": 1}, dt=0.2)
+    assert blk.max_steps == T and blk.dt == 0.2
+    with pytest.raises(rt.DimensionError, match="2 members"):
+        blk.reset(3)
+    blk.reset(2)
+    blk.step()
+    out = blk.step()
+    assert out["w"].flatten().tolist() == [1.0, -1.0] and out["y"].flatten().tolist() == [11.0, 21.0]

@@ -48,24 +48,26 @@ def test_controller_output_is_the_transfer_functions_impulse_response():
     np.testing.assert_allclose(u, ref, rtol=1e-12, atol=1e-15)
 
 
-def test_mimo_frequency_response_and_to_control():
-    rng = np.random.default_rng(3)
+@pytest.mark.parametrize("n_u,proper", [(2, False), (2, True), (1, True)])
+def test_transfer_function_from_phi_definition(n_u, proper):
+    rng = np.random.default_rng(3 + n_u + 2 * proper)
     nc = 2
-    est = rt.RCOEstimator({"a": 1, "b": 1}, n_u=2, nc=nc, markov=np.ones((1, 1, 2)), dt=DT)
-    theta = 0.3 * rng.standard_normal((2, est.n_phi))
+    est = rt.RCOEstimator({"a": 1, "b": 1}, n_u=n_u, nc=nc, proper=proper, markov=np.ones((1, 1, n_u)), dt=DT)
+    theta = 0.3 * rng.standard_normal((n_u, est.n_phi))
     _fixed(est, theta)
     # Reference from the definition of phi (by name): u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l).
     pos = {name: j for j, name in enumerate(est.phi_names)}
     z = np.exp(1j * OMEGA * DT)
     ref = []
     for zk in z:
-        num = np.zeros((2, 2), complex)
-        den = np.eye(2, dtype=complex)
-        for lag in range(1, nc + 1):
+        num = np.zeros((n_u, 2), complex)
+        den = np.eye(n_u, dtype=complex)
+        for lag in range(0 if proper else 1, nc + 1):
             for j, s in enumerate("ab"):
-                num[:, j] += theta[:, pos[f"{s}(k-{lag})"]] * zk ** -lag
-            for c in range(2):
-                den[:, c] -= theta[:, pos[f"u[{c}](k-{lag})"]] * zk ** -lag
+                num[:, j] += theta[:, pos[f"{s}(k-{lag})" if lag else f"{s}(k)"]] * zk ** -lag
+        for lag in range(1, nc + 1):
+            for c in range(n_u):
+                den[:, c] -= theta[:, pos[f"u[{c}](k-{lag})" if n_u > 1 else f"u(k-{lag})"]] * zk ** -lag
         ref.append(np.linalg.solve(den, num))
     ref = np.array(ref)
     np.testing.assert_allclose(est.frequency_response(OMEGA)[0].numpy(), ref, rtol=1e-11, atol=1e-13)
@@ -122,8 +124,16 @@ def test_bad_mask_shape_and_settings():
         rt.RCOEstimator({"y0": 1}, lam=1.5)
     with pytest.raises(rt.ConfigError, match="algebraic loop"):
         rt.RCOEstimator.static_gain({"y0": 1}, markov=[[[1.0]]], first_delay=0)
-    with pytest.raises(rt.ConfigError, match="Markov"):
-        rt.RCOEstimator({"y0": 1}).reset(1)
+    est = rt.RCOEstimator({"y0": 1})
+    est.reset(1)
+    one = torch.ones(1, 1, dtype=torch.float64)
+    with pytest.raises(rt.ConfigError, match="no Markov parameters"):
+        est.step(y0=one, z=one)
+    est.set_markov([[[1.0]], [[0.5]]])
+    with pytest.raises(rt.ConfigError, match="call reset"):
+        est.step(y0=one, z=one)
+    est.reset(1)
+    est.step(y0=one, z=one)
 
 
 def test_figure1_sdof_converges(sdof_known, zoh_first_order):
@@ -202,3 +212,78 @@ def test_nan_measurement_freezes_member(sdof_known):
     assert est.diverged_at.tolist() == [-1, 20, -1, -1]
     assert torch.equal(est.theta[1], theta_before) and torch.equal(est.P[1], P_before)
     assert torch.isfinite(est.theta).all()
+
+
+# --- the update is the retrospective least-squares problem ------------------------------------------------
+
+def _phi_from_names(names, hist, k):
+    """phi(k) built from its entry names ('a(k-1)', 'b[1](k-2)', 'u[0](k-1)', 'q(k)') and signal histories."""
+    out = []
+    for name in names:
+        sig, lag = name[:-1].split("(k")
+        lag = -int(lag) if lag else 0                      # "-2" -> 2
+        base, comp = (sig.split("[")[0], int(sig.split("[")[1][:-1])) if "[" in sig else (sig, 0)
+        out.append(hist[base][k - lag][comp] if k - lag >= 0 else 0.0)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("case", ["siso", "mimo_masked", "static_gain"])
+def test_update_minimizes_retrospective_cost(case):
+    """With lam = 1, theta(N) = argmin sum_k |z(k) + sum_i beta_i [th - theta(k-i)] phi(k-i)|^2_R
+    + |th - theta0|^2 / p0 (over the free entries), computed in numpy from the run's own data."""
+    rng = np.random.default_rng({"siso": 1, "mimo_masked": 2, "static_gain": 3}[case])
+    p0, N = 1.0, 40
+    if case == "siso":
+        signals, n_u, n_z, d, nu, R, mask = {"y0": 1}, 1, 1, 1, 3, np.eye(1), None
+        est = rt.RCOEstimator(signals, nc=2, p0=p0, markov=rng.standard_normal((nu, 1, 1)), first_delay=d)
+    elif case == "mimo_masked":
+        signals, n_u, n_z, d, nu = {"a": 1, "b": 2}, 2, 2, 2, 3
+        R = np.array([[2.0, 0.3], [0.3, 0.5]])
+        mask = rng.random((n_u, 5)) > 0.3         # n_phi = 3 signal entries x 1 lag + 2 past u
+        est = rt.RCOEstimator(signals, n_u=n_u, n_z=n_z, nc=1, p0=p0, R=R, mask=mask,
+                              theta0=0.1 * rng.standard_normal((n_u, 5)),
+                              markov=rng.standard_normal((nu, n_z, n_u)), first_delay=d)
+    else:
+        signals, n_u, n_z, d, nu, R, mask = {"q": 1}, 1, 1, 1, 4, np.eye(1), None
+        est = rt.RCOEstimator.static_gain(signals, p0=p0, markov=rng.standard_normal((nu, 1, 1)))
+    beta = est.beta[0].numpy()
+    free = np.ones((n_u, est.n_phi), bool) if mask is None else np.asarray(mask)
+    est.reset(1)
+    theta0 = est.theta[0].numpy().copy()
+    hist = {s: [] for s in signals} | {"u": []}
+    phis, thetas, zs = [], [], []
+    for k in range(N):
+        inputs = {s: torch.tensor(rng.standard_normal((1, w))) for s, w in signals.items()}
+        z = torch.tensor(0.2 * rng.standard_normal((1, n_z)))    # small: keeps the u-feedback stable
+        for s in signals:
+            hist[s].append(inputs[s][0].numpy())
+        thetas.append(est.theta[0].numpy().copy())
+        phi = _phi_from_names(est.phi_names, hist, k) if est.proper else None
+        u = est.step(**inputs, z=z)["u"][0].numpy()
+        if not est.proper:
+            phi = _phi_from_names(est.phi_names, hist, k)
+        np.testing.assert_allclose(u, thetas[-1] @ phi, rtol=1e-12, atol=1e-14)   # u(k) = theta(k) phi(k)
+        hist["u"].append(u)
+        phis.append(phi)
+        zs.append(z[0].numpy())
+    assert bool(est.alive.all())
+    # Build z_hat(th, k) = zeta(k) + Psi(k)^T th over the free entries of th (row-major).
+    idx = np.flatnonzero(free.reshape(-1))
+    info = np.eye(idx.size) / p0
+    rhs = info @ theta0.reshape(-1)[idx]
+    for k in range(N):
+        zeta = zs[k].copy()
+        psi_t = np.zeros((n_z, n_u * est.n_phi))
+        for i in range(nu):
+            j = k - d - i
+            if j < 0:
+                continue
+            zeta -= beta[i] @ thetas[j] @ phis[j]
+            psi_t += np.kron(beta[i], phis[j][None, :])
+        psi_t = psi_t[:, idx]
+        info += psi_t.T @ R @ psi_t
+        rhs -= psi_t.T @ R @ zeta
+    ref = np.zeros(n_u * est.n_phi)
+    ref[idx] = np.linalg.solve(info, rhs)
+    np.testing.assert_allclose(est.theta[0].numpy().reshape(-1), ref, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(est.P[0].numpy(), np.linalg.inv(info), rtol=1e-8, atol=1e-12)

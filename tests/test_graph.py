@@ -190,3 +190,34 @@ def test_proper_estimator_with_known_feedthrough_is_an_algebraic_loop(zoh_first_
     # The strictly proper estimator has no loop.
     truth = rt.LTI([[0.5]], [[1.0]], [[0.2]], [[0.0]], ["in"], ["out"], DT)
     rt.refinement(known, rt.RCOEstimator({"y0": 1}), truth=truth, excitation=rt.WhiteNoise(), nu=4)
+
+
+def test_float32_graph_is_float32_throughout(sdof_known, zoh_first_order):
+    est = rt.RCOEstimator({"y0": 1}, nc=2, p0=100.0)
+    g = rt.refinement(sdof_known(DT), est, truth=zoh_first_order(DT), excitation=rt.WhiteNoise(1, seed=4),
+                      nu=5, batch_size=2, dtype=torch.float32)
+    tr = g.run(50, record={"u": "identified.u", "z": "error.out"})
+    assert tr["u"].dtype == torch.float32 and tr["z"].dtype == torch.float32
+    assert all(b.dtype == torch.float32 for b in g.buffers() if b.is_floating_point())
+    assert bool(est.alive.all()) and torch.isfinite(est.theta).all()
+    # Same run in float64 agrees to float32 precision over a short horizon.
+    est64 = rt.RCOEstimator({"y0": 1}, nc=2, p0=100.0)
+    g64 = rt.refinement(sdof_known(DT), est64, truth=zoh_first_order(DT), excitation=rt.WhiteNoise(1, seed=4),
+                        nu=5, batch_size=2)
+    tr64 = g64.run(50, record={"z": "error.out"})
+    np.testing.assert_allclose(tr["z"].double().numpy(), tr64["z"].numpy(), rtol=1e-3, atol=1e-4)
+
+
+def test_refinement_feeds_and_regressor_sources(sdof_known, zoh_first_order):
+    with pytest.raises(rt.PortError, match="feeds="):
+        rt.refinement(sdof_known(), rt.RCOEstimator({"q": 1}), truth=zoh_first_order(),
+                      excitation=rt.WhiteNoise(), nu=3)
+    g = rt.refinement(sdof_known(), rt.RCOEstimator({"q": 1, "w": 1}), truth=zoh_first_order(),
+                      excitation=rt.WhiteNoise(), nu=3, feeds={"q": "known.y"})
+    assert g.sources[("identified", "q")] == ("known", "y")
+    assert g.sources[("identified", "w")] == ("excitation", "out")
+    assert g.sources[("identified", "z")] == ("error", "out")
+    assert g.sources[("known", "u")] == ("identified", "u")
+    assert g.sources[("unknown", "in")] == ("plant", "y0") and g.sources[("plant", "u")] == ("unknown", "out")
+    with pytest.raises(rt.ConfigError, match="exactly one of"):
+        rt.refinement(sdof_known(), rt.RCOEstimator({"y0": 1}), excitation=rt.WhiteNoise(), nu=3)

@@ -131,3 +131,17 @@ def test_non_positive_innovation_freezes_member_and_reports_not_ok():
     assert ok.tolist() == [True, False, True]
     assert torch.equal(th[1], theta[1]) and torch.equal(P_new[1], P[1])
     assert torch.isfinite(th).all() and torch.isfinite(P_new).all()
+
+
+@pytest.mark.parametrize("l", [1, 2])
+def test_non_finite_update_leaves_member_unchanged(l):
+    B, n = 3, 2
+    theta = torch.zeros(B, n, dtype=torch.float64)
+    P = torch.eye(n, dtype=torch.float64).repeat(B, 1, 1)
+    psi = torch.ones(B, n, l, dtype=torch.float64)
+    z_r = torch.ones(B, l, dtype=torch.float64)
+    z_r[1, 0] = float("inf")                                   # S is fine, the new theta is not finite
+    th, P_new, ok = rt.rls_update(theta, P, psi, z_r, 0.9)
+    assert ok.tolist() == [True, False, True]
+    assert torch.equal(th[1], theta[1])
+    assert torch.equal(P_new[1], P[1])
