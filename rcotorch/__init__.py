@@ -1,7 +1,7 @@
 """rcotorch: data-based model refinement with retrospective cost optimization (RCMR), batched in PyTorch."""
 
 from . import models, rng
-from .blocks import Block, Gain, Sum
+from .blocks import Block, Gain, StaticMap, Sum
 from .data import Recording, load
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
 from .estimator import RCOEstimator
@@ -11,7 +11,7 @@ from .rls import rls_update
 from .sources import Recorded, WhiteNoise
 
 __all__ = [
-    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "DimensionError", "Gain", "Graph", "LTI",
+    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "DimensionError", "Gain", "Graph", "LTI", "StaticMap",
     "PortError", "RCOEstimator", "RcoError", "Recorded", "Recording", "Sum", "WhiteNoise", "derive_markov",
     "load", "models", "refinement", "rls_update", "rng", "zoh",
 ]

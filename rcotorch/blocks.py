@@ -175,3 +175,28 @@ class Sum(Block):
             v = inputs[p] if s == 1 else -inputs[p]
             total = v if total is None else total + v
         return total
+
+
+class StaticMap(Block):
+    """Memoryless map ``out = fn(in)`` for a user function of a (B, n) tensor returning (B, m), e.g. a cubic
+    spring ``lambda q: -k3 * q**3`` or a saturation ``lambda x: x.clamp(-1, 1)``. The function is probed with
+    batches of 1 and 2 when the block is built, so a wrong shape fails here, not in the middle of a run."""
+
+    def __init__(self, fn, in_width: int, name: str = "map", dtype=DEFAULT_DTYPE):
+        if not callable(fn):
+            raise ConfigError(f"block '{name}': fn must be callable")
+        widths = []
+        for B in (1, 2):
+            out = fn(torch.randn(B, in_width, dtype=dtype))
+            if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
+                got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+                raise DimensionError(f"block '{name}': fn must map a (batch, {in_width}) tensor to (batch, m); "
+                                     f"for batch {B} it returned {got}")
+            widths.append(out.shape[1])
+        if widths[0] != widths[1]:
+            raise DimensionError(f"block '{name}': fn's output width changes with the batch size")
+        super().__init__(name, {"in": in_width}, {"out": widths[0]})
+        self.fn = fn
+
+    def output(self, port, inputs):
+        return self.fn(inputs["in"])

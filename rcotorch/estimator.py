@@ -23,7 +23,7 @@ held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where t
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import control
 import numpy as np
@@ -38,8 +38,12 @@ class RCOEstimator(Block):
     """Identified subsystem u = theta phi with the retrospective-cost RLS update.
 
     Args:
-        signals: regressor input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or
-            ``{'y0': 1, 'w': 1}``. Which signals feed phi decides identifiability (see DESIGN.md).
+        signals: input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``.
+            Which signals feed phi decides identifiability (see DESIGN.md).
+        features: optional basis functions of the input ports that become phi's regressor signals instead
+            of the ports themselves, e.g. ``{'y0^3': lambda s: s['y0'] ** 3}`` (each maps the dict of port
+            tensors (B, width) to a (B, m) tensor; probed with batches of 1 and 2 when the block is built).
+            theta stays linear in them, so the update is still least squares.
         n_u: width of u (the identified subsystem's output).
         n_z: width of z (the model error).
         nc: controller order (number of past samples of each signal and of u).
@@ -56,6 +60,7 @@ class RCOEstimator(Block):
     """
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
+                 features: Mapping[str, Callable[[dict], torch.Tensor]] | None = None,
                  proper: bool = False, feed_u: bool = True, mask=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
                  name: str = "identified", dtype=DEFAULT_DTYPE):
@@ -66,13 +71,16 @@ class RCOEstimator(Block):
         self.optional_inputs = {"valid"}
         if not isinstance(nc, int) or nc < 0:
             raise ConfigError(f"block '{name}': nc must be a non-negative integer, got {nc!r}")
-        self.signals, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
+        self.ports, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
+        self.features = dict(features) if features else None
+        # Regressor signals (name -> width): the ports themselves, or the basis features.
+        self.signals = self._probe_features(dtype) if self.features else dict(signals)
         self.proper, self.feed_u = bool(proper), bool(feed_u and nc > 0)
         self.lags = list(range(0 if proper else 1, nc + 1))
-        if not self.lags or not signals:
+        if not self.lags or not self.signals:
             raise ConfigError(f"block '{name}': phi is empty (signals={list(signals)}, nc={nc}, "
                               f"proper={proper}); use nc >= 1 or proper=True")
-        self.n_sig = sum(signals.values())
+        self.n_sig = sum(self.signals.values())
         self.n_phi = len(self.lags) * self.n_sig + (nc * n_u if self.feed_u else 0)
         self.phi_names = self._phi_names()
         self.dt = dt
@@ -125,6 +133,36 @@ class RCOEstimator(Block):
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
         """Exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...)."""
         return cls(signals, n_u=n_u, n_z=n_z, nc=0, proper=True, feed_u=False, **kwargs)
+
+    def _regressors(self, inputs) -> torch.Tensor:
+        """The regressor signals at time k, (B, n_sig)."""
+        if self.features is None:
+            return torch.cat([inputs[p] for p in self.ports], dim=1)
+        return torch.cat([f(inputs) for f in self.features.values()], dim=1)
+
+    def _probe_features(self, dtype) -> dict[str, int]:
+        """Call each feature on random inputs of batch 1 and 2 and check it returns (B, m)."""
+        widths = {}
+        for name, f in self.features.items():
+            if not callable(f):
+                raise ConfigError(f"block '{self.name}': feature {name!r} is not callable")
+            shapes = []
+            for B in (1, 2):
+                probe = {p: torch.randn(B, w, dtype=dtype) for p, w in self.ports.items()}
+                try:
+                    out = f(probe)
+                except Exception as e:  # the user's function failed on well-formed inputs
+                    raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
+                                      f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
+                if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
+                    raise DimensionError(f"block '{self.name}': feature {name!r} must return a (batch, m) tensor; "
+                                         f"for batch {B} it returned "
+                                         f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out)}")
+                shapes.append(out.shape[1])
+            if shapes[0] != shapes[1]:
+                raise DimensionError(f"block '{self.name}': feature {name!r} width changes with the batch size")
+            widths[name] = shapes[0]
+        return widths
 
     # --- layout ---------------------------------------------------------------------------------------
     def _phi_names(self) -> list[str]:
@@ -179,7 +217,7 @@ class RCOEstimator(Block):
 
     # --- block protocol -------------------------------------------------------------------------------
     def feedthrough(self):
-        return {"u": tuple(self.signals) if self.proper else ()}
+        return {"u": tuple(self.ports) if self.proper else ()}
 
     def reset(self, batch_size: int) -> None:
         super().reset(batch_size)
@@ -202,7 +240,7 @@ class RCOEstimator(Block):
 
     def _current(self, inputs) -> torch.Tensor:
         if self.proper:
-            return torch.cat([inputs[s] for s in self.signals], dim=1)
+            return self._regressors(inputs)
         return self.past.new_zeros(self.batch_size, self.n_sig)
 
     def output(self, port, inputs):
@@ -244,7 +282,7 @@ class RCOEstimator(Block):
         self.set_state(P=P, theta=theta_flat.reshape(self.theta.shape), z_r=z_r, alive=alive,
                        diverged_at=torch.where(self.alive & ~alive, self.k, self.diverged_at))
         if self.nc:  # shift the regressor histories
-            cur = torch.cat([inputs[s] for s in self.signals], dim=1).unsqueeze(1)
+            cur = self._regressors(inputs).unsqueeze(1)
             self.set_state(past=torch.cat([cur, self.past[:, :-1]], dim=1),
                            past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
         self.k += 1

@@ -331,7 +331,7 @@ def refinement(known: LTI, identified: RCOEstimator, *, truth: Block | None = No
     conns += [(y_src, "error.y"), (f"known.{measured}", "error.y_hat"), (w_src, f"known.{exogenous}"),
               ("identified.u", f"known.{actuation}"), ("error.out", "identified.z")]
     feeds = dict(feeds or {})
-    for port in identified.signals:
+    for port in identified.ports:
         if port in feeds:
             conns.append((feeds[port], f"identified.{port}"))
         elif port == exogenous:

@@ -287,3 +287,26 @@ def test_update_minimizes_retrospective_cost(case):
     ref[idx] = np.linalg.solve(info, rhs)
     np.testing.assert_allclose(est.theta[0].numpy().reshape(-1), ref, rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(est.P[0].numpy(), np.linalg.inv(info), rtol=1e-8, atol=1e-12)
+
+
+def test_basis_features_recover_a_cubic_spring():
+    """Truth: the discrete SDOF model with the static force u = -k3 q^3 in feedback (a discrete interconnection);
+    a static gain on the feature q^3 converges to -k3, a closed-form value."""
+    Ts, k3 = 0.05, 2.0
+    G = rt.models.sdof(1.0, 0.5, 4.0, measured=["velocity"], sees=["position"])
+    known = rt.LTI.from_control(G, inputs=["w", "u"], outputs=["y", "y0"], dt=Ts, name="known")
+    truth = rt.StaticMap(lambda q: -k3 * q ** 3, 1)
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features={"y0^3": lambda s: s["y0"] ** 3}, p0=1e2)
+    assert ident.phi_names == ["y0^3(k)"]
+    g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, std=2.0, seed=3), nu=40)
+    g.run(8000)
+    assert abs(float(ident.theta[0, 0, 0]) + k3) < 1e-3 * k3
+
+
+def test_features_are_probed_when_built():
+    with pytest.raises(rt.DimensionError, match="feature 'bad' must return a \\(batch, m\\) tensor"):
+        rt.RCOEstimator.static_gain({"y0": 1}, features={"bad": lambda s: s["y0"][:, 0]})
+    with pytest.raises(rt.ConfigError, match="feature 'boom' failed"):
+        rt.RCOEstimator.static_gain({"y0": 1}, features={"boom": lambda s: s["nope"]})
+    with pytest.raises(rt.DimensionError, match="block 'cube'"):
+        rt.StaticMap(lambda q: q.sum(), 1, name="cube")

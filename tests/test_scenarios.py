@@ -5,13 +5,22 @@ import pytest
 
 from rcotorch.runner import Run
 
+_RUNS: dict = {}
+
+
+def _finished(name, tmp_path_factory):
+    """Each scenario runs once at its defaults; tests share the result."""
+    if name not in _RUNS:
+        run = Run(name, out=tmp_path_factory.mktemp(name))
+        run.advance(progress=False)
+        _RUNS[name] = (run, run.finish(figures=False))
+    return _RUNS[name]
+
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["sdof-dynamic-impedance", "sdof-stiffness", "sdof-stiffness-damping"])
-def test_scenario_meets_requirements(name, tmp_path):
-    run = Run(name, out=tmp_path)
-    run.advance(progress=False)
-    summary = run.finish(figures=False)
+def test_scenario_meets_requirements(name, tmp_path_factory):
+    run, summary = _finished(name, tmp_path_factory)
     assert summary["requirements"], "the scenario declares requirements"
     failed = {k: v for k, v in summary["requirements"].items() if not v["pass"]}
     assert not failed, failed
@@ -20,12 +29,11 @@ def test_scenario_meets_requirements(name, tmp_path):
 
 
 @pytest.mark.slow
-def test_section_iv_frequency_response_matches_zoh_reference(tmp_path):
+def test_section_iv_frequency_response_matches_zoh_reference(tmp_path_factory):
     """Identified subsystem vs ZOH(10/(s+2)) computed by python-control, on a grid up to Nyquist."""
     import control
 
-    run = Run("sdof-dynamic-impedance", out=tmp_path)
-    run.advance(progress=False)
+    run, _ = _finished("sdof-dynamic-impedance", tmp_path_factory)
     ts = run.settings["Ts"]
     ref = control.sample_system(control.tf([10.0], [1.0, 2.0]), ts, method="zoh")
     tf = run.graph.blocks["identified"].to_control()
