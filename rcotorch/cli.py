@@ -18,6 +18,20 @@ def _settings(pairs: list[str]) -> dict[str, str]:
     return out
 
 
+def sweep_report(rows: list[dict], out: str) -> str:
+    """Members, divergences and error quantiles of a finished sweep."""
+    import numpy as np
+    lines = [f"{len(rows)} members -> {out}/sweep.csv, sweep.json"]
+    diverged = sum(bool(r["diverged"]) for r in rows)
+    lines.append(f"diverged: {diverged}")
+    for key in [k for k in rows[0] if k.startswith("err_")] if rows else []:
+        v = np.array([abs(r[key]) for r in rows if r[key] is not None])
+        if len(v):
+            q = np.quantile(v, [0.5, 0.9, 1.0])
+            lines.append(f"|{key}|: median {q[0]:.3g}, 90% {q[1]:.3g}, max {q[2]:.3g}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rcotorch", description="Model refinement by retrospective cost "
                                      "optimization, batched in PyTorch.")
@@ -37,6 +51,12 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--resume", metavar="DIR", help="resume from DIR/checkpoint.pt (--steps may extend it)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG/TensorBoard figures")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw = sub.add_parser("sweep", help="run a parameter sweep (TOML/JSON config) as batched shards")
+    sw.add_argument("config", help="sweep config file (.toml or .json)")
+    sw.add_argument("--device", default="cpu", help="cpu or cuda")
+    sw.add_argument("--backend", default="local", choices=["local", "ray"])
+    sw.add_argument("--ray-address", help="address of an existing Ray cluster (default: start a local one)")
+    sw.add_argument("--out", help="output directory (default runs/sweep-SCENARIO)")
     args = parser.parse_args(argv)
 
     try:
@@ -45,6 +65,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "list":
             for name, sc in sorted(scenarios.available().items()):
                 print(f"{name:<28} {('[' + sc.section + '] ') if sc.section else ''}{sc.description}")
+            return 0
+        if args.command == "sweep":
+            from .sweep import Sweep, run_sweep
+            sweep = Sweep.from_file(args.config)
+            rows = run_sweep(sweep, backend=args.backend, device=args.device, out=args.out,
+                             ray_address=args.ray_address)
+            out = args.out or f"runs/sweep-{sweep.scenario}"
+            print(sweep_report(rows, out))
             return 0
         if args.resume:
             r = Run.resume(args.resume, steps=args.steps, device=args.device if args.device != "cpu" else None,

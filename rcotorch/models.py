@@ -6,6 +6,7 @@ from collections.abc import Sequence
 
 import control
 import numpy as np
+import torch
 
 SIGNALS = ("position", "velocity")
 
@@ -45,3 +46,21 @@ def sdof(m: float, c: float, k: float, measured=("velocity",), sees=("position",
          actuation: bool = True) -> control.StateSpace:
     """Single-degree-of-freedom m x'' + c x' + k x = w + u."""
     return structure([[m]], [[c]], [[k]], [1.0], measured, sees, actuation=actuation)
+
+
+def sdof_matrices(m, c, k, measured=("velocity",), sees=("position", "velocity"), actuation: bool = True,
+                  dtype=torch.float64) -> tuple[torch.Tensor, ...]:
+    """Continuous (A, B, C, D) of ``sdof`` as torch tensors; m, c, k may be per-member tensors (B,), giving
+    (B, rows, cols) matrices for ``LTI.continuous`` (a batch of structures that differ in their parameters)."""
+    m, c, k = torch.broadcast_tensors(*(torch.as_tensor(x, dtype=dtype) for x in (m, c, k)))
+    zero, one = torch.zeros_like(m), torch.ones_like(m)
+    A = torch.stack([torch.stack([zero, one], -1), torch.stack([-k / m, -c / m], -1)], -2)
+    col = torch.stack([zero, 1 / m], -1).unsqueeze(-1)
+    B = torch.cat([col, col], -1) if actuation else col
+    rows = {"position": [1.0, 0.0], "velocity": [0.0, 1.0]}
+    for sig in list(measured) + list(sees):
+        if sig not in rows:
+            raise ValueError(f"unknown sdof signal {sig!r}: use 'position' or 'velocity'")
+    C = torch.tensor([rows[sig] for sig in list(measured) + list(sees)], dtype=dtype)
+    D = torch.zeros(C.shape[0], B.shape[-1], dtype=dtype)
+    return A, B, C, D

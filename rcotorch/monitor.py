@@ -54,7 +54,8 @@ class Monitor:
             truth = self.run.truth.get(key)
             if isinstance(truth, (int, float)):
                 w.add_scalar(f"truth/{key}", float(truth), step)
-                w.add_scalar(f"error/{key}", float((v - truth).abs().nanmean()), step)
+            if truth is not None:
+                w.add_scalar(f"error/{key}", float((v - torch.as_tensor(truth, dtype=v.dtype)).abs().nanmean()), step)
         w.add_scalar("batch/diverged", float((~ident.alive).sum()), step)
         if B >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
             w.add_histogram("batch/z_rms", z_rms[finite], step)

@@ -31,8 +31,15 @@ class Run:
 
     def __init__(self, name: str, steps: int | None = None, batch: int = 1, seed: int | None = None,
                  device: str = "cpu", dtype: str = "float64", out: str | Path | None = None,
-                 overrides: Mapping[str, Any] | None = None, log_every: int | None = None):
+                 overrides: Mapping[str, Any] | None = None, log_every: int | None = None,
+                 members: list[Mapping[str, Any]] | None = None):
+        """``members``: per-member settings (one dict each, e.g. {'dK': 0.3, 'seed': 7}); the batch is then
+        ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides."""
         self.scenario = scenarios.get(name)
+        if members is not None:
+            if not members:
+                raise ConfigError("members is empty")
+            batch = len(members)
         if dtype not in DTYPES:
             raise ConfigError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
         if batch < 1:
@@ -41,7 +48,11 @@ class Run:
         if self.steps < 1:
             raise ConfigError(f"steps must be positive, got {self.steps}")
         self.batch, self.dtype_name, self.device = batch, dtype, _device(device)
-        self.settings = self.scenario.resolve(overrides, seed)
+        if members is not None:
+            self.settings = self.scenario.resolve_members(dict(overrides or {}, **({} if seed is None else
+                                                                                  {"seed": seed})), members)
+        else:
+            self.settings = self.scenario.resolve(overrides, seed)
         self.out = Path(out) if out else Path("runs") / self.scenario.name
         self.log_every = int(log_every or max(1, self.steps // 1000))
         self.graph = self.scenario.build(self.settings, batch, DTYPES[dtype], self.device)
@@ -131,7 +142,8 @@ class Run:
         state = torch.load(path, map_location="cpu", weights_only=False)
         run = cls(state["scenario"], steps=steps or state["steps"], batch=state["batch"],
                   device=device or "cpu", dtype=state["dtype"], out=out or directory,
-                  overrides=state["settings"], log_every=state["log_every"])
+                  overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
+                  members=_members(state["settings"], state["batch"]), log_every=state["log_every"])
         run.graph.load_state_dict(state["graph"])
         run.history = state["history"]
         run.z_sq = state["z_sq"].to(run.device)
@@ -161,7 +173,8 @@ class Run:
             t = (est if group == "estimates" else met).get(key)
             if t is None:
                 continue
-            per_member = [req.check(float(x), self.truth.get(key)) for x in t.reshape(-1).tolist()]
+            truth = member_truth(self.truth.get(key), self.batch)
+            per_member = [req.check(float(x), tv) for x, tv in zip(t.reshape(-1).tolist(), truth)]
             checks[req.key] = {"requirement": req.describe(),
                                "value": value(torch.tensor([q for q, _ in per_member])),
                                "pass": all(ok for _, ok in per_member)}
@@ -189,6 +202,19 @@ class Run:
         self.monitor.close(summary)
         self.save()
         return summary
+
+
+def member_truth(truth, batch: int) -> list:
+    """A truth value (shared or per member) as one value per member."""
+    return list(truth) if isinstance(truth, (list, tuple)) else [truth] * batch
+
+
+def _members(settings: Mapping[str, Any], batch: int) -> list[dict[str, Any]] | None:
+    """Per-member settings of a resolved batch (the inverse of ``Scenario.resolve_members``)."""
+    varying = {k: v for k, v in settings.items() if isinstance(v, list)}
+    if not varying:
+        return None
+    return [{k: v[b] for k, v in varying.items()} for b in range(batch)]
 
 
 def result_table(summary: Mapping[str, Any]) -> str:

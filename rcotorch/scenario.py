@@ -63,6 +63,10 @@ class Scenario:
     steps: int = 10000
     settings: Mapping[str, Any] = {}
     requirements: tuple[Requirement, ...] = ()
+    # Settings that may differ between the members of one batched run (physical parameters, tuning such as
+    # p0 and lambda, seeds). The others fix the graph's structure (sample time, orders, nu); a sweep over
+    # them runs one batch per distinct value.
+    per_member: frozenset[str] = frozenset()
 
     def resolve(self, overrides: Mapping[str, Any] | None = None, seed: int | None = None) -> dict[str, Any]:
         """Default settings with overrides applied (unknown names and wrong types rejected)."""
@@ -75,7 +79,27 @@ class Scenario:
             out["seed"] = int(seed)
         return out
 
+    def resolve_members(self, common: Mapping[str, Any], members: list[Mapping[str, Any]]) -> dict[str, Any]:
+        """Settings for a batch whose members differ: ``common`` overrides for all, ``members[b]`` for member b.
+        A setting that differs between members becomes a list of per-member values."""
+        out = self.resolve(common)
+        keys = sorted({k for m in members for k in m})
+        for key in keys:
+            if key not in out:
+                raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(out)}")
+            values = [_coerce(self.name, key, m.get(key, out[key]), self.settings[key]) for m in members]
+            if key in self.per_member:
+                out[key] = values  # kept per member even when equal: a member's seed picks its own stream
+                continue
+            if any(v != values[0] for v in values):
+                raise ConfigError(f"scenario '{self.name}': setting {key!r} fixes the graph's structure and cannot "
+                                  f"differ within one batch (per-member settings: {sorted(self.per_member)})")
+            out[key] = values[0]
+        return out
+
     def build(self, settings: Mapping[str, Any], batch: int, dtype: torch.dtype, device) -> Graph:
+        """The graph for ``batch`` members; a per-member setting is a list of length ``batch``
+        (``member_values`` turns it into a tensor)."""
         raise NotImplementedError
 
     def truth(self, settings: Mapping[str, Any]) -> dict[str, float]:
@@ -92,6 +116,11 @@ class Scenario:
     def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
         """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
         return {}
+
+
+def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """A setting as a tensor: shape () when shared by the batch, (B,) when it is per member."""
+    return torch.as_tensor(settings[key], dtype=dtype)
 
 
 def _coerce(scenario: str, key: str, value, default):

@@ -25,6 +25,7 @@ class SdofDynamicImpedance(Scenario):
                     w_std=1.0, seed=1, n_freq=400)
     requirements = (Requirement("estimates.dc_gain", "abs_err", 0.05),
                     Requirement("metrics.freq_rel_err_max", "max", 0.01))
+    per_member = frozenset({"p0", "lam", "w_std", "seed"})
 
     def truth_tf(self, s):
         return control.sample_system(control.tf([s["gain"]], [1.0, s["pole"]]), s["Ts"], method="zoh")

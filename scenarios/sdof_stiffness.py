@@ -10,7 +10,7 @@ dC = -theta_v; nc >= 1 gives a strictly proper controller of order nc and dK, dC
 """
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario
+from rcotorch.scenario import Requirement, Scenario, member_values
 
 
 class SdofStiffness(Scenario):
@@ -21,13 +21,14 @@ class SdofStiffness(Scenario):
     settings = dict(Ts=0.01, m=1.0, K=0.6, C=0.8, dK=0.5, dC=0.0, nc=0, p0=1e3, lam=1.0, nu=15,
                     w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dK", "abs_err", 0.01), Requirement("estimates.dC", "abs_err", 0.03))
+    per_member = frozenset({"m", "K", "C", "dK", "dC", "p0", "lam", "w_std", "seed"})
 
     def build(self, s, batch, dtype, device):
-        G = rt.models.sdof(s["m"], s["C"], s["K"], measured=["velocity"], sees=["position", "velocity"])
-        known = rt.LTI.from_control(G, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
-        T = rt.models.sdof(s["m"], s["C"] + s["dC"], s["K"] + s["dK"], measured=["velocity"], sees=[],
-                           actuation=False)
-        physical = rt.LTI.from_control(T, inputs=["w"], outputs=["y"], dt=s["Ts"], name="plant")
+        m, K, C, dK, dC = (member_values(s, key) for key in ("m", "K", "C", "dK", "dC"))
+        known = rt.LTI.continuous(*rt.models.sdof_matrices(m, C, K, sees=["position", "velocity"]),
+                                  inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
+        physical = rt.LTI.continuous(*rt.models.sdof_matrices(m, C + dC, K + dK, sees=[], actuation=False),
+                                     inputs=["w"], outputs=["y"], dt=s["Ts"], name="plant")
         if s["nc"] == 0:
             ident = rt.RCOEstimator.static_gain({"y0": 2}, p0=s["p0"], lam=s["lam"])
         else:

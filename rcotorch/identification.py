@@ -1,0 +1,300 @@
+"""Initial models from measured data, and free-run simulation of a known model with a fitted unknown part.
+
+RCMR refines a model that is almost right; with real measurements someone has to supply that model first.
+``MassSpringDamper`` is the linear second-order model
+
+    y'' = -a y' - b y + g (w + u) + d0
+
+(mass-spring-damper per unit mass: damping a = d/m, stiffness b = k1/m, input gain g, constant force d0)
+with the measured input w, the measured output y (a position) and a port u, in the units of w, through which
+an unknown subsystem acts (a cubic spring: u = theta y0^3, see ``cubic_coefficient``). It is fitted to a
+stretch of data by output error (``MassSpringDamper.fit``: an ARX guess refined by least squares on the
+free-run simulation error), turned into the known model of a refinement (``lti``), and simulated free run,
+with or without a feedback law for u (``simulate``, ``initial_state``).
+
+Discretization (sample time dt), chosen for measured data:
+
+* w is a sampled continuous signal, so between samples it is interpolated linearly (first-order hold,
+  ``foh=True``). A zero-order hold delays the input by half a sample, which for a resonance at f0 ~ fs / 9 (the
+  Silverbox) costs more model error than the nonlinearity being looked for.
+* u(k) comes from the identified subsystem once per sample and is held over the sample (zero-order hold).
+* y0, the signal the unknown subsystem sees, is the position predicted ``lead`` samples after t_k from the
+  state and input at t_k (lead = 0.5: mid-sample). A force held over [t_k, t_k+1) is then the midpoint rule
+  of the continuous force; evaluating the spring at t_k instead (lead = 0) lags it by half a sample, which acts
+  as negative damping growing with amplitude, and biases a cubic coefficient low.
+
+The discrete state is xi = x - G2 w(k) with x = [y, y', 1] (the constant 1 carries d0) and G2 the FOH
+term of w(k+1) (zero for a ZOH), so the model is causal: x(k+1) = A xi(k) + B [w(k); u(k)],
+[y; y0](k) = C xi(k) + D [w(k); u(k)], with D's u column zero (u never acts on y or y0 at once).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+import scipy.signal
+
+from .blocks import DEFAULT_DTYPE
+from .errors import ConfigError, DataError
+from .lti import LTI
+
+
+def rmse(a, b) -> float:
+    """Root mean square of a - b."""
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    return float(np.sqrt(np.mean(d * d)))
+
+
+@dataclass(frozen=True, eq=False)
+class DiscreteModel:
+    """x(k+1) = A x(k) + B [w(k); u(k)], [y(k); y0(k)] = C x(k) + D [w(k); u(k)] with D[:, 1] = 0.
+
+    One input w, one feedback port u, outputs y (measured) and y0 (seen by the unknown subsystem).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    dt: float
+
+    def __post_init__(self):
+        n = self.A.shape[0]
+        if self.A.shape != (n, n) or self.B.shape != (n, 2) or self.C.shape != (2, n) or self.D.shape != (2, 2):
+            raise ConfigError(f"DiscreteModel: shapes A {self.A.shape}, B {self.B.shape}, C {self.C.shape}, "
+                              f"D {self.D.shape}; expected (n, n), (n, 2), (2, n), (2, 2)")
+        if np.any(self.D[:, 1] != 0):
+            raise ConfigError("DiscreteModel: u must not act on y or y0 at once (D[:, 1] must be zero)")
+
+    def simulate(self, w, x0, feedback: Callable[[float], float] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Free run from state ``x0`` driven by ``w`` (T,): no measurement is fed back. With ``feedback``,
+        u(k) = feedback(y0(k)) (e.g. ``lambda q: theta * q**3``); without it u = 0. Returns y, y0, u (T,)."""
+        w = np.asarray(w, dtype=np.float64).reshape(-1)
+        x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
+        if x0.shape != (self.A.shape[0],):
+            raise ConfigError(f"simulate: x0 has {x0.size} entries, the model has {self.A.shape[0]} states")
+        if feedback is None:
+            out = _lsim(self.A, self.B[:, :1], self.C, self.D[:, :1], w[:, None], x0)
+            return out[:, 0], out[:, 1], np.zeros_like(w)
+        A, bw, bu = self.A, self.B[:, 0].copy(), self.B[:, 1].copy()
+        cy, c0 = self.C[0].copy(), self.C[1].copy()
+        dy, d0 = float(self.D[0, 0]), float(self.D[1, 0])
+        T = len(w)
+        y, y0, u = np.empty(T), np.empty(T), np.empty(T)
+        x = x0.copy()
+        for k in range(T):
+            wk = w[k]
+            y[k] = cy @ x + dy * wk
+            q = c0 @ x + d0 * wk
+            y0[k] = q
+            uk = float(feedback(q))
+            u[k] = uk
+            x = A @ x + bw * wk + bu * uk
+        return y, y0, u
+
+
+def _lsim(A, B, C, D, u, x0) -> np.ndarray:
+    """Linear response (T, p) of x(k+1) = A x + B u, y = C x + D u from x0, one IIR filter per input."""
+    T = u.shape[0]
+    y = np.zeros((T, C.shape[0]))
+    for j in range(B.shape[1]):
+        num, den = scipy.signal.ss2tf(A, B[:, j:j + 1], C, D[:, j:j + 1])
+        for i in range(C.shape[0]):
+            y[:, i] += scipy.signal.lfilter(num[i], den, u[:, j])
+    if np.any(x0 != 0):  # C A^k x0: the impulse response of (A, A x0, C, C x0)
+        impulse = np.zeros(T)
+        impulse[0] = 1.0
+        num, den = scipy.signal.ss2tf(A, (A @ x0)[:, None], C, (C @ x0)[:, None])
+        for i in range(C.shape[0]):
+            y[:, i] += scipy.signal.lfilter(num[i], den, impulse)
+    return y
+
+
+def _expm_input(A, b, h, foh=False):
+    """exp of the augmented matrix: (Phi, Gamma) of a ZOH over h, and with ``foh`` also the ramp term."""
+    n = A.shape[0]
+    if not foh:
+        M = np.zeros((n + 1, n + 1))
+        M[:n, :n], M[:n, n] = A, b
+        E = scipy.linalg.expm(M * h)
+        return E[:n, :n], E[:n, n]
+    M = np.zeros((n + 2, n + 2))
+    M[:n, :n], M[:n, n], M[n, n + 1] = A, b, 1.0 / h
+    E = scipy.linalg.expm(M * h)
+    return E[:n, :n], E[:n, n], E[:n, n + 1]
+
+
+@dataclass(frozen=True)
+class MassSpringDamper:
+    """Linear second-order model y'' = -a y' - b y + g (w + u) + d0 sampled every ``dt`` seconds.
+
+    Args:
+        a: damping per unit mass [1/s]; b: stiffness per unit mass [1/s^2]; g: input gain [y/(w s^2)];
+        d0: constant force per unit mass [y/s^2]; dt: sample time [s];
+        foh: interpolate w linearly between samples (else hold it); lead: y0 is the position ``lead``
+            samples after t_k (see the module notes).
+    """
+
+    a: float
+    b: float
+    g: float
+    d0: float = 0.0
+    dt: float = 1.0
+    foh: bool = True
+    lead: float = 0.5
+    fit_rmse: float = field(default=math.nan, compare=False)
+
+    def __post_init__(self):
+        if not self.dt or self.dt <= 0:
+            raise ConfigError(f"MassSpringDamper: dt must be positive, got {self.dt!r}")
+        if not 0 <= self.lead <= 1:
+            raise ConfigError(f"MassSpringDamper: lead must lie in [0, 1] samples, got {self.lead!r}")
+        if not all(math.isfinite(v) for v in (self.a, self.b, self.g, self.d0)):
+            raise ConfigError(f"MassSpringDamper: parameters must be finite, got {self}")
+
+    @property
+    def f0(self) -> float:
+        """Undamped natural frequency sqrt(b) / (2 pi) [Hz]."""
+        return math.sqrt(max(self.b, 0.0)) / (2 * math.pi)
+
+    @property
+    def damping_ratio(self) -> float:
+        return self.a / (2 * math.sqrt(self.b)) if self.b > 0 else math.nan
+
+    def continuous(self) -> tuple[np.ndarray, np.ndarray]:
+        """Continuous (A, b) with state [y, y', 1]; b is the input vector of w (and of u)."""
+        A = np.array([[0.0, 1.0, 0.0], [-self.b, -self.a, self.d0], [0.0, 0.0, 0.0]])
+        return A, np.array([0.0, self.g, 0.0])
+
+    @cached_property
+    def discrete(self) -> DiscreteModel:
+        """The sampled model (state xi = [y, y', 1] - G2 w(k), see the module notes)."""
+        A, bg = self.continuous()
+        if self.foh:
+            Phi, G1, G2 = _expm_input(A, bg, self.dt, foh=True)
+            bw = Phi @ G2 + G1 - G2
+        else:
+            Phi, bw = _expm_input(A, bg, self.dt)
+            G2 = np.zeros(3)
+        _, bu = _expm_input(A, bg, self.dt)
+        cy = np.array([1.0, 0.0, 0.0])
+        if self.lead > 0:
+            Ph, Gh = _expm_input(A, bg, self.lead * self.dt)
+            c0, d0 = Ph[0], Ph[0] @ G2 + Gh[0]
+        else:
+            c0, d0 = cy, cy @ G2
+        return DiscreteModel(Phi, np.c_[bw, bu], np.vstack([cy, c0]), np.array([[cy @ G2, 0.0], [d0, 0.0]]),
+                             self.dt)
+
+    @property
+    def hold_offset(self) -> np.ndarray:
+        """G2: the discrete state is xi = [y, y', 1] - G2 w(k)."""
+        if not self.foh:
+            return np.zeros(3)
+        A, bg = self.continuous()
+        return _expm_input(A, bg, self.dt, foh=True)[2]
+
+    def state(self, y: float, v: float, w0: float = 0.0) -> np.ndarray:
+        """The discrete state for position y, velocity v and input w0 at the same instant."""
+        return np.array([y, v, 1.0]) - self.hold_offset * w0
+
+    def lti(self, x0=None, name: str = "known", dtype=DEFAULT_DTYPE) -> LTI:
+        """The model as an rcotorch ``LTI`` with inputs w, u and outputs y, y0 (the known model of a
+        refinement). ``x0``: initial discrete state (see ``state``, ``initial_state``); [0, 0, 1] by default."""
+        m = self.discrete
+        x0 = self.state(0.0, 0.0) if x0 is None else x0
+        return LTI(m.A, m.B, m.C, m.D, inputs=["w", "u"], outputs=["y", "y0"], dt=self.dt, name=name, x0=x0,
+                   dtype=dtype)
+
+    def cubic_coefficient(self, theta):
+        """c in y'' = ... - c y^3 for the identified subsystem u = theta y0^3 (u enters as g u): c = -g theta."""
+        return -self.g * theta
+
+    def simulate(self, w, x0, feedback: Callable[[float], float] | None = None) -> np.ndarray:
+        """Free-run output y (T,) from discrete state ``x0`` (see ``DiscreteModel.simulate``)."""
+        return self.discrete.simulate(w, x0, feedback)[0]
+
+    def initial_state(self, w, y, feedback: Callable[[float], float] | None = None) -> np.ndarray:
+        """The discrete state at the first sample whose free run best fits ``y`` (least squares over the
+        given samples, e.g. the first 50 of a validation record); the constant state stays 1."""
+        w, y = _as_signals(w, y, "initial_state", minimum=2)
+        base = self.state(0.0, 0.0, w[0])
+        e_y, e_v = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+        # Linear model: y = y_base + p_y s_y + p_v s_v exactly; with feedback this is the starting point.
+        lin = self.discrete
+        y_base = lin.simulate(w, base)[0]
+        S = np.c_[lin.simulate(w, e_y)[0] - lin.simulate(w, np.zeros(3))[0],
+                  lin.simulate(w, e_v)[0] - lin.simulate(w, np.zeros(3))[0]]
+        p, *_ = np.linalg.lstsq(S, y - y_base, rcond=None)
+        if feedback is not None:
+            scale = np.array([max(np.abs(y).max(), 1e-12), max(np.abs(y).max(), 1e-12) * math.sqrt(self.b)])
+
+            def res(q):
+                return lin.simulate(w, base + q[0] * e_y + q[1] * e_v, feedback)[0] - y
+
+            p = scipy.optimize.least_squares(res, p, x_scale=scale).x
+        return base + p[0] * e_y + p[1] * e_v
+
+    @classmethod
+    def fit(cls, w, y, dt: float, foh: bool = True, lead: float = 0.5) -> MassSpringDamper:
+        """Fit a, b, g, d0 (and the initial state) to a nearly linear stretch of data by output error.
+
+        A discrete ARX model y(k) = a1 y(k-1) + a2 y(k-2) + b0 w(k) + b1 w(k-1) + b2 w(k-2) + c gives the
+        starting point (its poles give a and b, its DC gain g / b, its constant d0 / b); then
+        ``scipy.optimize.least_squares`` minimizes the free-run simulation error of this model over the data.
+        ``fit_rmse`` is that error. Raises ``DataError`` when the data do not look like a stable,
+        second-order system.
+        """
+        w, y = _as_signals(w, y, "fit", minimum=20)
+        if not dt or dt <= 0:
+            raise ConfigError(f"fit: dt must be a positive sample time, got {dt!r}")
+        Y = np.c_[y[1:-1], y[:-2], w[2:], w[1:-1], w[:-2], np.ones(len(y) - 2)]
+        coef, *_ = np.linalg.lstsq(Y, y[2:], rcond=None)
+        a1, a2 = coef[:2]
+        poles = np.roots([1.0, -a1, -a2]).astype(complex)
+        if np.any(np.abs(poles) >= 1) or np.any((np.abs(poles.imag) < 1e-12) & (poles.real <= 0)):
+            raise DataError(f"fit: the ARX model of these data has poles {np.round(poles, 6).tolist()}; they do "
+                            "not look like a stable second-order system sampled fast enough (poles inside the "
+                            "unit circle, not on the negative real axis). Check the columns, the rows and dt.")
+        s = np.log(poles) / dt
+        a0, b0 = float(-(s.sum()).real), float(np.prod(s).real)
+        gain = 1.0 - a1 - a2
+        g0, d00 = float(coef[2:5].sum() / gain * b0), float(coef[5] / gain * b0)
+        v0 = (y[1] - y[0]) / dt
+
+        def model(q):
+            return cls(q[0], q[1], q[2], q[3], dt, foh, lead)
+
+        def res(q):
+            m = model(q)
+            return m.simulate(w, m.state(q[4], q[5], w[0])) - y
+
+        q0 = np.array([a0, b0, g0, d00, y[0], v0])
+        ys = max(float(np.abs(y).max()), 1e-12)
+        scale = np.array([max(abs(a0), 1.0), abs(b0), max(abs(g0), 1e-12), max(abs(d00), abs(b0) * ys * 1e-3),
+                          ys, ys * math.sqrt(abs(b0))])
+        sol = scipy.optimize.least_squares(res, q0, x_scale=scale)
+        q = sol.x
+        if not np.all(np.isfinite(q)) or q[1] <= 0:
+            raise DataError(f"fit: output-error fit failed (parameters {q[:4].tolist()})")
+        return cls(*(float(v) for v in q[:4]), float(dt), bool(foh), float(lead), fit_rmse=rmse(sol.fun, 0.0))
+
+
+def _as_signals(w, y, what: str, minimum: int) -> tuple[np.ndarray, np.ndarray]:
+    w = np.asarray(w, dtype=np.float64).reshape(-1)
+    y = np.asarray(y, dtype=np.float64).reshape(-1)
+    if w.shape != y.shape:
+        raise DataError(f"{what}: w and y have different lengths ({w.size} and {y.size})")
+    if w.size < minimum:
+        raise DataError(f"{what}: needs at least {minimum} samples, got {w.size}")
+    bad = ~(np.isfinite(w) & np.isfinite(y))
+    if bad.any():
+        raise DataError(f"{what}: sample {int(np.argmax(bad))} is not finite (drop or fill gaps first)")
+    return w, y

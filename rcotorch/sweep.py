@@ -1,0 +1,309 @@
+"""Parameter sweeps: many refinements that differ in truth or tuning, run as batched shards.
+
+A sweep names a scenario, a grid and/or random draws over its settings, and seeds. Members that share the
+settings fixing the graph's structure (sample time, orders, nu) form a group; each group is cut into shards
+of at most ``shard_size`` members, and each shard is one batched run. The ``local`` backend runs the shards
+in this process, the ``ray`` backend as Ray tasks (on a local instance or an existing cluster); both run the
+same shards, so their tables are identical. Member b of a shard equals a batch-of-one run with its settings.
+
+Config file (TOML or JSON)::
+
+    scenario = "sdof-stiffness-damping"
+    steps = 20000
+    seeds = 2               # seeds per parameter point: seed, seed+1 (or a list)
+    seed = 0                # base seed, also for the random draws
+    shard_size = 4096
+    [fixed]                 # overrides for every member
+    nu = 15
+    [grid]                  # full factorial
+    dK = [-0.4, -0.2, 0.2]
+    p0 = [1e3, 1e6]
+    [random]                # 'samples' draws, crossed with the grid
+    dC = {uniform = [0.0, 1.0]}
+    lam = {loguniform = [0.99, 1.0]}
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import scenario as scenarios
+from .errors import ConfigError
+
+DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
+CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
+               "dtype", "trace"}
+
+
+@dataclass
+class Sweep:
+    """A declared sweep; ``members()`` lists each member's settings (validated before any work)."""
+
+    scenario: str
+    grid: Mapping[str, Sequence] = field(default_factory=dict)
+    random: Mapping[str, Mapping[str, Sequence]] = field(default_factory=dict)
+    samples: int = 0
+    seeds: int | Sequence[int] = 1
+    seed: int = 0
+    steps: int | None = None
+    fixed: Mapping[str, Any] = field(default_factory=dict)
+    shard_size: int = 4096
+    dtype: str = "float64"
+
+    @classmethod
+    def from_dict(cls, spec: Mapping[str, Any], source: str = "sweep") -> Sweep:
+        unknown = set(spec) - CONFIG_KEYS
+        if unknown:
+            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {sorted(CONFIG_KEYS)}")
+        if "scenario" not in spec:
+            raise ConfigError(f"{source}: 'scenario' is missing")
+        kwargs = {k: v for k, v in spec.items() if k != "trace"}
+        return cls(**kwargs)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> Sweep:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such sweep config")
+        text = path.read_text()
+        if path.suffix == ".toml":
+            import tomllib
+            try:
+                spec = tomllib.loads(text)
+            except tomllib.TOMLDecodeError as e:
+                raise ConfigError(f"{path}: not valid TOML: {e}") from None
+        elif path.suffix == ".json":
+            try:
+                spec = json.loads(text)
+            except json.JSONDecodeError as e:
+                raise ConfigError(f"{path}: not valid JSON: {e}") from None
+        else:
+            raise ConfigError(f"{path}: a sweep config is a .toml or .json file")
+        return cls.from_dict(spec, str(path))
+
+    # --- members -----------------------------------------------------------------------------------------
+    def seed_list(self) -> list[int]:
+        if isinstance(self.seeds, int):
+            if self.seeds < 1:
+                raise ConfigError(f"sweep: seeds must be at least 1, got {self.seeds}")
+            return [self.seed + i for i in range(self.seeds)]
+        seeds = list(self.seeds)
+        if not seeds or not all(isinstance(s, int) for s in seeds):
+            raise ConfigError(f"sweep: seeds must be a positive count or a non-empty list of integers, got {seeds}")
+        return seeds
+
+    def members(self) -> list[dict[str, Any]]:
+        """One settings dict per member (swept names plus 'seed'), after checking names and values."""
+        sc = scenarios.get(self.scenario)
+        known = set(sc.settings)
+        for what, names in (("grid", self.grid), ("random", self.random), ("fixed", self.fixed)):
+            for name in names:
+                if name not in known:
+                    import difflib
+                    close = difflib.get_close_matches(name, known, n=1)
+                    hint = f" (did you mean '{close[0]}'?)" if close else ""
+                    raise ConfigError(f"sweep {what}: scenario '{sc.name}' has no setting {name!r}{hint}; "
+                                      f"settings are {sorted(known)}")
+                if name == "seed":
+                    raise ConfigError(f"sweep {what}: set seeds with 'seeds' and 'seed', not as a setting")
+        overlap = (set(self.grid) & set(self.random)) | ((set(self.grid) | set(self.random)) & set(self.fixed))
+        if overlap:
+            raise ConfigError(f"sweep: {sorted(overlap)} appear in more than one of grid, random and fixed")
+        for name, values in self.grid.items():
+            if isinstance(values, (str, bytes)) or not isinstance(values, Sequence) or len(values) == 0:
+                raise ConfigError(f"sweep grid: {name!r} needs a non-empty list of values, got {values!r}")
+        if self.random and self.samples < 1:
+            raise ConfigError("sweep: random draws need samples >= 1")
+        if self.steps is not None and self.steps < 1:
+            raise ConfigError(f"sweep: steps must be positive, got {self.steps}")
+        if self.shard_size < 1:
+            raise ConfigError(f"sweep: shard_size must be positive, got {self.shard_size}")
+        draws = self._draws()
+        points = [dict(zip(self.grid, combo)) for combo in itertools.product(*self.grid.values())] or [{}]
+        members = [dict(point, **draw, seed=seed) for point in points for draw in draws for seed in self.seed_list()]
+        for i, m in enumerate(members):  # every member's values go through the scenario's own checks
+            try:
+                sc.resolve(dict(self.fixed, **m))
+            except ConfigError as e:
+                raise ConfigError(f"sweep member {i} ({m}): {e}") from None
+        return members
+
+    def _draws(self) -> list[dict[str, Any]]:
+        if not self.random:
+            return [{}]
+        rng = np.random.default_rng(self.seed)
+        cols = {}
+        for name, dist in self.random.items():
+            if not isinstance(dist, Mapping) or len(dist) != 1 or next(iter(dist)) not in DISTRIBUTIONS:
+                raise ConfigError(f"sweep random: {name!r} needs one of {DISTRIBUTIONS}, e.g. "
+                                  f"{{uniform = [0.0, 1.0]}}; got {dist!r}")
+            kind, args = next(iter(dist.items()))
+            args = list(args)
+            if kind == "choice":
+                if not args:
+                    raise ConfigError(f"sweep random: {name!r} choice needs a non-empty list")
+                cols[name] = [args[i] for i in rng.integers(0, len(args), self.samples)]
+                continue
+            if len(args) != 2 or not all(isinstance(a, (int, float)) for a in args):
+                raise ConfigError(f"sweep random: {name!r} {kind} needs two numbers, got {args!r}")
+            lo, hi = args
+            if kind == "uniform":
+                if not lo <= hi:
+                    raise ConfigError(f"sweep random: {name!r} uniform needs low <= high, got {args}")
+                cols[name] = rng.uniform(lo, hi, self.samples).tolist()
+            elif kind == "loguniform":
+                if not 0 < lo <= hi:
+                    raise ConfigError(f"sweep random: {name!r} loguniform needs 0 < low <= high, got {args}")
+                cols[name] = np.exp(rng.uniform(math.log(lo), math.log(hi), self.samples)).tolist()
+            else:
+                if hi < 0:
+                    raise ConfigError(f"sweep random: {name!r} normal needs [mean, std >= 0], got {args}")
+                cols[name] = rng.normal(lo, hi, self.samples).tolist()
+        return [{k: v[i] for k, v in cols.items()} for i in range(self.samples)]
+
+    def shards(self) -> list[dict[str, Any]]:
+        """Shard specs: {'index', 'members' (member indices), 'settings' (per-member dicts), 'common'}."""
+        sc = scenarios.get(self.scenario)
+        members = self.members()
+        groups: dict[tuple, list[int]] = {}
+        for i, m in enumerate(members):
+            key = tuple(sorted((k, repr(v)) for k, v in m.items() if k not in sc.per_member))
+            groups.setdefault(key, []).append(i)
+        shards = []
+        for idx in groups.values():
+            for start in range(0, len(idx), self.shard_size):
+                part = idx[start:start + self.shard_size]
+                first = members[part[0]]
+                common = dict(self.fixed, **{k: v for k, v in first.items() if k not in sc.per_member})
+                shards.append({"index": len(shards), "members": part, "common": common,
+                               "settings": [{k: v for k, v in members[i].items() if k in sc.per_member}
+                                            for i in part]})
+        return shards
+
+
+def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
+             out: str | None):
+    """The batched run of one shard (building it checks every member's settings)."""
+    from .runner import Run
+    try:
+        return Run(scenario, steps=steps, device=device, dtype=dtype, out=out, overrides=shard["common"],
+                   members=shard["settings"])
+    except ConfigError as e:
+        raise ConfigError(f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]}): "
+                          f"{e}") from None
+
+
+def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
+              out: str | None, threads: int | None = None, run=None) -> list[dict[str, Any]]:
+    """Run one shard as a batched run; return one table row per member."""
+    import torch
+
+    from .runner import member_truth
+    if threads:
+        torch.set_num_threads(threads)
+    run = run or make_run(scenario, shard, steps, dtype, device, out)
+    run.advance(progress=False)
+    summary = run.finish(figures=False) if out else run.summary()
+    B = run.batch
+    diverged = {d["member"]: d["step"] for d in summary["diverged"]}
+    rows = []
+    for b, member in enumerate(shard["members"]):
+        row: dict[str, Any] = {"member": member, "shard": shard["index"]}
+        row.update({k: v for k, v in shard["common"].items()})
+        row.update(shard["settings"][b])
+        for key, v in summary["estimates"].items():
+            est = member_truth(v, B)[b]
+            row[f"est_{key}"] = est
+            truth = summary["truth"].get(key)
+            if truth is not None:
+                tv = member_truth(truth, B)[b]
+                row[f"truth_{key}"] = tv
+                row[f"err_{key}"] = None if est is None else est - tv
+        for key, v in summary["metrics"].items():
+            row[key] = member_truth(v, B)[b]
+        row["diverged"] = b in diverged
+        row["diverged_at"] = diverged.get(b)
+        rows.append(row)
+    return rows
+
+
+def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: str | Path | None = None,
+              ray_address: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``."""
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
+    shards = sweep.shards()  # validates everything before any work
+    sc = scenarios.get(sweep.scenario)
+    steps = sweep.steps or sc.steps
+    out = Path(out) if out else Path("runs") / f"sweep-{sweep.scenario}"
+    shard_out = [str(out / f"shard_{s['index']:04d}") for s in shards]
+    # Build every shard before running any, so a bad value fails before work starts.
+    runs = [make_run(sweep.scenario, s, steps, sweep.dtype, device, o) for s, o in zip(shards, shard_out)]
+    if backend == "local":
+        rows = []
+        for s, o, r in zip(shards, shard_out, runs):
+            if progress:
+                print(f"shard {s['index'] + 1}/{len(shards)}: {len(s['members'])} members", flush=True)
+            rows += run_shard(sweep.scenario, s, steps, sweep.dtype, device, o, run=r)
+    else:
+        del runs
+        rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address)
+    rows.sort(key=lambda r: r["member"])
+    write_table(rows, out)
+    _write_hparams(rows, sweep, out)
+    return rows
+
+
+def _run_ray(sweep, shards, steps, device, shard_out, address):
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("the ray backend needs Ray: pip install 'rcotorch[ray]' (or pip install ray)") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+    try:
+        task = ray.remote(num_cpus=1, num_gpus=1 if device == "cuda" else 0)(run_shard)
+        refs = [task.remote(sweep.scenario, s, steps, sweep.dtype, device, o, 1) for s, o in zip(shards, shard_out)]
+        return [row for part in ray.get(refs) for row in part]
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def write_table(rows: list[dict[str, Any]], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.json").write_text(json.dumps(rows, indent=1) + "\n")
+    columns: list[str] = []
+    for r in rows:
+        columns += [c for c in r if c not in columns]
+    with open(out / "sweep.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=columns)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+
+
+HPARAMS_MAX = 256
+
+
+def _write_hparams(rows, sweep: Sweep, out: Path) -> None:
+    """One TensorBoard hparams entry per member (up to HPARAMS_MAX), under out/hparams."""
+    from torch.utils.tensorboard import SummaryWriter
+    swept = list(sweep.grid) + list(sweep.random) + ["seed"]
+    with SummaryWriter(str(out / "hparams")) as w:
+        for r in rows[:HPARAMS_MAX]:
+            hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
+            metrics = {f"sweep/{k}": float(v) for k, v in r.items()
+                       if (k.startswith("err_") or k.startswith("est_")) and isinstance(v, (int, float))}
+            metrics["sweep/diverged"] = float(r["diverged"])
+            w.add_hparams(hp, metrics, run_name=f"member_{r['member']:06d}")
