@@ -32,10 +32,12 @@ class Run:
     def __init__(self, name: str, steps: int | None = None, batch: int = 1, seed: int | None = None,
                  device: str = "cpu", dtype: str = "float64", out: str | Path | None = None,
                  overrides: Mapping[str, Any] | None = None, log_every: int | None = None,
-                 members: list[Mapping[str, Any]] | None = None):
+                 members: list[Mapping[str, Any]] | None = None, trace: list[int] | None = None):
         """``members``: per-member settings (one dict each, e.g. {'dK': 0.3, 'seed': 7}); the batch is then
-        ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides."""
+        ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides.
+        ``trace``: members logged individually in TensorBoard when the batch is larger than 8."""
         self.scenario = scenarios.get(name)
+        self.trace = trace
         if members is not None:
             if not members:
                 raise ConfigError("members is empty")

@@ -13,6 +13,7 @@ Config file (TOML or JSON)::
     seeds = 2               # seeds per parameter point: seed, seed+1 (or a list)
     seed = 0                # base seed, also for the random draws
     shard_size = 4096
+    trace = [0, 17]         # members traced individually in TensorBoard (default: the first 3 of each shard)
     [fixed]                 # overrides for every member
     nu = 15
     [grid]                  # full factorial
@@ -58,6 +59,7 @@ class Sweep:
     fixed: Mapping[str, Any] = field(default_factory=dict)
     shard_size: int = 4096
     dtype: str = "float64"
+    trace: Sequence[int] = ()   # member indices logged individually in TensorBoard (default: 3 per shard)
 
     @classmethod
     def from_dict(cls, spec: Mapping[str, Any], source: str = "sweep") -> Sweep:
@@ -66,8 +68,7 @@ class Sweep:
             raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {sorted(CONFIG_KEYS)}")
         if "scenario" not in spec:
             raise ConfigError(f"{source}: 'scenario' is missing")
-        kwargs = {k: v for k, v in spec.items() if k != "trace"}
-        return cls(**kwargs)
+        return cls(**spec)
 
     @classmethod
     def from_file(cls, path: str | Path) -> Sweep:
@@ -184,7 +185,7 @@ class Sweep:
                 part = idx[start:start + self.shard_size]
                 first = members[part[0]]
                 common = dict(self.fixed, **{k: v for k, v in first.items() if k not in sc.per_member})
-                shards.append({"index": len(shards), "members": part, "common": common,
+                shards.append({"index": len(shards), "members": part, "common": common, "trace": list(self.trace),
                                "settings": [{k: v for k, v in members[i].items() if k in sc.per_member}
                                             for i in part]})
         return shards
@@ -194,9 +195,10 @@ def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: 
              out: str | None):
     """The batched run of one shard (building it checks every member's settings)."""
     from .runner import Run
+    local = [b for b, m in enumerate(shard["members"]) if m in set(shard.get("trace", ()))]
     try:
         return Run(scenario, steps=steps, device=device, dtype=dtype, out=out, overrides=shard["common"],
-                   members=shard["settings"])
+                   members=shard["settings"], trace=local or None)
     except ConfigError as e:
         raise ConfigError(f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]}): "
                           f"{e}") from None

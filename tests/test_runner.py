@@ -61,7 +61,8 @@ def test_histograms_for_large_batches(tmp_path):
     run.finish(figures=False)
     acc = _scalars(tmp_path)
     assert "batch/dK" in acc.Tags()["histograms"] and "batch/z_rms" in acc.Tags()["histograms"]
-    assert "z/member_0" not in acc.Tags()["scalars"]  # no per-member traces for a large batch
+    scalars = acc.Tags()["scalars"]
+    assert "z/member_0" in scalars and "z/member_3" not in scalars  # a large batch traces only 3 members
     hist = acc.Histograms("batch/dK")[-1].histogram_value
     assert hist.num == 16
 
@@ -167,3 +168,16 @@ def test_a_diverging_member_is_frozen_and_reported(tmp_path):
     clean.advance(progress=False)
     th, th_clean = ident.theta, clean.graph.blocks["identified"].theta
     assert torch.equal(th[[0, 2]], th_clean[[0, 2]])
+
+
+def test_large_batches_log_quantiles_and_chosen_members(tmp_path):
+    run = Run("sdof-stiffness", steps=100, batch=20, out=tmp_path, log_every=50, trace=[4, 11])
+    run.advance(progress=False)
+    run.finish(figures=False)
+    tags = set(_scalars(tmp_path).Tags()["scalars"])
+    assert {"z/q10", "z/q50", "z/q90", "error/dK/q50", "z/member_4", "z/member_11", "estimate/dK/member_11",
+            "theta/y0[0](k)/member_4"} <= tags
+    assert not any(t.startswith("z/member_") and t not in ("z/member_4", "z/member_11") for t in tags)
+    acc = _scalars(tmp_path)
+    err = (run.graph.blocks["identified"].dc_gain()[:, 0, 0].neg() - 0.5).abs()
+    assert acc.Scalars("error/dK/q50")[-1].value == pytest.approx(float(err.median()), rel=0.1)
