@@ -1,0 +1,187 @@
+"""Nonlinear state-space blocks and their Markov parameters by linearization.
+
+    x(k+1) = f(x(k), inputs(k))               (discrete map), or
+    x'(t)  = f(x(t), inputs(k)),  t in [k dt, (k+1) dt)   (continuous, fixed-step RK4, inputs held)
+    y(k)   = h(x(k))
+
+``f(x, inputs)`` takes the state (B, n) and a dict of input-port tensors (B, width) and returns (B, n);
+``h(x)`` returns the outputs stacked in port order, (B, sum of output widths). Both must treat batch
+members independently (row b of the result depends on row b of the arguments only). They are probed with
+batches of 1 and 2 when the block is built.
+
+A ``Nonlinear`` block can stand wherever an ``LTI`` known model does: ``markov`` linearizes it (forward-mode
+autograd, Jacobian-vector products through the step, or central finite differences) at its current state or
+along the trajectory from it, so ``refinement`` derives the estimator's Markov parameters from it, and
+``MarkovRefresh`` recomputes them during a run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import torch
+from torch.func import jvp
+
+from .blocks import DEFAULT_DTYPE, Block
+from .errors import ConfigError, DimensionError
+
+
+class Nonlinear(Block):
+    """Batched nonlinear state-space block (see the module docstring).
+
+    Args:
+        f, h: the state map (or vector field) and output map.
+        n_states: state dimension n.
+        inputs, outputs: port name -> width (or lists of width-1 names).
+        dt: sample time; with ``continuous=True`` each step integrates ``substeps`` RK4 steps of dt/substeps.
+        x0: initial state (n,) or (B, n).
+    """
+
+    def __init__(self, f: Callable, h: Callable, n_states: int, inputs, outputs, dt: float,
+                 continuous: bool = False, substeps: int = 1, x0=None, name: str = "nonlinear",
+                 dtype=DEFAULT_DTYPE):
+        if not callable(f) or not callable(h):
+            raise ConfigError(f"block '{name}': f and h must be callable")
+        super().__init__(name, _widths(inputs), _widths(outputs))
+        if not dt or dt <= 0:
+            raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+        if substeps < 1:
+            raise ConfigError(f"block '{name}': substeps must be at least 1, got {substeps}")
+        self.f, self.h, self.n_states = f, h, int(n_states)
+        self.dt, self.continuous, self.substeps = float(dt), bool(continuous), int(substeps)
+        x0 = torch.zeros(1, self.n_states, dtype=dtype) if x0 is None else \
+            torch.as_tensor(x0, dtype=dtype).reshape(-1, self.n_states)
+        self.register_buffer("x0", x0)
+        self.register_buffer("x", torch.zeros(0, self.n_states, dtype=dtype))
+        self._out_slices, start = {}, 0
+        for p, w in self.outputs.items():
+            self._out_slices[p] = slice(start, start + w)
+            start += w
+        self._probe(dtype)
+
+    def _probe(self, dtype) -> None:
+        n_out = sum(self.outputs.values())
+        for B in (1, 2):
+            x = self.x0[:1].expand(B, -1).clone().to(dtype)
+            ins = {p: torch.zeros(B, w, dtype=dtype) for p, w in self.inputs.items()}
+            try:
+                fx, hx = self.f(x, ins), self.h(x)
+            except Exception as e:
+                raise ConfigError(f"block '{self.name}': f or h failed on a state ({B}, {self.n_states}) and inputs "
+                                  f"{ {p: (B, w) for p, w in self.inputs.items()} }: {e!r}") from e
+            for what, value, want in (("f", fx, (B, self.n_states)), ("h", hx, (B, n_out))):
+                got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+                if got != want:
+                    raise DimensionError(f"block '{self.name}': {what} must return shape {want} for batch {B}, "
+                                         f"got {got}")
+
+    # --- block protocol ---------------------------------------------------------------------------------
+    def feedthrough(self):
+        return {p: () for p in self.outputs}
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        self.check_batch(self.x0, "x0")
+        self.x = self.x0.expand(batch_size, -1).clone()
+
+    def output(self, port, inputs):
+        return self.h(self.x)[:, self._out_slices[port]]
+
+    def step_map(self, x: torch.Tensor, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The discrete map x(k) -> x(k+1) for given inputs (RK4 substeps for a continuous block)."""
+        if not self.continuous:
+            return self.f(x, inputs)
+        h = self.dt / self.substeps
+        for _ in range(self.substeps):
+            k1 = self.f(x, inputs)
+            k2 = self.f(x + 0.5 * h * k1, inputs)
+            k3 = self.f(x + 0.5 * h * k2, inputs)
+            k4 = self.f(x + h * k3, inputs)
+            x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return x
+
+    def update(self, inputs):
+        self.set_state(x=self.step_map(self.x, inputs))
+
+    # --- linearization ------------------------------------------------------------------------------------
+    def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
+               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "autograd",
+               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
+        """Markov parameters H_0..H_(n-1) of ``input -> output`` linearized at state ``x`` (default: the current
+        state, or x0 before a reset) with the other inputs held at ``inputs`` (default zero): (B, n, out, in).
+
+        ``along='trajectory'`` linearizes along the free motion from x (H_i = C_i A_(i-1) .. A_1 B_0);
+        ``along='point'`` at the fixed point x (H_i = C A^(i-1) B). ``method`` is 'autograd' (forward-mode
+        Jacobian-vector products through ``step_map`` and ``h``) or 'fd' (central differences, step eps
+        relative to the size of x and u)."""
+        if input not in self.inputs or output not in self.outputs:
+            raise ConfigError(f"block '{self.name}': no input '{input}' or output '{output}'; inputs are "
+                              f"{list(self.inputs)}, outputs {list(self.outputs)}")
+        if method not in ("autograd", "fd") or along not in ("trajectory", "point"):
+            raise ConfigError(f"block '{self.name}': method must be 'autograd' or 'fd' and along 'trajectory' or "
+                              f"'point', got {method!r}, {along!r}")
+        x = (self.x if self.x.shape[0] else self.x0) if x is None else x
+        x = x.detach()
+        B, dtype, dev = x.shape[0], x.dtype, x.device
+        ins = {p: torch.zeros(B, w, dtype=dtype, device=dev) for p, w in self.inputs.items()}
+        ins.update({p: v.detach().expand(B, -1) for p, v in dict(inputs or {}).items()})
+        rows = self._out_slices[output]
+        width = self.inputs[input]
+
+        def out(xx):
+            return self.h(xx)[:, rows]
+
+        def through_u(u):
+            return self.step_map(x, {**ins, input: u})
+
+        def through_x(xx):
+            return self.step_map(xx, ins)
+
+        def tangent(fun, at, v):
+            if method == "autograd":
+                return jvp(fun, (at,), (v,))
+            scale = eps * max(1.0, float(at.abs().max()))
+            return fun(at), (fun(at + scale * v) - fun(at - scale * v)) / (2 * scale)
+
+        H = torch.zeros(B, n, rows.stop - rows.start, width, dtype=dtype, device=dev)
+        for j in range(width):
+            e = torch.zeros(B, width, dtype=dtype, device=dev)
+            e[:, j] = 1.0
+            xi, dx = tangent(through_u, ins[input], e)          # x(1) and dx(1)/du_j
+            for i in range(1, n):
+                H[:, i, :, j] = tangent(out, xi if along == "trajectory" else x, dx)[1]
+                if i + 1 < n:
+                    base = xi if along == "trajectory" else x
+                    xn, dx = tangent(through_x, base, dx)
+                    if along == "trajectory":
+                        xi = xn
+        return H
+
+
+class MarkovRefresh:
+    """Recompute an estimator's Markov parameters from a nonlinear known model every ``every`` steps, per
+    member at its current state (linearization along the trajectory): call it after each graph step, e.g.
+    ``refresh = MarkovRefresh(graph, every=500)`` then ``graph.step(); refresh()``."""
+
+    def __init__(self, graph, every: int, known: str = "known", identified: str = "identified",
+                 actuation: str = "u", measured: str = "y", method: str = "autograd"):
+        if every < 1:
+            raise ConfigError(f"MarkovRefresh: every must be at least 1, got {every}")
+        self.graph, self.every, self.method = graph, every, method
+        self.known, self.ident = graph.blocks[known], graph.blocks[identified]
+        self.actuation, self.measured = actuation, measured
+
+    def __call__(self) -> bool:
+        if int(self.graph.k) % self.every:
+            return False
+        d, nu = self.ident.first_delay, self.ident.nu
+        H = self.known.markov(self.actuation, self.measured, d + nu, method=self.method)
+        self.ident.set_markov(-H[:, d:d + nu], d)
+        return True
+
+
+def _widths(spec) -> dict[str, int]:
+    """Port widths from a mapping name -> width, or a name / list of names of width 1."""
+    if isinstance(spec, str):
+        return {spec: 1}
+    return dict(spec) if isinstance(spec, Mapping) else {p: 1 for p in spec}

@@ -1,0 +1,106 @@
+"""Nonlinear blocks: stepping against scipy, Markov parameters against closed forms and finite differences,
+and a refinement whose known model is nonlinear."""
+
+import control
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+
+import rcotorch as rt
+
+A = np.array([[0.9, 0.2, 0.0], [-0.1, 0.8, 0.1], [0.0, 0.05, 0.7]])
+B = np.array([[0.0, 1.0], [1.0, 0.5], [0.3, 0.0]])
+C = np.array([[1.0, 0.0, 2.0]])
+
+
+def linear_block():
+    At, Bt, Ct = (torch.tensor(M) for M in (A, B, C))
+    return rt.Nonlinear(lambda x, s: x @ At.T + torch.cat([s["w"], s["u"]], 1) @ Bt.T, lambda x: x @ Ct.T,
+                        3, ["w", "u"], ["y"], dt=0.1, x0=[0.3, -0.2, 0.1], name="known")
+
+
+@pytest.mark.parametrize("method", ["autograd", "fd"])
+@pytest.mark.parametrize("along", ["trajectory", "point"])
+def test_markov_of_a_linear_map_is_c_a_b(method, along):
+    H = linear_block().markov("u", "y", 8, method=method, along=along)
+    ref = [np.zeros((1, 1))] + [C @ np.linalg.matrix_power(A, i - 1) @ B[:, 1:] for i in range(1, 8)]
+    np.testing.assert_allclose(H[0].numpy(), np.stack(ref), rtol=1e-7, atol=1e-9)
+
+
+def test_continuous_rk4_markov_matches_zoh_discretization():
+    """x' = Ac x + Bc u with RK4 substeps: Markov parameters approach those of the ZOH-discretized system."""
+    Ac = np.array([[0.0, 1.0], [-4.0, -0.4]])
+    Bc = np.array([[0.0], [1.0]])
+    At, Bt = torch.tensor(Ac), torch.tensor(Bc)
+    blk = rt.Nonlinear(lambda x, s: x @ At.T + s["u"] @ Bt.T, lambda x: x[:, 1:], 2, ["u"], ["y"], dt=0.05,
+                       continuous=True, substeps=20)
+    H = blk.markov("u", "y", 30)[0, :, 0, 0].numpy()
+    d = control.sample_system(control.ss(Ac, Bc, [[0.0, 1.0]], 0), 0.05, "zoh")
+    ref = [0.0] + [(d.C @ np.linalg.matrix_power(d.A, i - 1) @ d.B).item() for i in range(1, 30)]
+    np.testing.assert_allclose(H, ref, rtol=1e-8, atol=1e-12)
+
+
+def pendulum(name="known", x0=(0.4, 0.0)):
+    g_l, c = 9.81, 0.3
+    return rt.Nonlinear(lambda x, s: torch.stack([x[:, 1], -g_l * torch.sin(x[:, 0]) - c * x[:, 1] + s["w"][:, 0]
+                                                  + s["u"][:, 0]], 1),
+                        lambda x: torch.stack([x[:, 1], x[:, 0]], 1), 2, ["w", "u"], {"y": 1, "y0": 1}, dt=0.02,
+                        continuous=True, substeps=4, x0=x0, name=name)
+
+
+def test_rk4_stepping_matches_scipy():
+    blk = pendulum()
+    blk.reset(1)
+    w = 0.5 * np.sin(np.arange(200) * 0.1)
+    for k in range(200):
+        blk.step(w=torch.tensor([[w[k]]]), u=torch.zeros(1, 1, dtype=torch.float64))
+
+    def rhs(t, x):
+        k = min(int(t / 0.02 + 1e-9), 199)
+        return [x[1], -9.81 * np.sin(x[0]) - 0.3 * x[1] + w[k]]
+
+    ref = x = np.array([0.4, 0.0])
+    for k in range(200):
+        ref = solve_ivp(rhs, (k * 0.02, (k + 1) * 0.02), x, rtol=1e-12, atol=1e-12, method="DOP853").y[:, -1]
+        x = ref
+    np.testing.assert_allclose(blk.x[0].numpy(), ref, rtol=1e-6, atol=1e-8)
+
+
+def test_nonlinear_autograd_markov_matches_finite_differences_and_batches():
+    blk = pendulum(x0=[[0.4, 0.1], [1.2, -0.5]])
+    blk.reset(2)
+    Ha = blk.markov("u", "y", 12, method="autograd")
+    Hf = blk.markov("u", "y", 12, method="fd", eps=1e-6)
+    np.testing.assert_allclose(Ha.numpy(), Hf.numpy(), rtol=1e-6, atol=1e-9)
+    assert not torch.allclose(Ha[0], Ha[1])          # each member linearized at its own state
+    single = pendulum(x0=[1.2, -0.5])
+    single.reset(1)
+    np.testing.assert_allclose(single.markov("u", "y", 12)[0].numpy(), Ha[1].numpy(), rtol=1e-12)
+
+
+def test_probing_catches_bad_functions():
+    with pytest.raises(rt.DimensionError, match="block 'bad': f must return shape"):
+        rt.Nonlinear(lambda x, s: x[:, :1], lambda x: x, 2, ["u"], {"y": 2}, dt=0.1, name="bad")
+    with pytest.raises(rt.ConfigError, match="f or h failed"):
+        rt.Nonlinear(lambda x, s: x + s["nope"], lambda x: x, 2, ["u"], {"y": 2}, dt=0.1)
+
+
+@pytest.mark.slow
+def test_refinement_of_a_nonlinear_known_model_recovers_a_stiffness():
+    """Known: the pendulum; truth: the same pendulum (discrete interconnection) with an extra spring
+    u = -dk theta; the static gain on y0 = theta converges to -dk. Markov parameters by linearization,
+    refreshed along the run."""
+    dk = 2.0
+    known = pendulum()
+    truth = rt.Gain([[-dk]])
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=10.0)
+    g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, std=2.0, seed=2), nu=60)
+    refresh = rt.MarkovRefresh(g, every=200)
+    for _ in range(6000):
+        g.step()
+        refresh()
+    assert abs(float(ident.theta[0, 0, 0]) + dk) < 0.02 * dk
+    assert int(g.k) % 200 == 0  # refreshed after the last step, at the known model's present state
+    np.testing.assert_allclose(ident.beta[:, :, 0, 0].numpy(),
+                               -g.blocks["known"].markov("u", "y", 61)[:, 1:, 0, 0].numpy(), rtol=1e-12)
