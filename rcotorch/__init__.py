@@ -1,6 +1,6 @@
 """rcotorch: data-based model refinement with retrospective cost optimization (RCMR), batched in PyTorch."""
 
-from . import models, rng
+from . import identification, models, rng
 from .blocks import Block, Gain, StaticMap, Sum
 from .data import Recording, load
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
@@ -14,6 +14,6 @@ from .sources import Recorded, WhiteNoise
 __all__ = [
     "AlgebraicLoopError", "Block", "ConfigError", "DataError", "DimensionError", "Gain", "Graph", "LTI", "StaticMap",
     "PortError", "RCOEstimator", "RcoError", "Recorded", "Recording", "Sum", "WhiteNoise", "derive_markov",
-    "MarkovRefresh", "Nonlinear", "load", "models", "refinement", "rls_update", "rng", "zoh",
+    "MarkovRefresh", "Nonlinear", "identification", "load", "models", "refinement", "rls_update", "rng", "zoh",
 ]
 __version__ = "0.1.0"

@@ -229,9 +229,8 @@ class MassSpringDamper:
         e_y, e_v = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
         # Linear model: y = y_base + p_y s_y + p_v s_v exactly; with feedback this is the starting point.
         lin = self.discrete
-        y_base = lin.simulate(w, base)[0]
-        S = np.c_[lin.simulate(w, e_y)[0] - lin.simulate(w, np.zeros(3))[0],
-                  lin.simulate(w, e_v)[0] - lin.simulate(w, np.zeros(3))[0]]
+        y_base, zero = lin.simulate(w, base)[0], np.zeros_like(w)
+        S = np.c_[lin.simulate(zero, e_y)[0], lin.simulate(zero, e_v)[0]]   # free responses of y and y'
         p, *_ = np.linalg.lstsq(S, y - y_base, rcond=None)
         if feedback is not None:
             scale = np.array([max(np.abs(y).max(), 1e-12), max(np.abs(y).max(), 1e-12) * math.sqrt(self.b)])

@@ -1,0 +1,191 @@
+"""Real measured data: the Silverbox benchmark (an electronic Duffing oscillator), cubic spring refined by RCMR.
+
+Data: ``SNLS80mV.csv`` of the Silverbox benchmark (Wigren and Schoukens, ECC 2013), read from
+``../shared/data/silverbox/`` next to the project checkout (setting ``data``; see that folder's README).
+Input w = V1 (volts), output y = V2 (volts, the "position"), fs = 1e7 / 2^14 Hz.
+
+1. Known model (fitted here, not given): the linear part y'' = -a y' - b y + g (w + u) + d0, fitted by output
+   error on the nearly linear, low-amplitude start of the "arrow" section, rows [fit_start, fit_stop)
+   (``rcotorch.identification.MassSpringDamper.fit``). w is interpolated linearly between samples (FOH).
+2. Unknown subsystem: the cubic hardening spring. The identified subsystem is the static basis regressor
+   u(k) = theta y0(k)^3 (``RCOEstimator.static_gain`` with the feature y0^3), where y0 is the position the
+   known model predicts half a sample after t_k (setting ``lead``; u is held over the sample, so this is the
+   midpoint rule of the continuous spring force). u enters as g u, like the input, so
+
+       k3_over_m = c = -g theta      (c of y'' = -a y' - b y - c y^3 + g w + d0, in 1/(V^2 s^2)).
+
+3. Refinement: the recorded estimation multisine, rows [est_start, est_stop), is played back through
+   ``rt.refinement(known, identified, data=rt.Recorded(...))``; the known model starts from the state fitted
+   to the first ``n_init`` samples; its Markov parameters (nu of them, about 3 decay times of the lightly
+   damped resonance) are derived from the model.
+4. Validation: free-run simulation (no measurement fed back) on the validation multisine, rows
+   [val_start, val_stop), of the initial linear model (theta = 0) and of the refined model (theta frozen at
+   its final value), each from the initial state that best fits the first ``n_init`` validation outputs;
+   RMS error in volts over the rest of the validation rows.
+
+Reference (the data README, an independent fit of the full model): c ~ 7.5e5, free-run RMS ~1 mV with the
+cubic term and ~15 mV without it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import rcotorch as rt
+from rcotorch.errors import ConfigError, DataError
+from rcotorch.identification import MassSpringDamper, rmse
+from rcotorch.scenario import Requirement, Scenario
+
+DEFAULT_DATA = Path(rt.__file__).resolve().parents[1].parent / "shared" / "data" / "silverbox" / "SNLS80mV.csv"
+
+
+def cube(s):
+    """The basis regressor y0^3 of the identified subsystem."""
+    return s["y0"] ** 3
+
+
+@lru_cache(maxsize=4)
+def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_rows: tuple[int, int],
+             foh: bool, lead: float) -> tuple[rt.Recording, MassSpringDamper]:
+    silverbox = Path(path) == DEFAULT_DATA.resolve() and (w_col, y_col) == ("V1", "V2")
+    rec = rt.load(path, columns=[w_col, y_col], dt=Ts, units={"V1": "V", "V2": "V"} if silverbox else None)
+    fit = rec.rows(*fit_rows)
+    model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
+    return rec, model
+
+
+def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
+    """The recording (input and output columns) and the fitted linear model for settings ``s`` (cached)."""
+    path = Path(s["data"]).expanduser()
+    if not path.is_file():
+        hint = ("the Silverbox files are read from ../shared/data/silverbox/ next to the project checkout "
+                f"(expected {DEFAULT_DATA}); see that folder's README" if path == DEFAULT_DATA else
+                f"the default is {DEFAULT_DATA}")
+        raise DataError(f"scenario 'silverbox-cubic-stiffness': data file {path} not found; {hint}. Pass another "
+                        "path with --set data=PATH (a CSV, NPZ or .mat file with the input and output columns).")
+    for a, b in (("fit_start", "fit_stop"), ("est_start", "est_stop"), ("val_start", "val_stop")):
+        if not 0 <= s[a] < s[b]:
+            raise ConfigError(f"scenario 'silverbox-cubic-stiffness': need 0 <= {a} < {b}, got {s[a]}, {s[b]}")
+    for key in ("est", "val"):
+        if s[f"{key}_stop"] - s[f"{key}_start"] <= s["n_init"]:
+            raise ConfigError(f"scenario 'silverbox-cubic-stiffness': the {key} rows must be more than "
+                              f"n_init = {s['n_init']}")
+    return _prepare(str(path.resolve()), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
+                    (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
+
+
+@lru_cache(maxsize=16)
+def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_init, theta):
+    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
+    val = rec.rows(*val_rows)
+    w, y = val.column(w_col), val.column(y_col)
+    fb = None if theta == 0.0 else (lambda q: theta * q ** 3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        try:
+            x0 = model.initial_state(w[:n_init], y[:n_init], fb)
+            y_sim = model.simulate(w, x0, fb)
+        except (ValueError, FloatingPointError):  # a diverged theta
+            y_sim = np.full_like(y, math.nan)
+    err = rmse(y_sim[n_init:], y[n_init:]) if np.all(np.isfinite(y_sim)) else math.nan
+    return err, y_sim
+
+
+def validate(s, theta: float) -> tuple[float, np.ndarray]:
+    """Free-run RMS error [V] on the validation rows (after the first n_init) and the simulated output, for
+    the linear model with the identified subsystem u = theta y0^3 (theta = 0: the initial linear model)."""
+    prepare(s)
+    path = Path(s["data"]).expanduser()
+    return _validate(str(path.resolve()), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
+                     (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]),
+                     (int(s["val_start"]), int(s["val_stop"])), int(s["n_init"]), float(theta))
+
+
+class SilverboxCubicStiffness(Scenario):
+    name = "silverbox-cubic-stiffness"
+    section = "real data"
+    description = "Silverbox measurements: cubic spring k3/m refined on a linear m-d-k1 model fitted to the data"
+    steps = 105712 - 40650          # the whole estimation multisine
+    settings = dict(data=str(DEFAULT_DATA), w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
+                    fit_start=100, fit_stop=4100, est_start=40650, est_stop=105712, val_start=105712,
+                    val_stop=127400, n_init=50, foh=True, lead=0.5, p0=1e4, lam=1.0, nu=100)
+    requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
+                    Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
+    per_member = frozenset({"p0", "lam"})
+
+    def build(self, s, batch, dtype, device):
+        rec, model = prepare(s)
+        est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
+        w, y, n = est.column(s["w_column"]), est.column(s["y_column"]), int(s["n_init"])
+        known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype)
+        ident = rt.RCOEstimator.static_gain({"y0": 1}, features={"y0^3": cube}, p0=s["p0"], lam=s["lam"],
+                                            dtype=dtype)
+        data = rt.Recorded(est, {"w": s["w_column"], "y": s["y_column"]}, name="data", dtype=dtype)
+        return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
+                             device=device)
+
+    @staticmethod
+    def model(s) -> MassSpringDamper:
+        """The linear initial model fitted for settings ``s``."""
+        return prepare(s)[1]
+
+    @staticmethod
+    def theta(graph) -> torch.Tensor:
+        return graph.blocks["identified"].theta[:, 0, 0]
+
+    def estimates(self, g, s):
+        return {"k3_over_m": prepare(s)[1].cubic_coefficient(self.theta(g))}
+
+    def metrics(self, g, s):
+        _, model = prepare(s)
+        thetas = self.theta(g).detach().to(torch.float64).cpu()
+        initial = validate(s, 0.0)[0]
+        refined = torch.tensor([validate(s, float(t))[0] for t in thetas], dtype=torch.float64)
+        B = len(thetas)
+
+        def full(v):
+            return torch.full((B,), float(v), dtype=torch.float64)
+
+        return {"val_rmse_initial": full(initial), "val_rmse_refined": refined,
+                "val_rmse_ratio": refined / initial, "linear_a": full(model.a), "linear_b": full(model.b),
+                "linear_g": full(model.g), "linear_d0": full(model.d0), "linear_f0_hz": full(model.f0),
+                "linear_fit_rmse": full(model.fit_rmse)}
+
+    def figures(self, g, s):
+        import matplotlib.pyplot as plt
+
+        rec, _ = prepare(s)
+        val = rec.rows(int(s["val_start"]), int(s["val_stop"]))
+        y = val.column(s["y_column"])
+        theta = float(self.theta(g)[0])
+        e0, y0 = validate(s, 0.0)
+        e1, y1 = validate(s, theta)
+        n = int(s["n_init"])
+        centre = n + int(np.argmax(np.abs(y[n:])))           # the largest swing: where the cubic term matters
+        lo = max(n, centre - 150)
+        hi = min(len(y), lo + 300)
+        t = (np.arange(lo, hi)) * float(s["Ts"])
+        fig, (ax, ae) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+        ax.plot(t, y[lo:hi], "k", lw=1.6, label="measured")
+        ax.plot(t, y0[lo:hi], color="tab:orange", lw=1, label=f"initial linear model (rms err {e0 * 1e3:.2f} mV)")
+        ax.plot(t, y1[lo:hi], "--", color="tab:blue", lw=1, label=f"refined, cubic term (rms err {e1 * 1e3:.2f} mV)")
+        ax.set_ylabel("output V2 [V]")
+        ax.legend(loc="upper right", fontsize=8)
+        ax.set_title(f"Silverbox validation multisine (rows {s['val_start']}..{s['val_stop']}), free run")
+        ae.plot(t, (y0 - y)[lo:hi] * 1e3, color="tab:orange", lw=1, label="initial - measured")
+        ae.plot(t, (y1 - y)[lo:hi] * 1e3, color="tab:blue", lw=1, label="refined - measured")
+        ae.set_ylabel("error [mV]")
+        ae.set_xlabel(f"time since validation start [s] (window of {hi - lo} samples)")
+        ae.legend(loc="upper right", fontsize=8)
+        for a in (ax, ae):
+            a.grid(alpha=0.3)
+        fig.tight_layout()
+        return {"validation": fig}
+
+
+SCENARIO = SilverboxCubicStiffness()

@@ -1,0 +1,251 @@
+"""Real-data refinement: the initial-model helpers (rcotorch.identification) against python-control, scipy and
+a fine continuous simulation; the README's worked example on a simulated Duffing oscillator with known c; and
+the silverbox-cubic-stiffness scenario on the measured Silverbox data."""
+
+import re
+from pathlib import Path
+
+import control
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.signal
+import torch
+
+import rcotorch as rt
+from rcotorch import scenario as scenarios
+from rcotorch.identification import MassSpringDamper, rmse
+from rcotorch.runner import Run
+
+SILVERBOX = Path(__file__).resolve().parents[2] / "shared/data/silverbox/SNLS80mV.csv"
+README = Path(__file__).resolve().parents[1] / "README.md"
+needs_data = pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
+
+P = dict(a=40.0, b=(2 * np.pi * 60) ** 2, g=1.5e5, d0=-700.0)     # a Silverbox-like oscillator at dt = 1 ms
+
+
+def duffing(a, b, c, g, d0, dt, w, y0=0.0, v0=0.0, sub=8):
+    """y'' = -a y' - b y - c y^3 + g w + d0, w linearly interpolated between samples, RK4 with ``sub`` steps per
+    sample: y at the sample instants."""
+    h, y, v, out = dt / sub, y0, v0, np.empty(len(w))
+
+    def f(y, v, u):
+        return v, -a * v - b * y - c * y ** 3 + g * u + d0
+
+    for k in range(len(w)):
+        out[k] = y
+        w0 = w[k]
+        dw = w[k + 1] - w0 if k + 1 < len(w) else 0.0
+        for j in range(sub):
+            ua, um, ub = w0 + dw * j / sub, w0 + dw * (j + 0.5) / sub, w0 + dw * (j + 1) / sub
+            k1 = f(y, v, ua)
+            k2 = f(y + h / 2 * k1[0], v + h / 2 * k1[1], um)
+            k3 = f(y + h / 2 * k2[0], v + h / 2 * k2[1], um)
+            k4 = f(y + h * k3[0], v + h * k3[1], ub)
+            y += h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+            v += h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    return out
+
+
+def smooth_input(n, dt, seed=0, std=0.03, mean=0.005):
+    b, a = scipy.signal.butter(4, 150 * 2 * dt)
+    w = scipy.signal.lfilter(b, a, np.random.default_rng(seed).standard_normal(n))
+    return w / w.std() * std + mean
+
+
+# --- the discrete model --------------------------------------------------------------------------------------
+def test_zoh_model_matches_python_control():
+    m = MassSpringDamper(**P, dt=1e-3, foh=False, lead=0.0)
+    A = [[0, 1, 0], [-P["b"], -P["a"], P["d0"]], [0, 0, 0]]
+    B = [[0, 0], [P["g"], P["g"]], [0, 0]]
+    ref = control.sample_system(control.ss(A, B, [[1, 0, 0], [1, 0, 0]], np.zeros((2, 2))), 1e-3, method="zoh")
+    d = m.discrete
+    for ours, theirs in ((d.A, ref.A), (d.B, ref.B), (d.C, ref.C), (d.D, ref.D)):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-10, atol=1e-12)
+    assert m.cubic_coefficient(-2.0) == 2.0 * P["g"]
+    assert abs(m.f0 - 60.0) < 1e-9 and abs(m.damping_ratio - 40.0 / (2 * 2 * np.pi * 60)) < 1e-12
+
+
+def test_foh_output_matches_scipy_cont2discrete():
+    dt, n = 1e-3, 400
+    m = MassSpringDamper(P["a"], P["b"], P["g"], 0.0, dt, foh=True)
+    w = smooth_input(n, dt, seed=3)
+    w[0] = 0.0                                            # both start at rest with a zero input
+    cont = (np.array([[0, 1], [-P["b"], -P["a"]]]), np.array([[0], [P["g"]]]), np.eye(1, 2), np.zeros((1, 1)))
+    sysd = scipy.signal.cont2discrete(cont, dt, "foh")
+    _, y_ref, _ = scipy.signal.dlsim(sysd, w)
+    y = m.simulate(w, m.state(0.0, 0.0, w[0]))
+    np.testing.assert_allclose(y, y_ref[:, 0], rtol=0, atol=1e-12 * np.abs(y_ref).max())
+
+
+@pytest.mark.parametrize("lead", [0.0, 0.5, 0.3])
+def test_y0_is_the_position_lead_samples_ahead(lead):
+    """With a constant input hold and interpolation agree, so y and y0 are exact samples of the continuous
+    response at t_k and t_k + lead dt (scipy's ODE solver at tight tolerances as the reference)."""
+    dt, n, w_c = 1e-3, 60, 0.02
+    m = MassSpringDamper(**P, dt=dt, lead=lead)
+    y, y0, _ = m.discrete.simulate(np.full(n, w_c), m.state(0.01, -3.0, w_c))
+    sol = scipy.integrate.solve_ivp(lambda t, x: [x[1], -P["a"] * x[1] - P["b"] * x[0] + P["g"] * w_c + P["d0"]],
+                                    (0, n * dt), [0.01, -3.0], rtol=1e-12, atol=1e-15, dense_output=True)
+    t = np.arange(n) * dt
+    np.testing.assert_allclose(y, sol.sol(t)[0], atol=1e-10)
+    np.testing.assert_allclose(y0, sol.sol(t + lead * dt)[0], atol=1e-10)
+
+
+def test_linear_free_run_matches_dlsim_from_any_state():
+    m = MassSpringDamper(**P, dt=1e-3)
+    d = m.discrete
+    w = smooth_input(3000, 1e-3, seed=5)
+    x0 = m.state(0.03, 2.0, w[0])
+    y, y0, u = d.simulate(w, x0)
+    _, ref, _ = scipy.signal.dlsim((d.A, d.B[:, :1], d.C, d.D[:, :1], 1e-3), w, x0=x0)
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(y, ref[:, 0], atol=1e-10 * scale)
+    np.testing.assert_allclose(y0, ref[:, 1], atol=1e-10 * scale)
+    assert not u.any()
+
+
+def test_free_run_with_cubic_feedback_matches_an_rcotorch_graph():
+    """The numpy free run with u = theta y0^3 against the same model as torch blocks (LTI + StaticMap)."""
+    m, theta, n = MassSpringDamper(**P, dt=1e-3), -5.0, 2000
+    w = smooth_input(n, 1e-3, seed=6)
+    x0 = m.state(0.01, 0.0, w[0])
+    y, y0, u = m.discrete.simulate(w, x0, lambda q: theta * q ** 3)
+    g = rt.Graph([rt.Recorded(w[:, None], {"w": 0}, name="data"), m.lti(x0=x0),
+                  rt.StaticMap(lambda q: theta * q ** 3, 1, name="spring")],
+                 ["data.w -> known.w", "known.y0 -> spring.in", "spring.out -> known.u"])
+    tr = g.run(n, record={"y": "known.y", "u": "spring.out"})
+    np.testing.assert_allclose(y, tr["y"][:, 0, 0].numpy(), atol=1e-12)
+    np.testing.assert_allclose(u, tr["u"][:, 0, 0].numpy(), atol=1e-12)
+    assert np.abs(u).max() > 1e-3                         # the cubic term is exercised
+
+
+def test_initial_state_recovers_the_state():
+    m = MassSpringDamper(**P, dt=1e-3)
+    w = smooth_input(50, 1e-3, seed=7)
+    x_true = m.state(0.04, -5.0, w[0])
+    y = m.simulate(w, x_true)
+    np.testing.assert_allclose(m.initial_state(w, y), x_true, rtol=1e-8)
+    spring = lambda q: -5.0 * q ** 3  # noqa: E731
+    y = m.simulate(w, x_true, spring)
+    np.testing.assert_allclose(m.initial_state(w, y, spring), x_true, rtol=1e-6)
+
+
+def test_fit_recovers_a_continuous_linear_oscillator():
+    """Output-error fit on noise-free samples of the continuous system (fine RK4, linearly interpolated input)."""
+    dt = 1e-3
+    w = smooth_input(3000, dt, seed=8, std=0.01)
+    y = duffing(P["a"], P["b"], 0.0, P["g"], P["d0"], dt, w, y0=0.002, v0=0.1)
+    m = MassSpringDamper.fit(w, y, dt)
+    for key, value in P.items():
+        assert abs(getattr(m, key) - value) < 1e-4 * abs(value), (key, getattr(m, key), value)
+    assert m.fit_rmse < 1e-6 * np.abs(y).max()
+    assert m.foh and m.lead == 0.5 and m.dt == dt
+
+
+def test_fit_rejects_data_that_are_not_an_oscillator():
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal(500)
+    y = scipy.signal.lfilter([0, 1], [1, 0.5], w)        # one pole at -0.5
+    with pytest.raises(rt.DataError, match="poles"):
+        MassSpringDamper.fit(w, y, 1e-3)
+    with pytest.raises(rt.DataError, match="different lengths"):
+        MassSpringDamper.fit(w, y[:-1], 1e-3)
+    y[10] = np.nan
+    with pytest.raises(rt.DataError, match="sample 10"):
+        MassSpringDamper.fit(w, y, 1e-3)
+
+
+# --- the README's worked example, on a simulated Duffing oscillator with known c ---------------------------------
+def _readme_example() -> str:
+    section = README.read_text().split("## Real measured data: Silverbox and your own CSV", 1)[1]
+    blocks = re.findall(r"```py\n(.*?)```", section, flags=re.S)
+    assert len(blocks) == 1
+    return blocks[0]
+
+
+def test_readme_worked_example_recovers_a_known_cubic_spring(tmp_path, monkeypatch, capsys):
+    dt, n, c = 1e-3, 15000, 8e5
+    rng = np.random.default_rng(0)
+    w = smooth_input(n, dt, seed=0) - 0.005
+    w = (w - w.mean()) / w.std() * np.where(np.arange(n) < 3000, 0.004, 0.03) + 0.005
+    y = duffing(P["a"], P["b"], c, P["g"], P["d0"], dt, w) + 1e-4 * rng.standard_normal(n)
+    lines = [f"{k * dt:.4f},{a:.7g},{b:.7g}" for k, (a, b) in enumerate(zip(w, y))]
+    (tmp_path / "my_data.csv").write_text("time [s],input [V],output [V]\n" + "\n".join(lines) + "\n")
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(_readme_example(), "README.md worked example", "exec"), ns)
+    assert ns["rec"].units == {"input": "V", "output": "V"}
+    c_hat = ns["model"].cubic_coefficient(ns["theta"])
+    assert abs(c_hat - c) < 0.05 * c, c_hat
+    assert ns["ident"].theta_names == ["y0^3(k)"]
+    errors = dict(re.findall(r"(linear|refined): free-run rms error (\S+)", capsys.readouterr().out))
+    assert float(errors["refined"]) < 0.05 * float(errors["linear"]), errors
+    assert float(errors["refined"]) < 1e-3
+
+
+# --- the scenario --------------------------------------------------------------------------------------------
+def test_missing_data_file_is_a_clear_error(tmp_path):
+    with pytest.raises(rt.DataError, match=r"data file .*nope\.csv not found.*--set data=PATH"):
+        Run("silverbox-cubic-stiffness", out=tmp_path, overrides={"data": str(tmp_path / "nope.csv")})
+    sc = scenarios.get("silverbox-cubic-stiffness")
+    assert Path(sc.settings["data"]) == SILVERBOX               # ../shared next to the checkout
+    s = sc.resolve({"data": "my.csv", "fit_stop": "3000", "foh": "false"})
+    assert s["data"] == "my.csv" and s["fit_stop"] == 3000 and s["foh"] is False
+
+
+@needs_data
+def test_scenario_graph_and_validation_against_references(tmp_path):
+    """A short run: real playback through refinement(..., data=Recorded), the basis regressor named, and the
+    validation errors recomputed independently (scipy dlsim for the linear model, an rcotorch graph for the
+    refined one)."""
+    run = Run("silverbox-cubic-stiffness", steps=1500, out=tmp_path)
+    g, s = run.graph, run.settings
+    assert isinstance(g.blocks["data"], rt.Recorded) and g.blocks["data"].first_row == 40650
+    assert g.sources[("error", "y")] == ("data", "y") and g.sources[("known", "w")] == ("data", "w")
+    ident = g.blocks["identified"]
+    assert ident.theta_names == ["y0^3(k)"] and ident.nu == 100 and ident.first_delay == 1
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    c = summary["estimates"]["k3_over_m"]
+    assert 6e5 < c < 8.5e5, c
+    model = run.scenario.model(s)
+    theta = float(ident.theta[0, 0, 0])
+    assert c == pytest.approx(-model.g * theta)
+
+    val = rt.load(SILVERBOX, rows=(105712, 127400))
+    w, y = val.column("V1"), val.column("V2")
+    d = model.discrete
+    # Initial model: state by linear least squares on the first 50 outputs, free run by scipy's dlsim.
+    sys = (d.A, d.B[:, :1], d.C[:1], d.D[:1, :1], d.dt)
+    base = scipy.signal.dlsim(sys, w[:50], x0=[0, 0, 1])[1][:, 0]
+    cols = [scipy.signal.dlsim(sys, np.zeros(50), x0=e)[1][:, 0] for e in ([1, 0, 0], [0, 1, 0])]
+    p = np.linalg.lstsq(np.c_[cols[0], cols[1]], y[:50] - base, rcond=None)[0]
+    y_lin = scipy.signal.dlsim(sys, w, x0=[p[0], p[1], 1.0])[1][:, 0]
+    assert summary["metrics"]["val_rmse_initial"] == pytest.approx(rmse(y_lin[50:], y[50:]), rel=1e-6)
+    # Refined model: the known model with the frozen cubic term as torch blocks, from the scenario's state.
+    x0 = model.initial_state(w[:50], y[:50], lambda q: theta * q ** 3)
+    rg = rt.Graph([rt.Recorded(w[:, None], {"w": 0}, name="data"), model.lti(x0=x0),
+                   rt.StaticMap(lambda q: theta * q ** 3, 1, name="spring")],
+                  ["data.w -> known.w", "known.y0 -> spring.in", "spring.out -> known.u"])
+    y_ref = rg.run(len(w), record={"y": "known.y"})["y"][:, 0, 0].numpy()
+    assert summary["metrics"]["val_rmse_refined"] == pytest.approx(rmse(y_ref[50:], y[50:]), rel=1e-6)
+
+
+@needs_data
+@pytest.mark.slow
+def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path):
+    run = Run("silverbox-cubic-stiffness", out=tmp_path)
+    run.advance(progress=False)
+    summary = run.finish(figures=True)
+    assert summary["steps"] == 105712 - 40650
+    failed = {k: v for k, v in summary["requirements"].items() if not v["pass"]}
+    assert not failed, failed
+    m = summary["metrics"]
+    assert m["val_rmse_refined"] <= 0.002 and m["val_rmse_refined"] <= m["val_rmse_initial"] / 5
+    assert 0.010 < m["val_rmse_initial"] < 0.025                 # README reference: about 15 mV
+    assert 6.5e5 < summary["estimates"]["k3_over_m"] < 8.5e5      # README reference: about 7.5e5
+    assert summary["diverged"] == []
+    for fig in ("validation.png", "estimates.png", "model_error.png"):
+        assert (tmp_path / fig).stat().st_size > 10_000
+    assert torch.isfinite(run.graph.blocks["identified"].P).all()
