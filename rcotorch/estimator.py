@@ -57,13 +57,18 @@ class RCOEstimator(Block):
         markov: beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u); with its relative
             degree ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
         dt: sample time (for transfer functions and frequency responses).
+        u_bounds: (low, high) saturation of u, scalars or per component (n_u,), e.g. (0, inf) where physics
+            forbids a sign (a cooling that cannot heat). The retrospective cost uses the saturated u, the one
+            actually applied.
+        theta_bounds: (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each
+            update (P unchanged).
     """
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
                  features: Mapping[str, Callable[[dict], torch.Tensor]] | None = None,
                  proper: bool = False, feed_u: bool = True, mask=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
-                 name: str = "identified", dtype=DEFAULT_DTYPE):
+                 u_bounds=None, theta_bounds=None, name: str = "identified", dtype=DEFAULT_DTYPE):
         signals = dict(signals)
         if "z" in signals or "valid" in signals or "u" in signals:
             raise ConfigError(f"block '{name}': 'z', 'u' and 'valid' are reserved port names")
@@ -112,6 +117,10 @@ class RCOEstimator(Block):
             torch.as_tensor(theta0, dtype=dtype).reshape(-1, n_u, self.n_phi)
         self.register_buffer("theta0", theta0 * self.mask)
         self.register_buffer("free_idx", self.free.clone())
+        for key, value, width in (("u", u_bounds, n_u), ("theta", theta_bounds, n_u * self.n_phi)):
+            lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
+            self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
+            self.register_buffer(f"{key}_high", hi)
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
         self.register_buffer("beta_t", torch.zeros(1, 0, 0, dtype=dtype))  # beta as (Bp, n_z * n_u, nu)
         self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
@@ -133,6 +142,23 @@ class RCOEstimator(Block):
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
         """Exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...)."""
         return cls(signals, n_u=n_u, n_z=n_z, nc=0, proper=True, feed_u=False, **kwargs)
+
+    def _bounds(self, bounds, what: str, width: int, dtype):
+        """(low, high) as tensors broadcastable to (B, width) (theta bounds flattened like Theta), or Nones."""
+        if bounds is None:
+            return None, None
+        try:
+            lo, hi = (torch.as_tensor(b, dtype=dtype) for b in bounds)
+        except (TypeError, ValueError):
+            raise ConfigError(f"block '{self.name}': {what} must be a pair (low, high), got {bounds!r}") from None
+        lo, hi = (t.reshape(-1) if t.dim() else t for t in (lo, hi))
+        for t in (lo, hi):
+            if t.dim() and t.numel() != width:
+                raise DimensionError(f"block '{self.name}': {what} entries must be scalars or have {width} "
+                                     f"values, got {t.numel()}")
+        if bool((lo > hi).any()):
+            raise ConfigError(f"block '{self.name}': {what} has low > high")
+        return lo, hi
 
     def _regressors(self, inputs) -> torch.Tensor:
         """The regressor signals at time k, (B, n_sig)."""
@@ -248,6 +274,8 @@ class RCOEstimator(Block):
         phi = flat.index_select(1, self._gather)
         u = torch.bmm(self.theta, phi.unsqueeze(-1)).squeeze(-1)
         u = torch.where(self.alive.unsqueeze(1), u, 0.0)
+        if self.u_low is not None:
+            u = torch.clamp(u, self.u_low, self.u_high)
         self.set_state(phi_now=phi, u_now=u)
         return u
 
@@ -279,6 +307,8 @@ class RCOEstimator(Block):
         alive = self.alive & ok & finite
         if not self.all_free:
             theta_flat = self.theta.reshape(B, -1).index_copy(1, self.free_idx, theta_flat)
+        if self.theta_low is not None:  # projection onto the box; P is left as it is
+            theta_flat = torch.clamp(theta_flat, self.theta_low, self.theta_high)
         self.set_state(P=P, theta=theta_flat.reshape(self.theta.shape), z_r=z_r, alive=alive,
                        diverged_at=torch.where(self.alive & ~alive, self.k, self.diverged_at))
         if self.nc:  # shift the regressor histories

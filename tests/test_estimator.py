@@ -310,3 +310,24 @@ def test_features_are_probed_when_built():
         rt.RCOEstimator.static_gain({"y0": 1}, features={"boom": lambda s: s["nope"]})
     with pytest.raises(rt.DimensionError, match="block 'cube'"):
         rt.StaticMap(lambda q: q.sum(), 1, name="cube")
+
+
+def test_u_bounds_saturate_and_theta_bounds_project():
+    """A cooling-like constraint: u may not be negative. The saturated u is what the model receives and
+    what the retrospective cost uses; theta is projected onto its box after each update."""
+    import control
+
+    Ts = 0.1
+    G = rt.models.sdof(1.0, 5.0, 30.0, measured=["velocity"], sees=["velocity"])
+    known = rt.LTI.from_control(G, inputs=["w", "u"], outputs=["y", "y0"], dt=Ts, name="known")
+    truth = rt.LTI.from_control(control.tf([10], [1, 2]), inputs=["in"], outputs=["out"], dt=Ts)
+    ident = rt.RCOEstimator({"y0": 1}, nc=2, p0=1e4, u_bounds=(0.0, float("inf")), theta_bounds=(-0.5, 0.8))
+    g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, seed=1), nu=10)
+    us = g.run(500, record={"u": "identified.u"})["u"]
+    assert float(us.min()) >= 0.0 and float(us.max()) > 0.0
+    assert float(ident.theta.min()) >= -0.5 and float(ident.theta.max()) <= 0.8
+    assert torch.equal(ident.win[:, :, -1].clamp(min=0.0), ident.win[:, :, -1])  # stored u are the applied ones
+    with pytest.raises(rt.ConfigError, match="low > high"):
+        rt.RCOEstimator({"y0": 1}, u_bounds=(1.0, 0.0))
+    with pytest.raises(rt.DimensionError, match="theta_bounds entries"):
+        rt.RCOEstimator({"y0": 1}, nc=1, theta_bounds=([0.0, 0.0, 0.0], 1.0))
