@@ -1,6 +1,6 @@
 """rcotorch: data-based model refinement with retrospective cost optimization (RCMR), batched in PyTorch."""
 
-from . import identification, models, rng
+from . import circuits, identification, models, rng
 from .blocks import Block, Gain, StaticMap, Sum
 from .data import Recording, load
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
@@ -12,8 +12,9 @@ from .rls import rls_update
 from .sources import Recorded, WhiteNoise
 
 __all__ = [
-    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "DimensionError", "Gain", "Graph", "LTI", "StaticMap",
-    "PortError", "RCOEstimator", "RcoError", "Recorded", "Recording", "Sum", "WhiteNoise", "derive_markov",
-    "MarkovRefresh", "Nonlinear", "identification", "load", "models", "refinement", "rls_update", "rng", "zoh",
+    "AlgebraicLoopError", "Block", "circuits", "ConfigError", "DataError", "derive_markov", "DimensionError",
+    "Gain", "Graph", "identification", "load", "LTI", "MarkovRefresh", "models", "Nonlinear", "PortError",
+    "RcoError", "RCOEstimator", "Recorded", "Recording", "refinement", "rls_update", "rng", "StaticMap",
+    "Sum", "WhiteNoise", "zoh",
 ]
 __version__ = "0.1.0"

@@ -159,9 +159,13 @@ def available() -> dict[str, Scenario]:
         for path in sorted(d.glob("*.py")):
             if path.name.startswith("_"):
                 continue
-            spec = importlib.util.spec_from_file_location(f"rcotorch_scenario_{path.stem}", path)
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
+            name = f"rcotorch_scenario_{path.stem}"
+            module = sys.modules.get(name)
+            if module is None or getattr(module, "__file__", None) != str(path):
+                spec = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[name] = module
+                spec.loader.exec_module(module)
             sc = getattr(module, "SCENARIO", None)
             if isinstance(sc, Scenario):
                 found.setdefault(sc.name, sc)
