@@ -1,0 +1,535 @@
+"""A reduced 1-D thermosphere column in torch: the stand-in for GITM in the seed paper's Section VII.
+
+One vertical column, 100-600 km, batch-first like every rcotorch block. The state is the neutral temperature
+T(z), the nitric-oxide density n_NO(z) and a clock; everything else follows from them:
+
+* **Composition and mass density** (diagnostic): O, O2 and N2 in diffusive equilibrium above a fixed lower
+  boundary, each with its own scale height, integrated hydrostatically from T(z) (trapezoid rule):
+
+      n_i(z) = n_i(z0) T(z0)/T(z) exp(-int_z0^z m_i g(z') / (k T(z')) dz'),   g(z) = g0 (R/(R+z))^2,
+      rho(z) = sum_i m_i n_i(z).
+
+* **Energy equation** on the fixed altitude grid (conservative finite volumes, T fixed at the lower boundary,
+  zero heat flux at the top, backward Euler with kappa and rho c_p lagged, sources explicit; unconditionally
+  stable, so the physics substep is limited by accuracy only):
+
+      rho c_p dT/dt = d/dz(kappa(T) dT/dz) + Q_sun + Q_storm - Q_NO - Q_u,     kappa = A T^s,
+
+  rho c_p = k (5/2 n_O + 7/2 (n_O2 + n_N2)) (ideal monatomic and diatomic gases). Q_u is the cooling an
+  identified subsystem supplies: values at a few node altitudes (input ``u``, nW/m^3), linearly interpolated in
+  between and tapered linearly to zero one node spacing below the lowest and above the highest node.
+* **Solar heating** Q_sun: one Chapman layer per wavelength band, absorbed along a fixed effective path,
+  band fluxes linear in the solar-activity index F10.7, with a diurnal cycle (see ``DIURNAL_AMPLITUDE``):
+
+      Q_b(z, t) = eta_b F_b(F10.7) I(t) sum_i sigma_bi n_i(z) exp(-tau_b(z) / mu),
+      tau_b(z) = sum_i sigma_bi N_i(z),   N_i(z) = int_z^inf n_i dz'   (above the top: n_i H_i).
+
+* **Storm**: auroral Joule and particle heating, a column power S(t) [mW/m^2] deposited with a fixed Gaussian
+  altitude profile; a share of it ionizes and makes NO.
+* **Nitric oxide**, a *dynamic* minor species: dn_NO/dt = P_NO - n_NO / tau_NO(z), P_NO an effective yield
+  times the ion-pair production (photons absorbed by N2 in every band, plus the storm's particles), advanced
+  exactly over each substep with the sources held.
+* **NO 5.3 um cooling** (Kockarts 1980): NO(v=1) excited by collisions with O, emitting at A10,
+
+      Q_NO = h nu A10 n_NO k_O n_O exp(-h nu / k T) / (k_O n_O + A10),     h nu / k = 2699 K,
+
+  proportional to n_NO n_O exp(-2700/T) where k_O n_O << A10 (the factor A10 / (A10 + k_O n_O) is 0.8 at 120 km,
+  0.93 at 150 km).
+
+The *truth* column has Q_NO (``no_cooling=True``); the *initial model* has not, and RCMR supplies Q_u.
+
+Left out (and why it is fine here): vertical winds and the work of the expanding column, horizontal transport
+(replaced by the damped diurnal cycle), eddy mixing (the turbopause is put at the lower boundary), thermal
+diffusion, He and H (a few per cent of the mass at 400 km), CO2 and O 63 um cooling (the lower boundary is
+the heat sink), NO transport.
+
+Every constant names its source. Where a source gives a range or a spectrum and the column needs one
+effective number, the value is marked *effective* and was chosen inside the published range so that the truth
+column's climatology is typical: for F10.7 = 150 and no storm, T(120 km) about 430 K, exospheric temperature
+900-1070 K over the day, 1.6-2.7e-12 kg/m^3 at 407 km, NO cooling about 0.15 mW/m^2 (a quarter of the
+solar heating) peaking near 130 km, n_NO peaking near 120 km at about 1.4e13 m^-3 (SNOE saw up to ~1e14).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.autograd.functional import jvp as double_backward_jvp
+
+from .blocks import DEFAULT_DTYPE, Block
+from .errors import ConfigError
+from .nonlinear import Nonlinear
+
+# --- physical constants (CODATA 2018; exact SI values where defined) ---------------------------------------------
+K_B = 1.380649e-23            # Boltzmann constant [J/K]
+AMU = 1.66053906660e-27       # atomic mass unit [kg]
+H_PLANCK = 6.62607015e-34     # [J s]
+C_LIGHT = 2.99792458e8        # [m/s]
+EV = 1.602176634e-19          # [J]
+
+# --- Earth (U.S. Standard Atmosphere 1976) --------------------------------------------------------------------
+G0 = 9.80665                  # standard gravity [m/s^2]
+R_EARTH = 6.356766e6          # effective Earth radius of g(z) = g0 (R/(R+z))^2 [m]
+
+# --- species: O, O2, N2 (this order everywhere) ---------------------------------------------------------------
+SPECIES = ("O", "O2", "N2")
+MASS = (15.9994 * AMU, 31.9988 * AMU, 28.0134 * AMU)   # IUPAC standard atomic weights
+CP_PER_PARTICLE = (2.5, 3.5, 3.5)                       # c_p / k per particle: monatomic 5/2, diatomic 7/2
+#: Number densities [m^-3] and temperature [K] at 100 km: U.S. Standard Atmosphere 1976, Table VIII (the
+#: MSIS-like mean atmosphere; Ar and He left out).
+N_100KM = (4.298e17, 2.151e18, 9.210e18)
+T_100KM = 195.08
+
+# --- heat conduction ------------------------------------------------------------------------------------------
+#: kappa = A T^s [W/(m K)]: GITM's A(O) = 5.6e-4 (src/ModInputs.f90, #THERMALCONDUCTION; Banks and Kockarts
+#: 1973 give 5.6e-4 for N2 and 7.6e-4 for O) and s = 0.73, inside the range 0.69-0.75 quoted there
+#: (Pawlowski and Ridley 2009).
+KAPPA_A = 5.6e-4
+KAPPA_S = 0.73
+
+# --- NO 5.3 um cooling, Kockarts (1980, Geophys. Res. Lett. 7, 137) ---------------------------------------------
+NO_WAVENUMBER = 1876.0e2      # NO(v=1 -> 0) band centre 1876 cm^-1 (5.33 um) [1/m]
+NO_HNU = H_PLANCK * C_LIGHT * NO_WAVENUMBER             # photon energy, 3.73e-20 J
+NO_THETA = NO_HNU / K_B                                 # h nu / k = 2699 K (Kockarts' "2700 K")
+NO_A10 = 13.3                 # Einstein coefficient of NO(v=1) [1/s]
+NO_K_O = 6.5e-17              # NO(v=0) + O -> NO(v=1) + O, 6.5e-11 cm^3/s [m^3/s]
+
+# --- NO chemistry (effective) ---------------------------------------------------------------------------------
+W_ION = 35.0 * EV             # mean energy per ion pair in N2, O2, O (Rees 1989, Physics and Chemistry of the
+#                               Upper Atmosphere)
+NO_YIELD = 1.0                # *effective* NO per ion pair made in N2 (N2 dissociation, then N(2D) + O2 -> NO + O)
+NO_LIFETIME = 19.0 * 3600.0   # NO lifetime in the lower thermosphere, about 19 h (Barth et al. 1988)
+NO_LOSS_Z, NO_LOSS_H = 120e3, 20e3   # *effective*: N(4S) + NO -> N2 + O speeds the loss upward as N(4S) grows:
+#                               1/tau_NO = (1 + exp((z - 120 km) / 20 km)) / NO_LIFETIME: 12 h at 110 km, 1 h at 180 km
+STORM_PARTICLE_SHARE = 0.1    # *effective* share of the storm energy in ionizing particles (the rest is Joule
+#                               heating; Knipp et al. 2004 put particles at about a fifth of the total)
+NO_UNIT = 1e12                # the state holds n_NO in units of 1e12 m^-3
+
+# --- diurnal cycle (effective) --------------------------------------------------------------------------------
+#: A single column has no horizontal winds, which in 3-D carry dayside heat to the night side: heated with the
+#: local cos(chi) it swings by ~700 K between day and night instead of the observed ~30 per cent, with the
+#: maximum near 14 LT (Jacchia 1970). The column is therefore heated with the daily-mean insolation at equinox,
+#: cos(latitude)/pi, times 1 + A cos(2 pi (LT - 14 h) / 24 h), absorbed along the path cos(chi) = MU_PATH.
+DIURNAL_AMPLITUDE = 0.4
+PEAK_LOCAL_TIME = 14.0
+MU_PATH = 0.5
+
+
+@dataclass(frozen=True)
+class Band:
+    """A band of the solar spectrum absorbed as one Chapman layer.
+
+    flux: energy flux at 1 AU for F10.7 = 150 [W/m^2]; per_sfu: its fractional change per solar flux unit of
+    F10.7; efficiency: the share of the absorbed energy that heats the neutrals; sigma: absorption cross sections
+    of (O, O2, N2) [m^2].
+    """
+
+    name: str
+    flux: float
+    per_sfu: float
+    efficiency: float
+    sigma: tuple[float, float, float]
+
+
+#: Three *effective* bands. Fluxes: solar irradiance integrated over each band (Hinteregger et al. 1981; EUVAC,
+#: Richards et al. 1994; soft X-rays after Solomon and Qian 2005), linear in F10.7 between solar minimum and
+#: maximum. Cross sections: band averages of the photoabsorption cross sections (Fennelly and Torr 1992; the O2
+#: Schumann-Runge continuum after Banks and Kockarts 1973). Efficiencies: neutral heating efficiencies (Torr et
+#: al. 1980, Roble et al. 1987: 0.4-0.55 for EUV; about 0.3 for the O2 continuum).
+BANDS = (
+    Band("XUV 0.5-10 nm", 1.0e-3, 0.008, 0.45, (0.6e-22, 1.2e-22, 1.0e-22)),
+    Band("EUV 10-105 nm", 5.0e-3, 0.005, 0.50, (1.2e-21, 2.2e-21, 2.0e-21)),
+    Band("SRC 125-175 nm", 4.0e-3, 0.001, 0.30, (0.0, 1.0e-21, 0.0)),
+)
+
+
+#: Below this many state entries (batch x levels) the column runs on one intra-op thread (see ``few_threads``).
+SINGLE_THREAD_BELOW = 65536
+
+
+@contextmanager
+def few_threads(entries: int) -> Iterator[None]:
+    """Run small column workloads on one intra-op thread: with ~100 levels there is nothing to parallelize, and on
+    a shared machine the thread wake-ups dominate (on 2 busy cores a (3, 101, 101) solve took 8 ms on 2 threads
+    and 0.2 ms on one). The previous thread count is restored on exit."""
+    threads = torch.get_num_threads()
+    if threads == 1 or entries >= SINGLE_THREAD_BELOW:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+class Column(nn.Module):
+    """The reduced thermosphere column: grid, composition, sources and the model step (module docstring).
+
+    The state x (B, 2n + 1) is [T (K, n levels) | n_NO / 1e12 m^-3 (n) | t (hours since the start)]; the driver
+    w (B, 2) is [F10.7 (sfu), storm power S (mW/m^2)]; u (B, nodes) the identified cooling at ``cooling_nodes``
+    [nW/m^3]. Constants live in non-persistent buffers, so ``.to()`` moves them and checkpoints leave them out.
+
+    Args:
+        z_bottom, z_top, dz: the altitude grid [m].
+        n_bottom, T_bottom: O, O2, N2 densities [m^-3] and temperature [K] at the lower boundary.
+        no_cooling: include the NO 5.3 um cooling (the truth) or not (the initial model).
+        cooling_nodes: altitudes [m] of the identified cooling; empty for a column without input ``u``.
+        latitude: of the column [deg] (equinox).
+        local_time0: local solar time at t = 0 [h].
+        dt: sample time [s], ``substeps`` backward-Euler substeps per sample.
+        storm_altitude, storm_width: centre and standard deviation [m] of the storm's energy deposition.
+        radius: Earth radius of g(z) [m].
+    """
+
+    def __init__(self, z_bottom: float = 100e3, z_top: float = 600e3, dz: float = 5e3,
+                 n_bottom: Sequence[float] = N_100KM, T_bottom: float = T_100KM, no_cooling: bool = True,
+                 cooling_nodes: Sequence[float] = (), latitude: float = 30.0, local_time0: float = 0.0,
+                 dt: float = 900.0, substeps: int = 2, storm_altitude: float = 125e3, storm_width: float = 20e3,
+                 radius: float = R_EARTH, bands: Sequence[Band] = BANDS, dtype=DEFAULT_DTYPE):
+        super().__init__()
+        n = int(round((z_top - z_bottom) / dz)) + 1
+        if n < 4 or abs(z_bottom + (n - 1) * dz - z_top) > 1e-6 * dz:
+            raise ConfigError(f"thermosphere column: z_top - z_bottom = {z_top - z_bottom} m must be a multiple of "
+                              f"dz = {dz} m, with at least 4 levels")
+        if substeps < 1 or dt <= 0:
+            raise ConfigError(f"thermosphere column: need dt > 0 and substeps >= 1, got {dt}, {substeps}")
+        self.n, self.dz, self.dt, self.substeps = n, float(dz), float(dt), int(substeps)
+        self.T_bottom, self.no_cooling = float(T_bottom), bool(no_cooling)
+        self.insolation_mean = math.cos(math.radians(latitude)) / math.pi
+        self.local_time0 = float(local_time0)
+        self.bands = tuple(bands)
+        self.n_nodes = len(cooling_nodes)
+        z = z_bottom + dz * torch.arange(n, dtype=dtype)
+        storm = torch.exp(-0.5 * ((z - storm_altitude) / storm_width) ** 2)
+        nodes = torch.as_tensor([float(a) for a in cooling_nodes], dtype=dtype)
+        constants = {
+            "z": z,
+            "g": G0 * (radius / (radius + z)) ** 2,
+            "mass": torch.tensor(MASS, dtype=dtype).reshape(1, 3, 1),
+            "cp": torch.tensor(CP_PER_PARTICLE, dtype=dtype).reshape(1, 3, 1) * K_B,
+            "log_n_bottom": torch.log(torch.tensor(n_bottom, dtype=dtype)).reshape(1, 3, 1),
+            "sigma": torch.tensor([b.sigma for b in self.bands], dtype=dtype).reshape(1, -1, 3, 1),
+            "efficiency": torch.tensor([b.efficiency for b in self.bands], dtype=dtype).reshape(1, -1, 1),
+            "band_flux": torch.tensor([b.flux for b in self.bands], dtype=dtype),
+            "band_per_sfu": torch.tensor([b.per_sfu for b in self.bands], dtype=dtype),
+            "storm_profile": storm / (storm.sum() * dz),        # [1/m]: integrates to 1 on the grid
+            "no_loss": (1.0 + torch.exp((z - NO_LOSS_Z) / NO_LOSS_H)) / NO_LIFETIME,   # 1/tau_NO [1/s]
+            "nodes": nodes,
+            "cooling_basis": interpolation_basis(z, nodes) if self.n_nodes else torch.zeros(0, n, dtype=dtype),
+        }
+        for key, value in constants.items():
+            self.register_buffer(key, value, persistent=False)
+
+    # --- layout --------------------------------------------------------------------------------------------
+    @property
+    def n_states(self) -> int:
+        return 2 * self.n + 1
+
+    def split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """T (B, n) [K], n_NO (B, n) [m^-3], t (B, 1) [h] of a state x."""
+        return x[:, : self.n], x[:, self.n: 2 * self.n] * NO_UNIT, x[:, 2 * self.n:]
+
+    # --- composition ---------------------------------------------------------------------------------------
+    def densities(self, T: torch.Tensor) -> torch.Tensor:
+        """O, O2, N2 number densities (B, 3, n) [m^-3] in diffusive equilibrium at temperature T (B, n)."""
+        f = (self.g / T).unsqueeze(1)                                              # (B, 1, n)
+        steps = 0.5 * self.dz * (f[..., 1:] + f[..., :-1])
+        integral = torch.cat([torch.zeros_like(f[..., :1]), torch.cumsum(steps, -1)], -1)
+        return torch.exp(self.log_n_bottom + torch.log(T[:, :1] / T).unsqueeze(1) - self.mass / K_B * integral)
+
+    def mass_density(self, T: torch.Tensor) -> torch.Tensor:
+        """Mass density (B, n) [kg/m^3]."""
+        return (self.mass * self.densities(T)).sum(1)
+
+    def column_above(self, n: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+        """Column densities N_i(z) = int_z^inf n_i dz' (B, 3, n) [m^-2]; above the top, n_i times its scale height."""
+        top = n[..., -1:] * K_B * T[:, None, -1:] / (self.mass * self.g[-1])
+        steps = 0.5 * self.dz * (n[..., 1:] + n[..., :-1])
+        above = torch.flip(torch.cumsum(torch.flip(steps, [-1]), -1), [-1])
+        return torch.cat([above, torch.zeros_like(top)], -1) + top
+
+    # --- sources -------------------------------------------------------------------------------------------
+    def insolation(self, t_hours: torch.Tensor) -> torch.Tensor:
+        """Share I(t) (B, 1) of the overhead-sun flux reaching the column at time t [h] (see DIURNAL_AMPLITUDE)."""
+        phase = (self.local_time0 + t_hours - PEAK_LOCAL_TIME) * (math.pi / 12.0)
+        return self.insolation_mean * (1.0 + DIURNAL_AMPLITUDE * torch.cos(phase))
+
+    def solar(self, n: torch.Tensor, T: torch.Tensor, t_hours: torch.Tensor, f107: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Neutral heating (B, n) [W/m^3] and the ion pairs made in N2 (B, n) [1/(m^3 s)] by the sun."""
+        tau = (self.sigma * self.column_above(n, T).unsqueeze(1)).sum(2)           # (B, bands, n)
+        flux = (self.band_flux * (1.0 + self.band_per_sfu * (f107 - 150.0))).clamp(min=0.0)   # (B, bands)
+        flux = (flux * self.insolation(t_hours)).unsqueeze(-1) * torch.exp(-tau / MU_PATH)   # (B, bands, n)
+        absorbed = self.sigma * n.unsqueeze(1)                                     # (B, bands, 3, n) [1/m]
+        heating = (self.efficiency * flux * absorbed.sum(2)).sum(1)
+        return heating, (flux * absorbed[:, :, 2]).sum(1) / W_ION
+
+    def no_cooling_rate(self, T: torch.Tensor, n_O: torch.Tensor, n_NO: torch.Tensor) -> torch.Tensor:
+        """Kockarts (1980) NO 5.3 um cooling [W/m^3]."""
+        collisions = NO_K_O * n_O
+        return NO_HNU * NO_A10 * n_NO * collisions * torch.exp(-NO_THETA / T) / (collisions + NO_A10)
+
+    def identified_cooling(self, u: torch.Tensor) -> torch.Tensor:
+        """The cooling profile (B, n) [W/m^3] of node values u (B, nodes) [nW/m^3]."""
+        return 1e-9 * u @ self.cooling_basis
+
+    def tendencies(self, x: torch.Tensor, w: torch.Tensor, u: torch.Tensor | None = None) -> dict:
+        """Diagnostics of state x under driver w and identified cooling u: T, densities n (B, 3, n), n_NO, t,
+        heat capacity rho c_p, heating, NO cooling (computed even where the column leaves it out), the total
+        cooling applied, NO production."""
+        T, n_no, t = self.split(x)
+        n = self.densities(T)
+        heating, ions = self.solar(n, T, t, w[:, :1])
+        storm = 1e-3 * w[:, 1:2] * self.storm_profile                             # [W/m^3]
+        no = self.no_cooling_rate(T, n[:, 0], n_no)
+        cooling = no if self.no_cooling else torch.zeros_like(no)
+        if u is not None and self.n_nodes:
+            cooling = cooling + self.identified_cooling(u)
+        return {"T": T, "n": n, "n_NO": n_no, "t": t, "heat_capacity": (self.cp * n).sum(1),
+                "heating": heating + storm, "no_cooling": no, "cooling": cooling,
+                "no_production": NO_YIELD * (ions + STORM_PARTICLE_SHARE * storm / W_ION)}
+
+    # --- the step ------------------------------------------------------------------------------------------
+    def conduct(self, T: torch.Tensor, C: torch.Tensor, Q: torch.Tensor, dt: float) -> torch.Tensor:
+        """One backward-Euler step of C dT/dt = d/dz(kappa(T) dT/dz) + Q with kappa and C lagged, T fixed at the
+        bottom and zero flux at the top (mirror level): the new T (B, n)."""
+        k = KAPPA_A * (0.5 * (T[:, 1:] + T[:, :-1])) ** KAPPA_S * (dt / self.dz ** 2)   # face conductances
+        zero = torch.zeros_like(T[:, :1])
+        below = torch.cat([zero, k[:, :-1], 2.0 * k[:, -1:]], 1)       # coupling of level i to i-1 (mirror at top)
+        above = torch.cat([zero, k[:, 1:], zero], 1)                   # to i+1; the bottom row is T_0 = T_bottom
+        diag = torch.cat([torch.ones_like(zero), C[:, 1:] + below[:, 1:] + above[:, 1:]], 1)
+        A = torch.diag_embed(diag) - torch.diag_embed(above[:, :-1], 1) - torch.diag_embed(below[:, 1:], -1)
+        rhs = torch.cat([zero + self.T_bottom, C[:, 1:] * T[:, 1:] + dt * Q[:, 1:]], 1)
+        return torch.linalg.solve(A, rhs.unsqueeze(-1)).squeeze(-1)
+
+    def step(self, x: torch.Tensor, w: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """x(k) -> x(k+1): ``substeps`` backward-Euler substeps with w and u held."""
+        h = self.dt / self.substeps
+        decay = torch.exp(-h * self.no_loss)
+        for _ in range(self.substeps):
+            d = self.tendencies(x, w, u)
+            T = self.conduct(d["T"], d["heat_capacity"], d["heating"] - d["cooling"], h)
+            equilibrium = d["no_production"] / self.no_loss
+            n_no = equilibrium + (d["n_NO"] - equilibrium) * decay
+            x = torch.cat([T, n_no / NO_UNIT, d["t"] + h / 3600.0], 1)
+        return x
+
+    # --- observation ---------------------------------------------------------------------------------------
+    def at(self, profile: torch.Tensor, altitude: float, log: bool = False) -> torch.Tensor:
+        """A profile (B, n) at ``altitude`` [m] by linear (``log``: log-linear) interpolation: (B, 1)."""
+        i = min(max(int((altitude - float(self.z[0])) // self.dz), 0), self.n - 2)
+        a = (altitude - float(self.z[i])) / self.dz
+        p = torch.log(profile[:, i: i + 2]) if log else profile[:, i: i + 2]
+        v = (1 - a) * p[:, :1] + a * p[:, 1:]
+        return torch.exp(v) if log else v
+
+    def density_at(self, x: torch.Tensor, altitude: float) -> torch.Tensor:
+        """Mass density at ``altitude`` in units of 1e-12 kg/m^3, (B, 1)."""
+        return 1e12 * self.at(self.mass_density(x[:, : self.n]), altitude, log=True)
+
+    def no_cooling_profile(self, x: torch.Tensor) -> torch.Tensor:
+        """The Kockarts NO cooling (B, n) of state x [nW/m^3] (whether or not the column applies it)."""
+        T, n_no, _ = self.split(x)
+        return 1e9 * self.no_cooling_rate(T, self.densities(T)[:, 0], n_no)
+
+    def no_cooling_at_nodes(self, x: torch.Tensor) -> torch.Tensor:
+        """The Kockarts NO cooling of state x at the cooling nodes, (B, nodes) [nW/m^3]: the basis regressors of a
+        structured identified subsystem u_j = theta_j y0_j."""
+        profile = self.no_cooling_profile(x)
+        return torch.cat([self.at(profile, float(a)) for a in self.nodes], 1)
+
+    def initial_state(self, batch: int = 1) -> torch.Tensor:
+        """A start for a spin-up (batch, 2n + 1): a Bates profile (T_inf = 1000 K, shape 0.02 /km), no NO, t = 0."""
+        T = bates_profile(self.z, 1000.0, self.T_bottom, 0.02e-3).unsqueeze(0).expand(batch, -1)
+        return torch.cat([T, torch.zeros_like(T), torch.zeros_like(T[:, :1])], 1)
+
+    def spin_up(self, f107, days: float = 3.0, batch: int = 1) -> torch.Tensor:
+        """The state after ``days`` of quiet conditions (no storm, F10.7 = ``f107``, scalar or (batch,)) from
+        ``initial_state``, with the clock set back to 0 (whole days keep the local time)."""
+        f107 = torch.as_tensor(f107, dtype=self.z.dtype, device=self.z.device).reshape(-1, 1)
+        batch = max(batch, f107.shape[0])
+        w = torch.cat([f107.expand(batch, 1), torch.zeros(batch, 1, dtype=f107.dtype, device=f107.device)], 1)
+        x = self.initial_state(batch)
+        u = torch.zeros(batch, self.n_nodes, dtype=x.dtype, device=x.device)
+        with torch.no_grad(), few_threads(x.numel()):
+            for _ in range(int(round(days * 86400.0 / self.dt))):
+                x = self.step(x, w, u)
+        return torch.cat([x[:, :-1], torch.zeros_like(x[:, -1:])], 1)
+
+
+class ColumnBlock(Nonlinear):
+    """A ``Column`` as a nonlinear block: inputs ``w`` (width 2) and, with cooling nodes, ``u``; outputs given
+    as functions of the state.
+
+    ``markov`` linearizes all input directions at once (stacked in the batch): 'autograd' is the
+    double-backward Jacobian-vector product of reverse-mode autograd, 'fd' central differences. (Forward mode
+    decomposes mul and div in Python here: ``torch.autograd.forward_ad`` is about 4 times and ``torch.func.jvp``,
+    which ``Nonlinear.markov`` uses, about 70 times slower on this model.) ``record`` (a function of
+    the state and the inputs, (B, m)) is appended to the buffer ``history`` (B, steps, m) at every step, so a
+    checkpoint holds the traces; ``after_update(block, inputs)``, if set, runs after every step (e.g. to refresh
+    an estimator's Markov parameters).
+
+    Args:
+        column: the physics.
+        outputs: port name -> function of the state x (B, 2n + 1) returning (B, width), in port order.
+        x0: the initial state (2n + 1,) or (B, 2n + 1).
+    """
+
+    def __init__(self, column: Column, outputs: Mapping[str, Callable[[torch.Tensor], torch.Tensor]], x0=None,
+                 name: str = "column", record: Callable[[torch.Tensor, Mapping], torch.Tensor] | None = None,
+                 dtype=DEFAULT_DTYPE):
+        inputs = {"w": 2, **({"u": column.n_nodes} if column.n_nodes else {})}
+        x0 = column.initial_state() if x0 is None else x0
+        probe = torch.as_tensor(x0, dtype=dtype).reshape(-1, column.n_states)[:1]
+        widths = {p: int(fn(probe).shape[1]) for p, fn in outputs.items()}
+        fns = list(outputs.values())
+        super().__init__(lambda x, s: column.step(x, s["w"], s.get("u")),
+                         lambda x: torch.cat([fn(x) for fn in fns], 1), column.n_states, inputs, widths,
+                         dt=column.dt, x0=x0, name=name, dtype=dtype)
+        self.column, self.record = column, record
+        self.after_update: Callable[[ColumnBlock, Mapping], None] | None = None
+        self.register_buffer("history", torch.zeros(0, 0, 0, dtype=dtype))
+        self.register_buffer("k", torch.zeros((), dtype=torch.int64))
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        self.k = torch.zeros((), dtype=torch.int64, device=self.x.device)
+        self.history = self.x.new_zeros(batch_size, 0, 0)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        key = prefix + "history"
+        if key in state_dict:        # the trace grows with the run: take the checkpoint's length
+            self.history = torch.empty_like(state_dict[key], device=self.x.device, dtype=self.x.dtype)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def output(self, port, inputs):
+        with few_threads(self.x.numel()):
+            return super().output(port, inputs)
+
+    def update(self, inputs):
+        with few_threads(self.x.numel()):
+            if self.record is not None:
+                row = self.record(self.x, inputs).detach().unsqueeze(1)
+                self.history = row if self.history.shape[1] == 0 else torch.cat([self.history, row], 1)
+            super().update(inputs)
+            self.k += 1
+            if self.after_update is not None:
+                self.after_update(self, inputs)
+
+    def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
+               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "autograd",
+               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
+        """Markov parameters H_0..H_(n-1) of ``input -> output`` (B, n, out, in) linearized at state ``x``
+        (default: the current state, or x0 before a reset), the other inputs held at ``inputs`` (default zero);
+        see ``Nonlinear.markov``. All input directions are propagated together in one batch."""
+        if input not in self.inputs or output not in self.outputs:
+            raise ConfigError(f"block '{self.name}': no input '{input}' or output '{output}'; inputs are "
+                              f"{list(self.inputs)}, outputs {list(self.outputs)}")
+        if method not in ("autograd", "fd") or along not in ("trajectory", "point"):
+            raise ConfigError(f"block '{self.name}': method must be 'autograd' or 'fd' and along 'trajectory' or "
+                              f"'point', got {method!r}, {along!r}")
+        x = ((self.x if self.x.shape[0] else self.x0) if x is None else x).detach()
+        B, W = x.shape[0], self.inputs[input]
+        ins = {p: x.new_zeros(B, w) for p, w in self.inputs.items()}
+        ins.update({p: v.detach().to(x).expand(B, -1) for p, v in dict(inputs or {}).items()})
+        rows = self._out_slices[output]
+        # Direction j of member b is row j * B + b.
+        xs = x.repeat(W, 1)
+        stacked = {p: v.repeat(W, 1) for p, v in ins.items()}
+        direction = torch.eye(W, dtype=x.dtype, device=x.device).repeat_interleave(B, 0)
+
+        def tangent(fun, at, v):
+            if method == "autograd":
+                value, jv = double_backward_jvp(fun, at, v)
+                return value.detach(), jv.detach()
+            with torch.no_grad():
+                scale = eps * max(1.0, float(at.abs().max()))
+                return fun(at), (fun(at + scale * v) - fun(at - scale * v)) / (2 * scale)
+
+        H = x.new_zeros(B, n, rows.stop - rows.start, W)
+        with few_threads(xs.numel()):
+            xi, dx = tangent(lambda uu: self.step_map(xs, {**stacked, input: uu}), stacked[input], direction)
+            for i in range(1, n):
+                base = xi if along == "trajectory" else xs
+                H[:, i] = tangent(lambda xx: self.h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
+                if i + 1 < n:
+                    xn, dx = tangent(lambda xx: self.step_map(xx, stacked), base, dx)
+                    if along == "trajectory":
+                        xi = xn
+        return H
+
+
+class SpaceWeather(Block):
+    """The driver w = [F10.7 (sfu), storm power S (mW/m^2)], one row per member, a deterministic source:
+    F10.7 constant, S(t) = peak s e^(1 - s) for s = (t - start) / rise >= 0 (a pulse peaking ``rise`` hours after
+    ``start`` and decaying with e-folding time ``rise``), else 0. ``f107`` and ``peak`` may be per member."""
+
+    def __init__(self, dt: float, f107=150.0, peak=4.0, start: float = 48.0, rise: float = 6.0,
+                 name: str = "excitation", dtype=DEFAULT_DTYPE):
+        super().__init__(name, {}, {"out": 2})
+        if rise <= 0 or dt <= 0:
+            raise ConfigError(f"block '{name}': dt and the storm's rise time must be positive")
+        self.dt, self.start, self.rise = float(dt), float(start), float(rise)
+        self.register_buffer("f107", torch.as_tensor(f107, dtype=dtype).reshape(-1, 1))
+        self.register_buffer("peak", torch.as_tensor(peak, dtype=dtype).reshape(-1, 1))
+        self.register_buffer("k", torch.zeros((), dtype=torch.int64))
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        self.check_batch(self.f107, "f107")
+        self.check_batch(self.peak, "peak")
+        self.k = torch.zeros((), dtype=torch.int64, device=self.f107.device)
+
+    def feedthrough(self):
+        return {"out": ()}
+
+    def storm(self, t_hours: float) -> float:
+        """S(t) / peak at time t [h]."""
+        s = (t_hours - self.start) / self.rise
+        return s * math.exp(1.0 - s) if s > 0 else 0.0
+
+    def output(self, port, inputs):
+        s = self.storm(int(self.k) * self.dt / 3600.0)
+        B = self.batch_size
+        return torch.cat([self.f107.expand(B, 1), (s * self.peak).expand(B, 1)], 1)
+
+    def update(self, inputs):
+        self.k += 1
+
+
+def interpolation_basis(z: torch.Tensor, nodes: torch.Tensor) -> torch.Tensor:
+    """Hat functions (nodes, n) on the grid z: linear interpolation between the nodes, tapered linearly to zero one
+    node spacing below the lowest and above the highest node."""
+    if nodes.numel() < 2 or bool((nodes[1:] <= nodes[:-1]).any()):
+        raise ConfigError(f"cooling nodes must be at least two increasing altitudes, got {nodes.tolist()}")
+    ext = torch.cat([2 * nodes[:1] - nodes[1:2], nodes, 2 * nodes[-1:] - nodes[-2:-1]])
+    rising = (z - ext[:-2, None]) / (ext[1:-1, None] - ext[:-2, None])
+    falling = (ext[2:, None] - z) / (ext[2:, None] - ext[1:-1, None])
+    return torch.minimum(rising, falling).clamp(min=0.0)
+
+
+def bates_profile(z: torch.Tensor, T_inf: float, T_0: float, shape: float, z0: float | None = None,
+                  radius: float = R_EARTH) -> torch.Tensor:
+    """Bates (1959) temperature profile T = T_inf - (T_inf - T_0) exp(-shape xi), xi = (z - z0)(R + z0)/(R + z)
+    the geopotential height above z0 (the lowest z by default), shape in 1/m."""
+    z0 = float(z[0]) if z0 is None else z0
+    xi = (z - z0) * (radius + z0) / (radius + z)
+    return T_inf - (T_inf - T_0) * torch.exp(-shape * xi)
+
+
+def walker_density(z: torch.Tensor, n0: float, mass: float, T_inf: float, T_0: float, shape: float,
+                   z0: float | None = None, radius: float = R_EARTH) -> torch.Tensor:
+    """The closed-form diffusive-equilibrium density in a Bates profile (Walker 1965), the independent reference
+    for ``Column.densities``: n/n0 = ((1 - a) / (1 - a exp(-shape xi)))^(1 + gamma) exp(-shape gamma xi),
+    a = 1 - T_0/T_inf, gamma = m g(z0) / (shape k T_inf)."""
+    z0 = float(z[0]) if z0 is None else z0
+    xi = (z - z0) * (radius + z0) / (radius + z)
+    a = 1.0 - T_0 / T_inf
+    gamma = mass * G0 * (radius / (radius + z0)) ** 2 / (shape * K_B * T_inf)
+    return n0 * ((1 - a) / (1 - a * torch.exp(-shape * xi))) ** (1 + gamma) * torch.exp(-shape * gamma * xi)
