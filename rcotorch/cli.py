@@ -51,14 +51,20 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--resume", metavar="DIR", help="resume from DIR/checkpoint.pt (--steps may extend it)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG/TensorBoard figures")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--threads", type=int, help="CPU threads for torch (default: 1 below batch 1024, where "
+                     "threading costs more than it gives, else torch's default)")
     sw = sub.add_parser("sweep", help="run a parameter sweep (TOML/JSON config) as batched shards")
     sw.add_argument("config", help="sweep config file (.toml or .json)")
     sw.add_argument("--device", default="cpu", help="cpu or cuda")
     sw.add_argument("--backend", default="local", choices=["local", "ray"])
     sw.add_argument("--ray-address", help="address of an existing Ray cluster (default: start a local one)")
     sw.add_argument("--out", help="output directory (default runs/sweep-SCENARIO)")
+    sw.add_argument("--threads", type=int, help="CPU threads for torch in this process")
     args = parser.parse_args(argv)
 
+    if getattr(args, "threads", None) or (args.command == "run" and args.batch < 1024):
+        import torch
+        torch.set_num_threads(getattr(args, "threads", None) or 1)
     try:
         from . import scenario as scenarios
         from .runner import Run, result_table

@@ -160,7 +160,8 @@ class Nonlinear(Block):
 
 class MarkovRefresh:
     """Recompute an estimator's Markov parameters from a nonlinear known model every ``every`` steps, per
-    member at its current state (linearization along the trajectory): call it after each graph step, e.g.
+    member at its current state and with its other inputs held at the values it received in the last step
+    (linearization along the trajectory): call it after each graph step, e.g.
     ``refresh = MarkovRefresh(graph, every=500)`` then ``graph.step(); refresh()``."""
 
     def __init__(self, graph, every: int, known: str = "known", identified: str = "identified",
@@ -169,13 +170,16 @@ class MarkovRefresh:
             raise ConfigError(f"MarkovRefresh: every must be at least 1, got {every}")
         self.graph, self.every, self.method = graph, every, method
         self.known, self.ident = graph.blocks[known], graph.blocks[identified]
-        self.actuation, self.measured = actuation, measured
+        self.known_name, self.actuation, self.measured = known, actuation, measured
 
     def __call__(self) -> bool:
         if int(self.graph.k) % self.every:
             return False
         d, nu = self.ident.first_delay, self.ident.nu
-        H = self.known.markov(self.actuation, self.measured, d + nu, method=self.method)
+        g = self.graph
+        held = {p: g.last[g.sources[(self.known_name, p)]] for p in self.known.inputs
+                if p != self.actuation and (self.known_name, p) in g.sources and g.last}
+        H = self.known.markov(self.actuation, self.measured, d + nu, inputs=held, method=self.method)
         self.ident.set_markov(-H[:, d:d + nu], d)
         return True
 

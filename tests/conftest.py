@@ -3,8 +3,12 @@
 import control
 import numpy as np
 import pytest
+import torch
 
 import rcotorch as rt
+
+# The tests use small tensors; on a 2-core machine extra threads cost more than they give.
+torch.set_num_threads(1)
 
 SDOF_A = [[0.0, 1.0], [-30.0, -5.0]]     # m = 1, k = 30, c = 5; states (q, v)
 SDOF_B = [[0.0, 0.0], [1.0, 1.0]]        # inputs w (exogenous force), u (force of the unknown subsystem)

@@ -104,3 +104,21 @@ def test_refinement_of_a_nonlinear_known_model_recovers_a_stiffness():
     assert int(g.k) % 200 == 0  # refreshed after the last step, at the known model's present state
     np.testing.assert_allclose(ident.beta[:, :, 0, 0].numpy(),
                                -g.blocks["known"].markov("u", "y", 61)[:, 1:, 0, 0].numpy(), rtol=1e-12)
+
+
+def test_markov_refresh_linearizes_at_the_inputs_received():
+    """With an input-dependent linearization (y = x, x' = -x + w u: the u -> y gain scales with w), the refreshed
+    beta uses the last w, not zero."""
+    blk = rt.Nonlinear(lambda x, s: 0.5 * x + s["w"] * s["u"], lambda x: torch.cat([x, x], 1), 1, ["w", "u"],
+                       {"y": 1, "y0": 1}, dt=1.0, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=1.0)
+    ident.set_markov([[[-1.0]]], 1)
+    src = rt.Recorded(np.full((10, 1), 3.0), {"out": 0}, name="w")
+    g = rt.Graph([blk, ident, src, rt.Sum({"y": 1, "y_hat": -1}, 1, name="error")],
+                 ["w.out -> known.w", "identified.u -> known.u", "known.y0 -> identified.y0", "known.y -> error.y",
+                  "known.y -> error.y_hat", "error.out -> identified.z"])
+    refresh = rt.MarkovRefresh(g, every=1)
+    g.step()
+    assert refresh()
+    # H_i = C A^(i-1) B with A = 0.5, B = w = 3: beta_1 = -3
+    assert ident.beta[0, 0, 0, 0].item() == pytest.approx(-3.0)
