@@ -59,7 +59,6 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
-from torch.autograd.functional import jvp as double_backward_jvp
 
 from .blocks import DEFAULT_DTYPE, Block
 from .errors import ConfigError
@@ -422,47 +421,10 @@ class ColumnBlock(Nonlinear):
             if self.after_update is not None:
                 self.after_update(self, inputs)
 
-    def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
-               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "autograd",
-               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
-        """Markov parameters H_0..H_(n-1) of ``input -> output`` (B, n, out, in) linearized at state ``x``
-        (default: the current state, or x0 before a reset), the other inputs held at ``inputs`` (default zero);
-        see ``Nonlinear.markov``. All input directions are propagated together in one batch."""
-        if input not in self.inputs or output not in self.outputs:
-            raise ConfigError(f"block '{self.name}': no input '{input}' or output '{output}'; inputs are "
-                              f"{list(self.inputs)}, outputs {list(self.outputs)}")
-        if method not in ("autograd", "fd") or along not in ("trajectory", "point"):
-            raise ConfigError(f"block '{self.name}': method must be 'autograd' or 'fd' and along 'trajectory' or "
-                              f"'point', got {method!r}, {along!r}")
-        x = ((self.x if self.x.shape[0] else self.x0) if x is None else x).detach()
-        B, W = x.shape[0], self.inputs[input]
-        ins = {p: x.new_zeros(B, w) for p, w in self.inputs.items()}
-        ins.update({p: v.detach().to(x).expand(B, -1) for p, v in dict(inputs or {}).items()})
-        rows = self._out_slices[output]
-        # Direction j of member b is row j * B + b.
-        xs = x.repeat(W, 1)
-        stacked = {p: v.repeat(W, 1) for p, v in ins.items()}
-        direction = torch.eye(W, dtype=x.dtype, device=x.device).repeat_interleave(B, 0)
-
-        def tangent(fun, at, v):
-            if method == "autograd":
-                value, jv = double_backward_jvp(fun, at, v)
-                return value.detach(), jv.detach()
-            with torch.no_grad():
-                scale = eps * max(1.0, float(at.abs().max()))
-                return fun(at), (fun(at + scale * v) - fun(at - scale * v)) / (2 * scale)
-
-        H = x.new_zeros(B, n, rows.stop - rows.start, W)
-        with few_threads(xs.numel()):
-            xi, dx = tangent(lambda uu: self.step_map(xs, {**stacked, input: uu}), stacked[input], direction)
-            for i in range(1, n):
-                base = xi if along == "trajectory" else xs
-                H[:, i] = tangent(lambda xx: self.h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
-                if i + 1 < n:
-                    xn, dx = tangent(lambda xx: self.step_map(xx, stacked), base, dx)
-                    if along == "trajectory":
-                        xi = xn
-        return H
+    def markov(self, *args, **kwargs) -> torch.Tensor:
+        """``Nonlinear.markov`` on one intra-op thread for small columns (see ``few_threads``)."""
+        with few_threads(self.x.numel() * self.inputs.get("u", 1)):
+            return super().markov(*args, **kwargs)
 
 
 class SpaceWeather(Block):
