@@ -130,13 +130,21 @@ class RCOEstimator(Block):
         # Per-member state (created by reset).
         for key, shape in (("theta", (0, n_u, self.n_phi)), ("P", (0, self.n_theta, self.n_theta)),
                            ("past", (0, max(nc, 1), self.n_sig)), ("past_u", (0, max(nc, 1), n_u)),
-                           ("win", (0, 1, self.n_phi + n_u)),
+                           ("win", (2, 0, self.n_phi + n_u)),    # [phi, u] history, see update()
                            ("phi_now", (0, self.n_phi)), ("u_now", (0, n_u)), ("z_r", (0, n_z))):
             self.register_buffer(key, torch.zeros(shape, dtype=dtype))
         self.register_buffer("alive", torch.zeros(0, dtype=torch.bool))
         self.register_buffer("diverged_at", torch.zeros(0, dtype=torch.int64))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self.register_buffer("_gather", self._phi_gather())
+        # Without lag 0, phi is a permutation of [past s | past u]; often the identity (one regressor port).
+        tail = self._gather - self.n_sig
+        width = max(nc, 1) * (self.n_sig + (n_u if self.feed_u else 0))
+        self._phi_is_past = (not self.proper and tail.numel() == width
+                             and bool(torch.equal(tail, torch.arange(width))))
+        self._k_cache: tuple | None = None      # (k tensor, its version, k as int): k without a device sync
+        self._beta_cache: tuple | None = None   # (beta_t, its version, beta reversed in time)
+        self._lam_cache: tuple | None = None    # (lam, its version, lam as given to rls_update)
 
     @classmethod
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
@@ -256,13 +264,14 @@ class RCOEstimator(Block):
         nc1 = max(self.nc, 1)
         self.past = torch.zeros(B, nc1, self.n_sig, dtype=dt, device=dev)
         self.past_u = torch.zeros(B, nc1, self.n_u, dtype=dt, device=dev)
-        self.win = torch.zeros(B, max(self.window, 1), self.n_phi + self.n_u, dtype=dt, device=dev)
+        self.win = torch.zeros(2 * max(self.window, 1), B, self.n_phi + self.n_u, dtype=dt, device=dev)
         self.phi_now = torch.zeros(B, self.n_phi, dtype=dt, device=dev)
         self.u_now = torch.zeros(B, self.n_u, dtype=dt, device=dev)
         self.z_r = torch.zeros(B, self.n_z, dtype=dt, device=dev)
         self.alive = torch.ones(B, dtype=torch.bool, device=dev)
         self.diverged_at = torch.full((B,), -1, dtype=torch.int64, device=dev)
         self.k = torch.zeros((), dtype=torch.int64, device=dev)
+        self._k_cache = None
 
     def _current(self, inputs) -> torch.Tensor:
         if self.proper:
@@ -270,8 +279,12 @@ class RCOEstimator(Block):
         return self.past.new_zeros(self.batch_size, self.n_sig)
 
     def output(self, port, inputs):
-        flat = torch.cat([self._current(inputs), self.past.flatten(1), self.past_u.flatten(1)], dim=1)
-        phi = flat.index_select(1, self._gather)
+        if self._phi_is_past:   # phi = [s(k-1..k-nc) | u(k-1..k-nc)] as stored
+            phi = torch.cat([self.past.flatten(1), self.past_u.flatten(1)], dim=1) if self.feed_u else \
+                self.past.flatten(1).clone()
+        else:
+            flat = torch.cat([self._current(inputs), self.past.flatten(1), self.past_u.flatten(1)], dim=1)
+            phi = flat.index_select(1, self._gather)
         u = torch.bmm(self.theta, phi.unsqueeze(-1)).squeeze(-1)
         u = torch.where(self.alive.unsqueeze(1), u, 0.0)
         if self.u_low is not None:
@@ -279,43 +292,88 @@ class RCOEstimator(Block):
         self.set_state(phi_now=phi, u_now=u)
         return u
 
+    def _load_from_state_dict(self, *args, **kwargs):
+        super()._load_from_state_dict(*args, **kwargs)
+        self._k_cache = None
+
+    def _step_index(self) -> int:
+        """k as a Python int, read from the buffer only when something other than ``update`` changed it."""
+        c = self._k_cache
+        if c is not None and c[0] is self.k and c[1] == self.k._version:
+            return c[2]
+        return int(self.k)
+
+    def _beta_rev(self) -> torch.Tensor:
+        """beta_t reversed in time, (Bp, n_z * n_u, nu): entry j weighs delay d + nu - 1 - j."""
+        b, c = self.beta_t, self._beta_cache
+        if c is None or c[0] is not b or c[1] != b._version:    # holds b, so identity means the same tensor
+            c = self._beta_cache = (b, b._version, b.flip(-1).contiguous())
+        return c[2]
+
+    def _lam_arg(self):
+        """lam for rls_update: the Python float 1.0 when every member has lam = 1 (no division by lambda)."""
+        lam, c = self.lam, self._lam_cache
+        if c is None or c[0] is not lam or c[1] != lam._version:
+            c = self._lam_cache = (lam, lam._version, 1.0 if bool((lam == 1).all()) else lam)
+        return c[2]
+
     def update(self, inputs):
-        if self.win.shape[1] != self.window:
-            if self.window == 0:
+        W = self.window
+        if self.win.shape[0] != 2 * W:
+            if W == 0:
                 raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov=, call set_markov() "
                                   "(e.g. with Graph.markov('identified.u', 'error.out', n)), or build the graph "
                                   "with rcotorch.refinement, which derives them from the known model")
             raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
-        B, n_phi = self.batch_size, self.n_phi
-        # Ring buffer of [phi(k-i), u(k-i)]: position k mod window holds time k.
-        self.win[:, self.k % self.window] = torch.cat([self.phi_now, self.u_now], dim=1)
-        past = self.win.index_select(1, (self.k - self.delays) % self.window)   # (B, nu, n_phi + n_u)
+        B, n_phi, n_u, n_z = self.batch_size, self.n_phi, self.n_u, self.n_z
+        m, nu = n_phi + n_u, W - self.first_delay
+        k = self._step_index()
+        # Ring buffer of [phi(t), u(t)], time-major and doubled: rows t mod W and t mod W + W both hold time t,
+        # so the samples at delays d+nu-1 .. d (times k-W+1 .. k-d) are the contiguous rows p+1 .. p+nu.
+        p = k % W
+        self.win[p::W] = torch.cat([self.phi_now, self.u_now], dim=1)
+        past = self.win[p + 1:p + 1 + nu]                                       # (nu, B, m), oldest first
+        beta = self._beta_rev()                                                 # (Bp, n_z * n_u, nu)
         # One product gives sum_i beta_i[z, a] phi(k-i)[j] and sum_i beta_i[z, a] u(k-i)[c]: (B, z, a, j|c).
-        prod = (self.beta_t @ past).reshape(B, self.n_z, self.n_u, n_phi + self.n_u)
-        psi_t = prod[..., :n_phi].reshape(B, self.n_z, -1)                      # Psi^T, Theta row-major
-        zeta = inputs["z"] - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)  # z - sum_i beta_i u(k-i)
-        theta_flat = self.theta.reshape(B, -1)
+        if beta.shape[0] == 1 and n_z * n_u == 1:
+            prod = (beta[0] @ past.reshape(nu, B * m)).reshape(B, 1, 1, m)
+        else:
+            prod = torch.bmm(beta.expand(B, -1, -1), past.transpose(0, 1)).reshape(B, n_z, n_u, m)
+        psi_t = prod[..., :n_phi].reshape(B, n_z, -1)                           # Psi^T, Theta row-major
+        if n_u == 1:
+            zeta = inputs["z"] - prod[:, :, 0, n_phi]                           # z - sum_i beta_i u(k-i)
+        else:
+            zeta = inputs["z"] - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)
+        if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
+            self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
+        theta_flat = self.theta.view(B, -1)
         if not self.all_free:
             psi_t, theta_flat = psi_t.index_select(2, self.free_idx), theta_flat.index_select(1, self.free_idx)
         z_r = zeta + (psi_t @ theta_flat.unsqueeze(-1)).squeeze(-1)
-        finite = torch.isfinite(z_r.sum(1) + psi_t.sum((1, 2)))
-        active = self.alive & finite
+        # A member whose Psi or z_R is not finite fails rls_update's checks (S or the step is not finite) and
+        # is frozen with theta and P held, like one whose P lost definiteness.
+        active = self.alive
         if "valid" in inputs:
-            valid = inputs["valid"].reshape(B) > 0.5
-            active, finite = active & valid, finite | ~valid
-        theta_flat, P, ok = rls_update(theta_flat, self.P, psi_t.mT, z_r, self.lam, self.r_inv, active)
-        alive = self.alive & ok & finite
+            active = active & (inputs["valid"].reshape(B) > 0.5)
+        theta_flat, _, ok = rls_update(theta_flat, self.P, psi_t.mT, z_r, self._lam_arg(), self.r_inv, active,
+                                       inplace=True)                            # theta (all free) and P in place
         if not self.all_free:
-            theta_flat = self.theta.reshape(B, -1).index_copy(1, self.free_idx, theta_flat)
+            self.theta.view(B, -1).index_copy_(1, self.free_idx, theta_flat)
         if self.theta_low is not None:  # projection onto the box; P is left as it is
-            theta_flat = torch.clamp(theta_flat, self.theta_low, self.theta_high)
-        self.set_state(P=P, theta=theta_flat.reshape(self.theta.shape), z_r=z_r, alive=alive,
-                       diverged_at=torch.where(self.alive & ~alive, self.k, self.diverged_at))
+            self.theta.view(B, -1).clamp_(self.theta_low, self.theta_high)
+        alive = self.alive & ok
+        self.set_state(z_r=z_r, alive=alive,
+                       diverged_at=torch.where(self.alive & ~ok, k, self.diverged_at))
         if self.nc:  # shift the regressor histories
-            cur = self._regressors(inputs).unsqueeze(1)
-            self.set_state(past=torch.cat([cur, self.past[:, :-1]], dim=1),
-                           past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
+            cur = self._regressors(inputs)
+            if self.nc == 1:
+                self.past.copy_(cur.unsqueeze(1))
+                self.past_u.copy_(self.u_now.unsqueeze(1))
+            else:
+                self.set_state(past=torch.cat([cur.unsqueeze(1), self.past[:, :-1]], dim=1),
+                               past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
         self.k += 1
+        self._k_cache = (self.k, self.k._version, k + 1)
 
     # --- the identified subsystem -----------------------------------------------------------------------
     def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:

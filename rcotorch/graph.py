@@ -154,22 +154,35 @@ class Graph(nn.Module):
     def _inputs(self, name: str, ports: Iterable[str], signals) -> dict[str, torch.Tensor]:
         return {p: signals[self.sources[(name, p)]] for p in ports if (name, p) in self.sources}
 
+    def _plan(self) -> tuple[list, list]:
+        """For each output port (in evaluation order) and each block: where its inputs come from."""
+        key = (tuple(self.order), tuple(self.sources.items()), tuple(self.blocks.keys()))
+        plan = self.__dict__.get("_step_plan")
+        if plan is None or plan[0] != key:
+            outs = [(sig, self.blocks[sig[0]], sig[1],
+                     [(p, self.sources[(sig[0], p)]) for p in self._feedthrough[sig[0]][sig[1]]
+                      if (sig[0], p) in self.sources]) for sig in self.order]
+            upds = [(name, blk, [(p, self.sources[(name, p)]) for p in blk.inputs if (name, p) in self.sources])
+                    for name, blk in self.blocks.items()]
+            plan = self.__dict__["_step_plan"] = (key, outs, upds)
+        return plan[1], plan[2]
+
     def step(self, overrides: Mapping[Signal, torch.Tensor] | None = None,
              frozen: Iterable[str] = ()) -> dict[Signal, torch.Tensor]:
         """Advance every block one step; return all output signals at time k as {(block, port): tensor}.
 
         ``overrides`` replaces output ports by given values, ``frozen`` blocks are not advanced (used to
         probe the graph, e.g. for Markov parameters)."""
+        outs, upds = self._plan()
         signals: dict[Signal, torch.Tensor] = {}
-        for name, port in self.order:
-            if overrides and (name, port) in overrides:
-                signals[(name, port)] = overrides[(name, port)]
+        for sig, blk, port, feeds in outs:
+            if overrides and sig in overrides:
+                signals[sig] = overrides[sig]
                 continue
-            blk = self.blocks[name]
-            signals[(name, port)] = blk.output(port, self._inputs(name, self._feedthrough[name][port], signals))
-        for name, blk in self.blocks.items():
+            signals[sig] = blk.output(port, {p: signals[src] for p, src in feeds})
+        for name, blk, feeds in upds:
             if name not in frozen:
-                blk.update(self._inputs(name, blk.inputs, signals))
+                blk.update({p: signals[src] for p, src in feeds})
         self.k += 1
         self.last = signals
         return signals

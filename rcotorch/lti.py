@@ -43,6 +43,18 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     return E[..., :n, :n], E[..., :n, n:]
 
 
+def _cached(blk, name: str, deps: tuple, make):
+    """``make()``, recomputed only when one of the tensors ``deps`` was replaced or modified in place."""
+    key = tuple((t, t._version) for t in deps)
+    hit = blk.__dict__.get(name)
+    if hit is not None and len(hit[0]) == len(key) and all(
+            a is b and va == vb for (a, va), (b, vb) in zip(hit[0], key)):
+        return hit[1]
+    value = make()
+    blk.__dict__[name] = (key, value)
+    return value
+
+
 class LTI(Block):
     """Discrete LTI block with named input and output ports.
 
@@ -132,15 +144,20 @@ class LTI(Block):
 
     def output(self, port, inputs):
         rows = self._out_slices[port]
-        y = matvec(self.C[:, rows], self.x)
+        y = _cached(self, "_cx", (self.C, self.x), lambda: matvec(self.C, self.x))[:, rows]  # C x, all ports
         for p in self._feedthrough[port]:
             y = y + matvec(self.D[:, rows, self._in_slices[p]], inputs[p])
         return y
 
     def update(self, inputs):
-        x = matvec(self.A, self.x)
-        for p, cs in self._in_slices.items():
-            x = x + matvec(self.B[:, :, cs], inputs[p])
+        if self.A.shape[0] == 1 and self.B.shape[0] == 1:
+            # Shared matrices: x(k+1) = [x, u_1, u_2, ...] [A B]^T in one product.
+            AB_t = _cached(self, "_ab_t", (self.A, self.B), lambda: torch.cat([self.A[0], self.B[0]], 1).mT)
+            x = torch.cat([self.x] + [inputs[p] for p in self._in_slices], dim=1) @ AB_t
+        else:
+            x = matvec(self.A, self.x)
+            for p, cs in self._in_slices.items():
+                x = x + matvec(self.B[:, :, cs], inputs[p])
         self.set_state(x=x)
 
     # --- analysis -------------------------------------------------------------------------------------

@@ -11,6 +11,11 @@ With lambda = 1 and P(0) = p0 I this is the exact minimizer of
 sum_j |Psi_j^T theta + zeta_j|^2_R + |theta - theta_0|^2 / p0, where z_R,j = Psi_j^T theta_j + zeta_j.
 
 Shapes: theta (B, n), P (B, n, n), psi (B, n, l), z_r (B, l), lam () or (B,), r_inv () or (l, l).
+
+Cost: the covariance update is written as one fused pass over P, ``P - W W^T`` with W = P Psi L^-T
+(S = L L^T; for l = 1, W = P Psi / sqrt(s)), applied in place with ``inplace=True`` (the estimator's hot path:
+no P-sized temporaries), and the division by lambda is skipped when lambda is 1. Every operation acts on each
+member separately, so a member's result does not depend on the batch it runs in.
 """
 
 from __future__ import annotations
@@ -20,47 +25,90 @@ import torch
 
 def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Tensor,
                lam: torch.Tensor | float = 1.0, r_inv: torch.Tensor | float = 1.0,
-               active: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               active: torch.Tensor | None = None, *, inplace: bool = False
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One RLS step for all members. Returns (theta, P, ok).
 
     Members with ``active = False`` are left exactly as they were. ``ok`` is False for an active member whose
     innovation covariance S is not positive and finite (P has lost definiteness) or whose new theta is not
     finite; such a member is also left as it was, so a caller can freeze it without losing the others.
-    The P update forms ``P - a a^T / s`` (l = 1) or ``P - W W^T`` (l > 1), so P stays exactly symmetric.
+    The P update forms ``P - W W^T``, so P stays exactly symmetric. With ``inplace=True`` theta and P (both
+    contiguous) are updated in place and returned; otherwise new tensors are returned and the inputs kept.
     """
     B, n = theta.shape
-    lam = torch.as_tensor(lam, dtype=P.dtype, device=P.device)
-    lam = lam.reshape(-1, 1, 1) if lam.dim() else lam
-    a = torch.bmm(P, psi)                                                  # P Psi, (B, n, l)
     l = psi.shape[-1]
+    dt, dev = P.dtype, P.device
+    lam_one = not isinstance(lam, torch.Tensor) and float(lam) == 1.0
+    if lam_one:
+        lam = 1.0                                                          # no tensor, no division
+    elif not isinstance(lam, torch.Tensor):
+        lam = torch.tensor(float(lam), dtype=dt, device=dev)
+    if isinstance(lam, torch.Tensor) and lam.dim():
+        lam = lam.reshape(-1, 1, 1)
+    a = torch.bmm(P, psi)                                                  # P Psi, (B, n, l)
     if l == 1:
-        s = lam * torch.as_tensor(r_inv, dtype=P.dtype, device=P.device).reshape(()) + psi.mT @ a
-        go = torch.isfinite(s) & (s > 0)                                   # (B, 1, 1)
+        r = r_inv.reshape(()) if isinstance(r_inv, torch.Tensor) else float(r_inv)
+        s = (r if lam_one else lam * r) + psi.mT @ a                       # (B, 1, 1); 1.0 * r is r
+        go = (s > 0) & (s < _INF)                                          # positive and finite
         ok = go.reshape(B)
         if active is not None:
             go = go & active.reshape(B, 1, 1)
-        step = (a / torch.where(go, s, 1.0)).squeeze(-1) * z_r              # P Psi S^-1 z_R
+        s = torch.where(go, s, 1.0)
+        a.masked_fill_(~go, 0.0)             # a member that does not go contributes exact zeros below
+        step = a.view(B, n) * torch.where(go.view(B, 1), z_r / s.view(B, 1), 0.0)  # P Psi S^-1 z_R, (B, n)
     else:
-        eye = torch.eye(l, dtype=P.dtype, device=P.device)
-        r_inv = torch.as_tensor(r_inv, dtype=P.dtype, device=P.device)
+        eye = torch.eye(l, dtype=dt, device=dev)
+        lam = torch.as_tensor(lam, dtype=dt, device=dev)
+        r_inv = torch.as_tensor(r_inv, dtype=dt, device=dev)
         S = lam * (r_inv * eye if r_inv.dim() == 0 else r_inv) + psi.mT @ a
         L, info = torch.linalg.cholesky_ex(S)
         ok = (info == 0) & torch.isfinite(S).flatten(1).all(1)
         go = (ok if active is None else ok & active).reshape(B, 1, 1)
         L = torch.where(go, L, eye)
-        a = torch.linalg.solve_triangular(L, torch.where(go, a, 0.0).mT, upper=False).mT  # W = a L^-T
+        w = torch.linalg.solve_triangular(L, torch.where(go, a, 0.0).mT, upper=False).mT  # W = a L^-T
         v = torch.linalg.solve_triangular(L, torch.where(go.reshape(B, 1), z_r, 0.0).unsqueeze(-1),
                                           upper=False)                     # L^-1 z_R
-        step = (a @ v).squeeze(-1)
+        step = (w @ v).squeeze(-1)
     # A member whose update is not finite is left exactly as it was, like an inactive one.
-    finite = torch.isfinite(step.sum(1))
+    finite = (step @ _ones(n, dt, dev)).abs() < _INF                        # sum of the step is finite
     ok = ok & finite
     go = go & finite.reshape(B, 1, 1)
-    a = torch.where(go, a, 0.0)
     if l == 1:
-        P_new = P - (a @ a.mT) / torch.where(go, s, 1.0)                   # exactly symmetric
+        w = a.mul_(torch.where(go, s.rsqrt(), 0.0))                        # W = P Psi s^-1/2, zero if not go
+        step.masked_fill_(~go.reshape(B, 1), 0.0)                          # (the step was not finite)
     else:
-        P_new = P - a @ a.mT                                               # P - W W^T
-    P_new = P_new / torch.where(go, lam, 1.0)
-    theta_new = torch.where(go.reshape(B, 1), theta - step, theta)
+        w = torch.where(go, w, 0.0)
+        step = torch.where(go.reshape(B, 1), step, 0.0)
+    div = None if lam_one else torch.where(go, lam, 1.0)
+    if inplace:
+        _downdate_(P, w)                                                   # P - W W^T, one pass
+        if div is not None:
+            P.div_(div)
+        theta.sub_(step)
+        theta_new, P_new = theta, P
+    else:
+        P_new = _downdate_(P.clone(), w)
+        if div is not None:
+            P_new = P_new / div
+        theta_new = theta - step                                           # theta - 0 is theta
     return theta_new, P_new, ok if active is None else ok | ~active
+
+
+_INF = float("inf")
+_ONES: dict = {}
+
+
+def _ones(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A cached ones vector: ``x @ ones`` sums the rows of x in one matrix-vector product."""
+    key = (n, dtype, device)
+    if key not in _ONES:
+        _ONES[key] = torch.ones(n, dtype=dtype, device=device)
+    return _ONES[key]
+
+
+def _downdate_(P: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """P <- P - W W^T in place for W (B, n, l): entry (i, j) subtracts sum_c w_ic w_jc, so P stays symmetric.
+    Members with W = 0 are left exactly as they were (x - 0 = x)."""
+    if w.shape[-1] == 1:
+        return P.addcmul_(w, w.mT, value=-1.0)                              # P_ij + (-w_i) w_j, one fused pass
+    return P.sub_(w @ w.mT)

@@ -159,6 +159,7 @@ def test_fit_rejects_data_that_are_not_an_oscillator():
 # --- the README's worked example, on a simulated Duffing oscillator with known c ---------------------------------
 def _readme_example() -> str:
     section = README.read_text().split("## Real measured data: Silverbox and your own CSV", 1)[1]
+    section = section.split("\n## ", 1)[0]            # up to the next section
     blocks = re.findall(r"```py\n(.*?)```", section, flags=re.S)
     assert len(blocks) == 1
     return blocks[0]

@@ -1,0 +1,115 @@
+"""The speed work keeps results exact, and the benchmark scripts run (tiny sizes; the numbers themselves are
+measured by the scripts in benchmarks/, not here)."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+import rcotorch as rt
+from rcotorch import rng
+from rcotorch import scenario as scenarios
+from rcotorch.sources import _normal_grid
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import rls_kernel  # noqa: E402
+import throughput  # noqa: E402
+
+
+@pytest.mark.parametrize("start,length,width", [(0, 512, 1), (517, 3, 2), (2**33 + 5, 4, 3)])
+def test_noise_grid_equals_rng_normal_bitwise(start, length, width):
+    seeds = torch.tensor([1, 5, 2**31 + 3, 0, -7])
+    members = torch.tensor([0, 4, 2**33, 9, 1])
+    fast = _normal_grid(seeds, members, start, length, width, torch.float64)
+    ref = rng.normal(seeds.reshape(-1, 1, 1), members.reshape(-1, 1, 1),
+                     torch.arange(start, start + length).reshape(1, -1, 1), torch.arange(width).reshape(1, 1, -1))
+    assert torch.equal(fast, ref)
+
+
+def test_white_noise_chunk_length_does_not_change_samples():
+    """A large batch draws shorter chunks; the samples are the same functions of (seed, member, step)."""
+    big = rt.WhiteNoise(2, seed=3)
+    big.reset(3000)                                   # 2**18 / 6000 -> chunks of 43 steps
+    small = rt.WhiteNoise(2, seed=3)
+    small.reset(3)                                    # chunks of 512 steps
+    for _ in range(100):
+        a, b = big.step()["out"], small.step()["out"]
+    assert torch.equal(a[:3], b)
+
+
+@pytest.mark.parametrize("name", ["sdof-stiffness-damping", "sdof-dynamic-impedance"])
+def test_large_batch_members_equal_small_batch_runs_bitwise(name):
+    """Every operation of a step acts on each member separately, so member b of a batch of 1000 is bit for
+    bit the member b of a batch of 3 (and member 0 the batch-of-one run)."""
+    sc = scenarios.get(name)
+    s = sc.resolve()
+    thetas = {}
+    for B in (1, 3, 1000):
+        g = sc.build(s, B, torch.float64, "cpu")
+        g.run(300)
+        est = g.blocks["identified"]
+        thetas[B] = (est.theta.clone(), est.P.clone())
+    assert torch.equal(thetas[1000][0][:3], thetas[3][0]) and torch.equal(thetas[1000][1][:3], thetas[3][1])
+    assert torch.equal(thetas[3][0][:1], thetas[1][0]) and torch.equal(thetas[3][1][:1], thetas[1][1])
+
+
+@pytest.mark.parametrize("lam", [1.0, 0.97])
+def test_rls_inplace_equals_functional_bitwise(lam):
+    g = torch.Generator().manual_seed(3)
+    B, n = 7, 4
+    theta = torch.randn(B, n, generator=g, dtype=torch.float64)
+    M = torch.randn(B, n, n, generator=g, dtype=torch.float64)
+    P = M @ M.mT + torch.eye(n, dtype=torch.float64)
+    psi = torch.randn(B, n, 1, generator=g, dtype=torch.float64)
+    z_r = torch.randn(B, 1, generator=g, dtype=torch.float64)
+    active = torch.tensor([True, True, False, True, True, False, True])
+    th_f, P_f, ok_f = rt.rls_update(theta, P, psi, z_r, lam, 1.0, active)
+    th_i, P_i = theta.clone(), P.clone()
+    out = rt.rls_update(th_i, P_i, psi, z_r, lam, 1.0, active, inplace=True)
+    assert out[0] is th_i and out[1] is P_i
+    assert torch.equal(th_i, th_f) and torch.equal(P_i, P_f) and torch.equal(out[2], ok_f)
+    assert torch.equal(P_i[~active], P[~active]) and torch.equal(th_i[~active], theta[~active])
+
+
+def test_throughput_script_quick(tmp_path):
+    out = tmp_path / "t.json"
+    throughput.main(["--quick", "--batches", "1,8", "--no-memory", "--out", str(out)])
+    res = json.loads(out.read_text())
+    assert [r["B"] for r in res["torch"]] == [1, 8]
+    assert all(r["refinement_steps_per_s"] > 0 and r["ratio_vs_numpy"] > 0 for r in res["torch"])
+    assert res["numpy"]["refinement_steps_per_s"] > 0
+    assert "B=1: no slower than the NumPy loop" in res["goals"]
+
+
+def test_peak_memory_in_a_subprocess():
+    m = throughput.memory("sdof-stiffness-damping", 16, "cpu", 3, 1)
+    assert m["B"] == 16 and m["n_theta"] == 3 and m["peak_bytes"] >= 0 and m["state_bytes"] > 0
+
+
+def test_rls_kernel_script_quick(tmp_path):
+    out = tmp_path / "r.json"
+    rls_kernel.main(["--quick", "--batches", "64", "--n", "3", "--no-compile", "--out", str(out)])
+    res = json.loads(out.read_text())
+    v = res["results"][0]["variants"]
+    assert set(v) == {"inplace", "functional", "before"}
+    assert res["memcpy_bytes_per_s"] > 0 and v["inplace"]["effective_P_bytes_per_s"] > 0
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-CUDA path")
+def test_cuda_request_is_skipped_cleanly_without_cuda(tmp_path, capsys):
+    out = tmp_path / "x.json"
+    throughput.main(["--device", "cuda", "--quick", "--out", str(out)])
+    rls_kernel.main(["--device", "cuda", "--quick", "--out", str(out)])
+    assert "no CUDA device" in capsys.readouterr().out and not out.exists()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_benchmarks_run_on_cuda(tmp_path):
+    out = tmp_path / "g.json"
+    throughput.main(["--device", "cuda", "--quick", "--batches", "1,64", "--out", str(out)])
+    assert json.loads(out.read_text())["machine"]["device"].startswith("cuda")
+    rls_kernel.main(["--device", "cuda", "--quick", "--batches", "1024", "--n", "3", "--no-compile",
+                     "--out", str(out)])
