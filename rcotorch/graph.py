@@ -70,6 +70,7 @@ class Graph(nn.Module):
         self.to(device=device, dtype=dtype)
         self.reset(batch_size)
         self.last: dict[Signal, torch.Tensor] = {}
+        self.hooks: list[Callable[[Graph], object]] = []
 
     # --- building -------------------------------------------------------------------------------------
     @staticmethod
@@ -185,7 +186,14 @@ class Graph(nn.Module):
                 blk.update({p: signals[src] for p, src in feeds})
         self.k += 1
         self.last = signals
+        for hook in self.hooks:
+            hook(self)
         return signals
+
+    def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
+        """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook."""
+        self.hooks.append(hook)
+        return hook
 
     def run(self, steps: int, record: Mapping[str, str | Callable] | None = None, every: int = 1,
             progress: bool = False) -> dict[str, torch.Tensor]:
@@ -228,6 +236,7 @@ class Graph(nn.Module):
         self._port(d, "output")
         B = self.batch_size
         probe = copy.deepcopy(self)
+        probe.hooks = []
         runs = []
         for j in range(-1, w_in):
             probe.reset(B)

@@ -154,9 +154,9 @@ class Nonlinear(Block):
 
 class MarkovRefresh:
     """Recompute an estimator's Markov parameters from a nonlinear known model every ``every`` steps, per
-    member at its current state and with its other inputs held at the values it received in the last step
-    (linearization along the trajectory): call it after each graph step, e.g.
-    ``refresh = MarkovRefresh(graph, every=500)`` then ``graph.step(); refresh()``."""
+    member at its current state and with its inputs held at the values it received in the last step
+    (linearization along the trajectory). Attach it to the graph, ``graph.add_hook(MarkovRefresh(graph, 500))``,
+    so it runs after every step (also inside ``Run``), or call it after ``graph.step()`` yourself."""
 
     def __init__(self, graph, every: int, known: str = "known", identified: str = "identified",
                  actuation: str = "u", measured: str = "y", method: str = "autograd"):
@@ -166,13 +166,13 @@ class MarkovRefresh:
         self.known, self.ident = graph.blocks[known], graph.blocks[identified]
         self.known_name, self.actuation, self.measured = known, actuation, measured
 
-    def __call__(self) -> bool:
+    def __call__(self, graph=None) -> bool:
         if int(self.graph.k) % self.every:
             return False
         d, nu = self.ident.first_delay, self.ident.nu
         g = self.graph
         held = {p: g.last[g.sources[(self.known_name, p)]] for p in self.known.inputs
-                if p != self.actuation and (self.known_name, p) in g.sources and g.last}
+                if (self.known_name, p) in g.sources and g.last}
         H = self.known.markov(self.actuation, self.measured, d + nu, inputs=held, method=self.method)
         self.ident.set_markov(-H[:, d:d + nu], d)
         return True

@@ -366,13 +366,11 @@ class ColumnBlock(Nonlinear):
     """A ``Column`` as a nonlinear block: inputs ``w`` (width 2) and, with cooling nodes, ``u``; outputs given
     as functions of the state.
 
-    ``markov`` linearizes all input directions at once (stacked in the batch): 'autograd' is the
-    double-backward Jacobian-vector product of reverse-mode autograd, 'fd' central differences. (Forward mode
-    decomposes mul and div in Python here: ``torch.autograd.forward_ad`` is about 4 times and ``torch.func.jvp``,
-    which ``Nonlinear.markov`` uses, about 70 times slower on this model.) ``record`` (a function of
+    ``markov`` is ``Nonlinear.markov`` (all input directions at once; 'autograd' by double-backward products,
+    about 4 times faster than ``torch.autograd.forward_ad`` and 70 times faster than ``torch.func.jvp`` on this
+    model, or 'fd' central differences) on one intra-op thread. ``record`` (a function of
     the state and the inputs, (B, m)) is appended to the buffer ``history`` (B, steps, m) at every step, so a
-    checkpoint holds the traces; ``after_update(block, inputs)``, if set, runs after every step (e.g. to refresh
-    an estimator's Markov parameters).
+    checkpoint holds the traces.
 
     Args:
         column: the physics.
@@ -392,7 +390,6 @@ class ColumnBlock(Nonlinear):
                          lambda x: torch.cat([fn(x) for fn in fns], 1), column.n_states, inputs, widths,
                          dt=column.dt, x0=x0, name=name, dtype=dtype)
         self.column, self.record = column, record
-        self.after_update: Callable[[ColumnBlock, Mapping], None] | None = None
         self.register_buffer("history", torch.zeros(0, 0, 0, dtype=dtype))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
 
@@ -418,8 +415,6 @@ class ColumnBlock(Nonlinear):
                 self.history = row if self.history.shape[1] == 0 else torch.cat([self.history, row], 1)
             super().update(inputs)
             self.k += 1
-            if self.after_update is not None:
-                self.after_update(self, inputs)
 
     def markov(self, *args, **kwargs) -> torch.Tensor:
         """``Nonlinear.markov`` on one intra-op thread for small columns (see ``few_threads``)."""

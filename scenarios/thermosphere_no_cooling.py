@@ -45,21 +45,6 @@ from rcotorch.thermosphere import Column, ColumnBlock, SpaceWeather, few_threads
 EVAL_ALTITUDE = 152e3
 
 
-class MarkovRefresher:
-    """``after_update`` hook of the known column: every ``every`` steps, the estimator's Markov parameters from
-    the column linearized at its present state, with its present w and u held."""
-
-    def __init__(self, identified: rt.RCOEstimator, every: int, method: str):
-        self.identified, self.every, self.method = identified, int(every), method
-
-    def __call__(self, block: ColumnBlock, inputs) -> None:
-        if int(block.k) % self.every:
-            return
-        d, nu = self.identified.first_delay, self.identified.nu
-        H = block.markov("u", "y", d + nu, inputs={"w": inputs["w"], "u": inputs["u"]}, method=self.method)
-        self.identified.set_markov(-H[:, d:], d)
-
-
 def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
     """The truth column (with NO cooling) and the known model (without it, with the cooling input u)."""
     common = dict(dz=s["dz_km"] * 1e3, latitude=s["latitude"], local_time0=s["local_time0"], dt=s["Ts"],
@@ -134,8 +119,8 @@ class ThermosphereNoCooling(Scenario):
             feeds = {"e": "error.out"}
         graph = rt.refinement(known, ident, physical=plant, excitation=driver, feeds=feeds, batch_size=batch,
                               dtype=dtype, device=device)
-        if s["refresh_every"] > 0:
-            known.after_update = MarkovRefresher(ident, s["refresh_every"], s["markov_method"])
+        if s["refresh_every"] > 0:   # Markov parameters from the column at its present state, w and u
+            graph.add_hook(rt.MarkovRefresh(graph, s["refresh_every"], method=s["markov_method"]))
         return graph
 
     # --- traces ------------------------------------------------------------------------------------------------

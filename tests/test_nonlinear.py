@@ -96,13 +96,11 @@ def test_refinement_of_a_nonlinear_known_model_recovers_a_stiffness():
     truth = rt.Gain([[-dk]])
     ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=10.0)
     g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, std=2.0, seed=2), nu=60)
-    refresh = rt.MarkovRefresh(g, every=200)
-    for _ in range(6000):
-        g.step()
-        refresh()
+    g.add_hook(rt.MarkovRefresh(g, every=200))
+    g.run(6000)
     assert abs(float(ident.theta[0, 0, 0]) + dk) < 0.02 * dk
     assert int(g.k) % 200 == 0  # refreshed after the last step, at the known model's present state
-    held = {"w": g.last[("excitation", "out")]}
+    held = {"w": g.last[("excitation", "out")], "u": g.last[("identified", "u")]}
     np.testing.assert_allclose(ident.beta[:, :, 0, 0].numpy(),
                                -g.blocks["known"].markov("u", "y", 61, inputs=held)[:, 1:, 0, 0].numpy(), rtol=1e-12)
 
