@@ -14,9 +14,11 @@ Definitions (all measured in the same run):
   last-level cache (read + write), the same accounting; also for a buffer the size of P;
 * percent = effective P bandwidth / memory-copy bandwidth.
 
-Variants: ``inplace`` (``rls_update(..., inplace=True)``, what the estimator runs: one fused pass for the
-P update), ``functional`` (new tensors returned), ``before`` (the kernel as it was before the speed work, for
-reference) and ``compiled`` (``torch.compile`` of the in-place kernel; ``--no-compile`` skips it).
+Variants: ``inplace`` (``rls_update(..., inplace=True)``, what the estimator runs: on the CPU in float64 the
+native single-pass kernel of ``rcotorch.native``, each member's P read once and written once),
+``inplace_torch`` (the same in PyTorch operations, ``kernel='torch'``), ``functional`` (new tensors returned;
+a copy of theta and P, then the native kernel), ``before`` (the kernel as it was before the speed work, for
+reference) and ``compiled`` (``torch.compile`` of the PyTorch in-place kernel; ``--no-compile`` skips it).
 """
 
 from __future__ import annotations
@@ -93,13 +95,14 @@ def run(args) -> dict | None:
             a = (theta, P, psi, z_r, 1.0, 1.0, active)
             variants = {
                 "inplace": lambda a=a: rls_update(*a, inplace=True),
+                "inplace_torch": lambda a=a: rls_update(*a, inplace=True, kernel="torch"),
                 "functional": lambda a=a: rls_update(*a),
                 "before": lambda a=a: rls_before(*a),
             }
             if args.compile:
                 if compiled is None:
                     compiled = torch.compile(rls_update, dynamic=False)
-                variants["compiled"] = lambda a=a, f=compiled: f(*a, inplace=True)
+                variants["compiled"] = lambda a=a, f=compiled: f(*a, inplace=True, kernel="torch")
             for name, fn in variants.items():
                 try:
                     t0 = time.perf_counter()

@@ -40,17 +40,19 @@ def build(name: str, B: int, dev: torch.device, overrides: dict | None = None):
     return sc.build(sc.resolve(overrides), B, torch.float64, dev)
 
 
-def torch_rate(name: str, B: int, dev: torch.device, seconds: float, warmup: int = 20, repeats: int = 3) -> dict:
-    """Refinement-steps per second of the scenario's graph at batch B: the best of ``repeats`` runs of
-    ``seconds / repeats`` each (each run is long enough to include its share of excitation draws)."""
+def torch_rate(name: str, B: int, dev: torch.device, seconds: float, engine: str = "auto", warmup: int = 20,
+               repeats: int = 3) -> dict:
+    """Refinement-steps per second of the scenario's graph at batch B, advanced by ``Graph.advance`` on the
+    given engine: the best of ``repeats`` runs of ``seconds / repeats`` each (each run is long enough to
+    include its share of excitation draws)."""
     g = build(name, B, dev)
-    for _ in range(warmup):
-        g.step()
+    g.engine = engine
+    used = "torch" if g.native_status() else "native"
+    g.advance(warmup)
     sync(dev)
+    probe = 5 if used == "torch" else 64
     t = time.perf_counter()
-    probe = 5
-    for _ in range(probe):
-        g.step()
+    g.advance(probe)
     sync(dev)
     per_step = (time.perf_counter() - t) / probe
     steps = max(10, int(seconds / repeats / max(per_step, 1e-7)))
@@ -58,12 +60,11 @@ def torch_rate(name: str, B: int, dev: torch.device, seconds: float, warmup: int
     for _ in range(repeats):
         sync(dev)
         t = time.perf_counter()
-        for _ in range(steps):
-            g.step()
+        g.advance(steps)
         sync(dev)
         best = min(best, (time.perf_counter() - t) / steps)
-    return {"B": B, "steps": steps, "repeats": repeats, "seconds_per_step": best, "graph_steps_per_s": 1 / best,
-            "refinement_steps_per_s": B / best}
+    return {"B": B, "engine": used, "steps": steps, "repeats": repeats, "seconds_per_step": best,
+            "graph_steps_per_s": 1 / best, "refinement_steps_per_s": B / best}
 
 
 def numpy_rate(seconds: float, repeats: int = 3) -> dict:
@@ -104,8 +105,7 @@ def memory_child(name: str, B: int, device: str, steps: int, threads: int | None
         torch.set_num_threads(threads)
     dev = torch.device(device)
     warm = build(name, 1, dev)
-    for _ in range(3):
-        warm.step()
+    warm.advance(3)
     del warm
     gc.collect()
     sync(dev)
@@ -117,8 +117,7 @@ def memory_child(name: str, B: int, device: str, steps: int, threads: int | None
         base_cuda = torch.cuda.memory_allocated(dev)
     g = build(name, B, dev)
     est = g.blocks["identified"]
-    for _ in range(steps):
-        g.step()
+    g.advance(steps)
     sync(dev)
     peak = _proc_status("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     out = {"scenario": name, "B": B, "n_theta": est.n_theta, "steps": steps,
@@ -147,7 +146,8 @@ def run(args) -> dict | None:
     batches = [int(b) for b in args.batches.split(",")]
     seconds = 0.3 if args.quick else args.seconds
     np_before = numpy_rate(seconds)
-    rates = [torch_rate(args.scenario, B, dev, seconds) for B in batches]
+    rates = [torch_rate(args.scenario, B, dev, seconds, args.engine) for B in batches]
+    eager = [torch_rate(args.scenario, B, dev, seconds, "torch") for B in batches] if args.compare_torch else []
     np_after = numpy_rate(seconds)
     np_rate = 0.5 * (np_before["refinement_steps_per_s"] + np_after["refinement_steps_per_s"])
     mem_steps = 5 if args.quick else 50
@@ -158,11 +158,17 @@ def run(args) -> dict | None:
         big = max(batches)
         mems[(args.theta10, big)] = memory(args.theta10, big, args.device, mem_steps, args.threads)
     rows = []
+    for r in eager:
+        r["ratio_vs_numpy"] = r["refinement_steps_per_s"] / np_rate
+    for r, e in zip(rates, eager or [None] * len(rates)):
+        if e is not None:
+            r["speedup_vs_torch_engine"] = r["refinement_steps_per_s"] / e["refinement_steps_per_s"]
     for r in rates:
         r["ratio_vs_numpy"] = r["refinement_steps_per_s"] / np_rate
         m = mems.get((args.scenario, r["B"]), {})
         r["peak_memory"] = m
-        rows.append([r["B"], r["steps"], f"{r['seconds_per_step'] * 1e3:.3f}", f"{r['graph_steps_per_s']:.1f}",
+        rows.append([r["B"], r["engine"], r["steps"], f"{r['seconds_per_step'] * 1e3:.3f}",
+                     f"{r['graph_steps_per_s']:.1f}",
                      f"{r['refinement_steps_per_s']:.4g}", f"{r['ratio_vs_numpy']:.3g}",
                      f"{m['peak_bytes'] / 2**20:.1f}" if "peak_bytes" in m else "-"])
     extra = [m for (name, _), m in mems.items() if name != args.scenario]
@@ -180,19 +186,24 @@ def run(args) -> dict | None:
                 "value_mib": m["peak_bytes"] / 2**20, "met": m["peak_bytes"] < 2**30}
     out = {
         "benchmark": "throughput", "scenario": args.scenario, "machine": machine(dev),
-        "definition": "refinement-steps per second = B * graph steps / seconds (whole Figure-1 graph, "
+        "definition": "refinement-steps per second = B * graph steps / seconds (whole Figure-1 graph advanced by "
+                      "Graph.advance on the named engine, "
                       "excitation drawn inside the timing, best of 3 runs); numpy = one refinement per Python "
                       "loop (benchmarks/numpy_reference.py, best of 3), mean of the rates before and after the "
                       "torch runs; "
                       "peak memory = resident-set high-water mark during the run - resident set before it "
                       "(after a warm batch-of-one step), fresh subprocess per batch",
         "numpy": {"before": np_before, "after": np_after, "refinement_steps_per_s": np_rate},
-        "torch": rates, "memory_extra": extra, "goals": goals,
+        "torch": rates, "torch_engine": eager, "memory_extra": extra, "goals": goals,
     }
     print(f"{args.scenario} on {dev} ({torch.get_num_threads()} threads); NumPy loop "
           f"{np_before['refinement_steps_per_s']:.0f} / {np_after['refinement_steps_per_s']:.0f} steps/s "
           "(before / after)")
-    print(table(rows, ["B", "steps", "ms/step", "graph steps/s", "refinement steps/s", "x NumPy", "peak MiB"]))
+    print(table(rows, ["B", "engine", "steps", "ms/step", "graph steps/s", "refinement steps/s", "x NumPy",
+                       "peak MiB"]))
+    if eager:
+        print("PyTorch engine: " + ", ".join(f"B={e['B']}: {e['seconds_per_step'] * 1e3:.3f} ms/step "
+                                              f"({e['ratio_vs_numpy']:.3g}x NumPy)" for e in eager))
     for m in extra:
         if "peak_bytes" in m:
             print(f"{m['scenario']} B={m['B']} (n_theta={m['n_theta']}): peak {m['peak_bytes'] / 2**20:.1f} MiB")
@@ -221,6 +232,10 @@ def main(argv=None) -> None:
                     help="scenario with 10 theta entries for the memory goal (at the largest batch)")
     ap.add_argument("--seconds", type=float, default=3.0, help="timing per measurement")
     ap.add_argument("--no-memory", dest="memory", action="store_false", help="skip the peak-memory subprocesses")
+    ap.add_argument("--engine", default="auto", choices=["auto", "native", "torch"],
+                    help="engine of the main rows (auto: native where it applies)")
+    ap.add_argument("--no-compare-torch", dest="compare_torch", action="store_false",
+                    help="skip the rows of the PyTorch engine (step by step)")
     args = ap.parse_args(argv)
     out = run(args)
     if out is not None:

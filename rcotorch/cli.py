@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from .errors import RcoError
@@ -60,7 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     sw.add_argument("--ray-address", help="address of an existing Ray cluster (default: start a local one)")
     sw.add_argument("--out", help="output directory (default runs/sweep-SCENARIO)")
     sw.add_argument("--threads", type=int, help="CPU threads for torch in this process")
+    for p in (run, sw):
+        p.add_argument("--engine", choices=["auto", "native", "torch"],
+                       help="how graphs step: native (lowered to C, CPU float64), torch, or auto (default: native "
+                            "where it applies; also $RCOTORCH_ENGINE)")
     args = parser.parse_args(argv)
+    if getattr(args, "engine", None):
+        os.environ["RCOTORCH_ENGINE"] = args.engine
 
     if getattr(args, "threads", None) or (args.command == "run" and args.batch < 1024):
         import torch
@@ -92,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every)
         summary = r.finish(figures=not args.no_figures)
         print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
-              f"{summary['device']} -> {r.out}")
+              f"{summary['device']}, {summary['engine']} engine -> {r.out}")
         print(result_table(summary))
         return 0 if all(c["pass"] for c in summary["requirements"].values()) else 1
     except RcoError as e:

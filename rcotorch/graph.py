@@ -10,17 +10,20 @@ from __future__ import annotations
 
 import copy
 import difflib
+import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import torch
 from torch import nn
 
+from . import native
 from .blocks import DEFAULT_DTYPE, Block, Sum
 from .errors import AlgebraicLoopError, ConfigError, DimensionError, PortError
 from .estimator import RCOEstimator
 from .lti import LTI
 
 Signal = tuple[str, str]
+ENGINES = ("auto", "native", "torch")
 
 
 def _split(ref: str) -> Signal:
@@ -43,13 +46,19 @@ class Graph(nn.Module):
         connections: pairs ``("src_block.out_port", "dst_block.in_port")`` or strings ``"src.out -> dst.in"``.
         batch_size: number of parallel members B.
         dtype, device: one dtype and device for every block (float64 by default).
+        engine: how ``advance`` and ``run`` step: ``'native'`` (the graph lowered to C, many steps per call;
+            CPU, float64, the blocks listed in ``rcotorch.native``), ``'torch'`` (``step`` after ``step``), or
+            ``'auto'`` (native where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``).
+            ``step`` always uses PyTorch; both engines update the same state.
     """
 
     def __init__(self, blocks: Sequence[Block], connections: Iterable, batch_size: int = 1,
-                 dtype: torch.dtype = DEFAULT_DTYPE, device: str | torch.device = "cpu"):
+                 dtype: torch.dtype = DEFAULT_DTYPE, device: str | torch.device = "cpu",
+                 engine: str | None = None):
         super().__init__()
         if dtype not in (torch.float64, torch.float32):
             raise ConfigError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
+        self.engine = engine or os.environ.get("RCOTORCH_ENGINE", "auto")
         self.blocks = nn.ModuleDict()
         for blk in blocks:
             if not isinstance(blk, Block):
@@ -190,6 +199,39 @@ class Graph(nn.Module):
             hook(self)
         return signals
 
+    @property
+    def engine(self) -> str:
+        return self._engine
+
+    @engine.setter
+    def engine(self, value: str) -> None:
+        if value not in ENGINES:
+            raise ConfigError(f"graph: engine must be one of {ENGINES}, got {value!r}")
+        self._engine = value
+
+    def native_status(self) -> str | None:
+        """None when ``advance`` runs natively, else why it runs on PyTorch."""
+        if self.engine == "torch":
+            return "engine='torch'"
+        return native.unsupported(self)
+
+    def advance(self, steps: int, accumulate: Mapping[Signal, torch.Tensor] | None = None) -> None:
+        """Advance ``steps`` steps (on the engine chosen by ``engine``); afterwards ``last`` holds the signals
+        of the last step. ``accumulate``: {signal: (B,) float64 tensor} gets sum_c signal[b, c]^2 of every
+        step added (e.g. for an rms of z)."""
+        steps = int(steps)
+        if steps <= 0:
+            return
+        if self.engine != "torch" and native.advance(self, steps, accumulate):
+            return
+        if self.engine == "native":
+            raise ConfigError(f"graph: engine='native', but {native.unsupported(self)}")
+        for _ in range(steps):
+            signals = self.step()
+            for sig, acc in (accumulate or {}).items():
+                z = signals[sig].to(torch.float64)
+                acc += (z * z).sum(1)
+
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
         """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook."""
         self.hooks.append(hook)
@@ -210,15 +252,22 @@ class Graph(nn.Module):
                 self._port(sig, "output")
                 getters[key] = (lambda g, s=sig: g.last[s])
         traces: dict[str, list] = {k: [] for k in getters}
-        it = range(steps)
+        bar = None
         if progress:
             from tqdm import tqdm
-            it = tqdm(it, desc="steps", unit="step", mininterval=0.5)
-        for i in it:
-            self.step()
-            if (i + 1) % every == 0:
+            bar = tqdm(total=steps, desc="steps", unit="step", mininterval=0.5)
+        done = 0
+        while done < steps:
+            n = min(every, steps - done) if getters else steps
+            self.advance(n)
+            done += n
+            if getters and n == every:
                 for key, get in getters.items():
                     traces[key].append(get(self).detach().clone())
+            if bar is not None:
+                bar.update(n)
+        if bar is not None:
+            bar.close()
         return {k: torch.stack(v) if v else torch.empty(0) for k, v in traces.items()}
 
     def check_steps(self, steps: int) -> None:

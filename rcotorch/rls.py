@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import torch
 
+from . import native
+
 
 def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Tensor,
                lam: torch.Tensor | float = 1.0, r_inv: torch.Tensor | float = 1.0,
-               active: torch.Tensor | None = None, *, inplace: bool = False
+               active: torch.Tensor | None = None, *, inplace: bool = False, kernel: str = "auto"
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One RLS step for all members. Returns (theta, P, ok).
 
@@ -34,10 +36,21 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
     finite; such a member is also left as it was, so a caller can freeze it without losing the others.
     The P update forms ``P - W W^T``, so P stays exactly symmetric. With ``inplace=True`` theta and P (both
     contiguous) are updated in place and returned; otherwise new tensors are returned and the inputs kept.
+    ``kernel``: ``'native'`` (l = 1, CPU, float64: one pass over each member's P in C, ``rcotorch.native``),
+    ``'torch'`` (PyTorch operations), or ``'auto'`` (native where it applies and is built).
     """
     B, n = theta.shape
     l = psi.shape[-1]
     dt, dev = P.dtype, P.device
+    if (kernel != "torch" and l == 1 and dev.type == "cpu" and dt == torch.float64
+            and not (isinstance(r_inv, torch.Tensor) and r_inv.numel() > 1) and not torch.compiler.is_compiling()):
+        # One pass over each member's P in C (rcotorch.native), when the kernels are built.
+        th, Pn = (theta, P) if inplace else (theta.clone(), P.clone())
+        if th.is_contiguous() and Pn.is_contiguous():
+            ok = native.rls1_(th, Pn, psi, z_r, lam, float(r_inv), active)
+            if ok is not None:
+                return th, Pn, ok if active is None else ok | ~active.reshape(B)
+
     lam_one = not isinstance(lam, torch.Tensor) and float(lam) == 1.0
     if lam_one:
         lam = 1.0                                                          # no tensor, no division

@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from . import rng
+from . import native, rng
 from .blocks import DEFAULT_DTYPE, Block
 from .data import Recording
 from .errors import ConfigError, DataError
@@ -61,12 +61,14 @@ class WhiteNoise(Block):
         super()._load_from_state_dict(*args, **kwargs)
         self._chunk = None  # cached samples belong to the old streams
 
-    def output(self, port, inputs):
-        k = int(self.k)
+    def _chunk_at(self, k: int, min_length: int = 1) -> tuple[torch.Tensor, int, int]:
+        """The samples of the steps around k: (chunk (B, length, width), its first step, length)."""
         # Samples are drawn for a chunk of steps at once: CHUNK steps, fewer for a large batch so that the chunk
-        # (and the hashing temporaries behind it) stays near CHUNK_SAMPLES numbers. The values do not depend on
-        # the chunking: each is a function of (seed, member, step, component).
+        # (and the hashing temporaries behind it) stays near CHUNK_SAMPLES numbers, but at least min_length
+        # (the native engine runs a chunk's steps in one call). The values do not depend on the chunking: each
+        # is a function of (seed, member, step, component).
         length = max(1, min(self.CHUNK, self.CHUNK_SAMPLES // max(1, self.stream.shape[0] * self.width)))
+        length = max(length, min(min_length, self.CHUNK))
         start = k - k % length
         # The chunk holds mean + std * N(0, 1) (the same elementwise operations as one step at a time); it is
         # redrawn when k leaves it or when the streams, std or mean changed.
@@ -75,9 +77,15 @@ class WhiteNoise(Block):
         if self._chunk is None or self._chunk_start != key:
             noise = _normal_grid(self.stream[:, 0], self.stream[:, 1], start, length, self.width,
                                  self.std.dtype)                                 # (B, length, width)
-            self._chunk = self.mean.unsqueeze(1) + self.std.unsqueeze(1) * noise
+            self._chunk = noise.mul_(self.std.unsqueeze(1)).add_(self.mean.unsqueeze(1)) \
+                if noise.shape[0] == self.batch_size else self.mean.unsqueeze(1) + self.std.unsqueeze(1) * noise
             self._chunk_start, self._chunk_deps = key, deps   # deps are held, so their ids stay unique
-        return self._chunk[:, k - start]
+        return self._chunk, start, length
+
+    def output(self, port, inputs):
+        k = int(self.k)
+        chunk, start, _ = self._chunk_at(k)
+        return chunk[:, k - start]
 
     def update(self, inputs):
         self.k += 1
@@ -88,6 +96,10 @@ def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length:
     """``rng.normal(seeds, members, steps, comp)`` on the grid (B, steps start..start+length-1, comp
     0..width-1), bit for bit, with the hash chain's common prefixes computed once: (seed, member) per member,
     (seed, member, step, comp) once for the four hashes behind a normal sample. About half the integer work."""
+    fast = native.uniform_grid(seeds, members, start, length, width)
+    if fast is not None:                                     # the integer hashing in C, same bits
+        u1, u2 = fast                                        # the transform below, in place
+        return u1.log_().mul_(-2.0).sqrt_().mul_(u2.mul_(2.0 * math.pi).cos_()).to(dtype)
     mix, mask = rng._mix32, rng._MASK32
     dev = seeds.device
 

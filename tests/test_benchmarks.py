@@ -93,7 +93,7 @@ def test_rls_kernel_script_quick(tmp_path):
     rls_kernel.main(["--quick", "--batches", "64", "--n", "3", "--no-compile", "--out", str(out)])
     res = json.loads(out.read_text())
     v = res["results"][0]["variants"]
-    assert set(v) == {"inplace", "functional", "before"}
+    assert set(v) == {"inplace", "inplace_torch", "functional", "before"}
     assert res["memcpy_bytes_per_s"] > 0 and v["inplace"]["effective_P_bytes_per_s"] > 0
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from rcotorch import native
 from rcotorch import scenario as scenarios
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -19,10 +20,14 @@ import numpy_reference as nr  # noqa: E402
 NAME = "sdof-stiffness-damping"
 
 
-def _rcotorch(steps, batch=1, **overrides):
+ENGINES = ["torch", "native"] if native.available() else ["torch"]
+
+
+def _rcotorch(steps, batch=1, engine="auto", **overrides):
     sc = scenarios.get(NAME)
     s = sc.resolve(overrides)
     g = sc.build(s, batch, torch.float64, "cpu")
+    g.engine = engine
     g.run(steps)
     return g.blocks["identified"], {k: v.numpy() for k, v in sc.estimates(g, s).items()}
 
@@ -32,8 +37,9 @@ def test_reference_settings_are_the_scenario_defaults():
     assert {k: s[k] for k in nr.DEFAULTS} == nr.DEFAULTS
 
 
-def test_final_theta_agrees_with_rcotorch_batch_of_one():
-    est, e = _rcotorch(2000)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_final_theta_agrees_with_rcotorch_batch_of_one(engine):
+    est, e = _rcotorch(2000, engine=engine)
     ref = nr.refine(2000)
     theta = est.theta[0].numpy()
     assert theta.shape == ref["theta"].shape == (1, 3)
@@ -44,9 +50,10 @@ def test_final_theta_agrees_with_rcotorch_batch_of_one():
     assert abs(ref["dK"] + 0.4) < 0.05 and abs(ref["dC"] - 0.5) < 0.05   # on its way to the truth
 
 
-def test_other_member_and_order_agree():
+@pytest.mark.parametrize("engine", ENGINES)
+def test_other_member_and_order_agree(engine):
     """Member 2 of a batch of 3 (noise stream (seed, 2)) with a second-order identified subsystem."""
-    est, e = _rcotorch(1500, batch=3, nc=2)
+    est, e = _rcotorch(1500, batch=3, engine=engine, nc=2)
     ref = nr.refine(1500, {"nc": 2}, member=2)
     np.testing.assert_allclose(est.theta[2].numpy(), ref["theta"], rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose([e["dK"][2], e["dC"][2]], [ref["dK"], ref["dC"]], rtol=1e-8)
