@@ -1,12 +1,14 @@
 """Full refinement throughput of a scenario against a per-refinement NumPy loop, and peak memory, in one run.
 
     python benchmarks/throughput.py [--device cpu|cuda] [--threads N] [--batches 1,64,4096,65536]
-                                    [--scenario sdof-stiffness-damping] [--seconds 3]
+                                    [--scenario sdof-stiffness-damping] [--seconds 3] [--engine auto]
+                                    [--no-compare-torch]
 
 Writes benchmarks/results/throughput.json and prints a table.
 
 * torch: the scenario's whole Figure-1 graph (excitation, truth, known model, error, estimator with its RLS
-  update) built for B members and stepped with ``Graph.step`` after a warm-up; refinement-steps per second =
+  update) built for B members and advanced with ``Graph.advance`` after a warm-up, on the native engine where
+  it applies (``--engine``), and on the PyTorch engine (step after step) for comparison; refinement-steps per second =
   B * steps / seconds, the best of 3 runs of ``--seconds / 3`` each (the excitation is drawn inside the
   timing; the best run is the one least disturbed by other processes on a shared machine).
 * numpy: ``benchmarks/numpy_reference.py``, the same equations for one refinement in a plain Python loop
