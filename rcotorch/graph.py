@@ -80,6 +80,7 @@ class Graph(nn.Module):
         self.reset(batch_size)
         self.last: dict[Signal, torch.Tensor] = {}
         self.hooks: list[Callable[[Graph], object]] = []
+        self.ran_engine: str | None = None     # the engine of the last ``advance``
 
     # --- building -------------------------------------------------------------------------------------
     @staticmethod
@@ -223,9 +224,11 @@ class Graph(nn.Module):
         if steps <= 0:
             return
         if self.engine != "torch" and native.advance(self, steps, accumulate):
+            self.ran_engine = "native"
             return
         if self.engine == "native":
             raise ConfigError(f"graph: engine='native', but {native.unsupported(self)}")
+        self.ran_engine = "torch"
         for _ in range(steps):
             signals = self.step()
             for sig, acc in (accumulate or {}).items():

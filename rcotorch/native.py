@@ -123,7 +123,6 @@ def _declare(lib: ctypes.CDLL) -> None:
     i64, vp, dbl, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double, ctypes.c_int
     lib.rco_instr_size.restype = i64
     lib.rco_bind_size.restype = i64
-    lib.rco_lanes.restype = i64
     lib.rco_rls1.argtypes = [i64, i64, vp, vp, vp, vp, vp, i64, ci, dbl, vp, vp, ci]
     lib.rco_rls1.restype = ci
     lib.rco_uniform_grid.argtypes = [i64, vp, vp, i64, i64, i64, vp, vp, ci]
@@ -330,13 +329,11 @@ def _lower_lti(L: _Lowering, blk) -> None:
     if n > 64 or sum(blk.inputs.values()) > 64:
         raise _NotLowerable(f"block '{blk.name}' is too large for the native engine")
     x = L.state(blk, "x", torch.float64)
-    A, Bm = L.const(blk.A), L.const(blk.B)
-    C = D = None
+    A, Bm, C = L.const(blk.A), L.const(blk.B), L.const(blk.C)
+    D = None
     m_total = blk.B.shape[2]
     for port, rows in blk._out_slices.items():
         ft = [p for p in blk._feedthrough[port] if (blk.name, p) in L.srcs]
-        if C is None:
-            C = L.const(blk.C)
         if ft and D is None:
             D = L.const(blk.D)
         ints = [n, rows.stop - rows.start, C + rows.start * n, x, L.sig(blk.name, port), len(ft), m_total,

@@ -185,7 +185,8 @@ class Run:
                                "pass": all(ok for _, ok in per_member)}
         return {
             "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
-            "device": str(self.device.type), "engine": "torch" if self.graph.native_status() else "native",
+            "device": str(self.device.type), "engine": self.graph.ran_engine or
+            ("torch" if self.graph.native_status() else "native"),
             "estimates": {k: value(v) for k, v in est.items()},
             "truth": self.truth, "metrics": {k: value(v) for k, v in met.items()},
             "settings": dict(self.settings), "diverged": diverged, "requirements": checks,

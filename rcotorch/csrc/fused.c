@@ -500,7 +500,6 @@ static void store(const bind_t *bd, int64_t nbind, const double *S, int64_t b0, 
 
 int64_t rco_instr_size(void) { return (int64_t)sizeof(instr_t); }
 int64_t rco_bind_size(void) { return (int64_t)sizeof(bind_t); }
-int64_t rco_lanes(void) { return VL; }
 
 /* Run the program for T steps over members [0, B), VL members at a time, on nslots slots per chunk. */
 int rco_run(const instr_t *prog, int64_t nins, const bind_t *binds, int64_t nbind, int64_t nslots, int64_t T,
