@@ -14,7 +14,12 @@ The retrospective error (seed eq. 9) uses the Markov parameters beta_d..beta_(d+
 
 with Theta = theta flattened row-major (entry (i, j) at i * n_phi + j), so Psi^T has entries
 sum_i beta_i[z, a] phi(k-i)[j] at column a * n_phi + j. Theta is then updated by ``rls_update`` on
-z_R(k) = z_hat(theta(k), k). A mask pins entries of theta to zero: they are left out of Theta and P.
+z_R(k) = z_hat(theta(k), k).
+
+Structure: theta's entries are functions of a parameter vector eta, Theta = T eta, with T a 0/1 matrix. A
+mask pins entries to zero (their rows of T are zero); ``tie`` lets entries share one parameter (e.g. one
+function of a temperature for every altitude node). The update runs on eta with the regressor T^T Psi, so
+P is (n_theta x n_theta) over the free parameters only; for a plain estimator T is the identity.
 
 A member whose z, Psi or theta becomes non-finite, or whose P loses definiteness, is frozen (theta and P
 held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where the optional ``valid`` input is
@@ -50,6 +55,10 @@ class RCOEstimator(Block):
         proper: also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
         feed_u: put past u into phi (the controller's poles); False gives an FIR controller.
         mask: bool (n_u, n_phi), True where theta is free; False pins that entry to zero.
+        tie: integer (n_u, n_phi): entries with the same label share one parameter (labels are any
+            integers; a negative label pins the entry to zero, as does ``mask``). For example, with u_j =
+            theta_j1 e_j + theta_j2 e_j^2 at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the
+            function the same at every node. ``theta_names`` lists one name per parameter.
         p0: initial covariance P(0) = p0 I, scalar or one per member.
         lam: forgetting factor in (0, 1], scalar or one per member.
         R: weight on z (scalar or n_z x n_z).
@@ -66,7 +75,7 @@ class RCOEstimator(Block):
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
                  features: Mapping[str, Callable[[dict], torch.Tensor]] | None = None,
-                 proper: bool = False, feed_u: bool = True, mask=None, p0=1.0, lam=1.0, R=1.0,
+                 proper: bool = False, feed_u: bool = True, mask=None, tie=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
                  u_bounds=None, theta_bounds=None, name: str = "identified", dtype=DEFAULT_DTYPE):
         signals = dict(signals)
@@ -89,18 +98,7 @@ class RCOEstimator(Block):
         self.n_phi = len(self.lags) * self.n_sig + (nc * n_u if self.feed_u else 0)
         self.phi_names = self._phi_names()
         self.dt = dt
-        mask = torch.ones(n_u, self.n_phi, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
-        if tuple(mask.shape) != (n_u, self.n_phi):
-            raise DimensionError(f"block '{name}': mask has shape {tuple(mask.shape)}, expected "
-                                 f"(n_u, n_phi) = ({n_u}, {self.n_phi}) for phi = {self.phi_names}")
-        self.mask = mask.bool()
-        self.free = torch.nonzero(self.mask.flatten()).flatten()
-        self.all_free = bool(self.mask.all())
-        self.n_theta = int(self.free.numel())
-        if self.n_theta == 0:
-            raise ConfigError(f"block '{name}': the mask leaves no free entry of theta")
-        self.theta_names = [f"{i}:{self.phi_names[j]}" if n_u > 1 else self.phi_names[j]
-                            for i in range(n_u) for j in range(self.n_phi) if self.mask[i, j]]
+        self._structure(mask, tie)
         for key, value in (("p0", p0), ("lam", lam)):
             t = torch.as_tensor(value, dtype=dtype).reshape(-1)
             if key == "p0" and bool((t <= 0).any()):
@@ -115,10 +113,18 @@ class RCOEstimator(Block):
         self.register_buffer("r_inv", torch.linalg.inv(R))
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
             torch.as_tensor(theta0, dtype=dtype).reshape(-1, n_u, self.n_phi)
-        self.register_buffer("theta0", theta0 * self.mask)
-        self.register_buffer("free_idx", self.free.clone())
+        theta0 = theta0 * self.mask
+        self._check_tied("theta0", theta0.reshape(theta0.shape[0], -1))
+        self.register_buffer("theta0", theta0)
+        self.register_buffer("free_idx", self.rep.clone())      # the entry of theta that holds each parameter
+        if self.tied:
+            self.register_buffer("tie_T", self._tie_matrix(dtype))
         for key, value, width in (("u", u_bounds, n_u), ("theta", theta_bounds, n_u * self.n_phi)):
             lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
+            if key == "theta" and lo is not None:
+                for what, t in (("theta_bounds low", lo), ("theta_bounds high", hi)):
+                    if t.dim():
+                        self._check_tied(what, t.reshape(1, -1))
             self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
             self.register_buffer(f"{key}_high", hi)
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
@@ -145,6 +151,57 @@ class RCOEstimator(Block):
         self._k_cache: tuple | None = None      # (k tensor, its version, k as int): k without a device sync
         self._beta_cache: tuple | None = None   # (beta_t, its version, beta reversed in time)
         self._lam_cache: tuple | None = None    # (lam, its version, lam as given to rls_update)
+
+    def _structure(self, mask, tie) -> None:
+        """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of
+        entry e of Theta (-1: pinned to zero), ``rep[p]`` the first entry holding parameter p."""
+        name, shape = self.name, (self.n_u, self.n_phi)
+        mask = torch.ones(shape, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
+        if tuple(mask.shape) != shape:
+            raise DimensionError(f"block '{name}': mask has shape {tuple(mask.shape)}, expected "
+                                 f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
+        labels = torch.arange(mask.numel()).reshape(shape) if tie is None else torch.as_tensor(tie)
+        if tuple(labels.shape) != shape:
+            raise DimensionError(f"block '{name}': tie has shape {tuple(labels.shape)}, expected "
+                                 f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
+        if labels.is_floating_point() or labels.dtype == torch.bool:
+            raise ConfigError(f"block '{name}': tie must hold integer labels, got dtype {labels.dtype}")
+        mask = mask.bool() & (labels >= 0)
+        param_of, first = [], {}
+        for free, label in zip(mask.flatten().tolist(), labels.flatten().tolist()):
+            param_of.append(first.setdefault(label, len(first)) if free else -1)
+        self.mask = mask
+        self.param_of = torch.tensor(param_of, dtype=torch.int64)
+        self.free = torch.nonzero(self.param_of >= 0).flatten()          # every entry that is not pinned
+        self.n_theta = len(first)
+        if self.n_theta == 0:
+            raise ConfigError(f"block '{name}': the mask leaves no free entry of theta")
+        self.rep = torch.tensor([param_of.index(p) for p in range(self.n_theta)], dtype=torch.int64)
+        self.tied = self.n_theta < self.free.numel()
+        self.all_free = bool(mask.all()) and not self.tied
+        entry = [f"{i}:{self.phi_names[j]}" if self.n_u > 1 else self.phi_names[j]
+                 for i in range(self.n_u) for j in range(self.n_phi)]
+        self.theta_names = [" = ".join(entry[e] for e in range(len(param_of)) if param_of[e] == p)
+                            for p in range(self.n_theta)]
+
+    def _tie_matrix(self, dtype) -> torch.Tensor:
+        """T (n_u * n_phi, n_theta): Theta = T eta, so the regressor of eta is T^T Psi."""
+        T = torch.zeros(self.n_u * self.n_phi, self.n_theta, dtype=dtype)
+        T[self.free, self.param_of[self.free]] = 1.0
+        return T
+
+    def _check_tied(self, what: str, values: torch.Tensor) -> None:
+        """Entries that share a parameter must share ``values`` (B, n_u * n_phi) too."""
+        if not self.tied:
+            return
+        reps = values[:, self.rep[self.param_of[self.free]]]
+        if not bool((values[:, self.free] == reps).all()):
+            raise ConfigError(f"block '{self.name}': {what} differs between entries of theta that share a "
+                              "parameter (tie)")
+
+    def theta_free(self) -> torch.Tensor:
+        """The free parameters eta, (B, n_theta), in the order of ``theta_names``."""
+        return self.theta.reshape(self.theta.shape[0], -1).index_select(1, self.free_idx)
 
     @classmethod
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
@@ -347,7 +404,9 @@ class RCOEstimator(Block):
         if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
             self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
         theta_flat = self.theta.view(B, -1)
-        if not self.all_free:
+        if self.tied:                                                           # Psi of eta: T^T Psi
+            psi_t, theta_flat = psi_t @ self.tie_T, theta_flat.index_select(1, self.free_idx)
+        elif not self.all_free:
             psi_t, theta_flat = psi_t.index_select(2, self.free_idx), theta_flat.index_select(1, self.free_idx)
         z_r = zeta + (psi_t @ theta_flat.unsqueeze(-1)).squeeze(-1)
         # A member whose Psi or z_R is not finite fails rls_update's checks (S or the step is not finite) and
@@ -357,7 +416,9 @@ class RCOEstimator(Block):
             active = active & (inputs["valid"].reshape(B) > 0.5)
         theta_flat, _, ok = rls_update(theta_flat, self.P, psi_t.mT, z_r, self._lam_arg(), self.r_inv, active,
                                        inplace=True)                            # theta (all free) and P in place
-        if not self.all_free:
+        if self.tied:                                                           # Theta = T eta
+            self.theta.view(B, -1).index_copy_(1, self.free, theta_flat.index_select(1, self.param_of[self.free]))
+        elif not self.all_free:
             self.theta.view(B, -1).index_copy_(1, self.free_idx, theta_flat)
         if self.theta_low is not None:  # projection onto the box; P is left as it is
             self.theta.view(B, -1).clamp_(self.theta_low, self.theta_high)

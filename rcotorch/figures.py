@@ -14,7 +14,8 @@ MAX_LINES = 8
 
 def run_figures(run) -> dict:
     """Estimate-vs-time (one panel per estimate, truth dashed) and rms model error vs time."""
-    h, dt = run.history, run.graph.blocks["known"].dt if "known" in run.graph.blocks else 1.0
+    g = run.graph
+    h, dt = run.history, g.role("known").dt if "known" in g.roles else 1.0
     t = np.asarray(h["step"], dtype=float) * dt
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]

@@ -1,9 +1,14 @@
-"""Graphs of blocks wired by port name, and the seed paper's Figure-1 interconnection.
+"""Graphs of blocks wired by port name.
 
 A ``Graph`` is checked when it is built: every name resolves (with a suggestion when it does not), every
 required input is driven exactly once, widths agree, and direct-feedthrough paths have no cycle (an
 algebraic loop). Each step evaluates the output ports in an order that respects feedthrough, then advances
 every block. ``print(graph)`` shows the blocks and the connection table.
+
+A graph may declare *roles*: which block is the estimator, which the known model, which signal the model
+error z, and so on. Tools that work on any refinement (the runner, the monitor, figures) find these parts
+through the roles, not through block names. ``rcotorch.refinement`` declares them for the seed paper's
+Figure 1.
 """
 
 from __future__ import annotations
@@ -17,13 +22,15 @@ import torch
 from torch import nn
 
 from . import native
-from .blocks import DEFAULT_DTYPE, Block, Sum
+from .blocks import DEFAULT_DTYPE, Block
 from .errors import AlgebraicLoopError, ConfigError, DimensionError, PortError
-from .estimator import RCOEstimator
-from .lti import LTI
 
 Signal = tuple[str, str]
 ENGINES = ("auto", "native", "torch")
+# Roles a refinement declares: a block name (``estimator``, ``known``, ``physical``, ``excitation``) or a
+# signal 'block.port' (``error``: z = y - y_hat, ``measured``: y, ``prediction``: y_hat).
+BLOCK_ROLES = ("estimator", "known", "physical", "excitation")
+SIGNAL_ROLES = ("error", "measured", "prediction")
 
 
 def _split(ref: str) -> Signal:
@@ -50,11 +57,14 @@ class Graph(nn.Module):
             CPU, float64, the blocks listed in ``rcotorch.native``), ``'torch'`` (``step`` after ``step``), or
             ``'auto'`` (native where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``).
             ``step`` always uses PyTorch; both engines update the same state.
+        roles: what the parts of a refinement are, e.g. ``{'estimator': 'refine', 'known': 'model',
+            'error': 'err.out'}`` (see ``BLOCK_ROLES`` and ``SIGNAL_ROLES``); ``role()`` and
+            ``role_signal()`` look them up.
     """
 
     def __init__(self, blocks: Sequence[Block], connections: Iterable, batch_size: int = 1,
                  dtype: torch.dtype = DEFAULT_DTYPE, device: str | torch.device = "cpu",
-                 engine: str | None = None):
+                 engine: str | None = None, roles: Mapping[str, str] | None = None):
         super().__init__()
         if dtype not in (torch.float64, torch.float32):
             raise ConfigError(f"dtype must be torch.float64 or torch.float32, got {dtype}")
@@ -75,6 +85,7 @@ class Graph(nn.Module):
                 if (name, port) not in self.sources and port not in blk.optional_inputs:
                     raise PortError(f"graph: input '{name}.{port}' is not connected")
         self.order = self._schedule()
+        self.roles = self._check_roles(dict(roles or {}))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self.to(device=device, dtype=dtype)
         self.reset(batch_size)
@@ -116,6 +127,32 @@ class Graph(nn.Module):
             raise DimensionError(f"graph: '{src[0]}.{src[1]}' has width {w_out} but '{dst[0]}.{dst[1]}' "
                                  f"expects width {w_in}")
         self.sources[dst] = src
+
+    def _check_roles(self, roles: dict[str, str]) -> dict[str, str]:
+        for role, ref in roles.items():
+            if role in BLOCK_ROLES:
+                if ref not in self.blocks:
+                    raise PortError(f"graph: role '{role}' names no block '{ref}'{_suggest(ref, self.blocks)}")
+            elif role in SIGNAL_ROLES:
+                self._port(_split(ref), "output")
+            else:
+                raise ConfigError(f"graph: unknown role '{role}'{_suggest(role, BLOCK_ROLES + SIGNAL_ROLES)}; "
+                                  f"roles are {BLOCK_ROLES + SIGNAL_ROLES}")
+        return roles
+
+    def role(self, role: str) -> Block:
+        """The block that plays ``role`` (e.g. ``'estimator'``, ``'known'``)."""
+        if role not in self.roles:
+            raise ConfigError(f"graph: no block has the role '{role}' (declared roles: {sorted(self.roles)}); "
+                              "build the graph with rcotorch.refinement or pass roles= to Graph")
+        return self.blocks[self.roles[role]]
+
+    def role_signal(self, role: str) -> Signal:
+        """The signal that plays ``role`` (e.g. ``'error'``, z) as (block, port)."""
+        if role not in self.roles:
+            raise ConfigError(f"graph: no signal has the role '{role}' (declared roles: {sorted(self.roles)}); "
+                              "build the graph with rcotorch.refinement or pass roles= to Graph")
+        return _split(self.roles[role])
 
     def _schedule(self) -> list[Signal]:
         """Order the output ports so each is computed after the inputs it feeds through (Kahn's algorithm)."""
@@ -329,116 +366,3 @@ def _dtype(g: nn.Module) -> torch.dtype:
         if t.is_floating_point():
             return t.dtype
     return DEFAULT_DTYPE
-
-
-def refinement(known: LTI, identified: RCOEstimator, *, truth: Block | None = None,
-               physical: Block | None = None, data: Block | None = None, excitation: Block | None = None,
-               nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
-               device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
-               measured: str = "y", feeds: Mapping[str, str] | None = None) -> Graph:
-    """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
-
-    The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
-    outputs ``y`` (measured) and the signals the unknown subsystem sees (e.g. ``y0``). The physical system is
-    one of:
-
-    * ``truth``: the true unknown subsystem (one input, one output port); the physical system is then a
-      copy of ``known`` (block ``plant``) with ``truth`` (block ``unknown``) in feedback from
-      ``plant.y0`` to ``plant.u``;
-    * ``physical``: any block with input ``w`` and output ``y`` (e.g. a continuous truth discretized whole);
-    * ``data``: recorded measurements, a source with outputs ``w`` and ``y`` (and ``valid`` if it has gaps).
-
-    The simulated system is ``known`` in feedback with ``identified`` (the RCO estimator); its regressor
-    ports are fed by the known model's outputs of the same name (or ``w``), or as mapped by ``feeds``
-    ({estimator port: 'block.port'}). Unless the estimator already has Markov parameters, ``nu`` of them
-    are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its relative degree d on.
-    """
-    given = [x is not None for x in (truth, physical, data)]
-    if sum(given) != 1:
-        raise ConfigError("refinement: give exactly one of truth=, physical= or data=")
-    for port in (exogenous, actuation):
-        if port not in known.inputs:
-            raise PortError(f"refinement: known model '{known.name}' has no input '{port}'; its inputs are "
-                            f"{list(known.inputs)}")
-    if measured not in known.outputs:
-        raise PortError(f"refinement: known model '{known.name}' has no output '{measured}'; its outputs are "
-                        f"{list(known.outputs)}")
-    if known.name != "known" or identified.name != "identified":
-        raise ConfigError("refinement: name the known model 'known' and the estimator 'identified' "
-                          f"(got '{known.name}', '{identified.name}')")
-    blocks: list[Block] = [known, identified]
-    conns: list[tuple[str, str]] = []
-    if data is not None:
-        if data.name != "data":
-            raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
-        blocks.append(data)
-        w_src, y_src = f"data.{exogenous}", f"data.{measured}"
-        for p in (exogenous, measured):
-            if p not in data.outputs:
-                raise PortError(f"refinement: data block has no output '{p}'; its outputs are {list(data.outputs)}")
-    else:
-        if excitation is None:
-            raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
-        excitation.name = "excitation"
-        blocks.append(excitation)
-        w_src = "excitation.out"
-        if truth is not None:
-            plant = copy.deepcopy(known)
-            plant.name = "plant"
-            truth.name = "unknown"
-            (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
-            sees = [p for p in known.outputs if p != measured]
-            if len(sees) != 1:
-                raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
-                                  f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
-            blocks += [plant, truth]
-            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"unknown.{t_in}"),
-                      (f"unknown.{t_out}", f"plant.{actuation}")]
-            y_src = f"plant.{measured}"
-        else:
-            physical.name = "plant"
-            blocks.append(physical)
-            conns.append((w_src, f"plant.{exogenous}"))
-            y_src = f"plant.{measured}"
-    width = known.outputs[measured]
-    blocks.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
-    conns += [(y_src, "error.y"), (f"known.{measured}", "error.y_hat"), (w_src, f"known.{exogenous}"),
-              ("identified.u", f"known.{actuation}"), ("error.out", "identified.z")]
-    feeds = dict(feeds or {})
-    for port in identified.ports:
-        if port in feeds:
-            conns.append((feeds[port], f"identified.{port}"))
-        elif port == exogenous:
-            conns.append((w_src, f"identified.{port}"))
-        elif port in known.outputs:
-            conns.append((f"known.{port}", f"identified.{port}"))
-        else:
-            raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
-                            f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
-    if data is not None and "valid" in data.outputs:
-        conns.append(("data.valid", "identified.valid"))
-    if identified.beta.shape[1] == 0:
-        if nu is None:
-            raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
-        beta, d = derive_markov(known, actuation, measured, nu)
-        identified.set_markov(beta, d)
-    if identified.dt is None:
-        identified.dt = known.dt
-    return Graph(blocks, conns, batch_size=batch_size, dtype=dtype, device=device)
-
-
-def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12
-                  ) -> tuple[torch.Tensor, int]:
-    """beta_d..beta_(d+nu-1) of u -> z for z = y - y_hat (minus the known model's Markov parameters) and the
-    relative degree d (the first nonzero one, relative to the largest in a long horizon)."""
-    if nu < 1:
-        raise ConfigError(f"nu must be at least 1, got {nu}")
-    horizon = max(4 * nu, 64)
-    H = known.markov(actuation, measured, horizon + nu)
-    scale = H.abs().amax()
-    if not bool(scale > 0):
-        raise ConfigError(f"known model '{known.name}': u -> {measured} has zero Markov parameters; "
-                          "the unknown subsystem cannot be seen in the measurement")
-    nonzero = (H.abs().flatten(2).amax(2).amax(0) > tol * scale).nonzero()
-    d = int(nonzero[0])
-    return -H[:, d:d + nu], d

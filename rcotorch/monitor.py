@@ -42,8 +42,8 @@ class Monitor:
             w.add_scalar(f"z/member_{b}", float(z_rms[b]), step)
         if B > PER_MEMBER_MAX:
             self._quantiles("z", z_rms, step)
-        ident = self.run.graph.blocks["identified"]
-        theta = ident.theta.detach().reshape(B, -1)[:, ident.free].to(torch.float64).cpu()
+        ident = self.run.graph.role("estimator")
+        theta = ident.theta_free().detach().to(torch.float64).cpu()
         for i, name in enumerate(ident.theta_names):
             w.add_scalar(f"theta/{name}", float(theta[:, i].mean()), step)
             for b in traced:

@@ -391,6 +391,8 @@ def _lower_estimator(L: _Lowering, blk) -> None:
     B = L.B
     if blk.features is not None:
         raise _NotLowerable(f"block '{blk.name}' uses features (Python functions)")
+    if blk.tied:
+        raise _NotLowerable(f"block '{blk.name}' ties entries of theta (the native engine takes masks only)")
     if blk.n_z != 1:
         raise _NotLowerable(f"block '{blk.name}' has {blk.n_z} z channels (the native engine takes 1)")
     W = blk.window

@@ -158,13 +158,15 @@ class MarkovRefresh:
     (linearization along the trajectory). Attach it to the graph, ``graph.add_hook(MarkovRefresh(graph, 500))``,
     so it runs after every step (also inside ``Run``), or call it after ``graph.step()`` yourself."""
 
-    def __init__(self, graph, every: int, known: str = "known", identified: str = "identified",
+    def __init__(self, graph, every: int, known: str | None = None, identified: str | None = None,
                  actuation: str = "u", measured: str = "y", method: str = "autograd"):
+        """``known``, ``identified``: block names; by default the graph's ``known`` and ``estimator`` roles."""
         if every < 1:
             raise ConfigError(f"MarkovRefresh: every must be at least 1, got {every}")
         self.graph, self.every, self.method = graph, every, method
-        self.known, self.ident = graph.blocks[known], graph.blocks[identified]
-        self.known_name, self.actuation, self.measured = known, actuation, measured
+        self.known = graph.blocks[known] if known else graph.role("known")
+        self.ident = graph.blocks[identified] if identified else graph.role("estimator")
+        self.known_name, self.actuation, self.measured = self.known.name, actuation, measured
 
     def __call__(self, graph=None) -> bool:
         if int(self.graph.k) % self.every:

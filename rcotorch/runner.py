@@ -92,7 +92,7 @@ class Run:
             from tqdm import tqdm
             bar = tqdm(total=until, initial=self.k, desc=self.scenario.name, unit="step", mininterval=0.5,
                        disable=None, file=sys.stderr)
-        z_node = ("error", "out")
+        z_node = self.graph.role_signal("error")
         while self.k < until:
             # Up to the next log or checkpoint step in one call (many steps per call on the native engine).
             stop = min(until, (self.k // self.log_every + 1) * self.log_every)
@@ -164,7 +164,7 @@ class Run:
         met = {k: v.detach().to(torch.float64).cpu() for k, v in sc.metrics(g, self.settings).items()}
         z_rms = self.history["z_rms"][-1] if self.history["z_rms"] else torch.full((self.batch,), math.nan)
         met.setdefault("z_rms_final", z_rms)
-        ident = g.blocks["identified"]
+        ident = g.role("estimator")
         diverged = [{"member": int(b), "step": int(ident.diverged_at[b])}
                     for b in torch.nonzero(~ident.alive).flatten().tolist()]
 

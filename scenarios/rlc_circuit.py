@@ -6,7 +6,7 @@ R i (the steady-state rms of the discrete truth driven by w, from its discrete L
 the continuous circuit ZOH-discretized as a whole at Ts.
 
 Known subsystem: the same circuit with nominal L0, C0, R0 and a second series voltage source u (the unknown
-subsystem's port): L0 i' + R0 i + q/C0 = w + u (``rcotorch.circuits.series_rlc``), measured y = v_R = R0 i.
+subsystem's port): L0 i' + R0 i + q/C0 = w + u (``rcotorch.models.series_rlc``), measured y = v_R = R0 i.
 Default initial model: L0 = 1.3 L, C0 = 0.7 C (30% off each way), R0 = R. Unknown subsystem: the voltage u that
 makes the nominal circuit reproduce the measurement. With R0 = R: solve the true equation for i' and
 substitute it into the nominal one,
@@ -68,8 +68,8 @@ import torch
 
 import rcotorch as rt
 from rcotorch.blocks import Block
-from rcotorch.circuits import series_rlc
 from rcotorch.figures import frequency_figure
+from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
 
 PAPER_L0, PAPER_C0 = 2e-6, 1.0
@@ -176,15 +176,15 @@ class RlcCircuit(Scenario):
         return {"L": s["L"], "C": s["C"], "R": s["R"]}
 
     def estimates(self, g, s):
-        return back_out(g.blocks["identified"].theta[:, 0], *initial_values(s))
+        return back_out(g.role("estimator").theta[:, 0], *initial_values(s))
 
     # --- frequency responses --------------------------------------------------------------------------
     @staticmethod
     def _refined_discrete(g, member: int) -> control.StateSpace:
         """The simulated system w -> y: the sampled known model with u(k) = theta [y0(k); w(k)]."""
-        known = g.blocks["known"]
+        known = g.role("known")
         A, B, C = (getattr(known, k)[0].detach().cpu().double().numpy() for k in ("A", "B", "C"))
-        th = g.blocks["identified"].theta[member, 0].detach().cpu().double().numpy()
+        th = g.role("estimator").theta[member, 0].detach().cpu().double().numpy()
         bw, bu = B[:, :1], B[:, 1:2]
         cy, cy0 = C[:1], C[1:3]
         return control.ss(A + bu @ th[None, :2] @ cy0, bw + bu * th[2], cy, np.zeros((1, 1)), known.dt)
@@ -210,7 +210,7 @@ class RlcCircuit(Scenario):
                "rel_rms_err_refined": torch.tensor([h2_rel_err(self._refined_discrete(g, b), Td) for b in range(B)]),
                "rel_rms_err_initial": torch.full((B,), h2_rel_err(init, Td)),
                "noise_std": torch.full((B,), s["noise"] * output_rms(s))}
-        theta = g.blocks["identified"].theta[:, 0]
+        theta = g.role("estimator").theta[:, 0]
         for i, key in enumerate(("gC", "gR", "gw")):
             out[key] = theta[:, i]
             out[key + "_true"] = torch.full((B,), true_gains(s)[key])

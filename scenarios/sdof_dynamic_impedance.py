@@ -42,17 +42,17 @@ class SdofDynamicImpedance(Scenario):
         return {"dc_gain": s["gain"] / s["pole"]}
 
     def estimates(self, g, s):
-        return {"dc_gain": g.blocks["identified"].dc_gain()[:, 0, 0]}
+        return {"dc_gain": g.role("estimator").dc_gain()[:, 0, 0]}
 
     def omega(self, s):
         return log_grid(s["Ts"], 1e-2, s["n_freq"])
 
     def metrics(self, g, s):
-        return {"freq_rel_err_max": frequency_error(g.blocks["identified"], self.truth_tf(s), self.omega(s))}
+        return {"freq_rel_err_max": frequency_error(g.role("estimator"), self.truth_tf(s), self.omega(s))}
 
     def figures(self, g, s):
         w = self.omega(s)
-        ident = g.blocks["identified"].frequency_response(w)[0, :, 0, 0].cpu().numpy()
+        ident = g.role("estimator").frequency_response(w)[0, :, 0, 0].cpu().numpy()
         return {"frequency_response": frequency_figure(
             w, {"identified (member 0)": ident, "true ZOH(10/(s+2))": self.truth_tf(s)(np.exp(1j * w * s["Ts"]))},
             "Identified vs true unknown subsystem", nyquist=np.pi / s["Ts"])}

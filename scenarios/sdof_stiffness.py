@@ -41,7 +41,7 @@ class SdofStiffness(Scenario):
         return {"dK": s["dK"], "dC": s["dC"]}
 
     def estimates(self, g, s):
-        dc = g.blocks["identified"].dc_gain()[:, 0]          # (B, 2): gains on [x, x']
+        dc = g.role("estimator").dc_gain()[:, 0]          # (B, 2): gains on [x, x']
         return {"dK": -dc[:, 0], "dC": -dc[:, 1]}
 
 

@@ -6,7 +6,7 @@ Input w = V1 (volts), output y = V2 (volts, the "position"), fs = 1e7 / 2^14 Hz.
 
 1. Known model (fitted here, not given): the linear part y'' = -a y' - b y + g (w + u) + d0, fitted by output
    error on the nearly linear, low-amplitude start of the "arrow" section, rows [fit_start, fit_stop)
-   (``rcotorch.identification.MassSpringDamper.fit``). w is interpolated linearly between samples (FOH).
+   (``rcotorch.models.identification.MassSpringDamper.fit``). w is interpolated linearly between samples (FOH).
 2. Unknown subsystem: the cubic hardening spring. The identified subsystem is the static basis regressor
    u(k) = theta y0(k)^3 (``RCOEstimator.static_gain`` with the feature y0^3), where y0 is the position the
    known model predicts half a sample after t_k (setting ``lead``; u is held over the sample, so this is the
@@ -39,7 +39,7 @@ import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError, DataError
-from rcotorch.identification import MassSpringDamper, rmse
+from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.scenario import Requirement, Scenario
 
 DEFAULT_DATA = Path(rt.__file__).resolve().parents[1].parent / "shared" / "data" / "silverbox" / "SNLS80mV.csv"
@@ -136,7 +136,7 @@ class SilverboxCubicStiffness(Scenario):
 
     @staticmethod
     def theta(graph) -> torch.Tensor:
-        return graph.blocks["identified"].theta[:, 0, 0]
+        return graph.role("estimator").theta[:, 0, 0]
 
     def estimates(self, g, s):
         return {"k3_over_m": prepare(s)[1].cubic_coefficient(self.theta(g))}

@@ -1,6 +1,6 @@
 """Seed Section VII: the NO 5.3 um cooling a thermosphere model lacks, refined from the density at 407 km.
 
-Physical system ("truth"): the reduced 1-D thermosphere column of ``rcotorch.thermosphere`` (100-600 km, 5 km
+Physical system ("truth"): the reduced 1-D thermosphere column of ``rcotorch.models.thermosphere`` (100-600 km, 5 km
 levels) *with* Kockarts' NO cooling, driven by w = [F10.7, storm power]: F10.7 = 150 and a storm starting on day
 2 (peak 4 mW/m^2 six hours after onset). Measured: the mass density at 407 km, y in units of 1e-12 kg/m^3.
 
@@ -39,8 +39,8 @@ import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
+from rcotorch.models.thermosphere import Column, ColumnBlock, SpaceWeather, few_threads
 from rcotorch.scenario import Requirement, Scenario, member_values
-from rcotorch.thermosphere import Column, ColumnBlock, SpaceWeather, few_threads
 
 EVAL_ALTITUDE = 152e3
 
@@ -128,8 +128,8 @@ class ThermosphereNoCooling(Scenario):
         """Per member and sample (B, K): the densities at 407 km of truth, refined and initial model [1e-12 kg/m^3],
         the true and estimated NO cooling at 152 km [nW/m^3], the storm power [mW/m^2]; the profiles (B, K, n) of
         true and estimated cooling; the time t [h] (K,)."""
-        truth, model = g.blocks["plant"].column, g.blocks["known"].column
-        kn, pl = g.blocks["known"].history, g.blocks["plant"].history
+        truth, model = g.role("physical").column, g.role("known").column
+        kn, pl = g.role("known").history, g.role("physical").history
         B, K = kn.shape[:2]
         est_profile = 1e9 * model.identified_cooling(kn[:, :, 1:4].reshape(B * K, 3))
 
@@ -145,7 +145,7 @@ class ThermosphereNoCooling(Scenario):
 
     def initial_model(self, g, s) -> torch.Tensor:
         """Density at 407 km (B, K) of the initial model (the known column with u = 0) on the recorded driver."""
-        known = g.blocks["known"]
+        known = g.role("known")
         w = known.history[:, :, 4:6]
         B, K = w.shape[:2]
         cached = self._initial_runs.get(g)
@@ -164,7 +164,7 @@ class ThermosphereNoCooling(Scenario):
 
     # --- summary -----------------------------------------------------------------------------------------------
     def estimates(self, g, s):
-        ident, model, plant = g.blocks["identified"], g.blocks["known"].column, g.blocks["plant"]
+        ident, model, plant = g.role("estimator"), g.role("known").column, g.role("physical")
         u = ident.u_now.to(torch.float64)
         out = {f"cooling_{int(round(float(z) / 1e3))}km": u[:, j] for j, z in enumerate(model.nodes)}
         out["cooling_152km"] = model.at(1e9 * model.identified_cooling(ident.u_now), EVAL_ALTITUDE)[:, 0]
@@ -223,10 +223,10 @@ class ThermosphereNoCooling(Scenario):
         peak = s["storm_start_h"] + s["storm_rise_h"]
         wanted = [24.0, peak, peak + 18.0, t[-1]]
         idx = sorted({min(K - 1, max(0, int(round(h * 3600.0 / s["Ts"])))) for h in wanted})
-        z = g.blocks["known"].column.z.cpu().numpy() / 1e3
+        z = g.role("known").column.z.cpu().numpy() / 1e3
         top = z <= 300.0
         fig, axes = plt.subplots(1, len(idx), figsize=(2.6 * len(idx) + 1, 4), sharey=True, squeeze=False)
-        nodes = g.blocks["known"].column.nodes.cpu().numpy() / 1e3
+        nodes = g.role("known").column.nodes.cpu().numpy() / 1e3
         for ax, k in zip(axes[0], idx):
             est = tr["est_profile"][0, k].numpy()
             ax.plot(tr["true_profile"][0, k].numpy()[top], z[top], "k", lw=1.6, label="true")

@@ -117,7 +117,7 @@ class TwoDofStiffness(Scenario):
         return {"dk1": s["dk1"], "dk3": s["dk3"]}
 
     def estimates(self, g, s):
-        theta = g.blocks["identified"].theta                 # (B, 2, 2), cross terms pinned to 0
+        theta = g.role("estimator").theta                 # (B, 2, 2), cross terms pinned to 0
         return {"dk1": -theta[:, 0, 0], "dk3": -theta[:, 1, 1]}
 
     def _responses(self, g, s, omega):

@@ -136,6 +136,39 @@ def test_bad_mask_shape_and_settings():
     est.step(y0=one, z=one)
 
 
+def test_bad_ties_are_named():
+    """A tie of the wrong shape or type, or tied entries given different starting values or bounds, fail when
+    the estimator is built."""
+    with pytest.raises(rt.DimensionError, match="block 'identified': tie has shape \\(1, 2\\)"):
+        rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, tie=[[0, 0]])
+    with pytest.raises(rt.ConfigError, match="tie must hold integer labels"):
+        rt.RCOEstimator.static_gain({"y0": 1}, tie=[[0.5]])
+    tie = [[0, -1], [-1, 0]]
+    with pytest.raises(rt.ConfigError, match="theta0 differs between entries .* share a parameter"):
+        rt.RCOEstimator.static_gain({"y0": 2}, n_u=2, tie=tie, theta0=[[1.0, 0.0], [0.0, 2.0]])
+    with pytest.raises(rt.ConfigError, match="theta_bounds low differs"):
+        rt.RCOEstimator.static_gain({"y0": 2}, n_u=2, tie=tie, theta_bounds=([0.0, 0.0, 0.0, -1.0], 5.0))
+    est = rt.RCOEstimator.static_gain({"y0": 2}, n_u=2, tie=tie, theta0=[[1.0, 0.0], [0.0, 1.0]],
+                                      theta_bounds=(0.0, 5.0))
+    assert est.n_theta == 1 and est.theta_names == ["0:y0[0](k) = 1:y0[1](k)"]
+
+
+def test_tied_gain_stays_tied_in_a_closed_loop():
+    """Two masses whose springs change by the same dk: one shared parameter on the diagonal, the cross terms
+    pinned; the tied entries stay exactly equal, the pinned ones exactly zero, and the value converges."""
+    G = rt.models.structure(np.eye(2), 0.8 * np.array([[2, -1], [-1, 2]]), [[1.2, -0.5], [-0.5, 1.1]], [1, 1],
+                            measured=["velocity[1]"], sees=["position[0]", "position[1]"])
+    known = rt.LTI.from_control(G, inputs={"w": 1, "u": 2}, outputs={"y": 1, "y0": 2}, dt=0.05, name="known")
+    est = rt.RCOEstimator.static_gain({"y0": 2}, n_u=2, tie=[[0, -1], [-1, 0]], p0=1e3)
+    g = rt.refinement(known, est, truth=rt.Gain(-0.3 * np.eye(2)), excitation=rt.WhiteNoise(1, seed=3), nu=30,
+                      batch_size=2)
+    g.run(4000)
+    th = est.theta.numpy()
+    assert np.all(th[:, 0, 0] == th[:, 1, 1]) and np.all(th[:, 0, 1] == 0.0) and np.all(th[:, 1, 0] == 0.0)
+    np.testing.assert_allclose(th[:, 0, 0], -0.3, rtol=0.02)
+    assert est.P.shape == (2, 1, 1)
+
+
 def test_figure1_sdof_converges(sdof_known, zoh_first_order):
     est = rt.RCOEstimator({"y0": 1}, nc=5, p0=1e8)
     g = rt.refinement(sdof_known(DT), est, truth=zoh_first_order(DT), excitation=rt.WhiteNoise(1, seed=1),
@@ -227,13 +260,31 @@ def _phi_from_names(names, hist, k):
     return np.array(out)
 
 
-@pytest.mark.parametrize("case", ["siso", "mimo_masked", "static_gain"])
+@pytest.mark.parametrize("case", ["siso", "mimo_masked", "static_gain", "tied"])
 def test_update_minimizes_retrospective_cost(case):
     """With lam = 1, theta(N) = argmin sum_k |z(k) + sum_i beta_i [th - theta(k-i)] phi(k-i)|^2_R
-    + |th - theta0|^2 / p0 (over the free entries), computed in numpy from the run's own data."""
-    rng = np.random.default_rng({"siso": 1, "mimo_masked": 2, "static_gain": 3}[case])
+    + |eta - eta0|^2 / p0 over the free parameters eta (th = T eta: masked entries zero, tied entries
+    equal), computed in numpy from the run's own data."""
+    rng = np.random.default_rng({"siso": 1, "mimo_masked": 2, "static_gain": 3, "tied": 4}[case])
     p0, N = 1.0, 40
-    if case == "siso":
+    T = None
+    if case == "tied":
+        # Three outputs, one function of each output's own two features: u_j = a s_j + b s_j^2 (a, b shared),
+        # the cross terms pinned: theta (3 x 6) over phi = [s_0, s_1, s_2, s_0^2, s_1^2, s_2^2](k).
+        signals, n_u, n_z, d, nu = {"s": 3, "s2": 3}, 3, 2, 1, 3
+        R = np.array([[1.5, 0.2], [0.2, 0.7]])
+        tie = -np.ones((3, 6), dtype=int)
+        for j in range(3):
+            tie[j, j], tie[j, 3 + j] = 7, 9                 # any labels: 7 -> a, 9 -> b
+        mask = tie >= 0
+        T = np.zeros((18, 2))
+        for j in range(3):
+            T[j * 6 + j, 0] = T[j * 6 + 3 + j, 1] = 1.0
+        est = rt.RCOEstimator.static_gain(signals, n_u=n_u, n_z=n_z, p0=p0, R=R, tie=tie,
+                                          markov=rng.standard_normal((nu, n_z, n_u)), first_delay=d)
+        assert est.n_theta == 2 and est.P.shape[1:] == (2, 2)
+        assert est.theta_names == ["0:s[0](k) = 1:s[1](k) = 2:s[2](k)", "0:s2[0](k) = 1:s2[1](k) = 2:s2[2](k)"]
+    elif case == "siso":
         signals, n_u, n_z, d, nu, R, mask = {"y0": 1}, 1, 1, 1, 3, np.eye(1), None
         est = rt.RCOEstimator(signals, nc=2, p0=p0, markov=rng.standard_normal((nu, 1, 1)), first_delay=d)
     elif case == "mimo_masked":
@@ -267,10 +318,12 @@ def test_update_minimizes_retrospective_cost(case):
         phis.append(phi)
         zs.append(z[0].numpy())
     assert bool(est.alive.all())
-    # Build z_hat(th, k) = zeta(k) + Psi(k)^T th over the free entries of th (row-major).
-    idx = np.flatnonzero(free.reshape(-1))
-    info = np.eye(idx.size) / p0
-    rhs = info @ theta0.reshape(-1)[idx]
+    # Build z_hat(th, k) = zeta(k) + Psi(k)^T T eta over the free parameters eta (th row-major).
+    if T is None:
+        idx = np.flatnonzero(free.reshape(-1))
+        T = np.eye(n_u * est.n_phi)[:, idx]
+    info = np.eye(T.shape[1]) / p0
+    rhs = info @ np.linalg.lstsq(T, theta0.reshape(-1), rcond=None)[0]
     for k in range(N):
         zeta = zs[k].copy()
         psi_t = np.zeros((n_z, n_u * est.n_phi))
@@ -280,11 +333,10 @@ def test_update_minimizes_retrospective_cost(case):
                 continue
             zeta -= beta[i] @ thetas[j] @ phis[j]
             psi_t += np.kron(beta[i], phis[j][None, :])
-        psi_t = psi_t[:, idx]
+        psi_t = psi_t @ T
         info += psi_t.T @ R @ psi_t
         rhs -= psi_t.T @ R @ zeta
-    ref = np.zeros(n_u * est.n_phi)
-    ref[idx] = np.linalg.solve(info, rhs)
+    ref = T @ np.linalg.solve(info, rhs)
     np.testing.assert_allclose(est.theta[0].numpy().reshape(-1), ref, rtol=1e-9, atol=1e-11)
     np.testing.assert_allclose(est.P[0].numpy(), np.linalg.inv(info), rtol=1e-8, atol=1e-12)
 

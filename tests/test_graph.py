@@ -221,3 +221,21 @@ def test_refinement_feeds_and_regressor_sources(sdof_known, zoh_first_order):
     assert g.sources[("unknown", "in")] == ("plant", "y0") and g.sources[("plant", "u")] == ("unknown", "out")
     with pytest.raises(rt.ConfigError, match="exactly one of"):
         rt.refinement(sdof_known(), rt.RCOEstimator({"y0": 1}), excitation=rt.WhiteNoise(), nu=3)
+
+
+def test_refinement_declares_roles_whatever_the_block_names(sdof_known):
+    """The runner, monitor and figures find the parts of a refinement through its roles: a known model and an
+    estimator with names of the user's choosing are found, and a wrong role is a clear error."""
+    known = sdof_known(DT)
+    known.name = "model"
+    est = rt.RCOEstimator({"y0": 1}, nc=2, p0=10.0, name="refine")
+    g = rt.refinement(known, est, truth=_truth(), excitation=rt.WhiteNoise(1, seed=2), nu=4)
+    assert g.role("estimator") is est and g.role("known") is known
+    assert g.role_signal("error") == ("error", "out") and g.role_signal("prediction") == ("model", "y")
+    assert g.sources[("refine", "z")] == ("error", "out") and g.sources[("model", "u")] == ("refine", "u")
+    with pytest.raises(rt.ConfigError, match="no block has the role 'estimator'"):
+        rt.Graph([rt.WhiteNoise(1, name="a")], []).role("estimator")
+    with pytest.raises(rt.PortError, match="role 'known' names no block 'modle'.*did you mean 'model'"):
+        rt.Graph([rt.WhiteNoise(1, name="model")], [], roles={"known": "modle"})
+    with pytest.raises(rt.ConfigError, match="unknown role 'estimater'.*did you mean 'estimator'"):
+        rt.Graph([rt.WhiteNoise(1, name="model")], [], roles={"estimater": "model"})

@@ -115,7 +115,8 @@ def test_markov_refresh_linearizes_at_the_inputs_received():
     src = rt.Recorded(np.full((10, 1), 3.0), {"out": 0}, name="w")
     g = rt.Graph([blk, ident, src, rt.Sum({"y": 1, "y_hat": -1}, 1, name="error")],
                  ["w.out -> known.w", "identified.u -> known.u", "known.y0 -> identified.y0", "known.y -> error.y",
-                  "known.y -> error.y_hat", "error.out -> identified.z"])
+                  "known.y -> error.y_hat", "error.out -> identified.z"],
+                 roles={"known": "known", "estimator": "identified"})
     refresh = rt.MarkovRefresh(g, every=1)
     g.step()
     assert refresh()

@@ -13,7 +13,7 @@ import scipy.signal
 import torch
 
 import rcotorch as rt
-from rcotorch.circuits import series_rlc
+from rcotorch.models.circuits import series_rlc
 from rcotorch.runner import Run
 
 

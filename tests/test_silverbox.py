@@ -1,4 +1,4 @@
-"""Real-data refinement: the initial-model helpers (rcotorch.identification) against python-control, scipy and
+"""Real-data refinement: the initial-model helpers (rcotorch.models.identification) against python-control, scipy and
 a fine continuous simulation; the README's worked example on a simulated Duffing oscillator with known c; and
 the silverbox-cubic-stiffness scenario on the measured Silverbox data."""
 
@@ -14,7 +14,7 @@ import torch
 
 import rcotorch as rt
 from rcotorch import scenario as scenarios
-from rcotorch.identification import MassSpringDamper, rmse
+from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.runner import Run
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared/data/silverbox/SNLS80mV.csv"

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import thermosphere as th
+from rcotorch.models import thermosphere as th
 from rcotorch.runner import Run
 
 F64 = torch.float64

@@ -40,9 +40,9 @@ import scipy.linalg
 import scipy.optimize
 import scipy.signal
 
-from .blocks import DEFAULT_DTYPE
-from .errors import ConfigError, DataError
-from .lti import LTI
+from ..blocks import DEFAULT_DTYPE
+from ..errors import ConfigError, DataError
+from ..lti import LTI
 
 
 def rmse(a, b) -> float:

@@ -60,9 +60,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .blocks import DEFAULT_DTYPE, Block
-from .errors import ConfigError
-from .nonlinear import Nonlinear
+from ..blocks import DEFAULT_DTYPE, Block
+from ..errors import ConfigError
+from ..nonlinear import Nonlinear
 
 # --- physical constants (CODATA 2018; exact SI values where defined) ---------------------------------------------
 K_B = 1.380649e-23            # Boltzmann constant [J/K]

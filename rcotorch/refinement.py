@@ -1,0 +1,135 @@
+"""The seed paper's Figure 1 as one call: physical system, simulated system, z = y - y_hat, estimator.
+
+``refinement`` wires the blocks and declares their roles (``Graph.roles``), so that the runner, monitor and
+figures find the estimator, the known model and the model error whatever the blocks are called.
+``derive_markov`` gives the Markov parameters of u -> z, with their sign and the relative degree, from the
+known model.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+
+import torch
+
+from .blocks import DEFAULT_DTYPE, Block, Sum
+from .errors import ConfigError, PortError
+from .estimator import RCOEstimator
+from .graph import Graph
+from .lti import LTI
+
+
+def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = None,
+               physical: Block | None = None, data: Block | None = None, excitation: Block | None = None,
+               nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
+               device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
+               measured: str = "y", feeds: Mapping[str, str] | None = None) -> Graph:
+    """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
+
+    The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
+    outputs ``y`` (measured) and the signals the unknown subsystem sees (e.g. ``y0``). The physical system is
+    one of:
+
+    * ``truth``: the true unknown subsystem (one input, one output port); the physical system is then a
+      copy of ``known`` (block ``plant``) with ``truth`` (block ``unknown``) in feedback from
+      ``plant.y0`` to ``plant.u``;
+    * ``physical``: any block with input ``w`` and output ``y`` (e.g. a continuous truth discretized whole);
+    * ``data``: recorded measurements, a source with outputs ``w`` and ``y`` (and ``valid`` if it has gaps).
+
+    The simulated system is ``known`` in feedback with ``identified`` (the RCO estimator); its regressor
+    ports are fed by the known model's outputs of the same name (or ``w``), or as mapped by ``feeds``
+    ({estimator port: 'block.port'}). Unless the estimator already has Markov parameters, ``nu`` of them
+    are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its relative degree d on.
+    """
+    given = [x is not None for x in (truth, physical, data)]
+    if sum(given) != 1:
+        raise ConfigError("refinement: give exactly one of truth=, physical= or data=")
+    for port in (exogenous, actuation):
+        if port not in known.inputs:
+            raise PortError(f"refinement: known model '{known.name}' has no input '{port}'; its inputs are "
+                            f"{list(known.inputs)}")
+    if measured not in known.outputs:
+        raise PortError(f"refinement: known model '{known.name}' has no output '{measured}'; its outputs are "
+                        f"{list(known.outputs)}")
+    kn, en = known.name, identified.name
+    blocks: list[Block] = [known, identified]
+    conns: list[tuple[str, str]] = []
+    if data is not None:
+        if data.name != "data":
+            raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
+        blocks.append(data)
+        w_src, y_src = f"data.{exogenous}", f"data.{measured}"
+        for p in (exogenous, measured):
+            if p not in data.outputs:
+                raise PortError(f"refinement: data block has no output '{p}'; its outputs are {list(data.outputs)}")
+    else:
+        if excitation is None:
+            raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
+        excitation.name = "excitation"
+        blocks.append(excitation)
+        w_src = "excitation.out"
+        if truth is not None:
+            plant = copy.deepcopy(known)
+            plant.name = "plant"
+            truth.name = "unknown"
+            (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
+            sees = [p for p in known.outputs if p != measured]
+            if len(sees) != 1:
+                raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
+                                  f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
+            blocks += [plant, truth]
+            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"unknown.{t_in}"),
+                      (f"unknown.{t_out}", f"plant.{actuation}")]
+            y_src = f"plant.{measured}"
+        else:
+            physical.name = "plant"
+            blocks.append(physical)
+            conns.append((w_src, f"plant.{exogenous}"))
+            y_src = f"plant.{measured}"
+    width = known.outputs[measured]
+    blocks.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
+    conns += [(y_src, "error.y"), (f"{kn}.{measured}", "error.y_hat"), (w_src, f"{kn}.{exogenous}"),
+              (f"{en}.u", f"{kn}.{actuation}"), ("error.out", f"{en}.z")]
+    feeds = dict(feeds or {})
+    for port in identified.ports:
+        if port in feeds:
+            conns.append((feeds[port], f"{en}.{port}"))
+        elif port == exogenous:
+            conns.append((w_src, f"{en}.{port}"))
+        elif port in known.outputs:
+            conns.append((f"{kn}.{port}", f"{en}.{port}"))
+        else:
+            raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
+                            f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
+    if data is not None and "valid" in data.outputs:
+        conns.append(("data.valid", f"{en}.valid"))
+    if identified.beta.shape[1] == 0:
+        if nu is None:
+            raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
+        beta, d = derive_markov(known, actuation, measured, nu)
+        identified.set_markov(beta, d)
+    if identified.dt is None:
+        identified.dt = known.dt
+    roles = {"estimator": en, "known": kn, "physical": "data" if data is not None else "plant",
+             "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}"}
+    if data is None:
+        roles["excitation"] = "excitation"
+    return Graph(blocks, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+
+
+def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12
+                  ) -> tuple[torch.Tensor, int]:
+    """beta_d..beta_(d+nu-1) of u -> z for z = y - y_hat (minus the known model's Markov parameters) and the
+    relative degree d (the first nonzero one, relative to the largest in a long horizon)."""
+    if nu < 1:
+        raise ConfigError(f"nu must be at least 1, got {nu}")
+    horizon = max(4 * nu, 64)
+    H = known.markov(actuation, measured, horizon + nu)
+    scale = H.abs().amax()
+    if not bool(scale > 0):
+        raise ConfigError(f"known model '{known.name}': u -> {measured} has zero Markov parameters; "
+                          "the unknown subsystem cannot be seen in the measurement")
+    nonzero = (H.abs().flatten(2).amax(2).amax(0) > tol * scale).nonzero()
+    d = int(nonzero[0])
+    return -H[:, d:d + nu], d
