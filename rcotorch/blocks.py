@@ -86,6 +86,11 @@ class Block(nn.Module):
     def update(self, inputs: Mapping[str, torch.Tensor]) -> None:
         """Advance the state one step (stateless blocks do nothing)."""
 
+    # The block's native form: ``lower(b)`` describes the block to the native engine through a
+    # ``rcotorch.lowering.Builder`` (its state buffers, parameters and ports, and the instructions that compute
+    # its outputs and update it). None: no native form, and a graph holding the block runs on PyTorch.
+    lower = None
+
     def set_state(self, **tensors: torch.Tensor) -> None:
         """Replace registered buffers (state) without nn.Module's per-assignment bookkeeping."""
         self._buffers.update(tensors)
@@ -158,6 +163,9 @@ class Gain(Block):
     def output(self, port, inputs):
         return matvec(self.K, inputs["in"])
 
+    def lower(self, b) -> None:
+        b.emit("GAIN", [*self.K.shape[1:], b.param(self.K), b.input("in"), b.output("out")], port="out")
+
 
 class Sum(Block):
     """Summing junction ``out = sum_i sign_i in_i``, e.g. ``Sum({'y': 1, 'y_hat': -1}, 1)`` for z = y - y_hat."""
@@ -175,6 +183,12 @@ class Sum(Block):
             v = inputs[p] if s == 1 else -inputs[p]
             total = v if total is None else total + v
         return total
+
+    def lower(self, b) -> None:
+        args = [self.outputs["out"], len(self.signs), b.output("out")]
+        for p, s in self.signs.items():
+            args += [b.input(p), int(s)]
+        b.emit("SUM", args, port="out")
 
 
 class StaticMap(Block):

@@ -28,14 +28,16 @@ held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where t
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import control
 import numpy as np
 import torch
 
+from . import kernels, memo
 from .blocks import DEFAULT_DTYPE, Block
 from .errors import ConfigError, DimensionError
+from .features import Term, as_terms
 from .rls import rls_update
 
 
@@ -46,9 +48,10 @@ class RCOEstimator(Block):
         signals: input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``.
             Which signals feed phi decides identifiability (see DESIGN.md).
         features: optional basis functions of the input ports that become phi's regressor signals instead
-            of the ports themselves, e.g. ``{'y0^3': lambda s: s['y0'] ** 3}`` (each maps the dict of port
-            tensors (B, width) to a (B, m) tensor; probed with batches of 1 and 2 when the block is built).
-            theta stays linear in them, so the update is still least squares.
+            of the ports themselves: terms of ``rcotorch.features`` (one, or a list), e.g.
+            ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable
+            maps the dict of port tensors (B, width) to a (B, m) tensor (probed with batches of 1 and 2 when the
+            block is built; PyTorch engine only). theta stays linear in them, so the update is least squares.
         n_u: width of u (the identified subsystem's output).
         n_z: width of z (the model error).
         nc: controller order (number of past samples of each signal and of u).
@@ -74,7 +77,7 @@ class RCOEstimator(Block):
     """
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
-                 features: Mapping[str, Callable[[dict], torch.Tensor]] | None = None,
+                 features: Term | Sequence[Term] | Mapping[str, Term | Callable[[dict], torch.Tensor]] | None = None,
                  proper: bool = False, feed_u: bool = True, mask=None, tie=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
                  u_bounds=None, theta_bounds=None, name: str = "identified", dtype=DEFAULT_DTYPE):
@@ -86,9 +89,11 @@ class RCOEstimator(Block):
         if not isinstance(nc, int) or nc < 0:
             raise ConfigError(f"block '{name}': nc must be a non-negative integer, got {nc!r}")
         self.ports, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
-        self.features = dict(features) if features else None
-        # Regressor signals (name -> width): the ports themselves, or the basis features.
+        # Regressor signals (name -> width, and one name per channel): the ports themselves, or the features.
+        self.terms = as_terms(features) if features is not None else None   # vocabulary only: both engines
+        self.features = self._feature_map(features) if features is not None else None
         self.signals = self._probe_features(dtype) if self.features else dict(signals)
+        self.signal_names = self._signal_names()
         self.proper, self.feed_u = bool(proper), bool(feed_u and nc > 0)
         self.lags = list(range(0 if proper else 1, nc + 1))
         if not self.lags or not self.signals:
@@ -148,9 +153,6 @@ class RCOEstimator(Block):
         width = max(nc, 1) * (self.n_sig + (n_u if self.feed_u else 0))
         self._phi_is_past = (not self.proper and tail.numel() == width
                              and bool(torch.equal(tail, torch.arange(width))))
-        self._k_cache: tuple | None = None      # (k tensor, its version, k as int): k without a device sync
-        self._beta_cache: tuple | None = None   # (beta_t, its version, beta reversed in time)
-        self._lam_cache: tuple | None = None    # (lam, its version, lam as given to rls_update)
 
     def _structure(self, mask, tie) -> None:
         """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of
@@ -231,10 +233,30 @@ class RCOEstimator(Block):
             return torch.cat([inputs[p] for p in self.ports], dim=1)
         return torch.cat([f(inputs) for f in self.features.values()], dim=1)
 
+    def _feature_map(self, features) -> dict[str, Callable]:
+        """name -> callable for the PyTorch engine (terms are named after what they compute)."""
+        if isinstance(features, Mapping):
+            return dict(features)
+        terms = [features] if isinstance(features, Term) else list(features)
+        out = {}
+        for t in terms:
+            if not isinstance(t, Term):
+                raise ConfigError(f"block '{self.name}': features must be rcotorch.features terms (or a dict of "
+                                  f"name -> callable), got {t!r}")
+            key = t.name({})
+            if key in out:
+                raise ConfigError(f"block '{self.name}': feature {key!r} is given twice")
+            out[key] = t
+        return out
+
     def _probe_features(self, dtype) -> dict[str, int]:
-        """Call each feature on random inputs of batch 1 and 2 and check it returns (B, m)."""
+        """The width of each feature: a term's from its ports; a callable is called on random inputs of batch 1
+        and 2 and must return (B, m)."""
         widths = {}
         for name, f in self.features.items():
+            if isinstance(f, Term):
+                widths[name] = f.width(self.ports, self.name)
+                continue
             if not callable(f):
                 raise ConfigError(f"block '{self.name}': feature {name!r} is not callable")
             shapes = []
@@ -255,14 +277,26 @@ class RCOEstimator(Block):
             widths[name] = shapes[0]
         return widths
 
-    # --- layout ---------------------------------------------------------------------------------------
-    def _phi_names(self) -> list[str]:
+    def _signal_names(self) -> list[str]:
+        """One name per regressor channel, in order: 'y0', 'y0[1]', 'y0^3', 'sign(v)*v^2', ..."""
         names = []
         for s, w in self.signals.items():
+            f = self.features.get(s) if self.features else None
+            if isinstance(f, Term) and s == f.name({}):           # named after what it computes
+                names += f.names(self.ports)
+            else:
+                names += [f"{s}[{c}]" if w > 1 else s for c in range(w)]
+        return names
+
+    # --- layout ---------------------------------------------------------------------------------------
+    def _phi_names(self) -> list[str]:
+        names, offset = [], 0
+        for w in self.signals.values():
             for lag in self.lags:
                 for c in range(w):
-                    sig = f"{s}[{c}]" if w > 1 else s
+                    sig = self.signal_names[offset + c]
                     names.append(f"{sig}(k)" if lag == 0 else f"{sig}(k-{lag})")
+            offset += w
         if self.feed_u:
             for lag in range(1, self.nc + 1):
                 for c in range(self.n_u):
@@ -328,7 +362,6 @@ class RCOEstimator(Block):
         self.alive = torch.ones(B, dtype=torch.bool, device=dev)
         self.diverged_at = torch.full((B,), -1, dtype=torch.int64, device=dev)
         self.k = torch.zeros((), dtype=torch.int64, device=dev)
-        self._k_cache = None
 
     def _current(self, inputs) -> torch.Tensor:
         if self.proper:
@@ -349,30 +382,18 @@ class RCOEstimator(Block):
         self.set_state(phi_now=phi, u_now=u)
         return u
 
-    def _load_from_state_dict(self, *args, **kwargs):
-        super()._load_from_state_dict(*args, **kwargs)
-        self._k_cache = None
-
     def _step_index(self) -> int:
-        """k as a Python int, read from the buffer only when something other than ``update`` changed it."""
-        c = self._k_cache
-        if c is not None and c[0] is self.k and c[1] == self.k._version:
-            return c[2]
-        return int(self.k)
+        """k as a Python int, read from the buffer (a device sync) only when something other than ``update``
+        changed it."""
+        return memo.derived(self, "k", (self.k,), lambda: int(self.k))
 
     def _beta_rev(self) -> torch.Tensor:
         """beta_t reversed in time, (Bp, n_z * n_u, nu): entry j weighs delay d + nu - 1 - j."""
-        b, c = self.beta_t, self._beta_cache
-        if c is None or c[0] is not b or c[1] != b._version:    # holds b, so identity means the same tensor
-            c = self._beta_cache = (b, b._version, b.flip(-1).contiguous())
-        return c[2]
+        return memo.derived(self, "beta_rev", (self.beta_t,), lambda: self.beta_t.flip(-1).contiguous())
 
     def _lam_arg(self):
         """lam for rls_update: the Python float 1.0 when every member has lam = 1 (no division by lambda)."""
-        lam, c = self.lam, self._lam_cache
-        if c is None or c[0] is not lam or c[1] != lam._version:
-            c = self._lam_cache = (lam, lam._version, 1.0 if bool((lam == 1).all()) else lam)
-        return c[2]
+        return memo.derived(self, "lam", (self.lam,), lambda: 1.0 if bool((self.lam == 1).all()) else self.lam)
 
     def update(self, inputs):
         W = self.window
@@ -434,7 +455,63 @@ class RCOEstimator(Block):
                 self.set_state(past=torch.cat([cur.unsqueeze(1), self.past[:, :-1]], dim=1),
                                past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
         self.k += 1
-        self._k_cache = (self.k, self.k._version, k + 1)
+        memo.remember(self, "k", (self.k,), k + 1)
+
+    # --- native form ------------------------------------------------------------------------------------
+    def lower(self, b) -> None:
+        """The estimator for the native engine: state, parameters and ports in slots; the regressor signals
+        s(k) (ports or features) computed once per step; RCO_OUT (``output``) and RCO_UPD (``update``)."""
+        if self.features is not None and self.terms is None:
+            b.refuse("features are Python functions (the native engine runs rcotorch.features terms)")
+        W = self.window
+        if W == 0 or self.win.shape[0] != 2 * W:
+            b.refuse("has no Markov parameters, or they changed since reset()")
+        if self.alive.dtype != torch.bool:
+            b.refuse("alive is not boolean")
+        st = {key: b.state(key) for key in ("theta", "P", "phi_now", "u_now", "z_r", "alive", "diverged_at", "past",
+                                           "past_u")}
+        st["win"] = b.state("win", rows=2 * W)
+        cur = self._lower_regressors(b)
+        nc1 = max(self.nc, 1)
+        flat = list(range(cur, cur + self.n_sig)) + list(range(st["past"], st["past"] + nc1 * self.n_sig)) + \
+            list(range(st["past_u"], st["past_u"] + nc1 * self.n_u))            # [s(k) | past s | past u]
+        low_high = [(self.theta_low, self.theta_high, self.n_u * self.n_phi), (self.u_low, self.u_high, self.n_u)]
+        (tlo, thi), (ulo, uhi) = [(-1, -1) if lo is None else
+                                  tuple(b.param(v.reshape(-1).expand(w).reshape(1, w)) for v in (lo, hi))
+                                  for lo, hi, w in low_high]
+        fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
+                      W=W, NUM=W - self.first_delay, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
+                      LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
+                      THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
+                      ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
+                      BETA=b.param(self._beta_rev()), LAM=b.param(self.lam.reshape(-1, 1)),
+                      RINV=b.param(self.r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
+                      Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
+                      UOUT=b.output("u"),
+                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta)))
+        args = [fields[key] for key in kernels.RCO_FIELD]
+        args += [flat[j] for j in self._gather.tolist()] + self.param_of.tolist() + self.rep.tolist()
+        b.emit("RCO_OUT", args, port="u")
+        b.emit("RCO_UPD", args)
+
+    def _lower_regressors(self, b) -> int:
+        """Slots of s(k): the port itself (one port, no features), else s(k) computed into scratch, before u
+        when phi holds s(k) (``proper``), else before the update (which shifts s(k) into the history)."""
+        port = "u" if self.proper else None
+        if self.terms is None and len(self.ports) == 1:
+            return b.input(next(iter(self.ports)))
+        cur = b.scratch(self.n_sig)
+        if self.terms is None:
+            at = cur
+            for p, w in self.ports.items():
+                b.emit("COPY", [w, b.input(p), at], port=port)
+                at += w
+        else:
+            args = [cur, len(self.terms)]
+            for t in self.terms:
+                args += t.encode(self.ports, b.input, b.const)
+            b.emit("FEATURE", args, port=port)
+        return cur
 
     # --- the identified subsystem -----------------------------------------------------------------------
     def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:

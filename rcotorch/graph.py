@@ -15,18 +15,20 @@ from __future__ import annotations
 
 import copy
 import difflib
+import logging
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import torch
 from torch import nn
 
-from . import native
+from . import kernels, lowering, memo
 from .blocks import DEFAULT_DTYPE, Block
 from .errors import AlgebraicLoopError, ConfigError, DimensionError, PortError
 
 Signal = tuple[str, str]
 ENGINES = ("auto", "native", "torch")
+logger = logging.getLogger("rcotorch")
 # Roles a refinement declares: a block name (``estimator``, ``known``, ``physical``, ``excitation``) or a
 # signal 'block.port' (``error``: z = y - y_hat, ``measured``: y, ``prediction``: y_hat).
 BLOCK_ROLES = ("estimator", "known", "physical", "excitation")
@@ -53,9 +55,11 @@ class Graph(nn.Module):
         connections: pairs ``("src_block.out_port", "dst_block.in_port")`` or strings ``"src.out -> dst.in"``.
         batch_size: number of parallel members B.
         dtype, device: one dtype and device for every block (float64 by default).
-        engine: how ``advance`` and ``run`` step: ``'native'`` (the graph lowered to C, many steps per call;
-            CPU, float64, the blocks listed in ``rcotorch.native``), ``'torch'`` (``step`` after ``step``), or
-            ``'auto'`` (native where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``).
+        engine: how ``advance`` and ``run`` step: ``'native'`` (the graph lowered to the compiled engine, many
+            steps per call; CPU, float64, blocks with a native form; raises with the reason where it does not
+            apply), ``'torch'`` (``step`` after ``step``, PyTorch operations only, no compiled code), or
+            ``'auto'`` (native where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``). ``auto``
+            logs once which engine runs and why it fell back; ``ran_engine`` and ``engine_reason`` keep it.
             ``step`` always uses PyTorch; both engines update the same state.
         roles: what the parts of a refinement are, e.g. ``{'estimator': 'refine', 'known': 'model',
             'error': 'err.out'}`` (see ``BLOCK_ROLES`` and ``SIGNAL_ROLES``); ``role()`` and
@@ -92,6 +96,8 @@ class Graph(nn.Module):
         self.last: dict[Signal, torch.Tensor] = {}
         self.hooks: list[Callable[[Graph], object]] = []
         self.ran_engine: str | None = None     # the engine of the last ``advance``
+        self.engine_reason: str | None = None  # why it was not the native engine (None when it was)
+        self._told: tuple | None = None
 
     # --- building -------------------------------------------------------------------------------------
     @staticmethod
@@ -204,23 +210,28 @@ class Graph(nn.Module):
 
     def _plan(self) -> tuple[list, list]:
         """For each output port (in evaluation order) and each block: where its inputs come from."""
-        key = (tuple(self.order), tuple(self.sources.items()), tuple(self.blocks.keys()))
-        plan = self.__dict__.get("_step_plan")
-        if plan is None or plan[0] != key:
+        def make():
             outs = [(sig, self.blocks[sig[0]], sig[1],
                      [(p, self.sources[(sig[0], p)]) for p in self._feedthrough[sig[0]][sig[1]]
                       if (sig[0], p) in self.sources]) for sig in self.order]
             upds = [(name, blk, [(p, self.sources[(name, p)]) for p in blk.inputs if (name, p) in self.sources])
                     for name, blk in self.blocks.items()]
-            plan = self.__dict__["_step_plan"] = (key, outs, upds)
-        return plan[1], plan[2]
+            return outs, upds
+        return memo.derived(self, "plan", (tuple(self.order), tuple(self.sources.items()), tuple(self.blocks)),
+                            make)
 
     def step(self, overrides: Mapping[Signal, torch.Tensor] | None = None,
              frozen: Iterable[str] = ()) -> dict[Signal, torch.Tensor]:
         """Advance every block one step; return all output signals at time k as {(block, port): tensor}.
 
         ``overrides`` replaces output ports by given values, ``frozen`` blocks are not advanced (used to
-        probe the graph, e.g. for Markov parameters)."""
+        probe the graph, e.g. for Markov parameters). With ``engine='torch'`` no compiled code runs."""
+        if self.engine == "torch":
+            with kernels.disabled():
+                return self._step(overrides, frozen)
+        return self._step(overrides, frozen)
+
+    def _step(self, overrides, frozen) -> dict[Signal, torch.Tensor]:
         outs, upds = self._plan()
         signals: dict[Signal, torch.Tensor] = {}
         for sig, blk, port, feeds in outs:
@@ -251,26 +262,43 @@ class Graph(nn.Module):
         """None when ``advance`` runs natively, else why it runs on PyTorch."""
         if self.engine == "torch":
             return "engine='torch'"
-        return native.unsupported(self)
+        return lowering.unsupported(self)
 
-    def advance(self, steps: int, accumulate: Mapping[Signal, torch.Tensor] | None = None) -> None:
+    def advance(self, steps: int, accumulate: Mapping[Signal, torch.Tensor] | None = None,
+                record: Mapping[Signal, torch.Tensor] | None = None, every: int = 1) -> None:
         """Advance ``steps`` steps (on the engine chosen by ``engine``); afterwards ``last`` holds the signals
         of the last step. ``accumulate``: {signal: (B,) float64 tensor} gets sum_c signal[b, c]^2 of every
-        step added (e.g. for an rms of z)."""
+        step added (e.g. for an rms of z). ``record``: {signal: (steps // every, B, width) tensor} receives the
+        signal after every ``every``-th step (inside the native engine: no Python per step)."""
         steps = int(steps)
         if steps <= 0:
             return
-        if self.engine != "torch" and native.advance(self, steps, accumulate):
-            self.ran_engine = "native"
+        why = self.native_status()
+        if why is None:
+            lowering.advance(self, lowering.program(self), steps, accumulate, record, every)
+            self._ran("native", None)
             return
         if self.engine == "native":
-            raise ConfigError(f"graph: engine='native', but {native.unsupported(self)}")
-        self.ran_engine = "torch"
-        for _ in range(steps):
+            raise ConfigError(f"graph: engine='native', but {why}")
+        self._ran("torch", why)
+        for i in range(steps):
             signals = self.step()
             for sig, acc in (accumulate or {}).items():
                 z = signals[sig].to(torch.float64)
                 acc += (z * z).sum(1)
+            if record and (i + 1) % every == 0:
+                for sig, buf in record.items():
+                    buf[(i + 1) // every - 1] = signals[sig]
+
+    def _ran(self, engine: str, reason: str | None) -> None:
+        """Keep which engine ran and why; with ``engine='auto'`` say it once in the log."""
+        self.ran_engine, self.engine_reason = engine, reason
+        if self.engine == "auto" and self._told != (engine, reason):
+            self._told = (engine, reason)
+            if reason is None:
+                logger.info("graph: running on the native engine")
+            else:
+                logger.warning("graph: running on the PyTorch engine: %s", reason)
 
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
         """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook."""
@@ -279,36 +307,39 @@ class Graph(nn.Module):
 
     def run(self, steps: int, record: Mapping[str, str | Callable] | None = None, every: int = 1,
             progress: bool = False) -> dict[str, torch.Tensor]:
-        """Run ``steps`` steps; return traces {name: (T, ...)} of the recorded signals ('block.port', or a
-        callable of the graph), taken every ``every`` steps after the step."""
+        """Run ``steps`` steps; return traces {name: (T, B, ...)} of the recorded signals ('block.port', or a
+        callable of the graph), taken every ``every`` steps after the step. Signals are recorded inside the
+        native engine; a callable needs Python after every ``every`` steps."""
         self.check_steps(steps)
+        if every < 1:
+            raise ConfigError(f"graph: every must be a positive number of steps, got {every!r}")
         record = dict(record or {})
-        getters = {}
-        for key, ref in record.items():
-            if callable(ref):
-                getters[key] = ref
-            else:
-                sig = _split(ref)
-                self._port(sig, "output")
-                getters[key] = (lambda g, s=sig: g.last[s])
-        traces: dict[str, list] = {k: [] for k in getters}
+        signals = {key: _split(ref) for key, ref in record.items() if not callable(ref)}
+        for sig in signals.values():
+            self._port(sig, "output")
+        getters = {key: ref for key, ref in record.items() if callable(ref)}
+        bufs = {sig: torch.empty(steps // every, self.batch_size, self.blocks[sig[0]].outputs[sig[1]],
+                                 dtype=_dtype(self), device=self.k.device) for sig in set(signals.values())}
+        traces: dict[str, list] = {key: [] for key in getters}
         bar = None
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=steps, desc="steps", unit="step", mininterval=0.5)
+        chunk = every if getters else max(every, steps // 100 // every * every) if bar is not None else steps
         done = 0
         while done < steps:
-            n = min(every, steps - done) if getters else steps
-            self.advance(n)
-            done += n
-            if getters and n == every:
+            m = min(chunk, steps - done)
+            self.advance(m, record={sig: buf[done // every:] for sig, buf in bufs.items()}, every=every)
+            done += m
+            if getters and m == every:
                 for key, get in getters.items():
                     traces[key].append(get(self).detach().clone())
             if bar is not None:
-                bar.update(n)
+                bar.update(m)
         if bar is not None:
             bar.close()
-        return {k: torch.stack(v) if v else torch.empty(0) for k, v in traces.items()}
+        return {key: bufs[signals[key]] if key in signals else
+                torch.stack(traces[key]) if traces[key] else torch.empty(0) for key in record}
 
     def check_steps(self, steps: int) -> None:
         limit = self.max_steps

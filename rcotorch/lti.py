@@ -15,6 +15,7 @@ import control
 import numpy as np
 import torch
 
+from . import memo
 from .blocks import DEFAULT_DTYPE, Block, as_batched_matrix, matvec
 from .errors import ConfigError, DimensionError
 
@@ -41,18 +42,6 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     M[..., :n, n:] = B
     E = torch.linalg.matrix_exp(M * dt)
     return E[..., :n, :n], E[..., :n, n:]
-
-
-def _cached(blk, name: str, deps: tuple, make):
-    """``make()``, recomputed only when one of the tensors ``deps`` was replaced or modified in place."""
-    key = tuple((t, t._version) for t in deps)
-    hit = blk.__dict__.get(name)
-    if hit is not None and len(hit[0]) == len(key) and all(
-            a is b and va == vb for (a, va), (b, vb) in zip(hit[0], key)):
-        return hit[1]
-    value = make()
-    blk.__dict__[name] = (key, value)
-    return value
 
 
 class LTI(Block):
@@ -144,7 +133,7 @@ class LTI(Block):
 
     def output(self, port, inputs):
         rows = self._out_slices[port]
-        y = _cached(self, "_cx", (self.C, self.x), lambda: matvec(self.C, self.x))[:, rows]  # C x, all ports
+        y = memo.derived(self, "Cx", (self.C, self.x), lambda: matvec(self.C, self.x))[:, rows]  # C x, all ports
         for p in self._feedthrough[port]:
             y = y + matvec(self.D[:, rows, self._in_slices[p]], inputs[p])
         return y
@@ -152,13 +141,32 @@ class LTI(Block):
     def update(self, inputs):
         if self.A.shape[0] == 1 and self.B.shape[0] == 1:
             # Shared matrices: x(k+1) = [x, u_1, u_2, ...] [A B]^T in one product.
-            AB_t = _cached(self, "_ab_t", (self.A, self.B), lambda: torch.cat([self.A[0], self.B[0]], 1).mT)
+            AB_t = memo.derived(self, "AB_t", (self.A, self.B), lambda: torch.cat([self.A[0], self.B[0]], 1).mT)
             x = torch.cat([self.x] + [inputs[p] for p in self._in_slices], dim=1) @ AB_t
         else:
             x = matvec(self.A, self.x)
             for p, cs in self._in_slices.items():
                 x = x + matvec(self.B[:, :, cs], inputs[p])
         self.set_state(x=x)
+
+    def lower(self, b) -> None:
+        n, mt = self.n_states, self.B.shape[2]
+        x = b.state("x")
+        C, D = b.param(self.C), None
+        for port, rows in self._out_slices.items():
+            ft = [p for p in self._feedthrough[port] if b.input(p) is not None]
+            if ft and D is None:
+                D = b.param(self.D)
+            args = [n, rows.stop - rows.start, C + rows.start * n, x, b.output(port), mt,
+                    (0 if D is None else D) + rows.start * mt, len(ft)]
+            for p in ft:
+                cs = self._in_slices[p]
+                args += [cs.start, cs.stop - cs.start, b.input(p)]
+            b.emit("LTI_OUT", args, port=port)
+        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), len(self._in_slices)]
+        for p, cs in self._in_slices.items():
+            args += [b.input(p), cs.stop - cs.start]
+        b.emit("LTI_UPD", args)
 
     # --- analysis -------------------------------------------------------------------------------------
     def markov(self, input: str, output: str, n: int) -> torch.Tensor:

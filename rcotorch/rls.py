@@ -20,9 +20,12 @@ member separately, so a member's result does not depend on the batch it runs in.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
-from . import native
+from . import kernels
+from .errors import ConfigError
 
 
 def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Tensor,
@@ -36,21 +39,23 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
     finite; such a member is also left as it was, so a caller can freeze it without losing the others.
     The P update forms ``P - W W^T``, so P stays exactly symmetric. With ``inplace=True`` theta and P (both
     contiguous) are updated in place and returned; otherwise new tensors are returned and the inputs kept.
-    ``kernel``: ``'native'`` (l = 1, CPU, float64: one pass over each member's P in C, ``rcotorch.native``),
-    ``'torch'`` (PyTorch operations), or ``'auto'`` (native where it applies and is built).
+    ``kernel``: ``'native'`` (the compiled kernel, CPU and float64, the same RLS code as the native engine's
+    estimator step; raises where it does not apply), ``'torch'`` (PyTorch operations), or ``'auto'`` (native
+    where it applies and is allowed: not inside ``Graph(engine='torch')`` steps).
     """
     B, n = theta.shape
+    native = (kernels.allowed() and theta.device.type == "cpu" and theta.dtype == P.dtype == torch.float64
+              and not torch.compiler.is_compiling())
+    if kernel != "torch" and native:
+        th, Pn = (theta, P) if inplace else (theta.clone(), P.clone())
+        ok = kernels.rls_(th, Pn, psi, z_r, lam, r_inv, active)
+        if ok is not None:
+            return th, Pn, ok if active is None else ok | ~active.reshape(B)
+    if kernel == "native":
+        raise ConfigError("rls_update: kernel='native' needs the compiled engine, CPU float64 tensors and a "
+                          f"contiguous theta and P ({kernels.why_unavailable() or 'they are not'})")
     l = psi.shape[-1]
     dt, dev = P.dtype, P.device
-    if (kernel != "torch" and l == 1 and dev.type == "cpu" and dt == torch.float64
-            and not (isinstance(r_inv, torch.Tensor) and r_inv.numel() > 1) and not torch.compiler.is_compiling()):
-        # One pass over each member's P in C (rcotorch.native), when the kernels are built.
-        th, Pn = (theta, P) if inplace else (theta.clone(), P.clone())
-        if th.is_contiguous() and Pn.is_contiguous():
-            ok = native.rls1_(th, Pn, psi, z_r, lam, float(r_inv), active)
-            if ok is not None:
-                return th, Pn, ok if active is None else ok | ~active.reshape(B)
-
     lam_one = not isinstance(lam, torch.Tensor) and float(lam) == 1.0
     if lam_one:
         lam = 1.0                                                          # no tensor, no division
@@ -108,15 +113,12 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
 
 
 _INF = float("inf")
-_ONES: dict = {}
 
 
+@functools.lru_cache(maxsize=64)
 def _ones(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """A cached ones vector: ``x @ ones`` sums the rows of x in one matrix-vector product."""
-    key = (n, dtype, device)
-    if key not in _ONES:
-        _ONES[key] = torch.ones(n, dtype=dtype, device=device)
-    return _ONES[key]
+    """A ones vector: ``x @ ones`` sums the rows of x in one matrix-vector product."""
+    return torch.ones(n, dtype=dtype, device=device)
 
 
 def _downdate_(P: torch.Tensor, w: torch.Tensor) -> torch.Tensor:

@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from . import native, rng
+from . import kernels, memo, rng
 from .blocks import DEFAULT_DTYPE, Block
 from .data import Recording
 from .errors import ConfigError, DataError
@@ -36,8 +36,6 @@ class WhiteNoise(Block):
         self.register_buffer("seed", seed)
         self.register_buffer("stream", torch.zeros(0, 1, dtype=torch.int64))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
-        self._chunk: torch.Tensor | None = None  # samples of steps [_chunk_start, _chunk_start + CHUNK)
-        self._chunk_start = -1
 
     CHUNK = 512
     CHUNK_SAMPLES = 1 << 18
@@ -52,35 +50,28 @@ class WhiteNoise(Block):
             seeds, members = self.seed.expand(batch_size), torch.arange(batch_size)
         self.stream = torch.stack([seeds, members], 1).to(self.seed.device)
         self.k = torch.zeros((), dtype=torch.int64, device=self.seed.device)
-        self._chunk = None
 
     def feedthrough(self):
         return {"out": ()}
 
-    def _load_from_state_dict(self, *args, **kwargs):
-        super()._load_from_state_dict(*args, **kwargs)
-        self._chunk = None  # cached samples belong to the old streams
-
-    def _chunk_at(self, k: int, min_length: int = 1) -> tuple[torch.Tensor, int, int]:
+    def _chunk_at(self, k: int) -> tuple[torch.Tensor, int, int]:
         """The samples of the steps around k: (chunk (B, length, width), its first step, length)."""
         # Samples are drawn for a chunk of steps at once: CHUNK steps, fewer for a large batch so that the chunk
-        # (and the hashing temporaries behind it) stays near CHUNK_SAMPLES numbers, but at least min_length
-        # (the native engine runs a chunk's steps in one call). The values do not depend on the chunking: each
-        # is a function of (seed, member, step, component).
+        # (and the hashing temporaries behind it) stays near CHUNK_SAMPLES numbers. The values do not depend on
+        # the chunking: each is a function of (seed, member, step, component).
         length = max(1, min(self.CHUNK, self.CHUNK_SAMPLES // max(1, self.stream.shape[0] * self.width)))
-        length = max(length, min(min_length, self.CHUNK))
         start = k - k % length
+
         # The chunk holds mean + std * N(0, 1) (the same elementwise operations as one step at a time); it is
-        # redrawn when k leaves it or when the streams, std or mean changed.
-        deps = (self.stream, self.std, self.mean)
-        key = (start, length) + tuple(id(t) for t in deps) + tuple(t._version for t in deps)
-        if self._chunk is None or self._chunk_start != key:
+        # drawn again when k leaves it or when the streams, std or mean changed.
+        def draw() -> torch.Tensor:
             noise = _normal_grid(self.stream[:, 0], self.stream[:, 1], start, length, self.width,
                                  self.std.dtype)                                 # (B, length, width)
-            self._chunk = noise.mul_(self.std.unsqueeze(1)).add_(self.mean.unsqueeze(1)) \
+            return noise.mul_(self.std.unsqueeze(1)).add_(self.mean.unsqueeze(1)) \
                 if noise.shape[0] == self.batch_size else self.mean.unsqueeze(1) + self.std.unsqueeze(1) * noise
-            self._chunk_start, self._chunk_deps = key, deps   # deps are held, so their ids stay unique
-        return self._chunk, start, length
+
+        chunk = memo.derived(self, "chunk", (self.stream, self.std, self.mean, start, length), draw)
+        return chunk, start, length
 
     def output(self, port, inputs):
         k = int(self.k)
@@ -90,13 +81,19 @@ class WhiteNoise(Block):
     def update(self, inputs):
         self.k += 1
 
+    def lower(self, b) -> None:
+        keys = memo.derived(self, "keys", (self.stream,), lambda: rng.hash32(
+            self.stream[:, 0], self.stream[:, 1]).to(torch.float64).reshape(-1, 1))   # (seed, member) prefix
+        b.emit("NOISE", [self.width, b.counter(), b.param(keys), b.param(self.std), b.param(self.mean),
+                         b.output("out")], port="out")
+
 
 def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int,
                  dtype: torch.dtype) -> torch.Tensor:
     """``rng.normal(seeds, members, steps, comp)`` on the grid (B, steps start..start+length-1, comp
     0..width-1), bit for bit, with the hash chain's common prefixes computed once: (seed, member) per member,
     (seed, member, step, comp) once for the four hashes behind a normal sample. About half the integer work."""
-    fast = native.uniform_grid(seeds, members, start, length, width)
+    fast = kernels.uniform_grid(seeds, members, start, length, width)
     if fast is not None:                                     # the integer hashing in C, same bits
         u1, u2 = fast                                        # the transform below, in place
         return u1.log_().mul_(-2.0).sqrt_().mul_(u2.mul_(2.0 * math.pi).cos_()).to(dtype)
@@ -200,6 +197,14 @@ class Recorded(Block):
 
     def update(self, inputs):
         self.k += 1
+
+    def lower(self, b) -> None:
+        b.steps_left(lambda: self.length - int(self.k))
+        for port in self.outputs:
+            t, off, w = (self.valid_mask, 0, 1) if port == "valid" else \
+                (self.values, self._slices[port].start, self.outputs[port])
+            b.emit("PLAYBACK", [b.pointer(t.contiguous()), 0 if t.shape[0] == 1 else t[0].numel(), t.shape[2], off, w,
+                                b.counter(), b.output(port)], port=port)
 
 
 def _forward_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

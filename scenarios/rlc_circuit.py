@@ -99,6 +99,14 @@ class NoisyMeasurement(Block):
         self.system.update({"w": inputs["w"]})
         self.noise.update({})
 
+    def lower(self, b) -> None:
+        """The native form: the system and the noise lowered inside this block, their outputs summed."""
+        w = self.outputs["y"]
+        y, n = b.scratch(w), b.scratch(w)
+        b.inline(self.system, {"w": b.input("w")}, {"y": y}, port="y")
+        b.inline(self.noise, {}, {"out": n}, port="y")
+        b.emit("SUM", [w, 2, b.output("y"), y, 1, n, 1], port="y")
+
 
 def initial_values(s) -> tuple[float, float, float]:
     """Nominal (L0, C0, R0) of the known model."""

@@ -8,9 +8,9 @@ Input w = V1 (volts), output y = V2 (volts, the "position"), fs = 1e7 / 2^14 Hz.
    error on the nearly linear, low-amplitude start of the "arrow" section, rows [fit_start, fit_stop)
    (``rcotorch.models.identification.MassSpringDamper.fit``). w is interpolated linearly between samples (FOH).
 2. Unknown subsystem: the cubic hardening spring. The identified subsystem is the static basis regressor
-   u(k) = theta y0(k)^3 (``RCOEstimator.static_gain`` with the feature y0^3), where y0 is the position the
-   known model predicts half a sample after t_k (setting ``lead``; u is held over the sample, so this is the
-   midpoint rule of the continuous spring force). u enters as g u, like the input, so
+   u(k) = theta y0(k)^3 (``RCOEstimator.static_gain`` with the feature ``rt.features.power('y0', 3)``), where
+   y0 is the position the known model predicts half a sample after t_k (setting ``lead``; u is held over the
+   sample, so this is the midpoint rule of the continuous spring force). u enters as g u, like the input, so
 
        k3_over_m = c = -g theta      (c of y'' = -a y' - b y - c y^3 + g w + d0, in 1/(V^2 s^2)).
 
@@ -43,11 +43,6 @@ from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.scenario import Requirement, Scenario
 
 DEFAULT_DATA = Path(rt.__file__).resolve().parents[1].parent / "shared" / "data" / "silverbox" / "SNLS80mV.csv"
-
-
-def cube(s):
-    """The basis regressor y0^3 of the identified subsystem."""
-    return s["y0"] ** 3
 
 
 @lru_cache(maxsize=4)
@@ -123,8 +118,8 @@ class SilverboxCubicStiffness(Scenario):
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
         w, y, n = est.column(s["w_column"]), est.column(s["y_column"]), int(s["n_init"])
         known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype)
-        ident = rt.RCOEstimator.static_gain({"y0": 1}, features={"y0^3": cube}, p0=s["p0"], lam=s["lam"],
-                                            dtype=dtype)
+        ident = rt.RCOEstimator.static_gain({"y0": 1}, features=rt.features.power("y0", 3), p0=s["p0"],
+                                            lam=s["lam"], dtype=dtype)
         data = rt.Recorded(est, {"w": s["w_column"], "y": s["y_column"]}, name="data", dtype=dtype)
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
                              device=device)

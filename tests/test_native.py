@@ -1,4 +1,4 @@
-"""The native engine (rcotorch.native): a graph lowered to C and run many steps per call.
+"""The native engine (rcotorch.lowering, rcotorch._engine): a graph lowered to C and run many steps per call.
 
 It must do what the PyTorch engine does, to rounding: every lowered block and estimator option is run on
 both engines from the same state and compared. Independent references for the engine itself: the NumPy loop
@@ -15,10 +15,10 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import native
+from rcotorch import kernels
 from rcotorch import scenario as scenarios
 
-pytestmark = pytest.mark.skipif(not native.available(), reason=f"no native kernels: {native.why_unavailable()}")
+pytestmark = pytest.mark.skipif(not kernels.available(), reason=f"no native engine: {kernels.why_unavailable()}")
 
 DT = 0.1
 
@@ -213,26 +213,51 @@ def test_engine_choice_and_unsupported_graphs(sdof_known):
     assert "float32" in g3.native_status()
 
 
-def test_without_a_compiler_everything_runs_on_pytorch(tmp_path):
-    code = textwrap.dedent("""
-        import warnings, torch
-        warnings.simplefilter("error")
-        from rcotorch import native, scenario as scenarios
-        try:
-            native.library()
-        except UserWarning as w:
-            print("WARNED", "native kernels unavailable" in str(w))
-        warnings.simplefilter("ignore")
-        print("AVAILABLE", native.available())
+def _subprocess(code: str, env: dict | None = None) -> str:
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                         env=env or dict(os.environ), timeout=300)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+def test_runs_stay_native_without_a_compiler_on_path(tmp_path):
+    """The engine is compiled when the package is installed: nothing is compiled when it runs."""
+    env = dict(os.environ, CC=str(tmp_path / "no-such-compiler"), PATH=str(tmp_path))
+    out = _subprocess("""
+        import torch
+        from rcotorch import scenario as scenarios
         sc = scenarios.get("sdof-stiffness")
         g = sc.build(sc.resolve(), 2, torch.float64, "cpu")
-        print("STATUS", g.native_status())
         g.advance(50)
-        print("K", int(g.k))
+        print("ENGINE", g.ran_engine, g.engine_reason, int(g.k))
+    """, env)
+    assert "ENGINE native None 50" in out
+
+
+def test_without_the_compiled_engine_one_warning_and_the_same_results():
+    """The extension absent (a machine without a compiler at install time): one warning, every graph on
+    PyTorch, and the results of the native engine to rounding."""
+    out = _subprocess("""
+        import sys, warnings
+        sys.modules["rcotorch._engine"] = None          # as if it had not been built
+        import torch
+        from rcotorch import scenario as scenarios
+        sc = scenarios.get("sdof-stiffness-damping")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for _ in range(2):
+                g = sc.build(sc.resolve(), 2, torch.float64, "cpu")
+                g.advance(300)
+        print("WARNINGS", sum("native engine unavailable" in str(w.message) for w in caught))
+        print("ENGINE", g.ran_engine, "|", g.engine_reason)
+        print("THETA", g.role("estimator").theta.flatten().tolist())
     """)
-    env = dict(os.environ, CC=str(tmp_path / "no-such-compiler"), RCOTORCH_CACHE=str(tmp_path / "cache"),
-               PATH="/nonexistent")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert "WARNED True" in out.stdout and "AVAILABLE False" in out.stdout
-    assert "STATUS native kernels unavailable" in out.stdout and "K 50" in out.stdout
+    lines = dict(line.split(" ", 1) for line in out.splitlines())
+    assert lines["WARNINGS"] == "1"
+    assert lines["ENGINE"].startswith("torch | the native engine is unavailable")
+    sc = scenarios.get("sdof-stiffness-damping")
+    g = sc.build(sc.resolve(), 2, torch.float64, "cpu")
+    g.engine = "native"
+    g.advance(300)
+    theta = torch.tensor(eval(lines["THETA"]), dtype=torch.float64)
+    np.testing.assert_allclose(theta.numpy(), g.role("estimator").theta.flatten().numpy(), rtol=1e-10)

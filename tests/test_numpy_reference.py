@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from rcotorch import native
+from rcotorch import kernels
 from rcotorch import scenario as scenarios
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -20,7 +20,7 @@ import numpy_reference as nr  # noqa: E402
 NAME = "sdof-stiffness-damping"
 
 
-ENGINES = ["torch", "native"] if native.available() else ["torch"]
+ENGINES = ["torch", "native"] if kernels.available() else ["torch"]
 
 
 def _rcotorch(steps, batch=1, engine="auto", **overrides):

@@ -1,0 +1,383 @@
+/* rcotorch._engine: the native CPU kernels, built as a Python extension when the package is installed.
+ *
+ *   run          a graph lowered to instructions (rcotorch/lowering.py), run for T steps
+ *   rls          rls_update on batched tensors, through the same RLS code as the estimator's step
+ *   uniform_grid the integer part of rcotorch.rng.normal on a (member, step, component) grid
+ *
+ * Members are independent, so a batch is cut into chunks of VL lanes (VL = 1, 4, 8 or 16, chosen by the
+ * caller from the batch size); each chunk runs all T steps on its own (a thread per chunk, OpenMP), so
+ * nothing is synchronized between steps. The operations are written once, in lanes.h, and compiled for each
+ * lane width and, on x86-64 with GCC, for AVX-512, AVX2 and the baseline instruction set (chosen when the
+ * module loads). Arithmetic is plain IEEE double without contraction or reassociation (-ffp-contract=off,
+ * no fast-math), so a member's result is the same bits whatever the lane width, batch or thread count.
+ *
+ * The functions take tensors as addresses (int) and sizes; rcotorch.kernels checks shapes, dtypes and
+ * contiguity before it calls them.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+#include "engine.h"
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* Helpers shared by every variant                                                                         */
+/* ------------------------------------------------------------------------------------------------------ */
+
+/* rng._mix32 on a 32-bit value. */
+static inline uint32_t mix32(uint32_t y) {
+    y ^= y >> 16;
+    y *= 0x7FEB352Du;
+    y ^= y >> 15;
+    y *= 0x846CA68Bu;
+    return y ^ (y >> 16);
+}
+
+/* rng._mix32(key + 0x632BE5AB) for a 32-bit key: the sum has 33 bits and the first xor-shift sees the top
+ * one (as the int64 code does); the rest is 32-bit arithmetic. */
+static inline uint32_t mix32_key(uint32_t key) {
+    uint32_t lo = key + 0x632BE5ABu, hi = lo < key; /* carry */
+    uint32_t y = lo ^ ((lo >> 16) | (hi << 16));
+    y *= 0x7FEB352Du;
+    y ^= y >> 15;
+    y *= 0x846CA68Bu;
+    return y ^ (y >> 16);
+}
+
+/* rng.uniform's last two keys and its 53-bit mantissa, from the hash of the keys before them. */
+static inline double uniform53(uint32_t h) {
+    int32_t a = (int32_t)(mix32(h ^ mix32_key(0x1B873593u)) >> 5);
+    int32_t b = (int32_t)(mix32(h ^ mix32_key(0x5BD1E995u)) >> 6);
+    return ((double)a * 67108864.0 + (double)b + 0.5) / 9007199254740992.0;
+}
+
+/* Box-Muller, in the order of sources._normal_grid: sqrt(log(u1) * -2) * cos(u2 * 2 pi). */
+static inline double normal_from(double u1, double u2) {
+    return sqrt(log(u1) * -2.0) * cos(u2 * (2.0 * 3.141592653589793));
+}
+
+/* torch.clamp: NaN stays NaN. */
+static inline double clampd(double x, double lo, double hi) {
+    double v = x < lo ? lo : x;
+    return v > hi ? hi : v;
+}
+
+static inline char *bind_addr(const int64_t *x, int64_t b, int64_t c, int64_t esize) {
+    int64_t off = b * x[BF_MSTRIDE] + (c / x[BF_INNER]) * x[BF_OSTRIDE] + c % x[BF_INNER];
+    return (char *)(intptr_t)x[BF_PTR] + off * esize;
+}
+
+static inline double bind_get(const int64_t *x, int64_t b, int64_t c) {
+    switch (x[BF_KIND]) {
+    case KIND_F64: return *(const double *)bind_addr(x, b, c, 8);
+    case KIND_BOOL: return *(const uint8_t *)bind_addr(x, b, c, 1) ? 1.0 : 0.0;
+    default: return (double)*(const int64_t *)bind_addr(x, b, c, 8);
+    }
+}
+
+static inline void bind_put(const int64_t *x, int64_t b, int64_t c, double v) {
+    switch (x[BF_KIND]) {
+    case KIND_F64: *(double *)bind_addr(x, b, c, 8) = v; break;
+    case KIND_BOOL: *(uint8_t *)bind_addr(x, b, c, 1) = v != 0.0; break;
+    default: *(int64_t *)bind_addr(x, b, c, 8) = (int64_t)v; break;
+    }
+}
+
+/* Scratch slots of one RLS step with n parameters and nl channels (lanes.h, rls). */
+static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
+
+/* Scratch slots of one estimator update (lanes.h, rco_upd). */
+static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n) {
+    return n_z * n_u * (n_phi + n_u) + n * n_z + n + 2 + rls_scratch(n, n_z);
+}
+
+typedef struct {
+    const int64_t *code, *binds, *ptrs, *counters, *obs;
+    const double *consts;
+    int64_t ncode, nbind, nobs, nslots, T, B;
+} run_t;
+
+typedef struct {
+    double *theta, *P;
+    const double *psi, *zr, *lam, *rinv;
+    const uint8_t *active;
+    uint8_t *ok;
+    int64_t n, nl, lam_stride;
+    int lam_one;
+} rls_t;
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* The variants: lanes.h for each lane width and instruction set                                          */
+/* ------------------------------------------------------------------------------------------------------ */
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#define FN(name) CAT(CAT(name, _), CAT(VL, ISA))
+
+#define ISA base
+#define VL 1
+#include "lanes.h"
+#undef VL
+#define VL 4
+#include "lanes.h"
+#undef VL
+#define VL 8
+#include "lanes.h"
+#undef VL
+#define VL 16
+#include "lanes.h"
+#undef VL
+#undef ISA
+
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define RCO_MULTI_ISA 1
+#pragma GCC push_options
+#pragma GCC target("avx2")
+#define ISA avx2
+#define VL 1
+#include "lanes.h"
+#undef VL
+#define VL 4
+#include "lanes.h"
+#undef VL
+#define VL 8
+#include "lanes.h"
+#undef VL
+#define VL 16
+#include "lanes.h"
+#undef VL
+#undef ISA
+#pragma GCC pop_options
+#pragma GCC push_options
+#pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,avx2")
+#define ISA avx512
+#define VL 1
+#include "lanes.h"
+#undef VL
+#define VL 4
+#include "lanes.h"
+#undef VL
+#define VL 8
+#include "lanes.h"
+#undef VL
+#define VL 16
+#include "lanes.h"
+#undef VL
+#undef ISA
+#pragma GCC pop_options
+#endif
+
+typedef void (*chunk_fn)(const run_t *, double *, int64_t, int64_t);
+typedef void (*rls_fn)(const rls_t *, double *, int64_t, int64_t);
+
+static const int LANE_WIDTHS[4] = {1, 4, 8, 16};
+static chunk_fn CHUNK[4] = {chunk_1base, chunk_4base, chunk_8base, chunk_16base};
+static rls_fn RLS[4] = {rls_chunk_1base, rls_chunk_4base, rls_chunk_8base, rls_chunk_16base};
+static const char *ISA_NAME = "baseline";
+
+static void select_isa(void) {
+#ifdef RCO_MULTI_ISA
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
+        __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw")) {
+        chunk_fn c[4] = {chunk_1avx512, chunk_4avx512, chunk_8avx512, chunk_16avx512};
+        rls_fn r[4] = {rls_chunk_1avx512, rls_chunk_4avx512, rls_chunk_8avx512, rls_chunk_16avx512};
+        memcpy(CHUNK, c, sizeof c);
+        memcpy(RLS, r, sizeof r);
+        ISA_NAME = "avx512";
+    } else if (__builtin_cpu_supports("avx2")) {
+        chunk_fn c[4] = {chunk_1avx2, chunk_4avx2, chunk_8avx2, chunk_16avx2};
+        rls_fn r[4] = {rls_chunk_1avx2, rls_chunk_4avx2, rls_chunk_8avx2, rls_chunk_16avx2};
+        memcpy(CHUNK, c, sizeof c);
+        memcpy(RLS, r, sizeof r);
+        ISA_NAME = "avx2";
+    }
+#endif
+}
+
+static int lane_index(int64_t vl) {
+    for (int i = 0; i < 4; i++)
+        if (LANE_WIDTHS[i] == vl) return i;
+    return -1;
+}
+
+/* Run fn over ceil(B / VL) chunks on nthreads threads, each with its own arena of nslots slots. */
+static int parallel_chunks(void (*fn)(const void *, void *, double *, int64_t, int64_t), const void *ctx,
+                           void *f, int64_t nslots, int64_t B, int64_t vl, int nthreads) {
+    int64_t nchunks = (B + vl - 1) / vl;
+    int fail = 0;
+    if (nthreads > nchunks) nthreads = (int)nchunks;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(| : fail)
+#endif
+    {
+        size_t bytes = ((size_t)(nslots > 0 ? nslots : 1) * (size_t)vl * sizeof(double) + 63) & ~(size_t)63;
+        double *S = (double *)aligned_alloc(64, bytes);
+        if (!S) {
+            fail = 1;
+        } else {
+            memset(S, 0, bytes);
+#ifdef _OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t ch = 0; ch < nchunks; ch++) {
+                int64_t b0 = ch * vl;
+                fn(ctx, f, S, b0, B - b0 < vl ? B - b0 : vl);
+            }
+            free(S);
+        }
+    }
+    return fail;
+}
+
+static void call_chunk(const void *ctx, void *f, double *S, int64_t b0, int64_t nb) {
+    ((chunk_fn)f)((const run_t *)ctx, S, b0, nb);
+}
+
+static void call_rls(const void *ctx, void *f, double *S, int64_t b0, int64_t nb) {
+    ((rls_fn)f)((const rls_t *)ctx, S, b0, nb);
+}
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* Python functions                                                                                        */
+/* ------------------------------------------------------------------------------------------------------ */
+#define ADDR(x) ((void *)(intptr_t)(x))
+
+static PyObject *py_run(PyObject *self, PyObject *args) {
+    unsigned long long code, consts, binds, ptrs, counters, obs;
+    long long ncode, nbind, nobs, nslots, T, B, vl;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "KLKKLKKKLLLLLi", &code, &ncode, &consts, &binds, &nbind, &ptrs, &counters, &obs,
+                          &nobs, &nslots, &T, &B, &vl, &nthreads))
+        return NULL;
+    int li = lane_index(vl);
+    if (li < 0) return PyErr_Format(PyExc_ValueError, "lane width %lld is not one of 1, 4, 8, 16", vl);
+    run_t r = {ADDR(code), ADDR(binds), ADDR(ptrs), ADDR(counters), ADDR(obs), ADDR(consts),
+               ncode, nbind, nobs, nslots, T, B};
+    int fail;
+    Py_BEGIN_ALLOW_THREADS
+    fail = parallel_chunks(call_chunk, &r, (void *)CHUNK[li], nslots + nobs, B, vl, nthreads);
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_rls(PyObject *self, PyObject *args) {
+    unsigned long long theta, P, psi, zr, lam, rinv, active, ok;
+    long long B, n, nl, lam_stride, vl;
+    int lam_one, nthreads;
+    if (!PyArg_ParseTuple(args, "KKKKKLiKKKLLLLi", &theta, &P, &psi, &zr, &lam, &lam_stride, &lam_one, &rinv,
+                          &active, &ok, &B, &n, &nl, &vl, &nthreads))
+        return NULL;
+    int li = lane_index(vl);
+    if (li < 0) return PyErr_Format(PyExc_ValueError, "lane width %lld is not one of 1, 4, 8, 16", vl);
+    rls_t q = {ADDR(theta), ADDR(P), ADDR(psi), ADDR(zr), ADDR(lam), ADDR(rinv), ADDR(active), ADDR(ok),
+               n, nl, lam_stride, lam_one};
+    int64_t slots = n + n * n + n * nl + nl + 1 + nl * nl + 2 + rls_scratch(n, nl);
+    int fail;
+    Py_BEGIN_ALLOW_THREADS
+    fail = parallel_chunks(call_rls, &q, (void *)RLS[li], slots, B, vl, nthreads);
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+/* u1, u2 (B, length, width): the two uniforms behind rng.normal(seed_b, member_b, start + t, c). */
+static void uniform_grid(int64_t B, const int64_t *seeds, const int64_t *members, int64_t start, int64_t length,
+                         int64_t width, double *u1, double *u2, int nthreads) {
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B * length * width >= 65536)
+#endif
+    for (int64_t b = 0; b < B; b++) {
+        uint32_t h0 = mix32((uint32_t)seeds[b] ^ 0x9E3779B9u);
+        h0 = mix32(h0 ^ mix32_key((uint32_t)members[b]));
+        uint32_t k1 = mix32_key(1u), k2 = mix32_key(2u);
+        for (int64_t c = 0; c < width; c++) {
+            uint32_t kc = mix32_key((uint32_t)c);
+            double *o1 = u1 + b * length * width + c, *o2 = u2 + b * length * width + c;
+            for (int64_t t = 0; t < length; t++) {
+                uint32_t h = mix32(mix32(h0 ^ mix32_key((uint32_t)(start + t))) ^ kc);
+                o1[t * width] = uniform53(mix32(h ^ k1));
+                o2[t * width] = uniform53(mix32(h ^ k2));
+            }
+        }
+    }
+}
+
+static PyObject *py_uniform_grid(PyObject *self, PyObject *args) {
+    unsigned long long seeds, members, u1, u2;
+    long long B, start, length, width;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "LKKLLLKKi", &B, &seeds, &members, &start, &length, &width, &u1, &u2, &nthreads))
+        return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    uniform_grid(B, ADDR(seeds), ADDR(members), start, length, width, ADDR(u1), ADDR(u2), nthreads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
+    long long n_u, n_z, n_phi, n;
+    if (!PyArg_ParseTuple(args, "LLLL", &n_u, &n_z, &n_phi, &n)) return NULL;
+    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n));
+}
+
+static PyMethodDef METHODS[] = {
+    {"run", py_run, METH_VARARGS, "run(code, ncode, consts, binds, nbind, ptrs, counters, obs, nobs, nslots, T, B, "
+                                  "lanes, threads): run a lowered graph for T steps"},
+    {"rls", py_rls, METH_VARARGS, "rls(theta, P, psi, z_r, lam, lam_stride, lam_one, r_inv, active, ok, B, n, l, "
+                                  "lanes, threads): one RLS step of every member, in place"},
+    {"uniform_grid", py_uniform_grid, METH_VARARGS,
+     "uniform_grid(B, seeds, members, start, length, width, u1, u2, threads): the uniforms of rng.normal"},
+    {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta): scratch slots"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_engine", "rcotorch's native CPU kernels", -1, METHODS};
+
+#define X_NAME(name) #name,
+static const char *OP_NAMES[] = {RCO_OPS(X_NAME)};
+static const char *FACTOR_NAMES[] = {RCO_FACTORS(X_NAME)};
+static const char *FACTOR_FIELD_NAMES[] = {RCO_FACTOR_FIELDS(X_NAME)};
+static const char *RCO_FIELD_NAMES[] = {RCO_FIELDS(X_NAME)};
+static const char *BIND_FIELD_NAMES[] = {RCO_BIND_FIELDS(X_NAME)};
+static const char *KIND_NAMES[] = {RCO_KINDS(X_NAME)};
+static const char *OBS_FIELD_NAMES[] = {RCO_OBS_FIELDS(X_NAME)};
+static const char *OBSERVER_NAMES[] = {RCO_OBSERVERS(X_NAME)};
+
+static int add_names(PyObject *m, const char *attr, const char **names, int count) {
+    PyObject *t = PyTuple_New(count);
+    if (!t) return -1;
+    for (int i = 0; i < count; i++) PyTuple_SET_ITEM(t, i, PyUnicode_FromString(names[i]));
+    return PyModule_AddObject(m, attr, t);
+}
+
+PyMODINIT_FUNC PyInit__engine(void) {
+    select_isa();
+    PyObject *m = PyModule_Create(&MODULE);
+    if (!m) return NULL;
+    PyObject *lanes = Py_BuildValue("(iiii)", LANE_WIDTHS[0], LANE_WIDTHS[1], LANE_WIDTHS[2], LANE_WIDTHS[3]);
+#ifdef _OPENMP
+    int openmp = 1;
+#else
+    int openmp = 0;
+#endif
+    if (add_names(m, "OPS", OP_NAMES, OP_N - 1) || add_names(m, "FACTORS", FACTOR_NAMES, FAC_N) ||
+        add_names(m, "FACTOR_FIELDS", FACTOR_FIELD_NAMES, FF_N) ||
+        add_names(m, "RCO_FIELDS", RCO_FIELD_NAMES, E_N) ||
+        add_names(m, "BIND_FIELDS", BIND_FIELD_NAMES, BF_N) || add_names(m, "KINDS", KIND_NAMES, KIND_N) ||
+        add_names(m, "OBS_FIELDS", OBS_FIELD_NAMES, OF_N) ||
+        add_names(m, "OBSERVERS", OBSERVER_NAMES, OBS_N) || PyModule_AddObject(m, "LANE_WIDTHS", lanes) ||
+        PyModule_AddIntConstant(m, "HEADER", HDR) || PyModule_AddIntConstant(m, "OPENMP", openmp) ||
+        PyModule_AddStringConstant(m, "ISA", ISA_NAME)) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

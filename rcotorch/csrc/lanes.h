@@ -1,0 +1,591 @@
+/* The engine's operations on VL lanes (members) at once. engine.c includes this file once for each lane
+ * width (VL = 1, 4, 8, 16) and instruction set; FN(name) names this copy's functions.
+ *
+ * Every value lives in slots: slot s holds one double for each lane, S[s * VL + lane], so each operation is
+ * a loop over the lanes that the compiler vectorizes. A lane's arithmetic is the same sequence of IEEE
+ * operations whatever VL is (no reassociation, no contraction: -ffp-contract=off, no fast-math), so a member's
+ * result does not depend on the lane width, the batch or the threads.
+ *
+ * The equations follow the PyTorch blocks, the reference semantics: blocks.py (Gain, Sum), lti.py, sources.py
+ * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
+ */
+
+#define LANES for (int l = 0; l < VL; l++)
+#define SL(s) (S + (int64_t)(s) * VL)
+#define AT(p, i) ((p) + (int64_t)(i) * VL) /* element i of a lane array */
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* RLS (rls.py, rls_update): theta (n), P (n x n), psi (n x nl), zr (nl), lam (1), rinv (nl x nl), active (1)  */
+/* in lane arrays; ok (1) out: 0 where S is not positive definite and finite or the step is not finite.     */
+/* ------------------------------------------------------------------------------------------------------ */
+static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
+        double *restrict P, const double *restrict psi, const double *restrict zr, const double *restrict lam,
+        int lam_one, const double *restrict rinv, const double *restrict active, double *restrict ok,
+        double *restrict scr) {
+    double *a = scr, *step = AT(a, n * nl), *Lm = AT(step, n), *Wm = AT(Lm, nl * nl), *v = AT(Wm, n * nl);
+    double go[VL], sum[VL];
+    for (int64_t i = 0; i < n; i++) /* a = P Psi */
+        for (int64_t c = 0; c < nl; c++) {
+            double acc[VL];
+            LANES acc[l] = 0.0;
+            for (int64_t j = 0; j < n; j++) {
+                const double *p = AT(P, i * n + j), *q = AT(psi, j * nl + c);
+                LANES acc[l] += p[l] * q[l];
+            }
+            double *ai = AT(a, i * nl + c);
+            LANES ai[l] = acc[l];
+        }
+    if (nl == 1) {
+        double s[VL], g[VL];
+        LANES s[l] = 0.0;
+        for (int64_t i = 0; i < n; i++) {
+            const double *q = AT(psi, i), *ai = AT(a, i);
+            LANES s[l] += q[l] * ai[l];
+        }
+        LANES {
+            double sv = (lam_one ? rinv[l] : lam[l] * rinv[l]) + s[l]; /* S = lam R^-1 + psi^T P psi */
+            int ok0 = sv > 0.0 && sv < INFINITY, gg = ok0 && active[l] != 0.0;
+            ok[l] = ok0;
+            s[l] = gg ? sv : 1.0;
+            go[l] = gg;
+            g[l] = gg ? zr[l] / s[l] : 0.0;
+            sum[l] = 0.0;
+        }
+        for (int64_t i = 0; i < n; i++) {
+            double *ai = AT(a, i), *st = AT(step, i);
+            LANES {
+                ai[l] = go[l] != 0.0 ? ai[l] : 0.0;
+                st[l] = ai[l] * g[l]; /* P psi S^-1 z_R */
+                sum[l] += st[l];
+            }
+        }
+        LANES {
+            int fin = fabs(sum[l]) < INFINITY;
+            ok[l] = ok[l] != 0.0 && fin;
+            go[l] = go[l] != 0.0 && fin;
+            g[l] = go[l] != 0.0 ? 1.0 / sqrt(s[l]) : 0.0;
+        }
+        for (int64_t i = 0; i < n; i++) {
+            double *ai = AT(a, i), *st = AT(step, i);
+            LANES {
+                ai[l] *= g[l]; /* W = P psi s^-1/2 */
+                st[l] = go[l] != 0.0 ? st[l] : 0.0;
+            }
+        }
+        Wm = a;
+    } else {
+        for (int64_t c1 = 0; c1 < nl; c1++) /* S = lam R^-1 + Psi^T P Psi, into Lm */
+            for (int64_t c2 = 0; c2 < nl; c2++) {
+                double *sc = AT(Lm, c1 * nl + c2), acc[VL];
+                const double *r = AT(rinv, c1 * nl + c2);
+                LANES acc[l] = 0.0;
+                for (int64_t i = 0; i < n; i++) {
+                    const double *q = AT(psi, i * nl + c1), *ai = AT(a, i * nl + c2);
+                    LANES acc[l] += q[l] * ai[l];
+                }
+                LANES sc[l] = (lam_one ? r[l] : lam[l] * r[l]) + acc[l];
+            }
+        LANES ok[l] = 1.0;
+        for (int64_t e = 0; e < nl * nl; e++) {
+            const double *sc = AT(Lm, e);
+            LANES ok[l] = ok[l] != 0.0 && fabs(sc[l]) < INFINITY;
+        }
+        for (int64_t j = 0; j < nl; j++) { /* Cholesky S = L L^T in place (lower triangle) */
+            double *ljj = AT(Lm, j * nl + j), d[VL];
+            LANES d[l] = 0.0;
+            for (int64_t k = 0; k < j; k++) {
+                const double *ljk = AT(Lm, j * nl + k);
+                LANES d[l] += ljk[l] * ljk[l];
+            }
+            LANES {
+                double piv = ljj[l] - d[l];
+                ok[l] = ok[l] != 0.0 && piv > 0.0;
+                ljj[l] = sqrt(piv > 0.0 ? piv : 1.0);
+            }
+            for (int64_t i = j + 1; i < nl; i++) {
+                double *lij = AT(Lm, i * nl + j);
+                LANES d[l] = 0.0;
+                for (int64_t k = 0; k < j; k++) {
+                    const double *lik = AT(Lm, i * nl + k), *ljk = AT(Lm, j * nl + k);
+                    LANES d[l] += lik[l] * ljk[l];
+                }
+                LANES lij[l] = (lij[l] - d[l]) / ljj[l];
+            }
+        }
+        LANES go[l] = ok[l] != 0.0 && active[l] != 0.0;
+        for (int64_t i = 0; i < nl; i++) /* L where go, else I */
+            for (int64_t j = 0; j <= i; j++) {
+                double *lij = AT(Lm, i * nl + j), e = i == j ? 1.0 : 0.0;
+                LANES lij[l] = go[l] != 0.0 ? lij[l] : e;
+            }
+        for (int64_t r = -1; r < n; r++) { /* W = a L^-T (rows r of a), v = L^-1 z_R (r = -1) */
+            for (int64_t c = 0; c < nl; c++) {
+                double *x = r < 0 ? AT(v, c) : AT(Wm, r * nl + c);
+                const double *b = r < 0 ? AT(zr, c) : AT(a, r * nl + c), *lcc = AT(Lm, c * nl + c);
+                LANES x[l] = go[l] != 0.0 ? b[l] : 0.0;
+                for (int64_t k = 0; k < c; k++) {
+                    const double *lck = AT(Lm, c * nl + k), *xk = r < 0 ? AT(v, k) : AT(Wm, r * nl + k);
+                    LANES x[l] -= lck[l] * xk[l];
+                }
+                LANES x[l] /= lcc[l];
+            }
+        }
+        LANES sum[l] = 0.0;
+        for (int64_t i = 0; i < n; i++) { /* step = W v */
+            double *st = AT(step, i), acc[VL];
+            LANES acc[l] = 0.0;
+            for (int64_t c = 0; c < nl; c++) {
+                const double *w = AT(Wm, i * nl + c), *vc = AT(v, c);
+                LANES acc[l] += w[l] * vc[l];
+            }
+            LANES st[l] = acc[l];
+            LANES sum[l] += st[l];
+        }
+        LANES {
+            int fin = fabs(sum[l]) < INFINITY;
+            ok[l] = ok[l] != 0.0 && fin;
+            go[l] = go[l] != 0.0 && fin;
+        }
+        for (int64_t i = 0; i < n; i++) {
+            double *st = AT(step, i);
+            LANES st[l] = go[l] != 0.0 ? st[l] : 0.0;
+            for (int64_t c = 0; c < nl; c++) {
+                double *w = AT(Wm, i * nl + c);
+                LANES w[l] = go[l] != 0.0 ? w[l] : 0.0;
+            }
+        }
+    }
+    for (int64_t i = 0; i < n; i++) /* P <- (P - W W^T) / lam where the member goes; theta <- theta - step */
+        for (int64_t j = 0; j < n; j++) {
+            double *p = AT(P, i * n + j);
+            if (nl == 1) {
+                const double *wi = AT(Wm, i), *wj = AT(Wm, j);
+                LANES p[l] -= wi[l] * wj[l];
+            } else {
+                double d[VL];
+                LANES d[l] = 0.0;
+                for (int64_t c = 0; c < nl; c++) {
+                    const double *wi = AT(Wm, i * nl + c), *wj = AT(Wm, j * nl + c);
+                    LANES d[l] += wi[l] * wj[l];
+                }
+                LANES p[l] -= d[l];
+            }
+            if (!lam_one) LANES p[l] /= go[l] != 0.0 ? lam[l] : 1.0;
+        }
+    for (int64_t i = 0; i < n; i++) {
+        double *t = AT(th, i);
+        const double *st = AT(step, i);
+        LANES t[l] -= st[l];
+    }
+}
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* Sources, LTI, static blocks                                                                             */
+/* ------------------------------------------------------------------------------------------------------ */
+static inline void FN(playback)(const int64_t *a, double *S, const int64_t *ptrs, const int64_t *ctr, int64_t t,
+                                int64_t b0, int64_t nb) {
+    const double *src = (const double *)(intptr_t)ptrs[a[0]];
+    int64_t ms = a[1], ts = a[2], off = a[3], w = a[4], k = ctr[a[5]] + t;
+    for (int64_t c = 0; c < w; c++) {
+        double *o = SL(a[6] + c);
+        LANES o[l] = src[(b0 + (l < nb ? l : nb - 1)) * ms + k * ts + off + c];
+    }
+}
+
+static inline void FN(noise)(const int64_t *a, double *S, const int64_t *ctr, int64_t t) {
+    int64_t w = a[0], k = ctr[a[1]] + t;
+    const double *key = SL(a[2]), *sd = SL(a[3]), *mean = SL(a[4]);
+    uint32_t kk = mix32_key((uint32_t)k), k1 = mix32_key(1u), k2 = mix32_key(2u);
+    for (int64_t c = 0; c < w; c++) {
+        double *o = SL(a[5] + c), u1[VL], u2[VL];
+        uint32_t kc = mix32_key((uint32_t)c);
+        LANES {
+            uint32_t h = mix32(mix32((uint32_t)key[l] ^ kk) ^ kc);
+            u1[l] = uniform53(mix32(h ^ k1));
+            u2[l] = uniform53(mix32(h ^ k2));
+        }
+        LANES o[l] = normal_from(u1[l], u2[l]) * sd[l] + mean[l];
+    }
+}
+
+/* out = C[rows] x + sum_f D[rows, columns_f] u_f */
+static inline void FN(lti_out)(const int64_t *a, double *S) {
+    int64_t n = a[0], w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], nft = a[7];
+    for (int64_t r = 0; r < w; r++) {
+        double acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t j = 0; j < n; j++) {
+            const double *c = SL(cs + r * n + j), *x = SL(xs + j);
+            LANES acc[l] += c[l] * x[l];
+        }
+        for (int64_t f = 0; f < nft; f++) {
+            int64_t col = a[8 + 3 * f], wf = a[9 + 3 * f], us = a[10 + 3 * f];
+            for (int64_t c = 0; c < wf; c++) {
+                const double *d = SL(ds + r * mt + col + c), *u = SL(us + c);
+                LANES acc[l] += d[l] * u[l];
+            }
+        }
+        double *o = SL(os + r);
+        LANES o[l] = acc[l];
+    }
+}
+
+/* x = A x + sum_q B[:, columns_q] u_q */
+static inline void FN(lti_upd)(const int64_t *a, double *S) {
+    int64_t n = a[0], mt = a[1], as = a[2], bs = a[3], xs = a[4], nin = a[6];
+    double *xn = SL(a[5]);
+    for (int64_t r = 0; r < n; r++) {
+        double acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t j = 0; j < n; j++) {
+            const double *m = SL(as + r * n + j), *x = SL(xs + j);
+            LANES acc[l] += m[l] * x[l];
+        }
+        int64_t col = 0;
+        for (int64_t q = 0; q < nin; q++) {
+            int64_t us = a[7 + 2 * q], w = a[8 + 2 * q];
+            for (int64_t c = 0; c < w; c++) {
+                const double *m = SL(bs + r * mt + col + c), *u = SL(us + c);
+                LANES acc[l] += m[l] * u[l];
+            }
+            col += w;
+        }
+        double *o = AT(xn, r);
+        LANES o[l] = acc[l];
+    }
+    for (int64_t r = 0; r < n; r++) {
+        double *x = SL(xs + r);
+        const double *v = AT(xn, r);
+        LANES x[l] = v[l];
+    }
+}
+
+static inline void FN(gain)(const int64_t *a, double *S) {
+    int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4];
+    for (int64_t r = 0; r < m; r++) {
+        double acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t j = 0; j < n; j++) {
+            const double *k = SL(ks + r * n + j), *x = SL(is + j);
+            LANES acc[l] += k[l] * x[l];
+        }
+        double *o = SL(os + r);
+        LANES o[l] = acc[l];
+    }
+}
+
+static inline void FN(sum)(const int64_t *a, double *S) {
+    int64_t w = a[0], nin = a[1], os = a[2];
+    for (int64_t c = 0; c < w; c++) {
+        double acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t q = 0; q < nin; q++) {
+            const double *v = SL(a[3 + 2 * q] + c);
+            int pos = a[4 + 2 * q] > 0;
+            if (q == 0) {
+                if (pos) { LANES acc[l] = v[l]; } else { LANES acc[l] = -v[l]; }
+            } else {
+                if (pos) { LANES acc[l] += v[l]; } else { LANES acc[l] -= v[l]; }
+            }
+        }
+        double *o = SL(os + c);
+        LANES o[l] = acc[l];
+    }
+}
+
+static inline void FN(copy)(const int64_t *a, double *S) {
+    for (int64_t c = 0; c < a[0]; c++) {
+        const double *v = SL(a[1] + c);
+        double *o = SL(a[2] + c);
+        LANES o[l] = v[l];
+    }
+}
+
+/* Basis features (features.py): each output channel is coefficient * f_1(x_1) * f_2(x_2) * ... */
+static inline void FN(feature)(const int64_t *a, double *S, const double *consts) {
+    int64_t out = a[0], nterms = a[1];
+    const int64_t *q = a + 2;
+    for (int64_t term = 0; term < nterms; term++) {
+        int64_t w = q[0], nf = q[2];
+        double coef = consts[q[1]];
+        for (int64_t c = 0; c < w; c++) {
+            double v[VL];
+            LANES v[l] = coef;
+            for (int64_t f = 0; f < nf; f++) {
+                const int64_t *fa = q + 3 + f * FF_N;
+                const double *x = SL(fa[FF_SRC] + fa[FF_STRIDE] * c), *p = consts + fa[FF_PARAM];
+                switch (fa[FF_KIND]) {
+                case FAC_POW:
+                    LANES {
+                        double r = x[l];
+                        for (int64_t e = 1; e < fa[FF_POWER]; e++) r *= x[l];
+                        v[l] *= r;
+                    }
+                    break;
+                case FAC_SIGN: LANES v[l] *= (double)(x[l] > 0.0) - (double)(x[l] < 0.0); break;
+                case FAC_ABS: LANES v[l] *= fabs(x[l]); break;
+                case FAC_SAT: LANES v[l] *= clampd(x[l], p[0], p[1]); break;
+                case FAC_DEADZONE: LANES v[l] *= x[l] - clampd(x[l], p[0], p[1]); break;
+                case FAC_TANH: LANES v[l] *= tanh(x[l] / p[0]); break;
+                case FAC_AFFINE: LANES v[l] *= p[0] * x[l] + p[1]; break;
+                default: break;
+                }
+            }
+            double *o = SL(out + c);
+            LANES o[l] = v[l];
+        }
+        out += w;
+        q += 3 + nf * FF_N;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* The RCO estimator (estimator.py)                                                                        */
+/* ------------------------------------------------------------------------------------------------------ */
+
+/* output: phi = [s(k) | past s | past u] gathered, u = theta phi (0 for a frozen member), saturated. */
+static inline void FN(rco_out)(const int64_t *e, double *S) {
+    int64_t n_u = e[E_NU], n_phi = e[E_NPHI];
+    const int64_t *phi_src = e + E_N;
+    const double *alive = SL(e[E_ALIVE]);
+    for (int64_t j = 0; j < n_phi; j++) {
+        const double *v = SL(phi_src[j]);
+        double *phi = SL(e[E_PHI] + j);
+        LANES phi[l] = v[l];
+    }
+    for (int64_t a = 0; a < n_u; a++) {
+        double acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t j = 0; j < n_phi; j++) {
+            const double *th = SL(e[E_THETA] + a * n_phi + j), *phi = SL(e[E_PHI] + j);
+            LANES acc[l] += th[l] * phi[l];
+        }
+        LANES acc[l] = alive[l] != 0.0 ? acc[l] : 0.0;
+        if (e[E_ULO] >= 0) {
+            const double *lo = SL(e[E_ULO] + a), *hi = SL(e[E_UHI] + a);
+            LANES acc[l] = clampd(acc[l], lo[l], hi[l]);
+        }
+        double *u = SL(e[E_UNOW] + a), *uo = SL(e[E_UOUT] + a);
+        LANES u[l] = uo[l] = acc[l];
+    }
+}
+
+/* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
+ * the theta box, the member's health and the regressor histories. */
+static inline void FN(rco_upd)(const int64_t *e, double *S, const int64_t *ctr, int64_t t) {
+    int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT];
+    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
+    const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
+    double *scr = SL(e[E_SCRATCH]);
+    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * n_z), *act = AT(eta, n);
+    double *okv = AT(act, 1), *rls_scr = AT(okv, 1);
+    double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
+    for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into rows pr and pr + W */
+        const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
+        double *r1 = SL(e[E_WIN] + pr * m + j), *r2 = SL(e[E_WIN] + (pr + W) * m + j);
+        LANES r1[l] = r2[l] = v[l];
+    }
+    for (int64_t q = 0; q < n_z * n_u; q++) { /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) */
+        double *restrict p = AT(prod, q * m);
+        for (int64_t j = 0; j < m * VL; j++) p[j] = 0.0;
+        for (int64_t i = 0; i < nu; i++) { /* oldest first; all m columns at once */
+            const double *restrict c = SL(e[E_BETA] + q * nu + i), *restrict w = SL(e[E_WIN] + (pr + 1 + i) * m);
+            for (int64_t j = 0; j < m; j++)
+                LANES p[j * VL + l] += c[l] * w[j * VL + l];
+        }
+    }
+    for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
+        double *o = AT(zr, z), d[VL];
+        const double *zi = SL(e[E_Z] + z);
+        LANES d[l] = 0.0;
+        for (int64_t a = 0; a < n_u; a++) {
+            const double *p = AT(prod, (z * n_u + a) * m + n_phi + a);
+            if (a == 0) { LANES d[l] = p[l]; } else { LANES d[l] += p[l]; }
+        }
+        LANES o[l] = zi[l] - d[l];
+    }
+    for (int64_t p = 0; p < n; p++) { /* eta and its regressor T^T Psi (entries of one parameter summed) */
+        const double *th = SL(e[E_THETA] + rep[p]);
+        double *et = AT(eta, p);
+        LANES et[l] = th[l];
+        for (int64_t z = 0; z < n_z; z++) {
+            double *ps = AT(psi, p * n_z + z);
+            int first = 1;
+            for (int64_t en = 0; en < nent; en++) {
+                if (param_of[en] != p) continue;
+                const double *v = AT(prod, (z * n_u + en / n_phi) * m + en % n_phi);
+                if (first) { LANES ps[l] = v[l]; } else { LANES ps[l] += v[l]; }
+                first = 0;
+            }
+        }
+    }
+    for (int64_t z = 0; z < n_z; z++) { /* z_R = zeta + Psi_eta^T eta */
+        double *o = AT(zr, z), d[VL];
+        LANES d[l] = 0.0;
+        for (int64_t p = 0; p < n; p++) {
+            const double *ps = AT(psi, p * n_z + z), *et = AT(eta, p);
+            LANES d[l] += ps[l] * et[l];
+        }
+        LANES o[l] += d[l];
+    }
+    const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
+    LANES act[l] = alive[l] != 0.0 && (!valid || valid[l] > 0.5);
+    FN(rls)(n, n_z, eta, SL(e[E_P]), psi, zr, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
+    for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
+        if (param_of[en] < 0) continue;
+        double *th = SL(e[E_THETA] + en);
+        const double *et = AT(eta, param_of[en]);
+        LANES th[l] = et[l];
+    }
+    if (e[E_TLO] >= 0) /* projection onto the box (P unchanged) */
+        for (int64_t en = 0; en < nent; en++) {
+            double *th = SL(e[E_THETA] + en);
+            const double *lo = SL(e[E_TLO] + en), *hi = SL(e[E_THI] + en);
+            LANES th[l] = clampd(th[l], lo[l], hi[l]);
+        }
+    double *dv = SL(e[E_DIV]);
+    LANES { /* a member that fails while active is frozen, its step recorded */
+        int fine = okv[l] != 0.0 || act[l] == 0.0;
+        if (alive[l] != 0.0 && !fine) {
+            dv[l] = (double)k;
+            alive[l] = 0.0;
+        }
+    }
+    if (e[E_NC]) { /* shift the regressor histories */
+        int64_t nc1 = e[E_NC1], n_sig = e[E_NSIG], ps = e[E_PAST], us = e[E_PASTU];
+        for (int64_t c = (nc1 - 1) * n_sig - 1; c >= 0; c--) {
+            double *d = SL(ps + n_sig + c);
+            const double *v = SL(ps + c);
+            LANES d[l] = v[l];
+        }
+        for (int64_t c = 0; c < n_sig; c++) {
+            double *d = SL(ps + c);
+            const double *v = SL(e[E_CUR] + c);
+            LANES d[l] = v[l];
+        }
+        for (int64_t c = (nc1 - 1) * n_u - 1; c >= 0; c--) {
+            double *d = SL(us + n_u + c);
+            const double *v = SL(us + c);
+            LANES d[l] = v[l];
+        }
+        for (int64_t c = 0; c < n_u; c++) {
+            double *d = SL(us + c);
+            const double *v = SL(e[E_UNOW] + c);
+            LANES d[l] = v[l];
+        }
+    }
+}
+
+/* ------------------------------------------------------------------------------------------------------ */
+/* Running a program                                                                                       */
+/* ------------------------------------------------------------------------------------------------------ */
+static inline void FN(load)(const int64_t *bd, int64_t nbind, double *S, int64_t b0, int64_t nb) {
+    for (int64_t q = 0; q < nbind; q++) {
+        const int64_t *x = bd + q * BF_N;
+        if (!(x[BF_MODE] & 1)) continue;
+        for (int64_t c = 0; c < x[BF_COUNT]; c++) {
+            double *d = SL(x[BF_SLOT] + c);
+            LANES d[l] = bind_get(x, b0 + (l < nb ? l : nb - 1), c); /* spare lanes repeat the last member */
+        }
+    }
+}
+
+static inline void FN(store)(const int64_t *bd, int64_t nbind, const double *S, int64_t b0, int64_t nb) {
+    for (int64_t q = 0; q < nbind; q++) {
+        const int64_t *x = bd + q * BF_N;
+        if (!(x[BF_MODE] & 2)) continue;
+        for (int64_t c = 0; c < x[BF_COUNT]; c++) {
+            const double *d = SL(x[BF_SLOT] + c);
+            for (int64_t l = 0; l < nb; l++) bind_put(x, b0 + l, c, d[l]);
+        }
+    }
+}
+
+static inline void FN(observe)(const int64_t *obs, int64_t nobs, double *S, double *acc, int64_t t, int64_t b0,
+                               int64_t nb, int64_t B) {
+    for (int64_t q = 0; q < nobs; q++) {
+        const int64_t *o = obs + q * OF_N;
+        int64_t w = o[OF_WIDTH];
+        if (o[OF_KIND] == OBS_SUMSQ) {
+            double v[VL], *a = AT(acc, q);
+            LANES v[l] = 0.0;
+            for (int64_t c = 0; c < w; c++) {
+                const double *x = SL(o[OF_SLOT] + c);
+                LANES v[l] += x[l] * x[l];
+            }
+            LANES a[l] += v[l];
+        } else if ((t + o[OF_PHASE] + 1) % o[OF_EVERY] == 0) {
+            double *buf = (double *)(intptr_t)o[OF_PTR] + ((t + o[OF_PHASE] + 1) / o[OF_EVERY] - 1) * B * w;
+            for (int64_t c = 0; c < w; c++) {
+                const double *x = SL(o[OF_SLOT] + c);
+                for (int64_t l = 0; l < nb; l++) buf[(b0 + l) * w + c] = x[l];
+            }
+        }
+    }
+}
+
+/* One chunk of members [b0, b0 + nb) for T steps: load, step, store. */
+static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
+    double *acc = SL(r->nslots);
+    FN(load)(r->binds, r->nbind, S, b0, nb);
+    for (int64_t q = 0; q < r->nobs; q++) {
+        const int64_t *o = r->obs + q * OF_N;
+        double *a = AT(acc, q);
+        if (o[OF_KIND] == OBS_SUMSQ) LANES a[l] = ((const double *)(intptr_t)o[OF_PTR])[b0 + (l < nb ? l : nb - 1)];
+    }
+    for (int64_t t = 0; t < r->T; t++) {
+        for (int64_t pc = 0; pc < r->ncode; pc += r->code[pc + 1]) {
+            const int64_t *a = r->code + pc + HDR;
+            switch (r->code[pc]) {
+            case OP_PLAYBACK: FN(playback)(a, S, r->ptrs, r->counters, t, b0, nb); break;
+            case OP_NOISE: FN(noise)(a, S, r->counters, t); break;
+            case OP_LTI_OUT: FN(lti_out)(a, S); break;
+            case OP_LTI_UPD: FN(lti_upd)(a, S); break;
+            case OP_GAIN: FN(gain)(a, S); break;
+            case OP_SUM: FN(sum)(a, S); break;
+            case OP_COPY: FN(copy)(a, S); break;
+            case OP_FEATURE: FN(feature)(a, S, r->consts); break;
+            case OP_RCO_OUT: FN(rco_out)(a, S); break;
+            case OP_RCO_UPD: FN(rco_upd)(a, S, r->counters, t); break;
+            default: break;
+            }
+        }
+        FN(observe)(r->obs, r->nobs, S, acc, t, b0, nb, r->B);
+    }
+    FN(store)(r->binds, r->nbind, S, b0, nb);
+    for (int64_t q = 0; q < r->nobs; q++) {
+        const int64_t *o = r->obs + q * OF_N;
+        const double *a = AT(acc, q);
+        if (o[OF_KIND] == OBS_SUMSQ)
+            for (int64_t l = 0; l < nb; l++) ((double *)(intptr_t)o[OF_PTR])[b0 + l] = a[l];
+    }
+}
+
+/* rls_update on (B, n) theta, (B, n, n) P, (B, n, nl) psi, (B, nl) z_r: VL members at a time through the same
+ * FN(rls) as the estimator, each chunk copied into lane arrays and back (one pass over P). */
+static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
+    int64_t n = q->n, nl = q->nl;
+    double *th = S, *P = AT(th, n), *psi = AT(P, n * n), *zr = AT(psi, n * nl), *lam = AT(zr, nl);
+    double *rinv = AT(lam, 1), *act = AT(rinv, nl * nl), *ok = AT(act, 1), *scr = AT(ok, 1);
+    LANES {
+        int64_t b = b0 + (l < nb ? l : nb - 1);
+        for (int64_t i = 0; i < n; i++) th[i * VL + l] = q->theta[b * n + i];
+        for (int64_t i = 0; i < n * n; i++) P[i * VL + l] = q->P[b * n * n + i];
+        for (int64_t i = 0; i < n * nl; i++) psi[i * VL + l] = q->psi[b * n * nl + i];
+        for (int64_t i = 0; i < nl; i++) zr[i * VL + l] = q->zr[b * nl + i];
+        for (int64_t i = 0; i < nl * nl; i++) rinv[i * VL + l] = q->rinv[i];
+        lam[l] = q->lam[b * q->lam_stride];
+        act[l] = q->active ? q->active[b] != 0 : 1.0;
+    }
+    FN(rls)(n, nl, th, P, psi, zr, lam, q->lam_one, rinv, act, ok, scr);
+    for (int64_t l = 0; l < nb; l++) {
+        int64_t b = b0 + l;
+        for (int64_t i = 0; i < n; i++) q->theta[b * n + i] = th[i * VL + l];
+        for (int64_t i = 0; i < n * n; i++) q->P[b * n * n + i] = P[i * VL + l];
+        q->ok[b] = ok[l] != 0.0;
+    }
+}
+
+#undef LANES
+#undef SL
+#undef AT

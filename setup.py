@@ -1,0 +1,41 @@
+"""Build of rcotorch's native engine, the C extension ``rcotorch._engine`` (the rest is in pyproject.toml).
+
+``pip install .`` and ``pip install -e .`` compile ``rcotorch/csrc/engine.c`` with the C compiler Python was
+built with (OpenMP when the compiler has it). The extension is optional: without a working compiler the
+package still installs, says so once here, and runs everything on PyTorch (``rcotorch.kernels`` warns once at
+import). It needs no torch at build time: the kernels take tensors as addresses and sizes.
+"""
+
+import sys
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+# Plain IEEE double arithmetic: no contraction into FMA, no reassociation, so a member's result does not
+# depend on the instruction set, the lane width or the batch it runs in.
+FLAGS = ["-O2", "-ftree-vectorize", "-fvect-cost-model=dynamic", "-ffp-contract=off", "-fno-math-errno",
+         "-fno-tree-loop-distribute-patterns", "-std=gnu11"]
+OPENMP = ["-fopenmp"]
+
+
+class BuildEngine(build_ext):
+    """Compile with OpenMP if the compiler has it, else without (one thread); never fail the install."""
+
+    def build_extension(self, ext):
+        for extra in (OPENMP, []):
+            ext.extra_compile_args = FLAGS + extra
+            ext.extra_link_args = list(extra)
+            try:
+                super().build_extension(ext)
+                return
+            except Exception as e:  # a compiler without OpenMP, or none at all
+                err = e
+        sys.stderr.write(f"rcotorch: the native engine was not built ({err}); rcotorch will run on PyTorch "
+                         "only. Install a C compiler and reinstall to build it.\n")
+
+
+setup(
+    ext_modules=[Extension("rcotorch._engine", sources=["rcotorch/csrc/engine.c"],
+                           depends=["rcotorch/csrc/engine.h", "rcotorch/csrc/lanes.h"], optional=True)],
+    cmdclass={"build_ext": BuildEngine},
+)
