@@ -187,6 +187,7 @@ class Run:
             "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
             "device": str(self.device.type), "engine": self.graph.ran_engine or
             ("torch" if self.graph.native_status() else "native"),
+            "engine_reason": self.graph.engine_reason if self.graph.ran_engine else self.graph.native_status(),
             "estimates": {k: value(v) for k, v in est.items()},
             "truth": self.truth, "metrics": {k: value(v) for k, v in met.items()},
             "settings": dict(self.settings), "diverged": diverged, "requirements": checks,

@@ -27,12 +27,16 @@
 
 #include "engine.h"
 
+/* Helpers inlined into every variant (a plain static inline function is not inlined across the variants'
+ * instruction-set options). */
+#define ALWAYS __attribute__((always_inline))
+
 /* ------------------------------------------------------------------------------------------------------ */
 /* Helpers shared by every variant                                                                         */
 /* ------------------------------------------------------------------------------------------------------ */
 
 /* rng._mix32 on a 32-bit value. */
-static inline uint32_t mix32(uint32_t y) {
+static inline ALWAYS uint32_t mix32(uint32_t y) {
     y ^= y >> 16;
     y *= 0x7FEB352Du;
     y ^= y >> 15;
@@ -42,7 +46,7 @@ static inline uint32_t mix32(uint32_t y) {
 
 /* rng._mix32(key + 0x632BE5AB) for a 32-bit key: the sum has 33 bits and the first xor-shift sees the top
  * one (as the int64 code does); the rest is 32-bit arithmetic. */
-static inline uint32_t mix32_key(uint32_t key) {
+static inline ALWAYS uint32_t mix32_key(uint32_t key) {
     uint32_t lo = key + 0x632BE5ABu, hi = lo < key; /* carry */
     uint32_t y = lo ^ ((lo >> 16) | (hi << 16));
     y *= 0x7FEB352Du;
@@ -52,19 +56,89 @@ static inline uint32_t mix32_key(uint32_t key) {
 }
 
 /* rng.uniform's last two keys and its 53-bit mantissa, from the hash of the keys before them. */
-static inline double uniform53(uint32_t h) {
+static inline ALWAYS double uniform53(uint32_t h) {
     int32_t a = (int32_t)(mix32(h ^ mix32_key(0x1B873593u)) >> 5);
     int32_t b = (int32_t)(mix32(h ^ mix32_key(0x5BD1E995u)) >> 6);
     return ((double)a * 67108864.0 + (double)b + 0.5) / 9007199254740992.0;
 }
 
+/* log and cos for the noise, in plain double arithmetic without branches or calls, so that a loop over
+ * lanes vectorizes and every lane width gives the same bits (libm's scalar functions would serialize the
+ * lanes). Accurate to about an ulp; the PyTorch engine's samples (torch.log, torch.cos) agree to rounding. */
+static inline ALWAYS double as_double(uint64_t b) {
+    double d;
+    memcpy(&d, &b, sizeof d);
+    return d;
+}
+
+static inline ALWAYS uint64_t as_bits(double d) {
+    uint64_t b;
+    memcpy(&b, &d, sizeof b);
+    return b;
+}
+
+/* log(x) for a normal x > 0: x = 2^e m, m in [sqrt(1/2), sqrt(2)), log m = 2 atanh(f), f = (m - 1) / (m + 1). */
+static inline ALWAYS double log_pos(double x) {
+    uint64_t b = as_bits(x);
+    double e = as_double(0x4330000000000000ull | (b >> 52)) - 4503599627371519.0; /* (b >> 52) - 1023, exact */
+    double m = as_double((b & 0x000FFFFFFFFFFFFFull) | 0x3FF0000000000000ull);
+    int big = m > 1.4142135623730951;
+    m = big ? m * 0.5 : m;
+    e = big ? e + 1.0 : e;
+    double f = (m - 1.0) / (m + 1.0), s = f * f;
+    double p = 1.0 / 23;
+    p = p * s + 1.0 / 21;
+    p = p * s + 1.0 / 19;
+    p = p * s + 1.0 / 17;
+    p = p * s + 1.0 / 15;
+    p = p * s + 1.0 / 13;
+    p = p * s + 1.0 / 11;
+    p = p * s + 1.0 / 9;
+    p = p * s + 1.0 / 7;
+    p = p * s + 1.0 / 5;
+    p = p * s + 1.0 / 3;
+    double two_f = f + f;
+    return e * 6.93147180369123816490e-01 + (e * 1.90821492927058770002e-10 + (two_f + two_f * (p * s)));
+}
+
+/* cos(2 pi u) for u in [0, 1]: reduced exactly to t in [-1/8, 1/8] and a quadrant, then Taylor polynomials
+ * of cos and sin on [-pi/4, pi/4]. */
+static inline ALWAYS double cos_2pi(double u) {
+    const double big = 6755399441055744.0;            /* 1.5 * 2^52: x + big - big rounds x to an integer */
+    double r = fabs(u - ((u + big) - big));           /* |u - round(u)| in [0, 1/2], exact */
+    double q = (r * 4.0 + big) - big;                 /* quadrant 0, 1 or 2 */
+    double t = (r - q * 0.25) * 6.283185307179586, t2 = t * t;
+    double c = -1.0 / 20922789888000.0;
+    c = c * t2 + 1.0 / 87178291200.0;
+    c = c * t2 - 1.0 / 479001600.0;
+    c = c * t2 + 1.0 / 3628800.0;
+    c = c * t2 - 1.0 / 40320.0;
+    c = c * t2 + 1.0 / 720.0;
+    c = c * t2 - 1.0 / 24.0;
+    c = c * t2 + 0.5;
+    c = 1.0 - c * t2;
+    double sn = 1.0 / 355687428096000.0;
+    sn = sn * t2 - 1.0 / 1307674368000.0;
+    sn = sn * t2 + 1.0 / 6227020800.0;
+    sn = sn * t2 - 1.0 / 39916800.0;
+    sn = sn * t2 + 1.0 / 362880.0;
+    sn = sn * t2 - 1.0 / 5040.0;
+    sn = sn * t2 + 1.0 / 120.0;
+    sn = sn * t2 - 1.0 / 6.0;
+    sn = t + t * (sn * t2);
+    return q == 0.0 ? c : q == 1.0 ? -sn : -c;
+}
+
+/* A 32-bit key held exactly in a double slot, back as an integer (the low bits of key + 2^52). */
+static inline ALWAYS uint32_t key_u32(double key) { return (uint32_t)as_bits(key + 4503599627370496.0); }
+
 /* Box-Muller, in the order of sources._normal_grid: sqrt(log(u1) * -2) * cos(u2 * 2 pi). */
-static inline double normal_from(double u1, double u2) {
-    return sqrt(log(u1) * -2.0) * cos(u2 * (2.0 * 3.141592653589793));
+static inline ALWAYS double normal_from(double u1, double u2) {
+    return sqrt(log_pos(u1) * -2.0) * cos_2pi(u2);
 }
 
 /* torch.clamp: NaN stays NaN. */
-static inline double clampd(double x, double lo, double hi) {
+static inline ALWAYS double clampd(double x, double lo, double hi) {
     double v = x < lo ? lo : x;
     return v > hi ? hi : v;
 }
@@ -74,7 +148,7 @@ static inline char *bind_addr(const int64_t *x, int64_t b, int64_t c, int64_t es
     return (char *)(intptr_t)x[BF_PTR] + off * esize;
 }
 
-static inline double bind_get(const int64_t *x, int64_t b, int64_t c) {
+static inline ALWAYS double bind_get(const int64_t *x, int64_t b, int64_t c) {
     switch (x[BF_KIND]) {
     case KIND_F64: return *(const double *)bind_addr(x, b, c, 8);
     case KIND_BOOL: return *(const uint8_t *)bind_addr(x, b, c, 1) ? 1.0 : 0.0;
@@ -82,7 +156,7 @@ static inline double bind_get(const int64_t *x, int64_t b, int64_t c) {
     }
 }
 
-static inline void bind_put(const int64_t *x, int64_t b, int64_t c, double v) {
+static inline ALWAYS void bind_put(const int64_t *x, int64_t b, int64_t c, double v) {
     switch (x[BF_KIND]) {
     case KIND_F64: *(double *)bind_addr(x, b, c, 8) = v; break;
     case KIND_BOOL: *(uint8_t *)bind_addr(x, b, c, 1) = v != 0.0; break;

@@ -10,7 +10,7 @@
  * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
  */
 
-#define LANES for (int l = 0; l < VL; l++)
+#define LANES _Pragma("omp simd") for (int l = 0; l < VL; l++)
 #define SL(s) (S + (int64_t)(s) * VL)
 #define AT(p, i) ((p) + (int64_t)(i) * VL) /* element i of a lane array */
 
@@ -182,7 +182,8 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
 /* ------------------------------------------------------------------------------------------------------ */
 /* Sources, LTI, static blocks                                                                             */
 /* ------------------------------------------------------------------------------------------------------ */
-static inline void FN(playback)(const int64_t *a, double *S, const int64_t *ptrs, const int64_t *ctr, int64_t t,
+static inline void FN(playback)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ptrs,
+                                const int64_t *restrict ctr, int64_t t,
                                 int64_t b0, int64_t nb) {
     const double *src = (const double *)(intptr_t)ptrs[a[0]];
     int64_t ms = a[1], ts = a[2], off = a[3], w = a[4], k = ctr[a[5]] + t;
@@ -192,7 +193,8 @@ static inline void FN(playback)(const int64_t *a, double *S, const int64_t *ptrs
     }
 }
 
-static inline void FN(noise)(const int64_t *a, double *S, const int64_t *ctr, int64_t t) {
+static inline void FN(noise)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ctr,
+                             int64_t t) {
     int64_t w = a[0], k = ctr[a[1]] + t;
     const double *key = SL(a[2]), *sd = SL(a[3]), *mean = SL(a[4]);
     uint32_t kk = mix32_key((uint32_t)k), k1 = mix32_key(1u), k2 = mix32_key(2u);
@@ -200,7 +202,7 @@ static inline void FN(noise)(const int64_t *a, double *S, const int64_t *ctr, in
         double *o = SL(a[5] + c), u1[VL], u2[VL];
         uint32_t kc = mix32_key((uint32_t)c);
         LANES {
-            uint32_t h = mix32(mix32((uint32_t)key[l] ^ kk) ^ kc);
+            uint32_t h = mix32(mix32(key_u32(key[l]) ^ kk) ^ kc);
             u1[l] = uniform53(mix32(h ^ k1));
             u2[l] = uniform53(mix32(h ^ k2));
         }
@@ -209,7 +211,7 @@ static inline void FN(noise)(const int64_t *a, double *S, const int64_t *ctr, in
 }
 
 /* out = C[rows] x + sum_f D[rows, columns_f] u_f */
-static inline void FN(lti_out)(const int64_t *a, double *S) {
+static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
     int64_t n = a[0], w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], nft = a[7];
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
@@ -231,7 +233,7 @@ static inline void FN(lti_out)(const int64_t *a, double *S) {
 }
 
 /* x = A x + sum_q B[:, columns_q] u_q */
-static inline void FN(lti_upd)(const int64_t *a, double *S) {
+static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
     int64_t n = a[0], mt = a[1], as = a[2], bs = a[3], xs = a[4], nin = a[6];
     double *xn = SL(a[5]);
     for (int64_t r = 0; r < n; r++) {
@@ -260,7 +262,7 @@ static inline void FN(lti_upd)(const int64_t *a, double *S) {
     }
 }
 
-static inline void FN(gain)(const int64_t *a, double *S) {
+static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
     int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4];
     for (int64_t r = 0; r < m; r++) {
         double acc[VL];
@@ -274,7 +276,7 @@ static inline void FN(gain)(const int64_t *a, double *S) {
     }
 }
 
-static inline void FN(sum)(const int64_t *a, double *S) {
+static inline void FN(sum)(const int64_t *restrict a, double *restrict S) {
     int64_t w = a[0], nin = a[1], os = a[2];
     for (int64_t c = 0; c < w; c++) {
         double acc[VL];
@@ -293,7 +295,7 @@ static inline void FN(sum)(const int64_t *a, double *S) {
     }
 }
 
-static inline void FN(copy)(const int64_t *a, double *S) {
+static inline void FN(copy)(const int64_t *restrict a, double *restrict S) {
     for (int64_t c = 0; c < a[0]; c++) {
         const double *v = SL(a[1] + c);
         double *o = SL(a[2] + c);
@@ -302,7 +304,7 @@ static inline void FN(copy)(const int64_t *a, double *S) {
 }
 
 /* Basis features (features.py): each output channel is coefficient * f_1(x_1) * f_2(x_2) * ... */
-static inline void FN(feature)(const int64_t *a, double *S, const double *consts) {
+static inline void FN(feature)(const int64_t *restrict a, double *restrict S, const double *restrict consts) {
     int64_t out = a[0], nterms = a[1];
     const int64_t *q = a + 2;
     for (int64_t term = 0; term < nterms; term++) {
@@ -344,7 +346,7 @@ static inline void FN(feature)(const int64_t *a, double *S, const double *consts
 /* ------------------------------------------------------------------------------------------------------ */
 
 /* output: phi = [s(k) | past s | past u] gathered, u = theta phi (0 for a frozen member), saturated. */
-static inline void FN(rco_out)(const int64_t *e, double *S) {
+static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
     int64_t n_u = e[E_NU], n_phi = e[E_NPHI];
     const int64_t *phi_src = e + E_N;
     const double *alive = SL(e[E_ALIVE]);
@@ -372,7 +374,8 @@ static inline void FN(rco_out)(const int64_t *e, double *S) {
 
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
  * the theta box, the member's health and the regressor histories. */
-static inline void FN(rco_upd)(const int64_t *e, double *S, const int64_t *ctr, int64_t t) {
+static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
+                               int64_t t) {
     int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT];
     int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
@@ -386,12 +389,14 @@ static inline void FN(rco_upd)(const int64_t *e, double *S, const int64_t *ctr, 
         LANES r1[l] = r2[l] = v[l];
     }
     for (int64_t q = 0; q < n_z * n_u; q++) { /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) */
-        double *restrict p = AT(prod, q * m);
-        for (int64_t j = 0; j < m * VL; j++) p[j] = 0.0;
-        for (int64_t i = 0; i < nu; i++) { /* oldest first; all m columns at once */
-            const double *restrict c = SL(e[E_BETA] + q * nu + i), *restrict w = SL(e[E_WIN] + (pr + 1 + i) * m);
-            for (int64_t j = 0; j < m; j++)
-                LANES p[j * VL + l] += c[l] * w[j * VL + l];
+        const double *restrict c = SL(e[E_BETA] + q * nu), *restrict w = SL(e[E_WIN] + (pr + 1) * m);
+        for (int64_t j = 0; j < m; j++) {
+            double acc[VL];
+            LANES acc[l] = 0.0;
+            for (int64_t i = 0; i < nu; i++) /* oldest first */
+                LANES acc[l] += c[i * VL + l] * w[(i * m + j) * VL + l];
+            double *p = AT(prod, q * m + j);
+            LANES p[l] = acc[l];
         }
     }
     for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
@@ -533,24 +538,27 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         double *a = AT(acc, q);
         if (o[OF_KIND] == OBS_SUMSQ) LANES a[l] = ((const double *)(intptr_t)o[OF_PTR])[b0 + (l < nb ? l : nb - 1)];
     }
-    for (int64_t t = 0; t < r->T; t++) {
-        for (int64_t pc = 0; pc < r->ncode; pc += r->code[pc + 1]) {
-            const int64_t *a = r->code + pc + HDR;
-            switch (r->code[pc]) {
-            case OP_PLAYBACK: FN(playback)(a, S, r->ptrs, r->counters, t, b0, nb); break;
-            case OP_NOISE: FN(noise)(a, S, r->counters, t); break;
+    const int64_t *restrict code = r->code, *restrict ptrs = r->ptrs, *restrict ctr = r->counters;
+    const double *restrict consts = r->consts;
+    const int64_t ncode = r->ncode, T = r->T;
+    for (int64_t t = 0; t < T; t++) {
+        for (int64_t pc = 0; pc < ncode; pc += code[pc + 1]) {
+            const int64_t *a = code + pc + HDR;
+            switch (code[pc]) {
+            case OP_PLAYBACK: FN(playback)(a, S, ptrs, ctr, t, b0, nb); break;
+            case OP_NOISE: FN(noise)(a, S, ctr, t); break;
             case OP_LTI_OUT: FN(lti_out)(a, S); break;
             case OP_LTI_UPD: FN(lti_upd)(a, S); break;
             case OP_GAIN: FN(gain)(a, S); break;
             case OP_SUM: FN(sum)(a, S); break;
             case OP_COPY: FN(copy)(a, S); break;
-            case OP_FEATURE: FN(feature)(a, S, r->consts); break;
+            case OP_FEATURE: FN(feature)(a, S, consts); break;
             case OP_RCO_OUT: FN(rco_out)(a, S); break;
-            case OP_RCO_UPD: FN(rco_upd)(a, S, r->counters, t); break;
+            case OP_RCO_UPD: FN(rco_upd)(a, S, ctr, t); break;
             default: break;
             }
         }
-        FN(observe)(r->obs, r->nobs, S, acc, t, b0, nb, r->B);
+        if (r->nobs) FN(observe)(r->obs, r->nobs, S, acc, t, b0, nb, r->B);
     }
     FN(store)(r->binds, r->nbind, S, b0, nb);
     for (int64_t q = 0; q < r->nobs; q++) {
