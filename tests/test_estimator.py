@@ -1,11 +1,14 @@
 """The RCO estimator: its transfer function, structure (static gain, mask), convergence and divergence handling."""
 
+import contextlib
+
 import control
 import numpy as np
 import pytest
 import torch
 
 import rcotorch as rt
+from rcotorch import kernels
 
 DT = 0.1
 OMEGA = np.array([0.0, 0.05, 0.7, 3.0, 9.0, np.pi / DT - 1e-3])
@@ -260,15 +263,45 @@ def _phi_from_names(names, hist, k):
     return np.array(out)
 
 
-@pytest.mark.parametrize("case", ["siso", "mimo_masked", "static_gain", "tied"])
-def test_update_minimizes_retrospective_cost(case):
+FEATURES = {   # name -> (term, the same function in numpy, written out independently)
+    "q": (rt.features.port("q"), lambda q, v: q),
+    "q^3": (rt.features.power("q", 3), lambda q, v: q ** 3),
+    "sign(v)*v^2": (rt.features.sign("v") * rt.features.power("v", 2), lambda q, v: np.sign(v) * v ** 2),
+    "|q|*v": (rt.features.absolute("q") * rt.features.port("v"), lambda q, v: np.abs(q) * v),
+    "sat(v, -0.5, 0.5)": (rt.features.saturation("v", -0.5, 0.5), lambda q, v: np.clip(v, -0.5, 0.5)),
+    "dz(q, -0.2, 0.2)": (rt.features.dead_zone("q", 0.2), lambda q, v: q - np.clip(q, -0.2, 0.2)),
+    "tanh(v/0.7)": (rt.features.tanh("v", 0.7), lambda q, v: np.tanh(v / 0.7)),
+    "3*(2*q-1)": (3.0 * rt.features.affine("q", 2.0, -1.0), lambda q, v: 3 * (2 * q - 1)),
+    "q^2*v": (rt.features.monomial(q=2, v=1), lambda q, v: q ** 2 * v),
+    "0.5": (rt.features.constant(0.5), lambda q, v: 0.5 + 0 * q),
+}
+
+
+@pytest.mark.parametrize("kernel", ["torch", "native"])
+@pytest.mark.parametrize("case", ["siso", "mimo_masked", "static_gain", "tied", "features"])
+def test_update_minimizes_retrospective_cost(case, kernel):
     """With lam = 1, theta(N) = argmin sum_k |z(k) + sum_i beta_i [th - theta(k-i)] phi(k-i)|^2_R
     + |eta - eta0|^2 / p0 over the free parameters eta (th = T eta: masked entries zero, tied entries
-    equal), computed in numpy from the run's own data."""
-    rng = np.random.default_rng({"siso": 1, "mimo_masked": 2, "static_gain": 3, "tied": 4}[case])
+    equal), computed in numpy from the run's own data. ``kernel='torch'``: PyTorch operations only (the
+    path of Graph(engine='torch'), CUDA and float32); 'native': rls_update's compiled kernel."""
+    if kernel == "native" and not kernels.available():
+        pytest.skip(f"no native engine: {kernels.why_unavailable()}")
+    with kernels.disabled() if kernel == "torch" else contextlib.nullcontext():
+        _check_retrospective_cost(case)
+
+
+def _check_retrospective_cost(case):
+    rng = np.random.default_rng({"siso": 1, "mimo_masked": 2, "static_gain": 3, "tied": 4, "features": 5}[case])
     p0, N = 1.0, 40
     T = None
-    if case == "tied":
+    feats = None
+    if case == "features":
+        signals, n_u, n_z, d, nu, R, mask = {"q": 1, "v": 1}, 1, 1, 1, 3, np.eye(1), None
+        feats = {name: f for name, (_, f) in FEATURES.items()}
+        est = rt.RCOEstimator(signals, nc=1, p0=p0, features=[t for t, _ in FEATURES.values()],
+                              markov=0.3 * rng.standard_normal((nu, 1, 1)), first_delay=d)
+        assert est.signal_names == list(FEATURES)
+    elif case == "tied":
         # Three outputs, one function of each output's own two features: u_j = a s_j + b s_j^2 (a, b shared),
         # the cross terms pinned: theta (3 x 6) over phi = [s_0, s_1, s_2, s_0^2, s_1^2, s_2^2](k).
         signals, n_u, n_z, d, nu = {"s": 3, "s2": 3}, 3, 2, 1, 3
@@ -301,13 +334,15 @@ def test_update_minimizes_retrospective_cost(case):
     free = np.ones((n_u, est.n_phi), bool) if mask is None else np.asarray(mask)
     est.reset(1)
     theta0 = est.theta[0].numpy().copy()
-    hist = {s: [] for s in signals} | {"u": []}
+    hist = {s: [] for s in (feats or signals)} | {"u": []}          # what phi is built from
     phis, thetas, zs = [], [], []
     for k in range(N):
         inputs = {s: torch.tensor(rng.standard_normal((1, w))) for s, w in signals.items()}
         z = torch.tensor(0.2 * rng.standard_normal((1, n_z)))    # small: keeps the u-feedback stable
-        for s in signals:
+        for s in signals if feats is None else ():
             hist[s].append(inputs[s][0].numpy())
+        for name, f in (feats or {}).items():
+            hist[name].append(np.atleast_1d(f(inputs["q"][0].numpy(), inputs["v"][0].numpy())))
         thetas.append(est.theta[0].numpy().copy())
         phi = _phi_from_names(est.phi_names, hist, k) if est.proper else None
         u = est.step(**inputs, z=z)["u"][0].numpy()

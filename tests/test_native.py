@@ -4,6 +4,7 @@ It must do what the PyTorch engine does, to rounding: every lowered block and es
 both engines from the same state and compared. Independent references for the engine itself: the NumPy loop
 (tests/test_numpy_reference.py runs on both engines) and the closed-form RLS (tests/test_rls.py)."""
 
+import logging
 import os
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
+from rcotorch import kernels, lowering
 from rcotorch import scenario as scenarios
 
 pytestmark = pytest.mark.skipif(not kernels.available(), reason=f"no native engine: {kernels.why_unavailable()}")
@@ -65,12 +66,96 @@ def _run_both(build, steps, chunks=(1,)):
     ("sdof-stiffness", {"lam": 0.999}),
     ("sdof-dynamic-impedance", {}),
     ("twodof-stiffness", {}),
+    ("twodof-stiffness", {"truth": "discrete"}),
+    ("rlc-circuit", {}),
+    ("silverbox-cubic-stiffness", {}),
 ])
 def test_scenarios_agree_with_the_torch_engine(name, overrides):
+    """Every shipped scenario but the thermosphere (a user-function Nonlinear block) runs natively."""
     sc = scenarios.get(name)
     s = sc.resolve(overrides)
-    a, b = _run_both(lambda: sc.build(s, 5, torch.float64, "cpu"), 700, chunks=(3, 1, 2))
+    try:
+        sc.build(s, 1, torch.float64, "cpu")
+    except rt.DataError as e:                       # the Silverbox files live outside the repository
+        pytest.skip(str(e))
+    a, b = _run_both(lambda: sc.build(s, 3, torch.float64, "cpu"), 700, chunks=(3, 1, 2))
     _assert_same_state(a, b)
+
+
+def test_the_thermosphere_says_why_it_runs_on_pytorch():
+    sc = scenarios.get("thermosphere-no-cooling")
+    g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
+    assert "hooks" in g.native_status() or "Nonlinear" in g.native_status()
+
+
+# --- every option of the estimator ---------------------------------------------------------------------
+F = rt.features
+
+
+def _structure_graph(est, B=4, measured=("velocity",), sees=("position", "velocity"), n_u=1):
+    """A refinement around an SDOF (n_u = 1) or 2-DOF (n_u = 2, one force per mass) known model with a truth
+    of other stiffness and damping, a white-noise force per member and per-member seeds."""
+    if n_u == 1:
+        M, C, K, Ct, Kt, fw = [[1.0]], [[0.6]], [[1.5]], [[0.9]], [[2.0]], [1.0]
+    else:
+        M, fw = np.eye(2), [1.0, 1.0]
+        C, K = np.array([[1.2, -0.4], [-0.4, 1.0]]), np.array([[1.5, -0.5], [-0.5, 1.3]])
+        Ct, Kt = C + np.diag([0.2, 0.0]), K + np.diag([0.4, 0.3])
+    G = rt.models.structure(M, C, K, fw, measured=measured, sees=sees)
+    T = rt.models.structure(M, Ct, Kt, fw, measured=measured, sees=[], actuation=False)
+    known = rt.LTI.from_control(G, inputs={"w": 1, "u": n_u}, outputs={"y": len(measured), "y0": len(sees)},
+                                dt=DT, name="known")
+    truth = rt.LTI.from_control(T, inputs=["w"], outputs={"y": len(measured)}, dt=DT, name="plant")
+    return rt.refinement(known, est, physical=truth, excitation=rt.WhiteNoise(1, seed=list(range(3, 3 + B))),
+                         nu=8, batch_size=B)
+
+
+P0 = [1e2, 1e3, 1e4, 1e5]
+OPTIONS = {
+    "dynamic nc=2, per-member p0 and lam": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=2, p0=P0, lam=[1.0, 0.999, 0.995, 1.0]),
+    "proper with past samples": lambda: rt.RCOEstimator({"y0": 2}, nc=1, proper=True, p0=100.0),
+    "FIR (no past u)": lambda: rt.RCOEstimator({"y0": 2}, nc=2, feed_u=False, p0=100.0),
+    "regressors y0 and w": lambda: rt.RCOEstimator({"y0": 2, "w": 1}, nc=1, p0=100.0, lam=0.998),
+    "masked": lambda: rt.RCOEstimator({"y0": 2}, nc=2, p0=100.0, mask=[[True, False, True, True, True, False]]),
+    "tied": lambda: rt.RCOEstimator({"y0": 2}, nc=2, p0=100.0, tie=[[0, 1, 0, 1, 2, 3]]),
+    "bounds on u and theta": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=1, p0=P0, u_bounds=(-0.5, 2.0), theta_bounds=([-1, -1, -0.5], 1.5)),
+    "two z channels, full R": lambda: rt.RCOEstimator(
+        {"y0": 2}, n_z=2, nc=1, p0=P0, R=[[2.0, 0.3], [0.3, 0.5]], lam=0.999),
+    "features, static": lambda: rt.RCOEstimator.static_gain(
+        {"y0": 2}, p0=100.0, features=[F.port("y0[0]"), F.power("y0[1]", 3), F.sign("y0[1]") * F.power("y0[1]", 2),
+                                       F.absolute("y0[0]") * F.port("y0[1]"), F.constant(0.1)]),
+    "features, dynamic, every kind": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=2, p0=10.0, features=[
+            F.saturation("y0[1]", -0.2, 0.3), F.dead_zone("y0[0]", 0.05), 2.0 * F.tanh("y0[1]", 0.5),
+            F.affine("y0[0]", 3.0, 0.1), F.monomial(y0=2), F.product("y0[0]", "y0[1]")]),
+    "features over a whole port": lambda: rt.RCOEstimator.static_gain(
+        {"y0": 2}, p0=100.0, features=[F.port("y0"), F.power("y0", 3)]),
+}
+MIMO_OPTIONS = {   # both velocities measured (n_z = 2)
+    "MIMO dynamic": lambda: rt.RCOEstimator({"y0": 2}, n_u=2, n_z=2, nc=1, p0=10.0),
+    "MIMO masked static gain": lambda: rt.RCOEstimator.static_gain(
+        {"y0": 2}, n_u=2, n_z=2, p0=1e3, lam=0.999, mask=[[True, False], [False, True]]),
+    "MIMO tied, two z channels": lambda: rt.RCOEstimator.static_gain(
+        {"y0": 2}, n_u=2, n_z=2, p0=1e3, tie=[[0, -1], [-1, 0]]),
+    "MIMO features, two z channels": lambda: rt.RCOEstimator(
+        {"y0": 2}, n_u=2, n_z=2, nc=1, p0=100.0, R=[[1.0, 0.2], [0.2, 2.0]],
+        features=[F.power("y0", 3), F.sign("y0[0]")]),
+}
+
+
+@pytest.mark.parametrize("option", list(OPTIONS) + list(MIMO_OPTIONS))
+def test_estimator_options_agree_with_the_torch_engine(option):
+    mimo = option in MIMO_OPTIONS
+    make = MIMO_OPTIONS[option] if mimo else OPTIONS[option]
+    measured = ("velocity[0]", "velocity[1]") if mimo else ("velocity", "position")[:make().n_z]
+    sees = ("position[0]", "position[1]") if mimo else ("position", "velocity")
+    a, b = _run_both(lambda: _structure_graph(make(), measured=measured, sees=sees, n_u=2 if mimo else 1), 700,
+                     chunks=(2, 5))
+    _assert_same_state(a, b)
+    est = b.role("estimator")
+    assert bool(est.alive.all()) and float(est.theta.abs().max()) > 0
 
 
 def test_per_member_parameters_bounds_and_feedthrough(sdof_known, zoh_first_order):
@@ -261,3 +346,119 @@ def test_without_the_compiled_engine_one_warning_and_the_same_results():
     g.advance(300)
     theta = torch.tensor(eval(lines["THETA"]), dtype=torch.float64)
     np.testing.assert_allclose(theta.numpy(), g.role("estimator").theta.flatten().numpy(), rtol=1e-10)
+
+
+def test_members_equal_their_batch_of_one_runs_with_features_and_two_z_channels():
+    """A member's arithmetic is the same in lanes of 1, 4, 8 or 16 (the lane width follows the batch)."""
+    make = MIMO_OPTIONS["MIMO features, two z channels"]
+    sees, measured = ("position[0]", "position[1]"), ("velocity[0]", "velocity[1]")
+
+    def build(B, seeds):
+        g = _structure_graph(make(), B=B, measured=measured, sees=sees, n_u=2)
+        g.blocks["excitation"].seed = torch.tensor(seeds)
+        g.reset(B)
+        g.engine = "native"
+        return g
+
+    big = build(23, list(range(40, 63)))
+    big.advance(250)
+    for b in (0, 9, 22):
+        one = build(1, [40 + b])
+        one.advance(100)
+        one.advance(150)
+        for key in ("theta", "P", "past", "z_r", "u_now"):
+            assert torch.equal(getattr(one.role("estimator"), key)[0], getattr(big.role("estimator"), key)[b]), key
+
+
+def test_checkpoint_and_resume_is_bitwise():
+    sc = scenarios.get("twodof-stiffness")
+    s = sc.resolve()
+    whole = sc.build(s, 3, torch.float64, "cpu")
+    whole.advance(500)
+    first = sc.build(s, 3, torch.float64, "cpu")
+    first.advance(321)
+    state = {k: v.clone() for k, v in first.state_dict().items()}
+    resumed = sc.build(s, 3, torch.float64, "cpu")
+    resumed.load_state_dict(state)
+    resumed.advance(179)
+    assert resumed.ran_engine == "native"
+    for key, t in whole.state_dict().items():
+        assert torch.equal(t, resumed.state_dict()[key]), key
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_recording_inside_the_engine(every):
+    """``run(record=...)`` records natively in one call; the traces are those of the PyTorch engine, and a
+    callable (Python after every ``every`` steps) sees the same values."""
+    sc = scenarios.get("sdof-stiffness-damping")
+    a, b = _pair(lambda: sc.build(sc.resolve(), 4, torch.float64, "cpu"))
+    rec = {"z": "error.out", "u": "identified.u", "y0": "known.y0"}
+    ta = a.run(301, record=rec, every=every)
+    tb = b.run(301, record={**rec, "theta": lambda g: g.role("estimator").theta[:, 0, 0]}, every=every)
+    for key in rec:
+        assert tb[key].shape == ta[key].shape == (301 // every, 4, 2 if key == "y0" else 1)
+        np.testing.assert_allclose(tb[key].numpy(), ta[key].numpy(), rtol=1e-9, atol=1e-12)
+    assert tb["theta"].shape == (301 // every, 4) and b.ran_engine == "native"
+    if every == 1:
+        assert torch.equal(tb["theta"][-1], b.role("estimator").theta[:, 0, 0])
+
+
+def test_the_program_is_lowered_once_and_again_when_the_graph_changes():
+    sc = scenarios.get("sdof-stiffness-damping")
+    g = sc.build(sc.resolve(), 2, torch.float64, "cpu")
+    prog = lowering.program(g)
+    g.advance(10)
+    g.run(20, record={"z": "error.out"})
+    for _ in range(3):
+        g.step()                                       # PyTorch steps replace state tensors: same program
+    assert lowering.program(g) is prog
+    est = g.role("estimator")
+    est.lam.fill_(0.99)                                # a parameter changed in place: lowered again
+    assert lowering.program(g) is not prog
+    prog = lowering.program(g)
+    g.reset(3)                                         # another batch size
+    assert lowering.program(g) is not prog
+
+
+def test_engine_choice_is_said_once_and_kept(caplog):
+    sc = scenarios.get("thermosphere-no-cooling")
+    g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
+    with caplog.at_level(logging.INFO, logger="rcotorch"):
+        g.advance(2)
+        g.advance(2)
+    said = [r for r in caplog.records if "PyTorch engine" in r.getMessage()]
+    assert len(said) == 1 and g.ran_engine == "torch" and g.engine_reason == g.native_status()
+    g.engine = "native"
+    with pytest.raises(rt.ConfigError, match="engine='native', but"):
+        g.advance(1)
+    sc = scenarios.get("sdof-stiffness")
+    g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
+    g.advance(5)
+    assert (g.ran_engine, g.engine_reason) == ("native", None)
+    g.engine = "torch"
+    g.advance(5)
+    assert (g.ran_engine, g.engine_reason) == ("torch", "engine='torch'")
+
+
+def test_the_torch_engine_runs_no_compiled_code(monkeypatch):
+    class Refuse:
+        def __getattr__(self, name):
+            raise AssertionError(f"compiled code called: {name}")
+
+    sc = scenarios.get("sdof-stiffness-damping")
+    g = sc.build(sc.resolve(), 3, torch.float64, "cpu")
+    g.engine = "torch"
+    monkeypatch.setattr(kernels, "_engine", Refuse())
+    g.advance(30)
+    g.run(10, record={"z": "error.out"})
+    assert int(g.k) == 40
+
+
+def test_a_subclass_that_changes_a_block_keeps_the_graph_on_pytorch(sdof_known):
+    class Leaky(rt.Gain):
+        def output(self, port, inputs):
+            return 0.9 * super().output(port, inputs)
+
+    g = rt.refinement(sdof_known(DT), rt.RCOEstimator({"y0": 1}, nc=1), truth=Leaky([[0.1]], name="unknown"),
+                      excitation=rt.WhiteNoise(1), nu=4)
+    assert "overrides output() of Gain" in g.native_status()
