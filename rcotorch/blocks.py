@@ -164,7 +164,8 @@ class Gain(Block):
         return matvec(self.K, inputs["in"])
 
     def lower(self, b) -> None:
-        b.emit("GAIN", [*self.K.shape[1:], b.param(self.K), b.input("in"), b.output("out")], port="out")
+        b.emit("GAIN", [*self.K.shape[1:], b.param(self.K), b.input("in"), b.output("out"), b.shared(self.K)],
+               port="out")
 
 
 class Sum(Block):

@@ -482,6 +482,7 @@ class RCOEstimator(Block):
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
                       W=W, NUM=W - self.first_delay, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
+                      SHARED=b.shared(self.beta_t),
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
                       BETA=b.param(self._beta_rev()), LAM=b.param(self.lam.reshape(-1, 1)),

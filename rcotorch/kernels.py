@@ -48,6 +48,7 @@ KIND = _names("KINDS")                         # element kinds of a binding (RCO
 OBS_FIELD = _names("OBS_FIELDS")               # fields of an observer record (RCO_OBS_FIELDS)
 OBSERVER = _names("OBSERVERS")                 # kinds of observers (RCO_OBSERVERS)
 HEADER = getattr(_engine, "HEADER", 2)         # ints before an instruction's arguments (op, length)
+NOISE_AHEAD = getattr(_engine, "NOISE_AHEAD", 1)  # steps of noise drawn at a time (a buffer per channel)
 LANE_WIDTHS: tuple[int, ...] = getattr(_engine, "LANE_WIDTHS", (1,))
 
 _ALLOWED = contextvars.ContextVar("rcotorch_kernels_allowed", default=True)

@@ -105,6 +105,10 @@ class Builder:
         self.keep.append(t)
         return self._bind(lambda t=t: t, 1, None, t[0].numel(), f"block '{self.block.name}' parameter")
 
+    def shared(self, *tensors: torch.Tensor) -> int:
+        """1 when every member shares these parameters ((1, ...) tensors, or a batch of one), else 0."""
+        return int(self.batch == 1 or all(t.shape[0] == 1 for t in tensors))
+
     def input(self, port: str) -> int | None:
         """Slots of the signal driving an input port, or None when the port is not connected."""
         if self._inner is not None:

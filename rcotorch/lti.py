@@ -151,19 +151,19 @@ class LTI(Block):
 
     def lower(self, b) -> None:
         n, mt = self.n_states, self.B.shape[2]
-        x = b.state("x")
+        x, shared = b.state("x"), b.shared(self.A, self.B, self.C, self.D)
         C, D = b.param(self.C), None
         for port, rows in self._out_slices.items():
             ft = [p for p in self._feedthrough[port] if b.input(p) is not None]
             if ft and D is None:
                 D = b.param(self.D)
             args = [n, rows.stop - rows.start, C + rows.start * n, x, b.output(port), mt,
-                    (0 if D is None else D) + rows.start * mt, len(ft)]
+                    (0 if D is None else D) + rows.start * mt, shared, len(ft)]
             for p in ft:
                 cs = self._in_slices[p]
                 args += [cs.start, cs.stop - cs.start, b.input(p)]
             b.emit("LTI_OUT", args, port=port)
-        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), len(self._in_slices)]
+        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), shared, len(self._in_slices)]
         for p, cs in self._in_slices.items():
             args += [b.input(p), cs.stop - cs.start]
         b.emit("LTI_UPD", args)

@@ -85,7 +85,7 @@ class WhiteNoise(Block):
         keys = memo.derived(self, "keys", (self.stream,), lambda: rng.hash32(
             self.stream[:, 0], self.stream[:, 1]).to(torch.float64).reshape(-1, 1))   # (seed, member) prefix
         b.emit("NOISE", [self.width, b.counter(), b.param(keys), b.param(self.std), b.param(self.mean),
-                         b.output("out")], port="out")
+                         b.output("out"), b.scratch(kernels.NOISE_AHEAD * self.width)], port="out")
 
 
 def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int,

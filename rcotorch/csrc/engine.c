@@ -449,6 +449,7 @@ PyMODINIT_FUNC PyInit__engine(void) {
         add_names(m, "OBS_FIELDS", OBS_FIELD_NAMES, OF_N) ||
         add_names(m, "OBSERVERS", OBSERVER_NAMES, OBS_N) || PyModule_AddObject(m, "LANE_WIDTHS", lanes) ||
         PyModule_AddIntConstant(m, "HEADER", HDR) || PyModule_AddIntConstant(m, "OPENMP", openmp) ||
+        PyModule_AddIntConstant(m, "NOISE_AHEAD", NOISE_AHEAD) ||
         PyModule_AddStringConstant(m, "ISA", ISA_NAME)) {
         Py_DECREF(m);
         return NULL;

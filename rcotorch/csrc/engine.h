@@ -10,13 +10,14 @@
 #include <stdint.h>
 
 /* Instructions: code[pc] = op, code[pc + 1] = the instruction's length in int64 (header included), then its
- * arguments. Slot s of a chunk holds one scalar for each of its VL lanes: S[s * VL + lane]. */
+ * arguments. Slot s of a chunk holds one scalar for each of its VL lanes: S[s * VL + lane]. A parameter that
+ * all members share ("shared" = 1) holds the same value in every lane, and operations read it once. */
 #define RCO_OPS(X)                                                                                           \
     X(PLAYBACK)  /* ptr, member stride, time stride, offset, width, counter, out                          */ \
-    X(NOISE)     /* width, counter, stream key, std, mean, out: mean + std N(seed, member, k, c)          */ \
-    X(LTI_OUT)   /* n, rows, C, x, out, total inputs, D, nft, [column, width, in] * nft                   */ \
-    X(LTI_UPD)   /* n, total inputs, A, B, x, scratch, nin, [in, width] * nin                             */ \
-    X(GAIN)      /* rows, cols, K, in, out                                                                 */ \
+    X(NOISE)     /* width, counter, stream key, std, mean, out, buffer: mean + std N(seed, member, k, c)  */ \
+    X(LTI_OUT)   /* n, rows, C, x, out, total inputs, D, shared, nft, [column, width, in] * nft           */ \
+    X(LTI_UPD)   /* n, total inputs, A, B, x, scratch, shared, nin, [in, width] * nin                     */ \
+    X(GAIN)      /* rows, cols, K, in, out, shared                                                         */ \
     X(SUM)       /* width, nin, out, [in, sign] * nin                                                      */ \
     X(COPY)      /* width, in, out                                                                         */ \
     X(FEATURE)   /* out, nterms, then per term: width, coefficient, nfactors, [FACTOR_FIELDS] * nfactors   */ \
@@ -32,7 +33,7 @@
  * parameter). Slots: state (THETA .. PASTU), parameters (BETA, LAM, RINV, bounds), inputs (Z, VALID, CUR),
  * the output (UOUT) and scratch (SCRATCH, RCO_SCRATCH slots, see rco_scratch in lanes.h). */
 #define RCO_FIELDS(X)                                                                                        \
-    X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NUM) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER)           \
+    X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NUM) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
     X(THETA) X(P) X(WIN) X(PHI) X(UNOW) X(ZR) X(ALIVE) X(DIV) X(PAST) X(PASTU)                             \
     X(BETA) X(LAM) X(RINV) X(TLO) X(THI) X(ULO) X(UHI) X(Z) X(VALID) X(CUR) X(UOUT) X(SCRATCH)
 
@@ -66,5 +67,9 @@ enum { RCO_OBSERVERS(X_OBS) OBS_N };
 
 /* Instruction header: op and length. */
 #define HDR 2
+
+/* Noise is drawn for NOISE_AHEAD steps at a time (vectorized over steps and lanes) into a buffer of
+ * NOISE_AHEAD * width slots. */
+#define NOISE_AHEAD 32
 
 #endif

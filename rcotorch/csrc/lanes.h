@@ -13,6 +13,17 @@
 #define LANES _Pragma("omp simd") for (int l = 0; l < VL; l++)
 #define SL(s) (S + (int64_t)(s) * VL)
 #define AT(p, i) ((p) + (int64_t)(i) * VL) /* element i of a lane array */
+/* acc += p x for a parameter slot p (read once when every lane holds the same value) and a lane slot x */
+#define PMAC(acc, p, x, shared)                                                                              \
+    do {                                                                                                     \
+        const double *p_ = (p), *x_ = (x);                                                                   \
+        if (VL == 1 || (shared)) {                                                                           \
+            double v_ = p_[0];                                                                               \
+            LANES(acc)[l] += v_ * x_[l];                                                                     \
+        } else {                                                                                             \
+            LANES(acc)[l] += p_[l] * x_[l];                                                                  \
+        }                                                                                                    \
+    } while (0)
 
 /* ------------------------------------------------------------------------------------------------------ */
 /* RLS (rls.py, rls_update): theta (n), P (n x n), psi (n x nl), zr (nl), lam (1), rinv (nl x nl), active (1)  */
@@ -194,38 +205,40 @@ static inline void FN(playback)(const int64_t *restrict a, double *restrict S, c
 }
 
 static inline void FN(noise)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ctr,
-                             int64_t t) {
-    int64_t w = a[0], k = ctr[a[1]] + t;
+                             int64_t t, int64_t T) {
+    int64_t w = a[0], k0 = ctr[a[1]] + t, ahead = t % NOISE_AHEAD;
     const double *key = SL(a[2]), *sd = SL(a[3]), *mean = SL(a[4]);
-    uint32_t kk = mix32_key((uint32_t)k), k1 = mix32_key(1u), k2 = mix32_key(2u);
-    for (int64_t c = 0; c < w; c++) {
-        double *o = SL(a[5] + c), u1[VL], u2[VL];
-        uint32_t kc = mix32_key((uint32_t)c);
-        LANES {
-            uint32_t h = mix32(mix32(key_u32(key[l]) ^ kk) ^ kc);
-            u1[l] = uniform53(mix32(h ^ k1));
-            u2[l] = uniform53(mix32(h ^ k2));
+    double *buf = SL(a[6]);
+    if (ahead == 0) { /* N(0, 1) of the next steps (at most NOISE_AHEAD, no further than the call's last step),
+                       * channel-major: [c][step][lane] */
+        uint32_t k1 = mix32_key(1u), k2 = mix32_key(2u);
+        int64_t n = (T - t < NOISE_AHEAD ? T - t : NOISE_AHEAD) * VL;
+        for (int64_t c = 0; c < w; c++) {
+            uint32_t kc = mix32_key((uint32_t)c);
+            double *o = buf + c * NOISE_AHEAD * VL;
+            _Pragma("omp simd") for (int64_t j = 0; j < n; j++) {
+                uint32_t h = mix32(mix32(key_u32(key[j % VL]) ^ mix32_key((uint32_t)(k0 + j / VL))) ^ kc);
+                o[j] = normal_from(uniform53(mix32(h ^ k1)), uniform53(mix32(h ^ k2)));
+            }
         }
-        LANES o[l] = normal_from(u1[l], u2[l]) * sd[l] + mean[l];
+    }
+    for (int64_t c = 0; c < w; c++) {
+        const double *n = buf + (c * NOISE_AHEAD + ahead) * VL;
+        double *o = SL(a[5] + c);
+        LANES o[l] = n[l] * sd[l] + mean[l];
     }
 }
 
 /* out = C[rows] x + sum_f D[rows, columns_f] u_f */
 static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
-    int64_t n = a[0], w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], nft = a[7];
+    int64_t n = a[0], w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
-        for (int64_t j = 0; j < n; j++) {
-            const double *c = SL(cs + r * n + j), *x = SL(xs + j);
-            LANES acc[l] += c[l] * x[l];
-        }
+        for (int64_t j = 0; j < n; j++) PMAC(acc, SL(cs + r * n + j), SL(xs + j), sh);
         for (int64_t f = 0; f < nft; f++) {
-            int64_t col = a[8 + 3 * f], wf = a[9 + 3 * f], us = a[10 + 3 * f];
-            for (int64_t c = 0; c < wf; c++) {
-                const double *d = SL(ds + r * mt + col + c), *u = SL(us + c);
-                LANES acc[l] += d[l] * u[l];
-            }
+            int64_t col = a[9 + 3 * f], wf = a[10 + 3 * f], us = a[11 + 3 * f];
+            for (int64_t c = 0; c < wf; c++) PMAC(acc, SL(ds + r * mt + col + c), SL(us + c), sh);
         }
         double *o = SL(os + r);
         LANES o[l] = acc[l];
@@ -234,22 +247,16 @@ static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
 
 /* x = A x + sum_q B[:, columns_q] u_q */
 static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
-    int64_t n = a[0], mt = a[1], as = a[2], bs = a[3], xs = a[4], nin = a[6];
+    int64_t n = a[0], mt = a[1], as = a[2], bs = a[3], xs = a[4], sh = a[6], nin = a[7];
     double *xn = SL(a[5]);
     for (int64_t r = 0; r < n; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
-        for (int64_t j = 0; j < n; j++) {
-            const double *m = SL(as + r * n + j), *x = SL(xs + j);
-            LANES acc[l] += m[l] * x[l];
-        }
+        for (int64_t j = 0; j < n; j++) PMAC(acc, SL(as + r * n + j), SL(xs + j), sh);
         int64_t col = 0;
         for (int64_t q = 0; q < nin; q++) {
-            int64_t us = a[7 + 2 * q], w = a[8 + 2 * q];
-            for (int64_t c = 0; c < w; c++) {
-                const double *m = SL(bs + r * mt + col + c), *u = SL(us + c);
-                LANES acc[l] += m[l] * u[l];
-            }
+            int64_t us = a[8 + 2 * q], w = a[9 + 2 * q];
+            for (int64_t c = 0; c < w; c++) PMAC(acc, SL(bs + r * mt + col + c), SL(us + c), sh);
             col += w;
         }
         double *o = AT(xn, r);
@@ -263,14 +270,11 @@ static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
-    int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4];
+    int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4], sh = a[5];
     for (int64_t r = 0; r < m; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
-        for (int64_t j = 0; j < n; j++) {
-            const double *k = SL(ks + r * n + j), *x = SL(is + j);
-            LANES acc[l] += k[l] * x[l];
-        }
+        for (int64_t j = 0; j < n; j++) PMAC(acc, SL(ks + r * n + j), SL(is + j), sh);
         double *o = SL(os + r);
         LANES o[l] = acc[l];
     }
@@ -390,13 +394,17 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     }
     for (int64_t q = 0; q < n_z * n_u; q++) { /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) */
         const double *restrict c = SL(e[E_BETA] + q * nu), *restrict w = SL(e[E_WIN] + (pr + 1) * m);
-        for (int64_t j = 0; j < m; j++) {
-            double acc[VL];
-            LANES acc[l] = 0.0;
-            for (int64_t i = 0; i < nu; i++) /* oldest first */
-                LANES acc[l] += c[i * VL + l] * w[(i * m + j) * VL + l];
+        for (int64_t j = 0; j < m; j++) { /* oldest first, even and odd i summed apart (two shorter chains) */
+            double even[VL], odd[VL];
+            LANES even[l] = odd[l] = 0.0;
+            int64_t i = 0;
+            for (; i + 1 < nu; i += 2) {
+                PMAC(even, AT(c, i), AT(w, i * m + j), e[E_SHARED]);
+                PMAC(odd, AT(c, i + 1), AT(w, (i + 1) * m + j), e[E_SHARED]);
+            }
+            if (i < nu) PMAC(even, AT(c, i), AT(w, i * m + j), e[E_SHARED]);
             double *p = AT(prod, q * m + j);
-            LANES p[l] = acc[l];
+            LANES p[l] = even[l] + odd[l];
         }
     }
     for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
@@ -541,25 +549,40 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     const int64_t *restrict code = r->code, *restrict ptrs = r->ptrs, *restrict ctr = r->counters;
     const double *restrict consts = r->consts;
     const int64_t ncode = r->ncode, T = r->T;
-    for (int64_t t = 0; t < T; t++) {
-        for (int64_t pc = 0; pc < ncode; pc += code[pc + 1]) {
-            const int64_t *a = code + pc + HDR;
-            switch (code[pc]) {
-            case OP_PLAYBACK: FN(playback)(a, S, ptrs, ctr, t, b0, nb); break;
-            case OP_NOISE: FN(noise)(a, S, ctr, t); break;
-            case OP_LTI_OUT: FN(lti_out)(a, S); break;
-            case OP_LTI_UPD: FN(lti_upd)(a, S); break;
-            case OP_GAIN: FN(gain)(a, S); break;
-            case OP_SUM: FN(sum)(a, S); break;
-            case OP_COPY: FN(copy)(a, S); break;
-            case OP_FEATURE: FN(feature)(a, S, consts); break;
-            case OP_RCO_OUT: FN(rco_out)(a, S); break;
-            case OP_RCO_UPD: FN(rco_upd)(a, S, ctr, t); break;
-            default: break;
-            }
-        }
+    /* Direct threading: each operation jumps to the next one's code (one indirect jump per instruction,
+     * at a site of its own, which the branch predictor learns per operation). */
+    static const void *const labels[OP_N] = {
+        [OP_NONE] = &&next, [OP_PLAYBACK] = &&playback, [OP_NOISE] = &&noise, [OP_LTI_OUT] = &&lti_out,
+        [OP_LTI_UPD] = &&lti_upd, [OP_GAIN] = &&gain, [OP_SUM] = &&sum, [OP_COPY] = &&copy,
+        [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd};
+    const int64_t *a;
+    int64_t pc, t;
+#define NEXT()                                                                                               \
+    do {                                                                                                     \
+        if (pc >= ncode) goto step_done;                                                                     \
+        a = code + pc + HDR;                                                                                 \
+        const void *to_ = labels[code[pc]];                                                                  \
+        pc += code[pc + 1];                                                                                  \
+        goto *to_;                                                                                           \
+    } while (0)
+    for (t = 0; t < T; t++) {
+        pc = 0;
+        NEXT();
+    playback: FN(playback)(a, S, ptrs, ctr, t, b0, nb); NEXT();
+    noise: FN(noise)(a, S, ctr, t, T); NEXT();
+    lti_out: FN(lti_out)(a, S); NEXT();
+    lti_upd: FN(lti_upd)(a, S); NEXT();
+    gain: FN(gain)(a, S); NEXT();
+    sum: FN(sum)(a, S); NEXT();
+    copy: FN(copy)(a, S); NEXT();
+    feature: FN(feature)(a, S, consts); NEXT();
+    rco_out: FN(rco_out)(a, S); NEXT();
+    rco_upd: FN(rco_upd)(a, S, ctr, t); NEXT();
+    next: NEXT();
+    step_done:
         if (r->nobs) FN(observe)(r->obs, r->nobs, S, acc, t, b0, nb, r->B);
     }
+#undef NEXT
     FN(store)(r->binds, r->nbind, S, b0, nb);
     for (int64_t q = 0; q < r->nobs; q++) {
         const int64_t *o = r->obs + q * OF_N;
