@@ -17,9 +17,7 @@ from rcotorch import scenario as scenarios
 from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.runner import Run
 
-SILVERBOX = Path(__file__).resolve().parents[2] / "shared/data/silverbox/SNLS80mV.csv"
 README = Path(__file__).resolve().parents[1] / "README.md"
-needs_data = pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
 
 P = dict(a=40.0, b=(2 * np.pi * 60) ** 2, g=1.5e5, d0=-700.0)     # a Silverbox-like oscillator at dt = 1 ms
 
@@ -190,13 +188,12 @@ def test_missing_data_file_is_a_clear_error(tmp_path):
     with pytest.raises(rt.DataError, match=r"data file .*nope\.csv not found.*--set data=PATH"):
         Run("silverbox-cubic-stiffness", out=tmp_path, overrides={"data": str(tmp_path / "nope.csv")})
     sc = scenarios.get("silverbox-cubic-stiffness")
-    assert Path(sc.settings["data"]) == SILVERBOX               # ../shared next to the checkout
+    assert sc.settings["data"] == "silverbox"                   # the data set of rcotorch.datasets
     s = sc.resolve({"data": "my.csv", "fit_stop": "3000", "foh": "false"})
     assert s["data"] == "my.csv" and s["fit_stop"] == 3000 and s["foh"] is False
 
 
-@needs_data
-def test_scenario_graph_and_validation_against_references(tmp_path):
+def test_scenario_graph_and_validation_against_references(tmp_path, silverbox_csv):
     """A short run: real playback through refinement(..., data=Recorded), the basis regressor named, and the
     validation errors recomputed independently (scipy dlsim for the linear model, an rcotorch graph for the
     refined one)."""
@@ -214,7 +211,7 @@ def test_scenario_graph_and_validation_against_references(tmp_path):
     theta = float(ident.theta[0, 0, 0])
     assert c == pytest.approx(-model.g * theta)
 
-    val = rt.load(SILVERBOX, rows=(105712, 127400))
+    val = rt.load(silverbox_csv, rows=(105712, 127400))
     w, y = val.column("V1"), val.column("V2")
     d = model.discrete
     # Initial model: state by linear least squares on the first 50 outputs, free run by scipy's dlsim.
@@ -233,9 +230,8 @@ def test_scenario_graph_and_validation_against_references(tmp_path):
     assert summary["metrics"]["val_rmse_refined"] == pytest.approx(rmse(y_ref[50:], y[50:]), rel=1e-6)
 
 
-@needs_data
 @pytest.mark.slow
-def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path):
+def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path, silverbox_csv):
     run = Run("silverbox-cubic-stiffness", out=tmp_path)
     run.advance(progress=False)
     summary = run.finish(figures=True)
