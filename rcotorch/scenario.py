@@ -235,7 +235,9 @@ def _folder_modules(folder: Path):
             continue
         name = f"rcotorch_user_scenario_{path.stem}"
         module = sys.modules.get(name)
-        if module is None or getattr(module, "__file__", None) != str(path):
+        stamp = path.stat().st_mtime_ns
+        if module is None or getattr(module, "__file__", None) != str(path) or module.__dict__.get(
+                "_rcotorch_mtime") != stamp:                     # loaded once, again when the file changes
             spec = importlib.util.spec_from_file_location(name, path)
             module = importlib.util.module_from_spec(spec)
             sys.modules[name] = module
@@ -245,6 +247,7 @@ def _folder_modules(folder: Path):
                 del sys.modules[name]
                 raise ConfigError(f"scenario file {path} (from RCOTORCH_SCENARIOS) fails to load: "
                                   f"{type(e).__name__}: {e}") from e
+            module._rcotorch_mtime = stamp
         yield module
 
 
