@@ -196,7 +196,7 @@ def setting_text(value) -> str:
     if isinstance(value, list) and len(value) > 4:
         numbers = [v for v in value if isinstance(v, (int, float))]
         span = f"{min(numbers):g}..{max(numbers):g}, " if len(numbers) == len(value) else ""
-        return f"per member ({span}{len(value)} values; sweep.csv lists them)"
+        return f"per member ({span}{len(value)} values)"
     return str(value)
 
 

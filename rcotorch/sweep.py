@@ -333,14 +333,16 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         part = [r for r in rows if r["shard"] == index]
         if not part:
             continue
-        settings = json.loads((folder / "summary.json").read_text())["settings"]
-        summary = {"batch": len(part), "status": [r.get("status") or ("diverged" if r["diverged"] else "finished")
-                                                  for r in part]}
-        hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v) for k, v in settings.items()}
+        summary = json.loads((folder / "summary.json").read_text())
+        summary["status"] = [r.get("status") or ("diverged" if r["diverged"] else "finished") for r in part]
+        hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
+              for k, v in summary["settings"].items()}
         hp.update(scenario=sweep.scenario, members=f"{part[0]['member']}..{part[-1]['member']}",
                   status=status_text(summary))
         with SummaryWriter(str(folder)) as w:
             write_session(w, hp, session_status(summary))
+            for tag, value in final_values(summary).items():
+                w.add_scalar(tag, value, summary["steps"])
             w.add_text("sweep", note, 0)
 
 

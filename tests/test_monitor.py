@@ -127,6 +127,12 @@ def test_a_truth_per_member_puts_the_error_beside_the_estimate(tmp_path):
     assert _last(_mux(tmp_path / "r"), ".", "errors/dK") == pytest.approx(err)
 
 
+def test_setting_text_summarizes_long_per_member_lists():
+    assert monitor.setting_text([0.1, 0.2]) == "[0.1, 0.2]" and monitor.setting_text(0.5) == "0.5"
+    assert monitor.setting_text([3, 1, 2, 5, 4]) == "per member (1..5, 5 values)"
+    assert monitor.setting_text(["a"] * 6) == "per member (6 values)"
+
+
 def test_member_status_from_the_summary():
     assert monitor.member_status({"batch": 2, "diverged": [{"member": 1, "step": 9}]}) == ["finished", "diverged"]
     assert monitor.member_status({"batch": 2, "status": ["converged", "not_converged"]}) == ["converged",
@@ -167,6 +173,8 @@ def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkey
     sessions = _sessions(mux)
     assert sessions["shard_0000"]["members"] == "0..3" and sessions["shard_0001"]["status"] == "finished 2"
     assert sessions["shard_0000"]["Ts"] == 0.01 and sessions["shard_0000"]["nu"] == 10
+    assert sessions["shard_0000"]["dK"] == "[0.3, 0.3, 0.5, 0.5]"             # per member, short: as it is
+    assert "final/dK" in _tags(mux, "shard_0000")
     note = mux.Tensors("shard_0000", "sweep/text_summary")[0].tensor_proto.string_val[0].decode()
     assert "6 members" in note and "sweep.csv" in note and "500 runs" in note
 
