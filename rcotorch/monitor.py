@@ -48,6 +48,9 @@ class Monitor:
         chosen = run.trace if run.trace is not None else range(min(TRACED_DEFAULT, run.batch))
         self.traced = sorted({b for b in chosen if 0 <= b < run.batch}) if run.batch > 1 else []
         self.shared_truth = {k: float(v) for k, v in run.truth.items() if isinstance(v, (int, float))}
+        # The initial model's estimates (theta at its start), drawn in the figures; unknown for a resumed run.
+        self.initial = None if run.k else {k: v.detach().to(torch.float64).cpu() for k, v in
+                                           run.scenario.estimates(run.graph, run.settings).items()}
         out.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(log_dir=str(out), purge_step=run.k if run.k > 0 else None)
         self.n_logs = 0

@@ -86,6 +86,8 @@ class Scenario:
     steps: int = 10000
     settings: Mapping[str, Any] = {}
     about: Mapping[str, Setting | tuple] = {}
+    # Units of estimates and metrics that are not settings themselves, and of the measured output ('y').
+    units: Mapping[str, str] = {}
     requirements: tuple[Requirement, ...] = ()
     # Settings that may differ between the members of one batched run (physical parameters, tuning such as
     # p0 and lambda, seeds). The others fix the graph's structure (sample time, orders, nu); a sweep over
@@ -127,6 +129,12 @@ class Scenario:
                                   f"differ within one batch (per-member settings: {sorted(self.per_member)})")
             out[key] = values[0]
         return out
+
+    def unit(self, key: str) -> str:
+        """The unit of an estimate, metric or setting ('' where none is declared)."""
+        if key in self.units:
+            return self.units[key]
+        return self.setting(key).unit if key in self.settings else ""
 
     def _value(self, key: str, value):
         """An override converted to the default's type and checked against the setting's choices."""

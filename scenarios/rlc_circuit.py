@@ -160,6 +160,7 @@ class RlcCircuit(Scenario):
                     R0_rel=0.0, noise=0.01, p0=100.0, lam=1.0, nu=50, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.L", "rel_err", 0.05), Requirement("estimates.C", "rel_err", 0.05),
                     Requirement("estimates.R", "rel_err", 0.05))
+    units = {"y": "V", "rel_rms_err_initial": "", "rel_rms_err_refined": ""}
     about = dict(
         Ts=("s", "sample time"),
         R=("ohm", "true resistance"),
@@ -247,7 +248,7 @@ class RlcCircuit(Scenario):
         curves["true circuit, sampled"] = np.asarray(truth_discrete(s)(zs)).reshape(-1)
         curves["refined, sampled (known model + gain)"] = np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)
         fig = frequency_figure(omega, curves, "series RLC: source voltage w -> voltage across R",
-                               nyquist=np.pi / s["Ts"])
+                               nyquist=np.pi / s["Ts"], unit="V/V")
         return {"frequency_response": fig}
 
 

@@ -26,6 +26,7 @@ class SdofDynamicImpedance(Scenario):
     requirements = (Requirement("estimates.dc_gain", "abs_err", 0.05),
                     Requirement("metrics.freq_rel_err_max", "max", 0.01))
     per_member = frozenset({"p0", "lam", "w_std", "seed"})
+    units = {"dc_gain": "N s/m", "y": "m/s"}
     about = dict(
         Ts=("s", "sample time (known model and unknown subsystem each ZOH-discretized at Ts)"),
         m=("kg", "mass"),
@@ -70,7 +71,7 @@ class SdofDynamicImpedance(Scenario):
         ident = g.role("estimator").frequency_response(w)[0, :, 0, 0].cpu().numpy()
         return {"frequency_response": frequency_figure(
             w, {"identified (member 0)": ident, "true ZOH(10/(s+2))": self.truth_tf(s)(np.exp(1j * w * s["Ts"]))},
-            "Identified vs true unknown subsystem", nyquist=np.pi / s["Ts"])}
+            "Identified vs true unknown subsystem (velocity -> force)", nyquist=np.pi / s["Ts"], unit="N s/m")}
 
 
 SCENARIO = SdofDynamicImpedance()

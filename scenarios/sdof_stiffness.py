@@ -22,6 +22,7 @@ class SdofStiffness(Scenario):
                     w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dK", "abs_err", 0.01), Requirement("estimates.dC", "abs_err", 0.03))
     per_member = frozenset({"m", "K", "C", "dK", "dC", "p0", "lam", "w_std", "seed"})
+    units = {"y": "m/s"}
     about = dict(
         Ts=("s", "sample time (known model and truth ZOH-discretized at Ts)"),
         m=("kg", "mass"),

@@ -128,6 +128,7 @@ class SilverboxCubicStiffness(Scenario):
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
+    units = {"k3_over_m": "1/(V^2 s^2)", "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V"}
     about = dict(
         data=("", "'silverbox' (the benchmark, downloaded once or from $RCOTORCH_SILVERBOX) or a CSV/NPZ/.mat file"),
         w_column=("", "column of the input w (volts for the Silverbox)"),

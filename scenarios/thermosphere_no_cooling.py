@@ -82,6 +82,8 @@ class ThermosphereNoCooling(Scenario):
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
     per_member = frozenset({"f107", "storm_peak", "p0", "lam"})
+    units = {"y": "1e-12 kg/m^3", **{f"cooling_{km}km": "nW/m^3" for km in (120, 152, 200)},
+             "cooling_152km_true": "nW/m^3"}
     about = dict(
         Ts=("s", "sample time (one refinement step)"),
         substeps=("", "backward-Euler substeps of the column per sample"),

@@ -96,6 +96,7 @@ class TwoDofStiffness(Scenario):
     settings = dict(Ts=0.02, k1=0.7, dk1=0.4, k2=0.5, k3=0.6, dk3=0.5, c1=0.8, c2=0.8, c3=0.8,
                     sees="midpoint", truth="continuous", p0=1e3, lam=0.9995, nu=60, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dk1", "rel_err", 0.10), Requirement("estimates.dk3", "rel_err", 0.10))
+    units = {"y": "m/s"}
     about = dict(
         Ts=("s", "sample time"),
         k1=("N/m", "wall-mass 1 spring of the known model"),
@@ -163,7 +164,7 @@ class TwoDofStiffness(Scenario):
     def figures(self, g, s):
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         fig = frequency_figure(omega, self._responses(g, s, omega),
-                               "2-DOF: force w -> velocity of mass 2", nyquist=np.pi / s["Ts"])
+                               "2-DOF: force w -> velocity of mass 2", nyquist=np.pi / s["Ts"], unit="m/(N s)")
         return {"frequency_response": fig}
 
 

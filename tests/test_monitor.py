@@ -232,3 +232,20 @@ def test_tensorboard_serves_one_run_per_run_and_every_member_in_hparams(tmp_path
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_run_figures_carry_units_and_legends(tmp_path):
+    from rcotorch.figures import run_figures
+    run = Run("sdof-stiffness", steps=200, out=tmp_path / "r", log_every=20)
+    run.advance(progress=False)
+    figs = run_figures(run)
+    axes = figs["estimates"].axes
+    assert [a.get_ylabel() for a in axes] == ["dK [N/m]", "dC [N s/m]"] and axes[-1].get_xlabel() == "time [s]"
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["estimate", "truth", "initial model"]
+    initial = [ln for ln in axes[0].get_lines() if ln.get_label() == "initial model"][0]
+    assert initial.get_ydata()[0] == 0.0                                     # theta starts at zero: dK = 0
+    assert figs["model_error"].axes[0].get_ylabel() == "rms of z = y - y_hat [m/s]"
+    batch = Run("sdof-stiffness", steps=100, batch=3, out=tmp_path / "b", log_every=20)
+    batch.advance(progress=False)
+    labels = [t.get_text() for t in run_figures(batch)["estimates"].axes[0].get_legend().get_texts()]
+    assert labels == ["member 0", "member 1", "member 2", "truth", "initial model"]
