@@ -1,0 +1,42 @@
+"""benchmarks/numba_peer.py, the jitted peer of the speed comparison, computes the refinement of the NumPy loop:
+every variant (one member, prange over members, 16-lane chunks) against benchmarks/numpy_reference.py to 1e-9.
+numba belongs to the optional ``bench`` extra; without it these checks are skipped."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import numba_peer  # noqa: E402
+import numpy_reference as nr  # noqa: E402
+
+STEPS = 1500
+
+
+@pytest.mark.parametrize("variant", ["one", "prange", "lanes"])
+def test_every_variant_matches_the_numpy_loop(variant):
+    """Members 0 and 17 of a batch of 19 (a second, partly filled lane chunk), each from its own stream."""
+    theta, P = numba_peer.run(variant, STEPS, 19)
+    for b in (0, 17):
+        ref = nr.refine(STEPS, member=b)
+        np.testing.assert_allclose(theta[b], ref["theta"][0], rtol=1e-9, atol=0)
+        np.testing.assert_allclose(P[b], ref["P"], rtol=0, atol=1e-9 * np.abs(ref["P"]).max())
+
+
+def test_batch_of_one_uses_the_stream_of_a_single_run():
+    theta, _ = numba_peer.run("one", STEPS, 1)
+    np.testing.assert_allclose(theta[0], nr.refine(STEPS)["theta"][0], rtol=1e-9, atol=0)
+
+
+def test_other_settings_reach_the_loop():
+    settings = {"dK": 0.3, "lam": 0.999, "nu": 8}
+    theta, _ = numba_peer.run("lanes", STEPS, 1, settings)
+    np.testing.assert_allclose(theta[0], nr.refine(STEPS, settings)["theta"][0], rtol=1e-9, atol=0)
+
+
+def test_nc_other_than_one_is_refused():
+    with pytest.raises(ValueError, match="nc = 1"):
+        numba_peer.model({"nc": 2})
