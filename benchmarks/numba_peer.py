@@ -13,8 +13,8 @@ Three variants, each compiled once (``numba.njit``, not cached):
 * ``refine_lanes``: B members in chunks of 16 lanes (state as (…, 16) arrays, every operation a loop over the
   lanes, which LLVM vectorizes), ``prange`` over chunks.
 
-``tests/test_numba_peer.py`` checks every variant against the NumPy loop to 1e-9 (skipped without numba). Needs the ``bench`` extra
-(``pip install -e .[bench]``): numba is not a dependency of rcotorch.
+``tests/test_numba_peer.py`` checks every variant against the NumPy loop to 1e-9 (skipped without numba).
+Needs the ``bench`` extra (``pip install -e .[bench]``): numba is not a dependency of rcotorch.
 """
 
 from __future__ import annotations
