@@ -36,13 +36,14 @@ def test_sweep_members_equal_separate_runs(tmp_path):
     assert [r["member"] for r in rows] == list(range(8))
     members = Sweep.from_dict(SPEC).members()
     for r, m in zip(rows, members):
-        single = Run("sdof-stiffness-damping", steps=400, seed=m["seed"], out=tmp_path / "single",
+        single = Run("sdof-stiffness-damping", steps=400, seed=m["seed"], out=tmp_path / f"single{r['member']}",
                      overrides=dict({k: v for k, v in m.items() if k != "seed"}, nu=10))
         single.advance(progress=False)
         est = single.summary()["estimates"]
         np.testing.assert_allclose([r["est_dK"], r["est_dC"]], [est["dK"], est["dC"]], rtol=1e-8, atol=1e-12)
         assert r["truth_dK"] == m["dK"] and r["err_dK"] == pytest.approx(r["est_dK"] - m["dK"])
-        assert r["diverged"] is False and r["diverged_at"] is None
+        assert r["diverged"] is False and r["diverged_at"] is None and r["reason"] is None
+        assert r["status"] == single.summary()["health"]["status"]
     table = list(csv.DictReader(open(tmp_path / "sweep.csv")))
     assert len(table) == 8 and {"member", "dK", "Ts", "dC", "seed", "est_dK", "err_dC", "diverged"} <= set(table[0])
     assert json.loads((tmp_path / "sweep.json").read_text()) == rows
