@@ -182,14 +182,14 @@ class OutputFolder:
                               "wait for it to end or choose another --out") from None
         except OSError as e:
             raise OutputError(f"cannot write to the output folder {p}: {e.strerror or e}") from None
-        self._lock = lock
         try:
             self._claim(mode)
-            self.info = dict(self.info, **(info or {}), kind=self.kind)
-            self.register()
         except BaseException:
-            self.close()
+            lock.release()
             raise
+        self._lock = lock
+        self.info = dict(self.info, **(info or {}), kind=self.kind)
+        self.register()
         return self
 
     def _claim(self, mode: str) -> None:
