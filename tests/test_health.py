@@ -96,11 +96,13 @@ def test_no_excitation_with_lambda_one_is_not_converged(tmp_path):
 
 
 def test_statuses_and_their_numbers_against_recorded_signals(tmp_path):
-    """A well-tuned member converges, one with a tiny p0 (slow adaptation: z stays large) does not. z_ratio equals the rms of
-    z over the window over that of y, and theta_change the rms of (theta_end - theta_start) phi over that of
-    theta phi, both from signals recorded at every step of a separate stepping of the same members (theta's
-    change is measured on regressors sampled at the checks, so it agrees to sampling error; member 1's theta
-    stays near zero, so its change is measured against the data's scale of u, rms(y) / |beta|)."""
+    """A well-tuned member converges, one with a tiny p0 (slow adaptation: z stays large) does not.
+
+    z_ratio equals the rms of z over the window over that of y, and theta_change the rms of
+    (theta_end - theta_start) phi over that of theta phi, both from signals recorded at every step of a
+    separate stepping of the same members (theta's change is measured on regressors sampled at the checks, so
+    it agrees to sampling error; member 1's theta stays near zero, so its change is measured against the
+    data's scale of u, rms(y) / |beta|)."""
     steps = 2000
     run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}])
     run.advance(progress=False)
