@@ -35,3 +35,7 @@ class OutputError(RcoError, OSError):
 
 class CheckpointError(RcoError, ValueError):
     """A checkpoint is missing, truncated, corrupted, or does not match what a resume asks for."""
+
+
+class FolderInUseError(OutputError):
+    """Another run (in this or another process) holds the output folder's lock."""

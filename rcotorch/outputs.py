@@ -31,7 +31,7 @@ from typing import Any, BinaryIO
 import torch
 from filelock import FileLock, Timeout
 
-from .errors import CheckpointError, OutputError
+from .errors import CheckpointError, FolderInUseError, OutputError
 
 MANIFEST = ".rcotorch.json"
 LOCK = ".rcotorch.lock"
@@ -174,23 +174,48 @@ class OutputFolder:
             p.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise OutputError(f"cannot create the output folder {p}: {e.strerror}") from None
+        lock = self._take_lock()
+        try:
+            self._claim(mode)
+            self.info = dict(self.info, **(info or {}), kind=self.kind)
+            self._lock = lock
+            self.register()
+        except OSError as e:
+            self._lock = None
+            lock.release()
+            if isinstance(e, OutputError):
+                raise
+            raise OutputError(f"cannot write to the output folder {p}: {e.strerror or e}") from None
+        except BaseException:
+            self._lock = None
+            lock.release()
+            raise
+        return self
+
+    def _take_lock(self) -> FileLock:
+        p = self.path
         lock = FileLock(p / LOCK, timeout=0, thread_local=False)
         try:
             lock.acquire()
         except Timeout:
-            raise OutputError(f"{p} is in use: another rcotorch run is writing to it (it holds {p / LOCK}); "
+            raise FolderInUseError(f"{p} is in use: another rcotorch run is writing to it (it holds {p / LOCK}); "
                               "wait for it to end or choose another --out") from None
         except OSError as e:
             raise OutputError(f"cannot write to the output folder {p}: {e.strerror or e}") from None
+        return lock
+
+    def check_free(self) -> None:
+        """Raise ``FolderInUseError`` when another writer holds the folder (nothing is changed; a folder that
+        cannot be written is left for ``open`` to report)."""
+        if self.is_open or not (self.path / LOCK).exists():
+            return
         try:
-            self._claim(mode)
-        except BaseException:
-            lock.release()
+            lock = self._take_lock()
+        except FolderInUseError:
             raise
-        self._lock = lock
-        self.info = dict(self.info, **(info or {}), kind=self.kind)
-        self.register()
-        return self
+        except OutputError:
+            return
+        lock.release()
 
     def _claim(self, mode: str) -> None:
         p = self.path
@@ -305,6 +330,8 @@ class OutputFolder:
             return
         try:
             self.register()
+        except OSError:
+            pass       # the folder became unwritable: the manifest keeps listing less, never more
         finally:
             self._lock.release()
             self._lock = None

@@ -285,6 +285,7 @@ class Run:
         directory = Path(directory)
         if not directory.is_dir():
             raise CheckpointError(f"--resume {directory}: no such folder")
+        OutputFolder(directory, "run").check_free()      # not while another process writes the run
         path = directory / CHECKPOINT
         if not path.is_file():
             raise CheckpointError(f"--resume {directory}: no {CHECKPOINT} there")
