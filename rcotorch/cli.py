@@ -1,4 +1,5 @@
-"""Command line: ``rcotorch list``, ``rcotorch run NAME [options]``, ``rcotorch sweep CONFIG [options]``.
+"""Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep
+CONFIG [options]``.
 
 Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input (a
 setting, file, folder or checkpoint; the message names it), 3 an internal error (out of memory included: one
@@ -61,6 +62,11 @@ def _add_list(sub) -> None:
     sub.add_parser("list", help="list the scenarios")
 
 
+def _add_show(sub) -> None:
+    sub.add_parser("show", help="print a scenario's settings: defaults, units and meanings").add_argument(
+        "name", help="scenario name (see `rcotorch list`)")
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", help="cpu (default), cuda or cuda:N")
     p.add_argument("--threads", type=int, help="CPU threads for torch (default: 1 below batch 1024, where "
@@ -112,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-ADD_COMMANDS: list[Callable] = [_add_list, _add_run, _add_sweep]
+ADD_COMMANDS: list[Callable] = [_add_list, _add_show, _add_run, _add_sweep]
 
 
 # --- running a command --------------------------------------------------------------------------------------
@@ -197,6 +203,12 @@ def cmd_list(args, session: Session) -> int:
     return EXIT_PASS
 
 
+def cmd_show(args, session: Session) -> int:
+    from . import scenario as scenarios
+    print(scenarios.describe(scenarios.get(args.name)))
+    return EXIT_PASS
+
+
 def cmd_run(args, session: Session) -> int:
     from .runner import Interrupted, Run, result_table
     _positive(args.checkpoint_every, "--checkpoint-every")
@@ -258,7 +270,7 @@ def cmd_sweep(args, session: Session) -> int:
     return EXIT_PASS
 
 
-COMMANDS: dict[str, Callable] = {"list": cmd_list, "run": cmd_run, "sweep": cmd_sweep}
+COMMANDS: dict[str, Callable] = {"list": cmd_list, "show": cmd_show, "run": cmd_run, "sweep": cmd_sweep}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -272,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if getattr(args, "engine", None):
             os.environ["RCOTORCH_ENGINE"] = args.engine
-        if args.command != "list":
+        if args.command not in ("list", "show"):
             _threads(args)
         return COMMANDS[args.command](args, session)
     except RcoError as e:

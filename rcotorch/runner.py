@@ -8,8 +8,9 @@ Cadences, fixed when a run is created and kept by a resume:
 * checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C).
 
 What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
-and a history of the logged values of the traced members (at most ``2 * HISTORY_MAX`` points, thinned by
-two when full), so a checkpoint's size does not depend on how long the run is.
+and a history of the logged values of the first ``HISTORY_MEMBERS`` members, the ones the figures draw (at most
+``2 * HISTORY_MAX`` points, thinned by two when full), so a checkpoint's size does not depend on how long the
+run is.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ CHECKPOINT = "checkpoint.pt"
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
 HISTORY_MAX = 1000
+HISTORY_MEMBERS = 8      # members kept in the history (the figures draw the first eight)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
 RESUME_CHANGEABLE = ("--steps", "--device", "--out", "--overwrite", "--checkpoint-every", "--threads", "--engine",
                      "--quiet", "--no-figures")
@@ -102,6 +104,9 @@ class Run:
         trace: members logged individually in TensorBoard when the batch is larger than 8.
         health: thresholds of the member health checks (``rcotorch.health.Criteria``).
         overwrite: replace the run that ``out`` holds (only the files its manifest lists).
+
+    ``hparams_session`` (default True): the run's TensorBoard run is also its HParams session (a sweep sets it
+    False and writes one session per member instead).
     """
 
     def __init__(self, name: str, steps: int | None = None, batch: int = 1, seed: int | None = None,
@@ -143,8 +148,9 @@ class Run:
                      for k in ("z", "y", "log_z", "mark_z", "z_rms_last")}
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
-        self.history_members: list[int] = []
+        self.history_members = list(range(min(self.batch, HISTORY_MEMBERS)))
         self.monitor: Monitor | None = None
+        self.hparams_session = True
 
     @property
     def k(self) -> int:
@@ -242,9 +248,8 @@ class Run:
         self.monitor.log(self.k, z_cpu, est)
 
     def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor]) -> None:
-        """Append the traced members' values to the history (thinned by two when it is full)."""
-        h, members = self.history, self.monitor.traced
-        self.history_members = list(members)
+        """Append the first members' values to the history (thinned by two when it is full)."""
+        h, members = self.history, self.history_members
         h["step"].append(self.k)
         h["z_rms"].append(z_rms[members].clone())
         for key, v in est.items():
@@ -334,7 +339,7 @@ class Run:
             ("torch" if self.graph.native_status() else "native"),
             "estimates": {k: self._values(v) for k, v in est.items()},
             "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
-            "settings": dict(self.settings), "health": health, "diverged": diverged,
+            "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
         }
 
