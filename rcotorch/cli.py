@@ -1,30 +1,54 @@
-"""Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep``."""
+"""Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep
+CONFIG [options]``.
+
+Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input (a
+setting, file, folder or checkpoint; the message names it), 3 an internal error (out of memory included: one
+line on stderr, the traceback in the output folder's ``rcotorch.log``), 130 stopped by Ctrl-C after saving a
+checkpoint (the message says how to resume). See docs/cli.md.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import shlex
+import signal
 import sys
+import tempfile
+import threading
+import traceback
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
-from .errors import RcoError
+from .errors import ConfigError, RcoError
+
+EXIT_PASS, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
 def _settings(pairs: list[str]) -> dict[str, str]:
     out = {}
     for item in pairs:
         if "=" not in item:
-            raise RcoError(f"--set expects KEY=VALUE, got {item!r}")
+            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         out[k.strip()] = v.strip()
     return out
 
 
-def sweep_report(rows: list[dict], out: str) -> str:
-    """Members, divergences and error quantiles of a finished sweep."""
+def _positive(value: int | None, flag: str) -> None:
+    if value is not None and value < 1:
+        raise ConfigError(f"{flag} must be a positive integer, got {value}")
+
+
+def sweep_report(rows: list[dict], out: str | Path) -> str:
+    """Members, their health and error quantiles of a finished sweep."""
     import numpy as np
+
+    from .health import STATUSES
     lines = [f"{len(rows)} members -> {out}/sweep.csv, sweep.json"]
-    diverged = sum(bool(r["diverged"]) for r in rows)
-    lines.append(f"diverged: {diverged}")
+    counts = {s: sum(r.get("status") == s for r in rows) for s in STATUSES}
+    lines.append("health: " + ", ".join(f"{n} {s}" for s, n in counts.items()))
     for key in [k for k in rows[0] if k.startswith("err_")] if rows else []:
         v = np.array([abs(r[key]) for r in rows if r[key] is not None])
         if len(v):
@@ -33,83 +57,248 @@ def sweep_report(rows: list[dict], out: str) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rcotorch", description="Model refinement by retrospective cost "
-                                     "optimization, batched in PyTorch.")
-    sub = parser.add_subparsers(dest="command", required=True)
+# --- the parser (one function per command; add a command with its own ``_add_*`` and an entry in COMMANDS) ---
+def _add_list(sub) -> None:
     sub.add_parser("list", help="list the scenarios")
+
+
+def _add_show(sub) -> None:
     sub.add_parser("show", help="print a scenario's settings: defaults, units and meanings").add_argument(
         "name", help="scenario name (see `rcotorch list`)")
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", help="cpu (default), cuda or cuda:N")
+    p.add_argument("--threads", type=int, help="CPU threads for torch (default: 1 below batch 1024, where "
+                   "threading costs more than it gives, else torch's default)")
+    p.add_argument("--engine", choices=["auto", "native", "torch"],
+                   help="how graphs step: native (lowered to C, CPU float64), torch, or auto (default: native "
+                        "where it applies; also $RCOTORCH_ENGINE)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results in --out (only the files the earlier run wrote)")
+
+
+def _add_run(sub) -> None:
     run = sub.add_parser("run", help="run a scenario and write runs/NAME/")
     run.add_argument("name", nargs="?", help="scenario name (see `rcotorch list`)")
     run.add_argument("--steps", type=int, help="number of steps (default: the scenario's)")
-    run.add_argument("--batch", type=int, default=1, help="parallel refinements B (default 1)")
+    run.add_argument("--batch", type=int, help="parallel refinements B (default 1)")
     run.add_argument("--seed", type=int, help="excitation seed (default: the scenario's)")
-    run.add_argument("--device", default="cpu", help="cpu or cuda")
-    run.add_argument("--dtype", default="float64", choices=["float64", "float32"])
-    run.add_argument("--out", help="output directory (default runs/NAME)")
+    run.add_argument("--dtype", choices=["float64", "float32"], help="float64 (default) or float32")
+    run.add_argument("--out", help="output folder (default runs/NAME, or runs/NAME-2, ... when that holds a run)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario setting (repeatable)")
-    run.add_argument("--checkpoint-every", type=int, help="save a checkpoint every N steps")
-    run.add_argument("--resume", metavar="DIR", help="resume from DIR/checkpoint.pt (--steps may extend it)")
+    run.add_argument("--checkpoint-every", type=int, metavar="N", help="save a checkpoint every N steps")
+    run.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its checkpoint.pt "
+                     "(--steps may extend it)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG/TensorBoard figures")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--threads", type=int, help="CPU threads for torch (default: 1 below batch 1024, where "
-                     "threading costs more than it gives, else torch's default)")
+    _add_common(run)
+
+
+def _add_sweep(sub) -> None:
     sw = sub.add_parser("sweep", help="run a parameter sweep (TOML/JSON config) as batched shards")
     sw.add_argument("config", help="sweep config file (.toml or .json)")
-    sw.add_argument("--device", default="cpu", help="cpu or cuda")
     sw.add_argument("--backend", default="local", choices=["local", "ray"])
-    sw.add_argument("--ray-address", help="address of an existing Ray cluster (default: start a local one)")
-    sw.add_argument("--out", help="output directory (default runs/sweep-SCENARIO)")
-    sw.add_argument("--threads", type=int, help="CPU threads for torch in this process")
-    for p in (run, sw):
-        p.add_argument("--engine", choices=["auto", "native", "torch"],
-                       help="how graphs step: native (lowered to C, CPU float64), torch, or auto (default: native "
-                            "where it applies; also $RCOTORCH_ENGINE)")
-    args = parser.parse_args(argv)
-    if getattr(args, "engine", None):
-        os.environ["RCOTORCH_ENGINE"] = args.engine
+    sw.add_argument("--ray-address", help="address of an existing Ray cluster, HOST:PORT (default: start a "
+                    "local one)")
+    sw.add_argument("--out", help="output folder (default runs/sweep-SCENARIO)")
+    sw.add_argument("--resume", action="store_true", help="continue an interrupted sweep in --out")
+    _add_common(sw)
 
-    if getattr(args, "threads", None) or (args.command == "run" and args.batch < 1024):
-        import torch
-        torch.set_num_threads(getattr(args, "threads", None) or 1)
-    try:
-        from . import scenario as scenarios
-        from .runner import Run, result_table
-        if args.command == "list":
-            for name, sc in sorted(scenarios.available().items()):
-                print(f"{name:<28} {('[' + sc.section + '] ') if sc.section else ''}{sc.description}")
-            return 0
-        if args.command == "show":
-            print(scenarios.describe(scenarios.get(args.name)))
-            return 0
-        if args.command == "sweep":
-            from .sweep import Sweep, run_sweep
-            sweep = Sweep.from_file(args.config)
-            rows = run_sweep(sweep, backend=args.backend, device=args.device, out=args.out,
-                             ray_address=args.ray_address)
-            out = args.out or f"runs/sweep-{sweep.scenario}"
-            print(sweep_report(rows, out))
-            return 0
-        if args.resume:
-            r = Run.resume(args.resume, steps=args.steps, device=args.device if args.device != "cpu" else None,
-                           out=args.out)
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+    parser = argparse.ArgumentParser(prog="rcotorch", description="Model refinement by retrospective cost "
+                                     "optimization, batched in PyTorch.")
+    parser.add_argument("--version", action="version", version=f"rcotorch {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in ADD_COMMANDS:
+        add(sub)
+    return parser
+
+
+ADD_COMMANDS: list[Callable] = [_add_list, _add_show, _add_run, _add_sweep]
+
+
+# --- running a command --------------------------------------------------------------------------------------
+class Session:
+    """What a command has open (the output folder, for the error log) and the Ctrl-C request."""
+
+    def __init__(self, argv: list[str]):
+        self.argv, self.folder = argv, None
+        self.stop = threading.Event()
+
+    def command(self) -> str:
+        return "rcotorch " + " ".join(shlex.quote(a) for a in self.argv)
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[threading.Event]:
+        """The first Ctrl-C asks the work to stop at the next step boundary (it then saves a checkpoint);
+        a second one stops at once."""
+        if threading.current_thread() is not threading.main_thread():
+            yield self.stop
+            return
+
+        def handler(signum, frame):
+            if self.stop.is_set():
+                raise KeyboardInterrupt
+            self.stop.set()
+            print("\nrcotorch: stopping after the current steps to save a checkpoint (Ctrl-C again to quit at "
+                  "once)", file=sys.stderr, flush=True)
+        previous = signal.signal(signal.SIGINT, handler)
+        try:
+            yield self.stop
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def log(self, line: str) -> None:
+        if self.folder is not None:
+            self.folder.log(line)
+
+    def close(self) -> None:
+        if self.folder is not None:
+            self.folder.close()
+
+    def internal_error(self, e: BaseException) -> int:
+        """One line on stderr; the traceback in the output folder's log (or a temporary file)."""
+        text = "".join(traceback.format_exception(e))
+        where = None
+        if self.folder is not None and self.folder.is_open:
+            with contextlib.suppress(OSError):
+                self.folder.log(f"internal error in `{self.command()}`:\n{text}")
+                where = self.folder.path / "rcotorch.log"
+        if where is None:
+            fd, name = tempfile.mkstemp(prefix="rcotorch-error-", suffix=".log")
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{self.command()}\n{text}")
+            where = name
+        message = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        if _out_of_memory(e):
+            what = f"out of memory ({message}); try a smaller --batch"
         else:
-            if not args.name:
-                parser.error("run needs a scenario NAME (or --resume DIR)")
-            r = Run(args.name, steps=args.steps, batch=args.batch, seed=args.seed, device=args.device,
-                    dtype=args.dtype, out=args.out, overrides=_settings(args.overrides))
-            r.clear_outputs()
-        r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every)
-        summary = r.finish(figures=not args.no_figures)
-        print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
-              f"{summary['device']}, {summary['engine']} engine -> {r.out}")
-        print(result_table(summary))
-        return 0 if all(c["pass"] for c in summary["requirements"].values()) else 1
+            what = f"internal error: {type(e).__name__}: {message}"
+        print(f"rcotorch: {what} (traceback in {where})", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    text = str(e).lower()
+    return isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and (
+        "out of memory" in text or "can't allocate memory" in text or "not enough memory" in text))
+
+
+def _threads(args) -> None:
+    _positive(args.threads, "--threads")
+    batch = getattr(args, "batch", None) or 1
+    if args.threads or (args.command == "run" and not args.resume and batch < 1024):
+        import torch
+        torch.set_num_threads(args.threads or 1)
+
+
+def cmd_list(args, session: Session) -> int:
+    from . import scenario as scenarios
+    for name, sc in sorted(scenarios.available().items()):
+        print(f"{name:<28} {('[' + sc.section + '] ') if sc.section else ''}{sc.description}")
+    return EXIT_PASS
+
+
+def cmd_show(args, session: Session) -> int:
+    from . import scenario as scenarios
+    print(scenarios.describe(scenarios.get(args.name)))
+    return EXIT_PASS
+
+
+def cmd_run(args, session: Session) -> int:
+    from .runner import Interrupted, Run, result_table
+    _positive(args.checkpoint_every, "--checkpoint-every")
+    overrides = _settings(args.overrides)
+    if args.resume:
+        r = Run.resume(args.resume, steps=args.steps, device=args.device, out=args.out, overwrite=args.overwrite,
+                       expect=dict(name=args.name, batch=args.batch, seed=args.seed, dtype=args.dtype,
+                                   overrides=overrides))
+    else:
+        if not args.name:
+            raise ConfigError("run needs a scenario NAME (or --resume DIR); see `rcotorch list`")
+        r = Run(args.name, steps=args.steps, batch=args.batch or 1, seed=args.seed, device=args.device or "cpu",
+                dtype=args.dtype or "float64", out=args.out, overrides=overrides, overwrite=args.overwrite)
+    session.folder = r.folder
+    r.open_output()
+    session.log(f"`{session.command()}` at step {r.k} of {r.steps}")
+    with session.interruptible() as stop:
+        try:
+            r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every,
+                      stop=stop.is_set)
+        except Interrupted as e:
+            resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
+            if args.checkpoint_every:
+                resume += f" --checkpoint-every {args.checkpoint_every}"
+            session.log(f"stopped by Ctrl-C at step {e.step}; resume with: {resume}")
+            print(f"rcotorch: stopped at step {e.step} of {r.steps}; checkpoint saved to {e.checkpoint}\n"
+                  f"resume with: {resume}", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        summary = r.finish(figures=not args.no_figures, close=False)
+    print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
+          f"{summary['device']}, {summary['engine']} engine -> {r.out}")
+    print(result_table(summary))
+    passed = all(c["pass"] for c in summary["requirements"].values())
+    session.log(f"finished at step {summary['steps']}: " + ("every requirement passes" if passed else
+                                                            "a requirement failed"))
+    return EXIT_PASS if passed else EXIT_FAILED
+
+
+def cmd_sweep(args, session: Session) -> int:
+    from .outputs import OutputFolder
+    from .runner import Interrupted, _device
+    from .sweep import Sweep, run_sweep
+    sweep = Sweep.from_file(args.config)
+    _device(args.device or "cpu")
+    session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
+    with session.interruptible() as stop:
+        try:
+            rows = run_sweep(sweep, backend=args.backend, device=args.device or "cpu",
+                             ray_address=args.ray_address, overwrite=args.overwrite, resume=args.resume,
+                             stop=stop.is_set, folder=session.folder)
+        except Interrupted as e:
+            resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
+                      "--resume")
+            session.log(f"stopped by Ctrl-C; resume with: {resume}")
+            print(f"rcotorch: sweep stopped ({e}); finished shards are kept\nresume with: {resume}",
+                  file=sys.stderr)
+            return EXIT_INTERRUPTED
+    print(sweep_report(rows, session.folder.path))
+    return EXIT_PASS
+
+
+COMMANDS: dict[str, Callable] = {"list": cmd_list, "show": cmd_show, "run": cmd_run, "sweep": cmd_sweep}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:   # --help, --version (0) and usage errors (2, with argparse's message)
+        return e.code if isinstance(e.code, int) else EXIT_INPUT
+    session = Session(argv)
+    try:
+        if getattr(args, "engine", None):
+            os.environ["RCOTORCH_ENGINE"] = args.engine
+        if args.command not in ("list", "show"):
+            _threads(args)
+        return COMMANDS[args.command](args, session)
     except RcoError as e:
+        session.log(f"error: {e}")
         print(f"rcotorch: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        session.log("stopped by a second Ctrl-C, without a checkpoint")
+        print("\nrcotorch: stopped (no checkpoint saved since the last one)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as e:
+        return session.internal_error(e)
+    finally:
+        session.close()
 
 
 if __name__ == "__main__":

@@ -26,3 +26,16 @@ class ConfigError(RcoError, ValueError):
 
 class DataError(RcoError, ValueError):
     """Recorded data is missing, malformed or non-finite."""
+
+
+class OutputError(RcoError, OSError):
+    """An output folder cannot be used: it is a file, not writable, in use by another process, or it holds
+    results this run did not write."""
+
+
+class CheckpointError(RcoError, ValueError):
+    """A checkpoint is missing, truncated, corrupted, or does not match what a resume asks for."""
+
+
+class FolderInUseError(OutputError):
+    """Another run (in this or another process) holds the output folder's lock."""

@@ -1,41 +1,119 @@
-"""Running a scenario: stepping, TensorBoard monitoring, checkpoints, figures and ``summary.json``."""
+"""Running a scenario: stepping, member health, TensorBoard monitoring, checkpoints, figures, ``summary.json``.
+
+Cadences, fixed when a run is created and kept by a resume:
+
+* health checks every ``health.check_every(steps)`` steps (about 100 per run, the same for any batch size);
+* logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
+  batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch;
+* checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C).
+
+What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
+and a history of the logged values of the first ``HISTORY_MEMBERS`` members, the ones the figures draw (at most
+``2 * HISTORY_MAX`` points, thinned by two when full), so a checkpoint's size does not depend on how long the
+run is.
+"""
 
 from __future__ import annotations
 
 import json
 import math
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from . import scenario as scenarios
-from .errors import ConfigError
+from .errors import CheckpointError, ConfigError
+from .health import STATUSES, Criteria, Health
 from .monitor import Monitor
+from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 CHECKPOINT = "checkpoint.pt"
+LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
+MIN_LOGS, MAX_LOGS = 20, 1000
+HISTORY_MAX = 1000
+HISTORY_MEMBERS = 8      # members kept in the history (the figures draw the first eight)
+# What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
+RESUME_CHANGEABLE = ("--steps", "--device", "--out", "--overwrite", "--checkpoint-every", "--threads", "--engine",
+                     "--quiet", "--no-figures")
+
+
+class Interrupted(Exception):
+    """A run stopped on request (Ctrl-C) after saving a checkpoint."""
+
+    def __init__(self, step: int | None, checkpoint: Path | None):
+        super().__init__("stopped" if step is None else f"stopped at step {step}, checkpoint {checkpoint}")
+        self.step, self.checkpoint = step, checkpoint
 
 
 def _device(name: str) -> torch.device:
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda asked for, but torch sees no CUDA device on this machine")
+    hint = "valid devices: cpu, cuda, cuda:N"
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"--device {name!r} is not a device; {hint}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ConfigError(f"--device {name!r}: rcotorch runs on cpu or cuda; {hint}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"--device {name} asked for, but torch sees no CUDA device on this machine")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     return dev
 
 
+def _positive_int(value, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{what} must be a positive integer, got {value!r}")
+    return value
+
+
+def default_log_every(steps: int, batch: int) -> int:
+    """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
+    least MIN_LOGS logs), since a log reads every member."""
+    logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
+    return max(1, math.ceil(steps / logs))
+
+
+def default_out(name: str) -> Path:
+    """``runs/NAME``, or the first of ``runs/NAME-2``, ``runs/NAME-3``, ... that holds no run when it does."""
+    base = Path("runs") / name
+    path, n = base, 1
+    while path.exists() and (not path.is_dir() or any(p.name != ".rcotorch.lock" for p in path.iterdir())):
+        n += 1
+        path = base.with_name(f"{name}-{n}")
+    return path
+
+
 class Run:
-    """One scenario run: a batched graph stepped to ``steps``, logged every ``log_every`` steps."""
+    """One scenario run: a batched graph stepped to ``steps``, with health checks and logs on the way.
+
+    Args:
+        name: the scenario.
+        steps, batch, seed, device, dtype: the run's size and settings (``seed`` overrides the scenario's).
+        out: output folder (default ``runs/NAME``, or ``runs/NAME-2``, ... when that holds a run). It is
+            opened (locked) when the run first writes, or by ``open_output``; a folder that holds another run
+            is refused unless ``overwrite``.
+        overrides: scenario settings, e.g. ``{'p0': 1e4}``.
+        members: per-member settings (one dict each, e.g. {'dK': 0.3, 'seed': 7}); the batch is then
+            ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides.
+        log_every: steps between logs (default ``default_log_every``).
+        trace: members logged individually in TensorBoard when the batch is larger than 8.
+        health: thresholds of the member health checks (``rcotorch.health.Criteria``).
+        overwrite: replace the run that ``out`` holds (only the files its manifest lists).
+
+    ``hparams_session`` (default True): the run's TensorBoard run is also its HParams session (a sweep sets it
+    False and writes one session per member instead).
+    """
 
     def __init__(self, name: str, steps: int | None = None, batch: int = 1, seed: int | None = None,
                  device: str = "cpu", dtype: str = "float64", out: str | Path | None = None,
                  overrides: Mapping[str, Any] | None = None, log_every: int | None = None,
-                 members: list[Mapping[str, Any]] | None = None, trace: list[int] | None = None):
-        """``members``: per-member settings (one dict each, e.g. {'dK': 0.3, 'seed': 7}); the batch is then
-        ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides.
-        ``trace``: members logged individually in TensorBoard when the batch is larger than 8."""
+                 members: list[Mapping[str, Any]] | None = None, trace: list[int] | None = None,
+                 health: Criteria | None = None, overwrite: bool = False):
         self.scenario = scenarios.get(name)
         self.trace = trace
         if members is not None:
@@ -44,136 +122,235 @@ class Run:
             batch = len(members)
         if dtype not in DTYPES:
             raise ConfigError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
-        if batch < 1:
-            raise ConfigError(f"batch must be positive, got {batch}")
-        self.steps = int(steps if steps is not None else self.scenario.steps)
-        if self.steps < 1:
-            raise ConfigError(f"steps must be positive, got {self.steps}")
-        self.batch, self.dtype_name, self.device = batch, dtype, _device(device)
+        self.batch = _positive_int(batch, "batch")
+        self.steps = _positive_int(steps if steps is not None else self.scenario.steps, "steps")
+        self.dtype_name, self.device = dtype, _device(device)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise ConfigError(f"seed must be an integer, got {seed!r}")
         if members is not None:
             self.settings = self.scenario.resolve_members(dict(overrides or {}, **({} if seed is None else
                                                                                   {"seed": seed})), members)
         else:
             self.settings = self.scenario.resolve(overrides, seed)
-        self.out = Path(out) if out else Path("runs") / self.scenario.name
-        self.log_every = int(log_every or max(1, self.steps // 1000))
-        self.graph = self.scenario.build(self.settings, batch, DTYPES[dtype], self.device)
+        self.out = Path(out) if out else default_out(self.scenario.name)
+        self.folder = OutputFolder(self.out, "run")
+        self._mode = "overwrite" if overwrite else "new"
+        self.log_every = _positive_int(log_every, "log_every") if log_every is not None else \
+            default_log_every(self.steps, self.batch)
+        self.graph = self.scenario.build(self.settings, self.batch, DTYPES[dtype], self.device)
         self.graph.check_steps(self.steps)
         self.truth = self.scenario.truth(self.settings)
+        self.health = Health(self.graph, self.steps, health)
+        self.z_sig = self.graph.role_signal("error")
+        self.y_sig = self.graph.role_signal("measured") if "measured" in self.graph.roles else None
+        self.counters = {"acc": 0, "log": 0, "mark": 0}   # steps summed in acc, log_z, mark_z
+        self.sums = {k: torch.zeros(self.batch, dtype=torch.float64, device=self.device)
+                     for k in ("z", "y", "log_z", "mark_z", "z_rms_last")}
+        self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
-        self.z_sq = torch.zeros(batch, dtype=torch.float64, device=self.device)
-        self.z_count = 0
+        self.history_members = list(range(min(self.batch, HISTORY_MEMBERS)))
         self.monitor: Monitor | None = None
-
-    def clear_outputs(self) -> None:
-        """Remove the outputs of an earlier run in the same directory (events, figures, summary, checkpoint)."""
-        import shutil
-        if not self.out.is_dir():
-            return
-        for pattern in ("events.out.tfevents.*", "*.png", "summary.json", CHECKPOINT):
-            for f in self.out.glob(pattern):
-                f.unlink()
-        shutil.rmtree(self.out / "hparams", ignore_errors=True)
+        self.hparams_session = True
 
     @property
     def k(self) -> int:
         return int(self.graph.k)
 
-    # --- stepping ----------------------------------------------------------------------------------------
+    # --- the output folder ---------------------------------------------------------------------------------
+    def open_output(self) -> None:
+        """Open (lock) the output folder, if not yet: refuses a folder that holds another run unless the run
+        was made with ``overwrite``, or is a resume into its own folder."""
+        if not self.folder.is_open:
+            self.folder.open(self._mode, info={"scenario": self.scenario.name})
+            self._mode = "resume"           # a later reopening continues this run
+
+    def close(self) -> None:
+        """Release the output folder (its manifest lists every file the run wrote)."""
+        if self.monitor is not None:
+            self.monitor.writer.flush()
+        self.folder.close()
+
+    def __enter__(self) -> Run:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- stepping ------------------------------------------------------------------------------------------
     def advance(self, until: int | None = None, progress: bool | None = None,
-                checkpoint_every: int | None = None) -> None:
-        """Step to ``until`` (default: the run's ``steps``), logging and checkpointing on the way."""
-        until = self.steps if until is None else until
+                checkpoint_every: int | None = None, stop: Callable[[], bool] | None = None,
+                desc: str | None = None) -> None:
+        """Step to ``until`` (default: the run's ``steps``), checking health, logging and checkpointing on the
+        way. ``stop()`` is asked after each stretch of steps; when it says True the run saves a checkpoint and
+        raises ``Interrupted``."""
+        until = self.steps if until is None else _positive_int(until, "until")
+        if checkpoint_every is not None:
+            _positive_int(checkpoint_every, "--checkpoint-every")
         self.graph.check_steps(until - self.k)
-        if self.monitor is None:
-            self.monitor = Monitor(self.out, self)
+        self._start_monitor()
         bar = None
         if progress or (progress is None and until - self.k >= 5000):
             from tqdm import tqdm
-            bar = tqdm(total=until, initial=self.k, desc=self.scenario.name, unit="step", mininterval=0.5,
-                       disable=None, file=sys.stderr)
-        z_node = self.graph.role_signal("error")
-        while self.k < until:
-            # Up to the next log or checkpoint step in one call (many steps per call on the native engine).
-            stop = min(until, (self.k // self.log_every + 1) * self.log_every)
-            if checkpoint_every:
-                stop = min(stop, (self.k // checkpoint_every + 1) * checkpoint_every)
-            n = stop - self.k
-            self.graph.advance(n, accumulate={z_node: self.z_sq})
-            self.z_count += n
-            if self.k % self.log_every == 0:
-                self._log()
-            if checkpoint_every and self.k % checkpoint_every == 0:
-                self.save()
+            bar = tqdm(total=until, initial=self.k, desc=desc or self.scenario.name, unit="step",
+                       mininterval=0.5, disable=None, file=sys.stderr)
+        acc = {self.z_sig: self.sums["z"]}
+        if self.y_sig is not None and self.y_sig != self.z_sig:
+            acc[self.y_sig] = self.sums["y"]
+        try:
+            while self.k < until:
+                k = self.k
+                end = min(until, _next(k, self.log_every), _next(k, self.health.every),
+                          _next(k, checkpoint_every) if checkpoint_every else until)
+                self.graph.advance(end - k, accumulate=acc)
+                self.counters["acc"] += end - k
+                if end % self.health.every == 0:
+                    self._check()
+                if end % self.log_every == 0:
+                    self._log()
+                if checkpoint_every and end % checkpoint_every == 0:
+                    self.save()
+                if bar is not None:
+                    bar.update(end - k)
+                if stop is not None and stop():
+                    raise Interrupted(self.k, self.save())
+        finally:
             if bar is not None:
-                bar.update(n)
-        if bar is not None:
-            bar.close()
+                bar.close()
+
+    def _start_monitor(self) -> None:
+        self.open_output()
+        if self.monitor is None:
+            self.monitor = Monitor(self.out, self)
+            self.folder.register()
+
+    def _check(self) -> None:
+        """A health check: the sums since the last check go to the health statistics and the log's sums."""
+        s, c = self.sums, self.counters
+        s["log_z"] += s["z"] - s["mark_z"]
+        c["log"] += c["acc"] - c["mark"]
+        self.health.check(s["z"], s["y"] if self.y_sig is not None else None, c["acc"])
+        for key in ("z", "y", "mark_z"):
+            s[key].zero_()
+        c["acc"] = c["mark"] = 0
 
     def _log(self) -> None:
-        z_rms = torch.sqrt(self.z_sq / max(self.z_count, 1))
+        s, c = self.sums, self.counters
+        n = c["log"] + c["acc"] - c["mark"]
+        z_rms = torch.sqrt((s["log_z"] + s["z"] - s["mark_z"]) / max(n, 1))
+        s["log_z"].zero_()
+        s["mark_z"].copy_(s["z"])
+        c["log"], c["mark"] = 0, c["acc"]
+        s["z_rms_last"].copy_(z_rms)
         est = {k: v.detach().to(torch.float64).cpu() for k, v in
                self.scenario.estimates(self.graph, self.settings).items()}
-        self.history["step"].append(self.k)
-        self.history["z_rms"].append(z_rms.cpu())
-        for key, v in est.items():
-            self.history.setdefault(key, []).append(v)
-        self.monitor.log(self.k, z_rms.cpu(), est)
-        self.z_sq.zero_()
-        self.z_count = 0
+        z_cpu = z_rms.cpu()
+        self._remember(z_cpu, est)
+        self.monitor.log(self.k, z_cpu, est)
 
-    # --- checkpoints -------------------------------------------------------------------------------------
+    def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor]) -> None:
+        """Append the first members' values to the history (thinned by two when it is full)."""
+        h, members = self.history, self.history_members
+        h["step"].append(self.k)
+        h["z_rms"].append(z_rms[members].clone())
+        for key, v in est.items():
+            h.setdefault(key, []).append(v[members].clone())
+        if len(h["step"]) >= 2 * HISTORY_MAX:
+            for key in h:
+                h[key] = h[key][1::2]
+
+    def _pending_log(self) -> int:
+        c = self.counters
+        return c["log"] + c["acc"] - c["mark"]
+
+    # --- checkpoints ---------------------------------------------------------------------------------------
     def save(self, path: str | Path | None = None) -> Path:
+        """Write a checkpoint (atomically; the previous one is replaced only once this one is complete)."""
+        self.open_output()
         path = Path(path) if path else self.out / CHECKPOINT
-        path.parent.mkdir(parents=True, exist_ok=True)
         state = {
-            "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
+            "format": 2, "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
             "dtype": self.dtype_name, "settings": self.settings, "log_every": self.log_every,
-            "graph": self.graph.state_dict(), "history": self.history,
-            "z_sq": self.z_sq, "z_count": self.z_count,
+            "trace": self.trace, "graph": self.graph.state_dict(),
+            "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
+            "history_members": self.history_members, "counters": dict(self.counters),
+            "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
         }
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        save_checkpoint(path, state)
+        self.folder.register()
         return path
 
     @classmethod
     def resume(cls, directory: str | Path, steps: int | None = None, device: str | None = None,
-               out: str | Path | None = None) -> Run:
-        """Rebuild a run from ``directory/checkpoint.pt``; ``steps`` may extend its target."""
-        path = Path(directory) / CHECKPOINT
+               out: str | Path | None = None, overwrite: bool = False,
+               expect: Mapping[str, Any] | None = None) -> Run:
+        """Rebuild a run from ``directory/checkpoint.pt``; ``steps`` may extend its target. ``expect``: what
+        the caller asked for besides (``name``, ``batch``, ``seed``, ``dtype``, ``overrides``); anything
+        that differs from the checkpoint is refused. ``out``: continue into another folder (new, or replaced
+        with ``overwrite``) instead of ``directory``."""
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise CheckpointError(f"--resume {directory}: no such folder")
+        OutputFolder(directory, "run").check_free()      # not while another process writes the run
+        path = directory / CHECKPOINT
         if not path.is_file():
-            raise ConfigError(f"--resume {directory}: no {CHECKPOINT} there")
-        state = torch.load(path, map_location="cpu", weights_only=False)
+            raise CheckpointError(f"--resume {directory}: no {CHECKPOINT} there")
+        state = load_checkpoint(path)
+        if state.get("format") != 2:
+            raise CheckpointError(f"{path}: written by another version of rcotorch (format {state.get('format')})")
+        _check_resume(path, state, expect or {})
         run = cls(state["scenario"], steps=steps or state["steps"], batch=state["batch"],
                   device=device or "cpu", dtype=state["dtype"], out=out or directory,
                   overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
-                  members=_members(state["settings"], state["batch"]), log_every=state["log_every"])
+                  members=_members(state["settings"], state["batch"]), log_every=state["log_every"],
+                  trace=state["trace"], health=Criteria(**state["health"]["criteria"]))
+        if out is None or Path(out).resolve() == directory.resolve():
+            run._mode = "resume"
+        elif overwrite:
+            run._mode = "overwrite"
         run.graph.load_state_dict(state["graph"])
-        run.history = state["history"]
-        run.z_sq = state["z_sq"].to(run.device)
-        run.z_count = state["z_count"]
+        run.history = {k: list(v.unbind(0)) if isinstance(v, torch.Tensor) else list(v)
+                       for k, v in state["history"].items()}
+        run.history_members = state["history_members"]
+        run.counters = dict(state["counters"])
+        run.sums = {k: v.to(run.device) for k, v in state["sums"].items()}
+        run.health.load_state_dict(state["health"])
         if run.k > run.steps:
             raise ConfigError(f"--resume: the checkpoint is at step {run.k}, past the requested {run.steps}")
+        run.health.set_target(run.steps)
         return run
 
-    # --- results -----------------------------------------------------------------------------------------
+    # --- results -------------------------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
+        """The run's results: estimates, truth, metrics, requirement checks and every member's health."""
         sc, g = self.scenario, self.graph
         est = {k: v.detach().to(torch.float64).cpu() for k, v in sc.estimates(g, self.settings).items()}
         met = {k: v.detach().to(torch.float64).cpu() for k, v in sc.metrics(g, self.settings).items()}
-        z_rms = self.history["z_rms"][-1] if self.history["z_rms"] else torch.full((self.batch,), math.nan)
-        met.setdefault("z_rms_final", z_rms)
-        ident = g.role("estimator")
-        diverged = [{"member": int(b), "step": int(ident.diverged_at[b])}
-                    for b in torch.nonzero(~ident.alive).flatten().tolist()]
+        verdict = self.health.status(self.sums["z"], self.sums["y"] if self.y_sig is not None else None,
+                                     self.counters["acc"])
+        met.setdefault("z_rms_final", verdict["z_rms"].cpu())
+        health = self.health.report(verdict)
+        status = verdict["status"].tolist()
+        diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
+                     "reason": (health["reason"] if self.batch == 1 else health["reason"][b])}
+                    for b in range(self.batch) if STATUSES[status[b]] == "diverged"]
+        return {
+            "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
+            "device": str(self.device.type), "engine": self.graph.ran_engine or
+            ("torch" if self.graph.native_status() else "native"),
+            "engine_reason": self.graph.engine_reason if self.graph.ran_engine else self.graph.native_status(),
+            "estimates": {k: self._values(v) for k, v in est.items()},
+            "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
+            "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
+            "requirements": self._requirements(est, met),
+        }
 
-        def value(t: torch.Tensor):
-            vals = [None if not math.isfinite(x) else float(x) for x in t.reshape(self.batch).tolist()]
-            return vals[0] if self.batch == 1 else vals
+    def _values(self, t: torch.Tensor):
+        vals = [None if not math.isfinite(x) else float(x) for x in t.reshape(self.batch).tolist()]
+        return vals[0] if self.batch == 1 else vals
 
+    def _requirements(self, est: dict[str, torch.Tensor], met: dict[str, torch.Tensor]) -> dict[str, Any]:
         checks = {}
-        for req in sc.requirements:
+        for req in self.scenario.requirements:
             group, key = req.key.split(".", 1)
             t = (est if group == "estimates" else met).get(key)
             if t is None:
@@ -181,35 +358,55 @@ class Run:
             truth = member_truth(self.truth.get(key), self.batch)
             per_member = [req.check(float(x), tv) for x, tv in zip(t.reshape(-1).tolist(), truth)]
             checks[req.key] = {"requirement": req.describe(),
-                               "value": value(torch.tensor([q for q, _ in per_member])),
+                               "value": self._values(torch.tensor([q for q, _ in per_member])),
                                "pass": all(ok for _, ok in per_member)}
-        return {
-            "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
-            "device": str(self.device.type), "engine": self.graph.ran_engine or
-            ("torch" if self.graph.native_status() else "native"),
-            "engine_reason": self.graph.engine_reason if self.graph.ran_engine else self.graph.native_status(),
-            "estimates": {k: value(v) for k, v in est.items()},
-            "truth": self.truth, "metrics": {k: value(v) for k, v in met.items()},
-            "settings": dict(self.settings), "diverged": diverged, "requirements": checks,
-        }
+        return checks
 
-    def finish(self, figures: bool = True) -> dict[str, Any]:
-        """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint."""
-        if self.monitor is None:
-            self.monitor = Monitor(self.out, self)
-        if self.z_count:
+    def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
+        """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
+        (unless ``close`` is False)."""
+        self._start_monitor()
+        if self._pending_log():
             self._log()
         summary = self.summary()
-        self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_text(self.out / "summary.json", to_json(summary) + "\n")
         if figures:
             from .figures import run_figures
             figs = run_figures(self)
             figs.update(self.scenario.figures(self.graph, self.settings))
             self.monitor.figures(figs, self.out)
+        for status, count in summary["health"]["counts"].items():
+            self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
         self.monitor.close(summary)
         self.save()
+        if close:
+            self.close()
         return summary
+
+
+def _next(k: int, every: int) -> int:
+    """The first multiple of ``every`` after ``k``."""
+    return (k // every + 1) * every
+
+
+def _check_resume(path: Path, state: Mapping[str, Any], expect: Mapping[str, Any]) -> None:
+    """Refuse a resume that asks for another scenario, batch, seed, dtype or setting than the checkpoint's."""
+    changeable = f"a resume keeps the run's settings; it accepts {', '.join(RESUME_CHANGEABLE)}"
+    given = {"name": state["scenario"], "batch": state["batch"], "dtype": state["dtype"],
+             "seed": state["settings"].get("seed")}
+    for key, have in given.items():
+        want = expect.get(key)
+        if want is not None and want != have:
+            flag = "scenario" if key == "name" else f"--{key}"
+            raise CheckpointError(f"--resume {path.parent}: the checkpoint's run has {flag} {have!r}, not "
+                                  f"{want!r}; {changeable}")
+    overrides = dict(expect.get("overrides") or {})
+    if overrides:
+        resolved = scenarios.get(state["scenario"]).resolve(overrides)
+        for key in overrides:
+            if resolved[key] != state["settings"].get(key):
+                raise CheckpointError(f"--resume {path.parent}: --set {key}={overrides[key]} differs from the "
+                                      f"checkpoint's {key} = {state['settings'].get(key)!r}; {changeable}")
 
 
 def member_truth(truth, batch: int) -> list:
@@ -225,27 +422,53 @@ def _members(settings: Mapping[str, Any], batch: int) -> list[dict[str, Any]] | 
     return [{k: v[b] for k, v in varying.items()} for b in range(batch)]
 
 
+def to_json(obj: Any, indent: int = 0) -> str:
+    """JSON with one key per line and every list on one line (readable, and fast for large batches)."""
+    if isinstance(obj, Mapping) and obj:
+        pad = " " * (indent + 2)
+        items = [f"{pad}{json.dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
+    return json.dumps(obj)
+
+
+def health_line(summary: Mapping[str, Any]) -> str:
+    """One line on the members' health."""
+    h = summary["health"]
+    if summary["batch"] == 1:
+        if h["status"] == "diverged":
+            return f"health: diverged at step {h['diverged_at']} ({h['reason']})"
+        detail = ", ".join(f"{k} {_fmt(h[k])}" for k in ("theta_change", "z_ratio"))
+        return f"health: {h['status']} ({detail})"
+    counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items())
+    line = f"health: {counts}"
+    if summary["diverged"]:
+        first = summary["diverged"][:5]
+        line += "; diverged: " + ", ".join(f"member {d['member']} at step {d['step']} ({d['reason']})"
+                                           for d in first) + (", ..." if len(summary["diverged"]) > 5 else "")
+    return line
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        finite = [x for x in v if x is not None]
+        return f"{min(finite):.6g}..{max(finite):.6g}" if finite else "nan"
+    return "nan" if v is None else f"{v:.6g}"
+
+
 def result_table(summary: Mapping[str, Any]) -> str:
-    """A short text table of estimates, truth and requirements."""
+    """A short text table of estimates, truth and requirements, and the members' health."""
     rows = [("key", "estimate", "truth", "requirement", "check")]
     checks = summary.get("requirements", {})
-
-    def fmt(v):
-        if isinstance(v, list):
-            finite = [x for x in v if x is not None]
-            return f"{min(finite):.6g}..{max(finite):.6g}" if finite else "nan"
-        return "nan" if v is None else f"{v:.6g}"
-
     for group in ("estimates", "metrics"):
         for key, v in summary[group].items():
             chk = checks.get(f"{group}.{key}")
             truth = summary["truth"].get(key) if group == "estimates" else None
-            rows.append((f"{group}.{key}", fmt(v), "" if truth is None else fmt(truth),
-                         chk["requirement"] + f" ({fmt(chk['value'])})" if chk else "",
+            rows.append((f"{group}.{key}", _fmt(v), "" if truth is None else _fmt(truth),
+                         chk["requirement"] + f" ({_fmt(chk['value'])})" if chk else "",
                          ("PASS" if chk["pass"] else "FAIL") if chk else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
-    if summary.get("diverged"):
-        lines.append(f"diverged members: {summary['diverged']}")
+    lines.append(health_line(summary))
     return "\n".join(lines)
+

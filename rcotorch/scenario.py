@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import os
 import pkgutil
 import sys
@@ -200,24 +201,34 @@ def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype = to
 
 
 def _coerce(scenario: str, key: str, value, default):
-    """Convert an override (often a command-line string) to the type of the default value."""
+    """Convert an override (often a command-line string) to the type of the default value; numbers must be
+    finite (NaN and infinities are refused)."""
+    where = f"scenario '{scenario}': setting {key}"
     if isinstance(default, bool):
-        if isinstance(value, str):
-            if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
-                raise ConfigError(f"scenario '{scenario}': setting {key} must be true or false, got {value!r}")
+        if isinstance(value, str) and value.lower() in ("1", "0", "true", "false", "yes", "no"):
             return value.lower() in ("1", "true", "yes")
-        return bool(value)
+        if isinstance(value, (bool, int)) and value in (0, 1):
+            return bool(value)
+        raise ConfigError(f"{where} must be true or false, got {value!r}")
     if isinstance(default, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+            raise ConfigError(f"{where} must be a number, got {value!r}")
         try:
             number = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"scenario '{scenario}': setting {key} must be a number, got {value!r}") from None
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{where} must be a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
         if isinstance(default, int):
+            if isinstance(value, int):
+                return value
             if number != int(number):
-                raise ConfigError(f"scenario '{scenario}': setting {key} must be an integer, got {value!r}")
+                raise ConfigError(f"{where} must be an integer, got {value!r}")
             return int(number)
         return number
-    return type(default)(value) if default is not None else value
+    if default is not None and not isinstance(value, type(default)):
+        raise ConfigError(f"{where} must be a {type(default).__name__}, got {value!r}")
+    return value
 
 
 def scenario_dirs() -> list[Path]:

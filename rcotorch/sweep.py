@@ -27,11 +27,12 @@ Config file (TOML or JSON)::
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +44,34 @@ from .errors import ConfigError
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
                "dtype", "trace"}
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+# The type of each top-level config value: (test, what it must be).
+_TYPES = {
+    "scenario": (lambda v: isinstance(v, str), "a scenario name"),
+    "steps": (lambda v: v is None or _is_int(v), "an integer"),
+    "seeds": (lambda v: _is_int(v) or (isinstance(v, list) and all(_is_int(x) for x in v)),
+              "an integer count or a list of integers"),
+    "seed": (_is_int, "an integer"),
+    "shard_size": (_is_int, "an integer"),
+    "samples": (_is_int, "an integer"),
+    "dtype": (lambda v: v in ("float64", "float32"), "'float64' or 'float32'"),
+    "trace": (lambda v: isinstance(v, list) and all(_is_int(x) for x in v), "a list of member indices"),
+    "fixed": (lambda v: isinstance(v, Mapping), "a table of settings"),
+    "grid": (lambda v: isinstance(v, Mapping), "a table of lists"),
+    "random": (lambda v: isinstance(v, Mapping), "a table of distributions"),
+}
+
+
+def _check_types(spec: Mapping[str, Any], source: str) -> None:
+    for key, value in spec.items():
+        ok, what = _TYPES[key]
+        if not ok(value):
+            raise ConfigError(f"{source}: {key} must be {what}, got {value!r}")
 
 
 @dataclass
@@ -68,6 +97,7 @@ class Sweep:
             raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {sorted(CONFIG_KEYS)}")
         if "scenario" not in spec:
             raise ConfigError(f"{source}: 'scenario' is missing")
+        _check_types(spec, source)
         return cls(**spec)
 
     @classmethod
@@ -192,33 +222,56 @@ class Sweep:
 
 
 def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
-             out: str | None):
+             out: str | None, overwrite: bool = False):
     """The batched run of one shard (building it checks every member's settings)."""
     from .runner import Run
     local = [b for b, m in enumerate(shard["members"]) if m in set(shard.get("trace", ()))]
     try:
         run = Run(scenario, steps=steps, device=device, dtype=dtype, out=out, overrides=shard["common"],
-                  members=shard["settings"], trace=local or None)
-        run.hparams_session = False          # the sweep writes the HParams sessions (write_hparams)
-        return run
+                  members=shard["settings"], trace=local or None, overwrite=overwrite)
     except ConfigError as e:
         raise ConfigError(f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]}): "
                           f"{e}") from None
+    run.hparams_session = False          # the sweep writes the HParams sessions (write_hparams)
+    return run
 
 
 def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
-              out: str | None, threads: int | None = None, run=None) -> list[dict[str, Any]]:
-    """Run one shard as a batched run; return one table row per member."""
+              out: str | None, threads: int | None = None, run=None, stop=None, desc: str | None = None
+              ) -> list[dict[str, Any]]:
+    """Run one shard as a batched run; return one table row per member. A shard folder left by an
+    interrupted sweep is taken up where it stopped: finished (its summary.json), resumed from its
+    checkpoint, or started again."""
     import torch
 
-    from .runner import member_truth
+    from .outputs import MANIFEST
+    from .runner import CHECKPOINT, Run
     if threads:
         torch.set_num_threads(threads)
+    folder = Path(out) if out else None
+    if run is None and folder is not None and (folder / MANIFEST).is_file():
+        done = folder / "summary.json"
+        if done.is_file():
+            summary = json.loads(done.read_text())
+            if summary["steps"] == (steps or scenarios.get(scenario).steps):
+                return shard_rows(shard, summary)
+        if (folder / CHECKPOINT).is_file():
+            run = Run.resume(folder)
+            run.hparams_session = False
+        else:
+            run = make_run(scenario, shard, steps, dtype, device, out, overwrite=True)
     run = run or make_run(scenario, shard, steps, dtype, device, out)
-    run.advance(progress=False)
+    run.advance(progress=desc is not None, stop=stop, desc=desc)
     summary = run.finish(figures=False) if out else run.summary()
-    B = run.batch
-    diverged = {d["member"]: d["step"] for d in summary["diverged"]}
+    return shard_rows(shard, summary)
+
+
+def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """One table row per member of a shard from its run's summary: settings, estimates with truth and error,
+    metrics, health."""
+    from .runner import member_truth
+    B = summary["batch"]
+    health = {k: member_truth(summary["health"][k], B) for k in ("status", "reason", "diverged_at")}
     rows = []
     for b, member in enumerate(shard["members"]):
         row: dict[str, Any] = {"member": member, "shard": shard["index"]}
@@ -234,67 +287,154 @@ def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype:
                 row[f"err_{key}"] = None if est is None else est - tv
         for key, v in summary["metrics"].items():
             row[key] = member_truth(v, B)[b]
-        row["diverged"] = b in diverged
-        row["diverged_at"] = diverged.get(b)
+        row["status"] = health["status"][b]
+        row["reason"] = health["reason"][b]
+        row["diverged"] = health["status"][b] == "diverged"
+        row["diverged_at"] = health["diverged_at"][b]
         rows.append(row)
     return rows
 
 
 def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: str | Path | None = None,
-              ray_address: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``."""
+              ray_address: str | None = None, progress: bool = True, overwrite: bool = False,
+              resume: bool = False, stop=None, folder=None) -> list[dict[str, Any]]:
+    """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``.
+
+    ``out`` (default ``runs/sweep-SCENARIO``) must not hold results unless ``overwrite`` (replace the sweep
+    there) or ``resume`` (continue the interrupted sweep there, with the same config). ``stop()`` is asked
+    between steps (Ctrl-C): the running shard saves a checkpoint and ``Interrupted`` is raised. ``folder``: an
+    ``OutputFolder`` for ``out`` made by the caller (to log into it)."""
+    from .outputs import OutputFolder
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if overwrite and resume:
+        raise ConfigError("choose one of --overwrite and --resume")
     shards = sweep.shards()  # validates everything before any work
     sc = scenarios.get(sweep.scenario)
     steps = sweep.steps or sc.steps
-    out = Path(out) if out else Path("runs") / f"sweep-{sweep.scenario}"
-    shard_out = [str(out / f"shard_{s['index']:04d}") for s in shards]
+    folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
+    shard_out = [str(folder.path / f"shard_{s['index']:04d}") for s in shards]
     # Build every shard before running any, so a bad value fails before work starts.
     runs = [make_run(sweep.scenario, s, steps, sweep.dtype, device, o) for s, o in zip(shards, shard_out)]
-    if backend == "local":
-        rows = []
-        for s, o, r in zip(shards, shard_out, runs):
-            if progress:
-                print(f"shard {s['index'] + 1}/{len(shards)}: {len(s['members'])} members", flush=True)
-            rows += run_shard(sweep.scenario, s, steps, sweep.dtype, device, o, run=r)
-    else:
-        del runs
-        rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address)
-    rows.sort(key=lambda r: r["member"])
-    write_table(rows, out)
-    write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
+    config = json.loads(json.dumps(asdict(sweep)))
+    folder.open("resume" if resume else "overwrite" if overwrite else "new",
+                info=None if resume else {"scenario": sweep.scenario, "config": config})
+    try:
+        if resume and folder.info.get("config") != config:
+            raise ConfigError(f"--resume: the sweep in {folder.path} was run with another config")
+        out = folder.path
+        for name in [Path(o).name for o in shard_out] + ["members"]:
+            folder.add_child(name)
+        folder.register()
+        if backend == "local":
+            rows = _run_local(sweep, shards, steps, device, shard_out, runs, progress, stop)
+        else:
+            del runs
+            rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, progress, stop)
+        rows.sort(key=lambda r: r["member"])
+        write_table(rows, out)
+        write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
+    finally:
+        folder.close()
     return rows
 
 
-def _run_ray(sweep, shards, steps, device, shard_out, address):
+def _run_local(sweep, shards, steps, device, shard_out, runs, progress, stop) -> list[dict[str, Any]]:
+    import time
+    rows = []
+    for s, o, r in zip(shards, shard_out, runs):
+        label = f"shard {s['index'] + 1}/{len(shards)}"
+        if progress:
+            print(f"{label}: {len(s['members'])} members", flush=True)
+        start = time.perf_counter()
+        part = run_shard(sweep.scenario, s, steps, sweep.dtype, device, o, run=None if Path(o).exists() else r,
+                         stop=stop, desc=label if progress else None)
+        if progress:
+            print(f"{label}: done in {time.perf_counter() - start:.1f} s; {_health_counts(part)}", flush=True)
+        rows += part
+    return rows
+
+
+def _health_counts(rows: list[dict[str, Any]]) -> str:
+    from .health import STATUSES
+    return ", ".join(f"{sum(r['status'] == st for r in rows)} {st}" for st in STATUSES)
+
+
+RAY_TIMEOUT = 20.0   # seconds to wait for an existing Ray cluster to answer
+
+
+def _check_ray_address(address: str, timeout: float = RAY_TIMEOUT) -> None:
+    """Fail fast when nothing answers at a Ray cluster's address (Ray itself retries for minutes)."""
+    if address in ("auto", "local"):
+        return
+    hostport = address.removeprefix("ray://")
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"--ray-address {address!r}: expected HOST:PORT (the cluster's GCS address, as printed "
+                          "by `ray start --head`), ray://HOST:PORT or auto")
+    import grpc
+    channel = grpc.insecure_channel(hostport)
+    try:
+        grpc.channel_ready_future(channel).result(timeout=timeout)
+    except grpc.FutureTimeoutError:
+        raise ConfigError(f"--ray-address {address}: no Ray cluster answered within {timeout:.0f} s; start one "
+                          "with `ray start --head` and pass the address it prints, or leave --ray-address out "
+                          "to start a local one") from None
+    finally:
+        channel.close()
+
+
+def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
     try:
         import ray
     except ImportError:
         raise ConfigError("the ray backend needs Ray: pip install 'rcotorch[ray]' (or pip install ray)") from None
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+        if address:
+            _check_ray_address(address)
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise ConfigError(f"--ray-address {address}: cannot connect to Ray: {e}") from None
     try:
         task = ray.remote(num_cpus=1, num_gpus=1 if device == "cuda" else 0)(run_shard)
-        refs = [task.remote(sweep.scenario, s, steps, sweep.dtype, device, o, 1) for s, o in zip(shards, shard_out)]
-        return [row for part in ray.get(refs) for row in part]
+        refs = {task.remote(sweep.scenario, s, steps, sweep.dtype, device, o, 1): s for s, o in zip(shards, shard_out)}
+        parts, pending, done = {}, list(refs), 0
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            if stop is not None and stop():
+                from .runner import Interrupted
+                for ref in pending:
+                    ray.cancel(ref, force=True)
+                raise Interrupted(None, None)
+            for ref in ready:
+                s = refs[ref]
+                parts[s["index"]] = ray.get(ref)
+                done += 1
+                if progress:
+                    print(f"shard {s['index'] + 1}/{len(shards)} done ({done} of {len(shards)}): "
+                          f"{_health_counts(parts[s['index']])}", flush=True)
+        return [row for i in sorted(parts) for row in parts[i]]
     finally:
         if started:
             ray.shutdown()
 
 
 def write_table(rows: list[dict[str, Any]], out: Path) -> None:
+    """``sweep.json`` and ``sweep.csv`` (one row per member), each written atomically."""
+    from .outputs import write_text
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sweep.json").write_text(json.dumps(rows, indent=1) + "\n")
+    write_text(out / "sweep.json", json.dumps(rows, indent=1) + "\n")
     columns: list[str] = []
     for r in rows:
         columns += [c for c in r if c not in columns]
-    with open(out / "sweep.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=columns)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=columns)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+    write_text(out / "sweep.csv", text.getvalue())
 
 
 HPARAMS_MEMBERS_MAX = 400   # one HParams session (a TensorBoard run) per member up to this sweep size

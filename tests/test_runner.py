@@ -39,6 +39,7 @@ def test_checkpoint_resume_is_bitwise_identical(name, tmp_path):
     part = Run(name, steps=1300, batch=2, out=tmp_path / "part")
     part.advance(until=517, progress=False)   # not a multiple of the noise chunk or the log interval
     part.save()
+    part.close()
     resumed = Run.resume(tmp_path / "part")
     assert resumed.k == 517
     resumed.advance(progress=False)
@@ -118,7 +119,8 @@ def test_a_diverging_member_is_frozen_and_reported(tmp_path):
     known.set_state(x=x)
     run.advance(progress=False)
     summary = run.finish(figures=False)
-    assert summary["diverged"] == [{"member": 1, "step": 250}]
+    assert summary["diverged"] == [{"member": 1, "step": 250, "reason": "non_finite"}]
+    assert summary["health"]["status"][1] == "diverged" and summary["health"]["reason"][1] == "non_finite"
     dK = summary["estimates"]["dK"]
     assert dK[1] is not None and dK[0] is not None and dK[2] is not None  # frozen at its last finite value
     ident = run.graph.blocks["identified"]

@@ -36,13 +36,14 @@ def test_sweep_members_equal_separate_runs(tmp_path):
     assert [r["member"] for r in rows] == list(range(8))
     members = Sweep.from_dict(SPEC).members()
     for r, m in zip(rows, members):
-        single = Run("sdof-stiffness-damping", steps=400, seed=m["seed"], out=tmp_path / "single",
+        single = Run("sdof-stiffness-damping", steps=400, seed=m["seed"], out=tmp_path / f"single{r['member']}",
                      overrides=dict({k: v for k, v in m.items() if k != "seed"}, nu=10))
         single.advance(progress=False)
         est = single.summary()["estimates"]
         np.testing.assert_allclose([r["est_dK"], r["est_dC"]], [est["dK"], est["dC"]], rtol=1e-8, atol=1e-12)
         assert r["truth_dK"] == m["dK"] and r["err_dK"] == pytest.approx(r["est_dK"] - m["dK"])
-        assert r["diverged"] is False and r["diverged_at"] is None
+        assert r["diverged"] is False and r["diverged_at"] is None and r["reason"] is None
+        assert r["status"] == single.summary()["health"]["status"]
     table = list(csv.DictReader(open(tmp_path / "sweep.csv")))
     assert len(table) == 8 and {"member", "dK", "Ts", "dC", "seed", "est_dK", "err_dC", "diverged"} <= set(table[0])
     assert json.loads((tmp_path / "sweep.json").read_text()) == rows
@@ -105,3 +106,43 @@ def test_config_files(tmp_path, capsys):
     assert "4 members" in capsys.readouterr().out
     assert len(list(csv.DictReader(open(tmp_path / "out" / "sweep.csv")))) == 4
     assert main(["sweep", str(tmp_path / "none.toml")]) == 2
+
+
+@pytest.mark.parametrize("text, message", [
+    ('steps = "200"', "steps must be an integer, got '200'"),
+    ("seeds = 2.5", "seeds must be an integer count or a list of integers, got 2.5"),
+    ("[grid]\ndK = [0.1, nan]", "setting dK must be a finite number"),
+    ("[fixed]\np0 = inf", "setting p0 must be a finite number"),
+])
+def test_sweep_values_of_the_wrong_type_exit_2_naming_the_setting(text, message, tmp_path, capsys):
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text(f'scenario = "sdof-stiffness"\n{text}\n')
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_sweep_never_deletes_what_it_did_not_write_and_never_merges_old_shards(tmp_path, capsys):
+    out = tmp_path / "out"
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 60\nseeds = 2\nshard_size = 1\n')
+    assert main(["sweep", str(cfg), "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.glob("shard_*")) == ["shard_0000", "shard_0001"]
+    (out / "notes.txt").write_text("mine")
+    (out / "shard_0001" / "mine.txt").write_text("mine too")
+    before = sorted(str(p) for p in out.rglob("*"))
+    capsys.readouterr()
+    # Another run in the folder: refused, nothing touched.
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 60\nseeds = 1\n')
+    assert main(["sweep", str(cfg), "--out", str(out)]) == 2
+    assert "already holds a sweep" in capsys.readouterr().err
+    assert sorted(str(p) for p in out.rglob("*")) == before
+    # --overwrite: the old sweep's shards go (no merging), the user's files stay.
+    assert main(["sweep", str(cfg), "--out", str(out), "--overwrite"]) == 0
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "shard_0001" / "mine.txt").read_text() == "mine too"
+    assert not (out / "shard_0001" / "summary.json").exists()
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert len(rows) == 1 and rows[0]["status"] in ("converged", "not_converged")
+    assert sorted(p.name for p in (out / "members").iterdir()) == ["member_000000"]

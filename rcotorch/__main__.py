@@ -1,0 +1,7 @@
+"""``python -m rcotorch``: the command line (see ``rcotorch.cli``)."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

@@ -1,0 +1,286 @@
+"""Member health: every member of a run ends ``converged``, ``not_converged`` or ``diverged``.
+
+**Diverged** members are frozen (theta and P held, u = 0) from a step on, for a ``Reason``:
+
+* ``non_finite``: z, the regressor or theta's update is not finite (the estimator's step freezes the member);
+* ``not_positive_definite``: P lost definiteness (the estimator's step finds the innovation covariance S not
+  positive, or a check finds no Cholesky factor of P);
+* ``theta_runaway``: theta would drive u far beyond the data's scale,
+  ``max_i sum_j |theta_ij| phi_j,rms > runaway * u_scale``;
+* ``u_runaway``: ``|u(k)| > runaway * u_scale``;
+* ``covariance_windup``: ``trace(P) > windup * n_theta * p0`` (with lambda = 1, P never exceeds p0 I; with
+  lambda < 1 and too little excitation it grows without bound). A P that overflowed is reported as windup.
+
+The data's scale of u is ``u_scale = rms(y) / |beta|``: rms(y) is the rms of the measured output so far and
+``|beta|`` the Frobenius norm of the Markov parameters of u -> z that the estimator uses, so a u of size
+``u_scale`` moves z by about the rms of the data within nu steps. ``phi_j,rms`` is the rms of regressor entry
+j sampled at the checks. The three bounds are checked every ``check_every(steps)`` steps (the same steps for
+any batch size, so a sweep member is frozen at the same step as its separate run).
+
+**Converged** or **not_converged** (members that were never frozen) is decided over the last ``window``
+fraction of the steps (the window starts at a check step):
+
+* ``theta_change``, theta's relative change over the window measured on the data: the rms of
+  ``(theta_end - theta_start) phi(k)`` over the window's regressors phi(k), divided by the larger rms of
+  ``theta_end phi(k)`` and ``theta_start phi(k)`` (or by ``1e-3 u_scale`` when both are smaller, so that an
+  identified subsystem that is zero is judged against the data's scale); at most ``theta_tol``: the identified
+  subsystem has settled. A drift of theta along directions the data does not see (a pole and a zero moving
+  together, say) does not count, since it does not change the subsystem's output;
+* ``z_ratio = rms(z) / rms(y)`` over the window, at most ``z_tol``: the refined model explains the data (a
+  member whose measured output is zero over the window has learned nothing: its z_ratio is NaN and it is
+  not converged).
+
+The estimator's own step may freeze members and record why: an estimator with a ``diverged_reason`` buffer
+((B,) int64, ``Reason`` codes, 0 while alive, next to ``alive`` and ``diverged_at``) is read as is; without
+it, the reason of a member the step froze is inferred from its state (P not finite: windup; P not positive
+definite: not_positive_definite; else an intermediate value was not finite: non_finite).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+
+from .errors import ConfigError
+
+STATUSES = ("converged", "not_converged", "diverged")
+REASON_STATE = "diverged_reason"   # the estimator buffer that carries Reason codes
+
+
+class Reason(enum.IntEnum):
+    """Why a member was frozen (0 while it is alive)."""
+
+    NONE = 0
+    NON_FINITE = 1
+    NOT_POSITIVE_DEFINITE = 2
+    THETA_RUNAWAY = 3
+    U_RUNAWAY = 4
+    COVARIANCE_WINDUP = 5
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+@dataclass(frozen=True)
+class Criteria:
+    """Thresholds of the health checks (see the module docstring)."""
+
+    window: float = 0.2          # the last fraction of the steps judged for convergence
+    theta_tol: float = 0.02      # largest relative change of theta over the window (measured on the data)
+    z_tol: float = 0.1           # largest rms(z) / rms(y) over the window
+    runaway: float = 1e6         # theta and u bounds, in units of the data's scale of u
+    windup: float = 1e6          # bound on trace(P) / (n_theta p0)
+
+    def __post_init__(self):
+        for key, value in asdict(self).items():
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"health criteria: {key} must be a finite positive number, got {value!r}")
+        if self.window > 1:
+            raise ConfigError(f"health criteria: window is a fraction of the steps in (0, 1], got {self.window}")
+        for key in ("runaway", "windup"):
+            if getattr(self, key) <= 1:
+                raise ConfigError(f"health criteria: {key} must exceed 1, got {getattr(self, key)}")
+
+
+def _definite(P: torch.Tensor) -> torch.Tensor:
+    """(B,) True where P (B, n, n) is positive definite (and finite)."""
+    return (torch.linalg.cholesky_ex(P.to(torch.float64)).info == 0) & torch.isfinite(P).flatten(1).all(1)
+
+
+def check_every(steps: int) -> int:
+    """Steps between health checks for a run of ``steps`` steps: about 100 checks, at most 1000 steps apart."""
+    return min(1000, max(1, steps // 100))
+
+
+class Health:
+    """Per-member health of one run: statistics gathered at every check, runaway and windup freezing, and
+    the final status. ``check`` is called every ``every`` steps with the sums of z^2 and y^2 over the steps
+    since the last check (per member); ``status`` classifies every member."""
+
+    def __init__(self, graph, steps: int, criteria: Criteria | None = None):
+        self.graph, self.est = graph, graph.role("estimator")
+        self.criteria = criteria or Criteria()
+        self.every = check_every(steps)
+        B, dev, f64 = self.est.theta.shape[0], self.est.theta.device, torch.float64
+        self.state: dict[str, Any] = {
+            "reason": torch.zeros(B, dtype=torch.int64, device=dev),
+            "theta_ref": self._theta(), "k_ref": int(graph.k),         # the window's start
+            "phi_win": torch.zeros(B, self.est.n_phi, self.est.n_phi, dtype=f64, device=dev), "phi_n": 0,
+            "z_win": torch.zeros(B, dtype=f64, device=dev), "y_win": torch.zeros(B, dtype=f64, device=dev),
+            "n_win": 0,
+            "y_all": torch.zeros(B, dtype=f64, device=dev), "n_all": 0,   # the data's scale
+            "phi_sq": torch.zeros(B, self.est.n_phi, dtype=f64, device=dev), "samples": 0,
+        }
+        self.window_start = 0
+        self.set_target(steps)
+
+    def _theta(self) -> torch.Tensor:
+        return self.est.theta.detach().to(torch.float64).clone()
+
+    def _recent_phi(self) -> tuple[torch.Tensor, int]:
+        """sum of phi phi^T over the regressors of the last steps the estimator keeps (its window of
+        d + nu steps), (B, n_phi, n_phi), and how many steps that is."""
+        est = self.est
+        W = max(est.window, 1)
+        phi = est.win[:W, :, :est.n_phi].detach().to(torch.float64)         # (W, B, n_phi): each time once
+        return torch.einsum("wbi,wbj->bij", phi, phi), W
+
+    def set_target(self, steps: int) -> None:
+        """The run ends at ``steps``: the window starts at the check step at or after steps - window * steps
+        (a window already under way is kept when that step has passed)."""
+        W = max(self.every, round(self.criteria.window * steps))
+        start = self.every * math.ceil(max(steps - W, 0) / self.every)
+        k = int(self.graph.k)
+        if start > k or k == 0:
+            self.window_start = start
+
+    # --- along the run ------------------------------------------------------------------------------------
+    def check(self, z_sq: torch.Tensor, y_sq: torch.Tensor | None, n: int) -> None:
+        """At a check step (graph.k a multiple of ``every``): gather the sums of the last ``n`` steps, note
+        the members the estimator froze, and freeze members that ran away or wound up."""
+        s, k = self.state, int(self.graph.k)
+        if y_sq is not None:
+            s["y_all"] += y_sq
+            s["n_all"] += n
+        if k - n >= s["k_ref"]:
+            s["z_win"] += z_sq
+            if y_sq is not None:
+                s["y_win"] += y_sq
+            s["n_win"] += n
+            phi, count = self._recent_phi()
+            s["phi_win"] += phi
+            s["phi_n"] += count
+        if k == self.window_start and k > s["k_ref"]:
+            s.update(theta_ref=self._theta(), k_ref=k, n_win=0, phi_n=0)
+            for key in ("z_win", "y_win", "phi_win"):
+                s[key].zero_()
+        s["reason"] = self.reasons()
+        self._freeze(self._bounds_exceeded(), k)
+        s["phi_sq"] += self.est.phi_now.detach().to(torch.float64) ** 2
+        s["samples"] += 1
+
+    def _bounds_exceeded(self) -> torch.Tensor:
+        """Reason codes (0: none) of alive members beyond the runaway or windup bounds."""
+        est, s, c = self.est, self.state, self.criteria
+        f64 = torch.float64
+        P = est.P.detach().to(f64)
+        trace = P.diagonal(dim1=1, dim2=2).sum(-1)
+        code = torch.where(_definite(P), 0, int(Reason.NOT_POSITIVE_DEFINITE))
+        code = torch.where(trace > c.windup * est.n_theta * est.p0.to(f64), int(Reason.COVARIANCE_WINDUP), code)
+        if s["n_all"] and s["samples"]:       # phi's scale from the earlier checks: a jump of phi is u's
+            u_scale = self.u_scale()
+            bound = torch.where(u_scale > 0, c.runaway * u_scale, math.inf)
+            phi_rms = torch.sqrt(s["phi_sq"] / s["samples"])
+            u_pot = (est.theta.detach().to(f64).abs() * phi_rms.unsqueeze(1)).sum(-1).amax(-1)
+            u_now = est.u_now.detach().to(f64).abs().amax(-1)
+            code = torch.where(u_now > bound, int(Reason.U_RUNAWAY), code)
+            code = torch.where(u_pot > bound, int(Reason.THETA_RUNAWAY), code)
+        return torch.where(est.alive, code, 0)
+
+    def u_scale(self) -> torch.Tensor:
+        """The data's scale of u per member, rms(y) / |beta| (0 before any measured output was seen)."""
+        s = self.state
+        y_rms = torch.sqrt(s["y_all"] / max(s["n_all"], 1))
+        return y_rms / self.est.beta.detach().to(torch.float64).flatten(1).norm(dim=1)
+
+    def _freeze(self, code: torch.Tensor, k: int) -> None:
+        new = code > 0
+        if not bool(new.any()):
+            return
+        est = self.est
+        est.alive.masked_fill_(new, False)
+        est.diverged_at.masked_fill_(new, k)
+        self.state["reason"] = torch.where(new, code, self.state["reason"])
+        if hasattr(est, REASON_STATE):
+            getattr(est, REASON_STATE).copy_(torch.where(new, code, getattr(est, REASON_STATE)))
+
+    def reasons(self) -> torch.Tensor:
+        """Reason codes per member: the recorded ones, and for members the estimator froze since, its own
+        (``diverged_reason``) or one inferred from its state."""
+        est, known = self.est, self.state["reason"]
+        new = ~est.alive & (known == 0)
+        if not bool(new.any()):
+            return known
+        if hasattr(est, REASON_STATE):
+            return torch.where(new, getattr(est, REASON_STATE), known)
+
+        def finite(t: torch.Tensor) -> torch.Tensor:
+            return torch.isfinite(t.detach()).flatten(1).all(1)
+        P = est.P.detach()
+        code = torch.where(_definite(P), int(Reason.NON_FINITE), int(Reason.NOT_POSITIVE_DEFINITE))
+        code = torch.where(finite(P), code, int(Reason.COVARIANCE_WINDUP))
+        return torch.where(new, code, known)
+
+    # --- the verdict ---------------------------------------------------------------------------------------
+    def status(self, z_sq: torch.Tensor, y_sq: torch.Tensor | None, n: int) -> dict[str, torch.Tensor]:
+        """Every member's verdict, with ``z_sq``, ``y_sq`` the sums over the ``n`` steps since the last check
+        (nothing is changed). Returns (B,) tensors: ``status`` (index into STATUSES), ``reason`` (Reason),
+        ``diverged_at`` (-1 when alive), ``theta_change``, ``z_ratio`` (NaN when there is no measured output)
+        and ``z_rms`` (over the window)."""
+        s, c = self.state, self.criteria
+        z_win, y_win = s["z_win"], s["y_win"]
+        n_win = s["n_win"]
+        if n and int(self.graph.k) - n >= s["k_ref"]:
+            z_win = z_win + z_sq
+            y_win = y_win + (y_sq if y_sq is not None else 0.0)
+            n_win += n
+        change = self._theta_change()
+        if y_sq is None and not s["n_all"]:
+            ratio = torch.full_like(change, math.nan)
+            settled = change <= c.theta_tol
+        else:
+            ratio = torch.where(y_win > 0, torch.sqrt(z_win / y_win), torch.where(z_win > 0, math.inf, math.nan))
+            settled = (change <= c.theta_tol) & (ratio <= c.z_tol)
+        alive = self.est.alive
+        code = torch.where(alive, torch.where(settled, 0, 1), 2)
+        return {"status": code, "reason": self.reasons(), "diverged_at": self.est.diverged_at.clone(),
+                "theta_change": change, "z_ratio": ratio, "z_rms": torch.sqrt(z_win / max(n_win, 1))}
+
+    def _theta_change(self) -> torch.Tensor:
+        """theta's relative change over the window, measured on the window's regressors (module docstring)."""
+        s = self.state
+        phi, count = (s["phi_win"], s["phi_n"]) if s["phi_n"] else self._recent_phi()
+        phi = phi / count
+
+        def sq(t: torch.Tensor) -> torch.Tensor:       # mean square of t phi(k), summed over u's entries
+            return torch.einsum("bui,bij,buj->b", t, phi, t)
+        theta, ref = self._theta(), s["theta_ref"]
+        floor = (1e-3 * self.u_scale()) ** 2 if s["n_all"] else torch.zeros_like(phi[:, 0, 0])
+        size = torch.maximum(torch.maximum(sq(theta), sq(ref)), torch.nan_to_num(floor, posinf=0.0))
+        return torch.where(size > 0, torch.sqrt(sq(theta - ref) / size), 0.0)
+
+    def report(self, verdict: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The verdict for ``summary.json``: per-member lists (plain values for a batch of one), counts and
+        the criteria."""
+        B = verdict["status"].numel()
+        status = [STATUSES[i] for i in verdict["status"].tolist()]
+        reason = [Reason(r).label if r else None for r in verdict["reason"].tolist()]
+        step = [None if st != "diverged" else int(k) for st, k in zip(status, verdict["diverged_at"].tolist())]
+
+        def plain(values: list) -> Any:
+            return values[0] if B == 1 else values
+
+        def numbers(t: torch.Tensor) -> Any:
+            return plain([float(x) if math.isfinite(x) else None for x in t.tolist()])
+        return {"counts": {st: status.count(st) for st in STATUSES}, "status": plain(status),
+                "reason": plain(reason), "diverged_at": plain(step),
+                "theta_change": numbers(verdict["theta_change"]), "z_ratio": numbers(verdict["z_ratio"]),
+                "criteria": dict(asdict(self.criteria), check_every=self.every,
+                                 window_start=self.state["k_ref"])}
+
+    # --- checkpoints --------------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return dict(self.state, every=self.every, window_start=self.window_start, criteria=asdict(self.criteria))
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        dev = self.est.theta.device
+        self.every, self.window_start = int(state["every"]), int(state["window_start"])
+        self.criteria = Criteria(**state["criteria"])
+        for key in self.state:
+            v = state[key]
+            self.state[key] = v.to(dev) if isinstance(v, torch.Tensor) else int(v)

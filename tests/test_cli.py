@@ -1,0 +1,300 @@
+"""The command line's contract: exit codes (0 pass, 1 a requirement failed, 2 bad input, 3 internal error, 130
+Ctrl-C), output folders that are never clobbered, resume that refuses what it cannot honour. Faults are
+reproduced for real: a SIGINT sent to a running process, a second process on the same folder, a killed
+process, damaged checkpoints, a read-only folder, a memory limit, a Ray address where nothing answers."""
+
+import contextlib
+import json
+import os
+import re
+import resource
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import rcotorch
+from rcotorch.cli import Session, main
+from rcotorch.outputs import MANIFEST, load_checkpoint
+
+QUICK = ["--steps", "300", "--quiet", "--no-figures"]
+
+
+def _cli(*args, **kw) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "rcotorch", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, **kw)
+
+
+def _wait_for(predicate, timeout=120.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError("timed out")
+
+
+def test_version_and_python_m():
+    assert main(["--version"]) == 0
+    proc = _cli("--version")
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and out.strip() == f"rcotorch {rcotorch.__version__}"
+    proc = _cli("list")
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and "sdof-stiffness " in out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--checkpoint-every", "-5"], "--checkpoint-every must be a positive integer, got -5"),
+    (["--checkpoint-every", "0"], "--checkpoint-every must be a positive integer"),
+    (["--set", "p0=nan"], "setting p0 must be a finite number, got 'nan'"),
+    (["--set", "p0=inf"], "setting p0 must be a finite number"),
+    (["--set", "lam=-Infinity"], "setting lam must be a finite number"),
+    (["--set", "nu=1e400"], "setting nu must be a finite number"),
+    (["--set", "p0"], "--set expects KEY=VALUE"),
+    (["--device", "xyz"], "--device 'xyz' is not a device; valid devices: cpu, cuda, cuda:N"),
+    (["--device", "gpu"], "valid devices: cpu, cuda, cuda:N"),
+    (["--device", "meta"], "rcotorch runs on cpu or cuda"),
+    (["--threads", "-1"], "--threads must be a positive integer, got -1"),
+    (["--steps", "0"], "steps must be a positive integer, got 0"),
+    (["--batch", "-3"], "batch must be a positive integer, got -3"),
+])
+def test_bad_values_exit_2_with_the_cause(args, message, tmp_path, capsys):
+    start = time.monotonic()
+    assert main(["run", "sdof-stiffness", "--out", str(tmp_path / "out"), *QUICK, *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert time.monotonic() - start < 60 and not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_bad_dtype_and_usage_exit_2_with_the_choices(capsys):
+    assert main(["run", "sdof-stiffness", "--dtype", "float16"]) == 2
+    assert re.search(r"invalid choice: 'float16' \(choose from '?float64'?, '?float32'?\)", capsys.readouterr().err)
+    assert main(["run"]) == 2
+    assert "run needs a scenario NAME" in capsys.readouterr().err
+    assert main(["frobnicate"]) == 2
+
+
+def test_out_that_is_a_file_exits_2(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("mine")
+    assert main(["run", "sdof-stiffness", "--out", str(f), *QUICK]) == 2
+    assert "is a file" in capsys.readouterr().err and f.read_text() == "mine"
+
+
+@contextlib.contextmanager
+def _read_only(path: Path):
+    """A folder this process cannot write to (chmod, or the immutable attribute when running as root)."""
+    path.mkdir()
+    path.chmod(0o555)
+    immutable = False
+    try:
+        if os.access(path, os.W_OK) or os.geteuid() == 0:
+            if shutil.which("chattr") and subprocess.run(["chattr", "+i", str(path)]).returncode == 0:
+                immutable = True
+        with contextlib.suppress(OSError):
+            (path / "probe").touch()
+            (path / "probe").unlink()
+            pytest.skip("no way to make a read-only folder on this file system")
+        yield path
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(path)])
+        path.chmod(0o755)
+
+
+def test_read_only_out_exits_2(tmp_path, capsys):
+    with _read_only(tmp_path / "ro") as ro:
+        assert main(["run", "sdof-stiffness", "--out", str(ro), *QUICK]) == 2
+        assert "cannot write to the output folder" in capsys.readouterr().err
+        assert main(["run", "sdof-stiffness", "--out", str(ro / "sub"), *QUICK]) == 2
+        assert "cannot create the output folder" in capsys.readouterr().err
+        assert os.listdir(ro) == []
+
+
+def test_a_folder_holding_a_run_is_refused_and_overwrite_keeps_the_users_files(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", "sdof-stiffness", "--out", str(out), "--steps", "300", "--quiet"]) in (0, 1)
+    (out / "notes.txt").write_text("my notes")
+    (out / "estimates.png").write_bytes(b"keep?")    # replaced below only because the run wrote it
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    capsys.readouterr()
+    assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 2
+    assert "already holds a run (sdof-stiffness); use --resume" in capsys.readouterr().err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK, "--overwrite"]) in (0, 1)
+    assert (out / "notes.txt").read_text() == "my notes"
+    assert not (out / "estimates.png").exists()                  # --no-figures: the old figure is gone
+    events = list(out.glob("events.out.tfevents.*"))
+    assert len(events) == 1                                      # the old event file is not mixed in
+    manifest = json.loads((out / MANIFEST).read_text())
+    assert "notes.txt" not in manifest["files"] and "summary.json" in manifest["files"]
+
+
+def test_the_default_folder_gets_a_fresh_version(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "sdof-stiffness", *QUICK]) in (0, 1)
+    assert main(["run", "sdof-stiffness", *QUICK]) in (0, 1)
+    assert "-> runs/sdof-stiffness-2" in capsys.readouterr().out
+    assert (tmp_path / "runs/sdof-stiffness/summary.json").exists()
+    assert (tmp_path / "runs/sdof-stiffness-2/summary.json").exists()
+
+
+def _long_run(out: Path, *extra) -> subprocess.Popen:
+    """A run long enough to be interrupted (the PyTorch engine: about 0.3 ms per step)."""
+    proc = _cli("run", "sdof-stiffness", "--steps", "400000", "--out", str(out), "--quiet", "--no-figures",
+                "--engine", "torch", *extra)
+    _wait_for(lambda: any(out.glob("events.out.tfevents.*")) or proc.poll() is not None)
+    assert proc.poll() is None, proc.communicate()
+    return proc
+
+
+def test_ctrl_c_saves_a_checkpoint_exits_130_and_the_resume_is_bitwise(tmp_path):
+    out = tmp_path / "run"
+    proc = _long_run(out)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert f"resume with: rcotorch run --resume {out}" in stderr and "Traceback" not in stderr
+    step = int(re.search(r"stopped at step (\d+)", stderr).group(1))
+    assert 0 < step < 400000
+    assert "stopped by Ctrl-C" in (out / "rcotorch.log").read_text()
+    # Resume to a little further, and compare with an uninterrupted run to that step (each in a fresh process
+    # like the interrupted one, so all three use the same kernels).
+    target = str(step + 137)
+    for args in (["--resume", str(out)], ["sdof-stiffness", "--out", str(tmp_path / "full")]):
+        proc = _cli("run", *args, "--steps", target, "--quiet", "--no-figures", "--engine", "torch")
+        proc.communicate(timeout=120)
+        assert proc.returncode in (0, 1)
+    resumed, full = load_checkpoint(out / "checkpoint.pt"), load_checkpoint(tmp_path / "full" / "checkpoint.pt")
+    assert resumed["graph"].keys() == full["graph"].keys()
+    for key in full["graph"]:
+        assert torch.equal(resumed["graph"][key], full["graph"][key]), key
+
+
+def test_a_second_ctrl_c_stops_at_once(capsys):
+    session = Session(["run"])
+    with pytest.raises(KeyboardInterrupt), session.interruptible() as stop:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop.is_set()
+        os.kill(os.getpid(), signal.SIGINT)
+    assert "Ctrl-C again to quit at once" in capsys.readouterr().err
+
+
+def test_two_writers_and_a_killed_writer(tmp_path, capsys):
+    out = tmp_path / "run"
+    proc = _long_run(out, "--checkpoint-every", "2000")
+    try:
+        for args in (["run", "sdof-stiffness", "--out", str(out), *QUICK],
+                     ["run", "sdof-stiffness", "--out", str(out), *QUICK, "--overwrite"],
+                     ["run", "--resume", str(out), "--quiet"]):
+            start = time.monotonic()
+            assert main(args) == 2
+            assert "is in use: another rcotorch run is writing to it" in capsys.readouterr().err
+            assert time.monotonic() - start < 30
+        _wait_for(lambda: (out / "checkpoint.pt").exists())
+    finally:
+        proc.kill()                                   # kill -9: no chance to clean up
+        proc.communicate()
+    step = int(load_checkpoint(out / "checkpoint.pt")["graph"]["k"])
+    assert step > 0 and step % 2000 == 0
+    assert main(["run", "--resume", str(out), "--steps", str(step + 100), "--quiet", "--no-figures"]) in (0, 1)
+    assert json.loads((out / "summary.json").read_text())["steps"] == step + 100
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "empty"])
+def test_damaged_checkpoints_exit_2_naming_the_file(damage, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) in (0, 1)
+    path = out / "checkpoint.pt"
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) - 100]
+    elif damage == "flip":
+        data[len(data) // 2] ^= 0x40
+    else:
+        data = b""
+    path.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main(["run", "--resume", str(out), "--steps", "400", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and ("truncated" in err or "corrupted" in err)
+    assert path.read_bytes() == bytes(data)            # nothing overwritten
+
+
+@pytest.mark.parametrize("name, args, message", [
+    ("sdof-stiffness-damping", [], "the checkpoint's run has scenario 'sdof-stiffness', not 'sdof-stiffness-damping'"),
+    ("sdof-stiffness", ["--batch", "3"], "has --batch 2, not 3"),
+    ("sdof-stiffness", ["--seed", "5"], "has --seed 1, not 5"),
+    ("sdof-stiffness", ["--dtype", "float32"], "has --dtype 'float64', not 'float32'"),
+    ("sdof-stiffness", ["--set", "p0=1e4"], "--set p0=1e4 differs from the checkpoint's p0 = 1000.0"),
+    ("sdof-stiffness", ["--set", "p00=1"], "unknown setting 'p00'"),
+])
+def test_resume_refuses_what_it_cannot_honour(name, args, message, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "sdof-stiffness", "--batch", "2", "--out", str(out), *QUICK]) in (0, 1)
+    before = (out / "checkpoint.pt").read_bytes()
+    capsys.readouterr()
+    assert main(["run", name, "--resume", str(out), "--steps", "400", "--quiet", *args]) == 2
+    assert message in capsys.readouterr().err
+    assert (out / "checkpoint.pt").read_bytes() == before
+    # What matches the checkpoint is accepted.
+    assert main(["run", "sdof-stiffness", "--resume", str(out), "--steps", "400", "--batch", "2", "--seed", "1",
+                 "--dtype", "float64", "--set", "p0=1000", "--quiet", "--no-figures"]) in (0, 1)
+
+
+def test_internal_error_exits_3_with_one_line_and_the_traceback_in_the_log(tmp_path, monkeypatch, capsys):
+    import rcotorch.runner
+
+    def broken(self):
+        raise RuntimeError("something inside broke")
+    monkeypatch.setattr(rcotorch.runner.Run, "_log", broken)
+    out = tmp_path / "run"
+    assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("rcotorch: internal error: RuntimeError: something inside broke (traceback in ")
+    log = (out / "rcotorch.log").read_text()
+    assert "Traceback (most recent call last)" in log and "something inside broke" in log
+
+
+def test_out_of_memory_exits_3(tmp_path):
+    limit = 3 * 2 ** 30
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    proc = _cli("run", "sdof-stiffness", "--batch", "50000000", "--steps", "10", "--out", str(tmp_path / "o"),
+                "--quiet", preexec_fn=cap)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 3, err
+    assert err.startswith("rcotorch: out of memory") and "try a smaller --batch" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("listening", [True, False])
+def test_a_ray_address_where_nothing_answers_gives_up_within_30_s(listening, tmp_path, capsys):
+    pytest.importorskip("ray")
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    if listening:
+        sock.listen(5)              # accepts connections, never answers
+    else:
+        sock.close()                # nothing there
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 50\n')
+    start = time.monotonic()
+    try:
+        rc = main(["sweep", str(cfg), "--backend", "ray", "--ray-address", f"127.0.0.1:{port}",
+                   "--out", str(tmp_path / "out")])
+    finally:
+        sock.close()
+    assert rc == 2 and time.monotonic() - start < 30
+    assert f"--ray-address 127.0.0.1:{port}: no Ray cluster answered within" in capsys.readouterr().err
