@@ -128,7 +128,7 @@ class ThermosphereNoCooling(Scenario):
     settings = dict(Ts=900.0, substeps=2, dz_km=5.0, f107=150.0, storm_peak=4.0, storm_start_h=48.0,
                     storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, measured_km="407",
                     node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts",
-                    features="r1,lp3:r2,r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192, theta_max=10.0,
+                    features="r2,lp12:r2,lp3:r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192, theta_max=10.0,
                     markov_method="autograd", refresh_every=24, cooling_window_start_h=24.0, replay=True,
                     replay_f107=110.0, replay_storm_peak=6.0, replay_storm_start_h=30.0, replay_storm_rise_h=4.0)
     requirements = (Requirement("metrics.density_err_ratio", "max", 0.25),

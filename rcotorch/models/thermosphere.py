@@ -572,7 +572,9 @@ class TemperatureFeatures(Block):
         T = inputs["T"]
         f = self._powers(T, range(len(self.terms)))                                   # (B, terms, nodes)
         if self.memory:
-            f[:, self.memory] = self._memory_now(T)
+            m = self._memory_now(T)
+            f = torch.stack([m[:, self.memory.index(i)] if i in self.memory else f[:, i]
+                             for i in range(len(self.terms))], 1)
         return f.transpose(1, 2).flatten(1)
 
     def update(self, inputs):
