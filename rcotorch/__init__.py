@@ -1,6 +1,6 @@
 """rcotorch: data-based model refinement with retrospective cost optimization (RCMR), batched in PyTorch."""
 
-from . import models, rng
+from . import datasets, models, rng
 from .blocks import Block, Gain, StaticMap, Sum
 from .data import Recording, load
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
@@ -13,7 +13,7 @@ from .rls import rls_update
 from .sources import Recorded, WhiteNoise
 
 __all__ = [
-    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "derive_markov", "DimensionError",
+    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "datasets", "derive_markov", "DimensionError",
     "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models", "Nonlinear", "PortError",
     "RcoError", "RCOEstimator", "Recorded", "Recording", "refinement", "rls_update", "rng", "StaticMap",
     "Sum", "WhiteNoise", "zoh",

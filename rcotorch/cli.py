@@ -1,4 +1,4 @@
-"""Command line: ``rcotorch list`` and ``rcotorch run NAME [options]``."""
+"""Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep``."""
 
 from __future__ import annotations
 
@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
                                      "optimization, batched in PyTorch.")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("list", help="list the scenarios")
+    sub.add_parser("show", help="print a scenario's settings: defaults, units and meanings").add_argument(
+        "name", help="scenario name (see `rcotorch list`)")
     run = sub.add_parser("run", help="run a scenario and write runs/NAME/")
     run.add_argument("name", nargs="?", help="scenario name (see `rcotorch list`)")
     run.add_argument("--steps", type=int, help="number of steps (default: the scenario's)")
@@ -78,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "list":
             for name, sc in sorted(scenarios.available().items()):
                 print(f"{name:<28} {('[' + sc.section + '] ') if sc.section else ''}{sc.description}")
+            return 0
+        if args.command == "show":
+            print(scenarios.describe(scenarios.get(args.name)))
             return 0
         if args.command == "sweep":
             from .sweep import Sweep, run_sweep

@@ -475,10 +475,17 @@ class RCOEstimator(Block):
 
     def to_control(self, member: int = 0) -> control.TransferFunction:
         """The identified subsystem of one member as a discrete python-control ``TransferFunction`` (dt),
-        from the regressor signals (inputs, in port order) to u (outputs)."""
+        from the regressor signals to u, with named signals and the block's name as the system's name.
+
+        Inputs are the regressor signals in port order, named after them (``'y0'``, ``'y0[1]'`` for a wide
+        port, a feature's name such as ``'y0^3'``); outputs are ``'u'`` (``'u[i]'`` for n_u > 1). So
+        ``control.interconnect([known, identified.to_control()], inputs='w', outputs='y')`` with a known model
+        whose ports carry the same names (``rt.models``, ``rt.models.label_ports``) builds the refined model.
+        """
+        names = self._control_names()
         if self.n_u != 1 and self.feed_u:
             # A MIMO controller with shared poles: build it in state space and convert.
-            return control.ss2tf(self._to_ss(member))
+            return control.ss2tf(self._to_ss(member), **names)
         N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
         L = self.nc if self.feed_u else max(self.lags)
         den = np.zeros(L + 1)
@@ -496,7 +503,13 @@ class RCOEstimator(Block):
                 row_d.append(den)
             nums.append(row_n)
             dens.append(row_d)
-        return control.tf(nums, dens, self.dt if self.dt else True)
+        return control.tf(nums, dens, self.dt if self.dt else True, **names)
+
+    def _control_names(self) -> dict:
+        """python-control signal names: the regressor signals in, u out, the block's name."""
+        inputs = [f"{s}[{c}]" if w > 1 else s for s, w in self.signals.items() for c in range(w)]
+        outputs = [f"u[{i}]" for i in range(self.n_u)] if self.n_u > 1 else ["u"]
+        return dict(inputs=inputs, outputs=outputs, name=self.name)
 
     def _to_ss(self, member: int) -> control.StateSpace:
         """State space of u(k) = sum N_l s(k-l) + sum M_l u(k-l), state = past s and past u."""
@@ -519,4 +532,4 @@ class RCOEstimator(Block):
             A[nc * m + lag * p: nc * m + (lag + 1) * p, nc * m + (lag - 1) * p: nc * m + lag * p] = np.eye(p)
         A[nc * m: nc * m + p] += C
         Bm[nc * m: nc * m + p] += D
-        return control.ss(A, Bm, C, D, self.dt if self.dt else True)
+        return control.ss(A, Bm, C, D, self.dt if self.dt else True, **self._control_names())

@@ -13,39 +13,69 @@ MAX_LINES = 8
 
 
 def run_figures(run) -> dict:
-    """Estimate-vs-time (one panel per estimate, truth dashed) and rms model error vs time."""
-    g = run.graph
-    h, dt = run.history, g.role("known").dt if "known" in g.roles else 1.0
-    t = np.asarray(h["step"], dtype=float) * dt
+    """Estimates against time (one panel per estimate: the estimate of each member up to ``MAX_LINES``, the truth
+    dashed, the initial model's value dotted) and the rms model error against time, with units and legends."""
+    h = run.history
+    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    t = np.asarray(h["step"], dtype=float) * (dt or 1.0)
+    xlabel = "time [s]" if dt else "step"
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
     if keys and len(t):
-        fig, axes = plt.subplots(len(keys), 1, figsize=(7, 2.2 * len(keys) + 0.6), sharex=True, squeeze=False)
+        fig, axes = plt.subplots(len(keys), 1, figsize=(7.5, 2.4 * len(keys) + 0.8), sharex=True, squeeze=False)
         for ax, key in zip(axes[:, 0], keys):
-            v = torch.stack(h[key]).numpy()
-            ax.plot(t, v[:, :MAX_LINES], lw=1)
-            truth = run.truth.get(key)
-            if truth is not None:
-                for tv in np.atleast_1d(truth)[:MAX_LINES]:
-                    ax.axhline(tv, color="k", ls="--", lw=1)
-            ax.set_ylabel(key)
-            ax.grid(alpha=0.3)
-        axes[-1, 0].set_xlabel("time [s]")
-        axes[0, 0].set_title(f"{run.scenario.name}: estimates (truth dashed)")
+            _estimate_panel(ax, run, key, t, torch.stack(h[key]).numpy())
+        axes[-1, 0].set_xlabel(xlabel)
+        axes[0, 0].set_title(f"{run.scenario.name}: estimates")
+        fig.tight_layout()
         figs["estimates"] = fig
     if len(t):
-        fig, ax = plt.subplots(figsize=(7, 2.8))
-        ax.semilogy(t, torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES], lw=1)
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("rms z per log interval")
-        ax.set_title(f"{run.scenario.name}: model error z = y - y_hat")
+        fig, ax = plt.subplots(figsize=(7.5, 3.0))
+        z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
+        ax.semilogy(t, z, lw=1, label=_member_labels(z.shape[1], run.batch))
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(_with_unit("rms of z = y - y_hat", run.scenario.unit("y")))
+        ax.set_title(f"{run.scenario.name}: model error (rms over each log interval)")
         ax.grid(alpha=0.3, which="both")
+        if z.shape[1] > 1:
+            ax.legend(fontsize=8, ncol=2)
+        fig.tight_layout()
         figs["model_error"] = fig
     return figs
 
 
-def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None):
-    """Bode magnitude and phase of named complex responses {label: (F,) array}."""
+def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
+    """One estimate against time: its members, the truth and the initial model's value."""
+    lines = v[:, :MAX_LINES]
+    labels = ["estimate"] if lines.shape[1] == 1 else _member_labels(lines.shape[1], run.batch)
+    ax.plot(t, lines, lw=1.2, label=labels)
+    truth = run.truth.get(key)
+    if truth is not None:
+        for i, tv in enumerate(np.atleast_1d(truth)[:MAX_LINES]):
+            ax.axhline(tv, color="k", ls="--", lw=1, label="truth" if i == 0 else None)
+    initial = (run.monitor.initial or {}).get(key) if run.monitor is not None else None
+    if initial is not None:
+        for i, iv in enumerate(np.unique(initial.numpy()[:MAX_LINES])):
+            ax.axhline(iv, color="tab:gray", ls=":", lw=1.2, label="initial model" if i == 0 else None)
+    ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best", ncol=2 if lines.shape[1] > 2 else 1)
+
+
+def _member_labels(n: int, batch: int) -> list[str]:
+    labels = [f"member {b}" for b in range(n)]
+    if batch > n:
+        labels[-1] += f" (first {n} of {batch})"
+    return labels
+
+
+def _with_unit(label: str, unit: str) -> str:
+    return f"{label} [{unit}]" if unit else label
+
+
+def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = ""):
+    """Bode magnitude (in ``unit``, the unit of output per unit of input) and phase of named complex responses
+    {label: (F,) array}; the Nyquist frequency dotted."""
     fig, (am, ap) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
     for label, resp in curves.items():
         resp = np.asarray(resp)
@@ -54,9 +84,9 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
         ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), style, label=label, lw=1.3)
     for ax in (am, ap):
         if nyquist:
-            ax.axvline(nyquist, color="gray", lw=0.8, ls=":")
+            ax.axvline(nyquist, color="gray", lw=0.8, ls=":", label="Nyquist frequency" if ax is am else None)
         ax.grid(alpha=0.3, which="both")
-    am.set_ylabel("magnitude")
+    am.set_ylabel(_with_unit("magnitude", unit))
     ap.set_ylabel("phase [deg]")
     ap.set_xlabel("frequency [rad/s]")
     am.legend()

@@ -1,84 +1,154 @@
-"""TensorBoard monitoring of a run: one writer per run, batch aggregates, histograms, figures, hparams."""
+"""TensorBoard monitoring of a run: one writer per run (one run in TensorBoard's run list), batch aggregates,
+a few chosen member traces, histograms, figures, a Custom Scalars layout and an HParams session.
+
+Tags, grouped so that TensorBoard's Time Series tab opens on what matters (it sorts groups by name, capitals
+first, and expands the first two):
+
+* ``Estimates/<key>`` next to ``Estimates/<key> truth`` (a batch: ``<key> mean``; with a truth per member,
+  ``<key> |error| mean`` instead of the truth);
+* ``Model error/z rms`` (rms of z over the batch and the log interval);
+* ``errors/<key>`` (|estimate - truth|, batch mean), ``quantiles/<key> q10|q50|q90`` and ``quantiles/z rms ...``
+  (batches), ``members/<key> m<b>`` and ``members/z rms m<b>`` (the traced members of a batch),
+  ``theta/<entry>`` (batch mean), ``health/diverged`` (members), ``final/<key>`` (the final values that HParams
+  shows, batch means), histograms ``spread/<key>`` (batches from 16 members), images ``figures/<name>``, the
+  settings as text.
+
+Custom Scalars: per estimate one chart of estimate (or mean and quantiles), truth and traced members as
+separately named series; a margin chart of the estimate (batch mean) inside the band truth ± tolerance (the
+scenario's requirement, else 1% of the truth; tags ``bands/<key> low|high``); for batches a margin chart of the
+mean inside its 10-90% band; the model error likewise. HParams: the run itself is the session (its settings,
+final estimates and errors, status).
+"""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-PER_MEMBER_MAX = 8     # individual traces of every member up to this batch size
+TRACED_DEFAULT = 3     # members traced individually when the run does not choose them
 HISTOGRAM_MIN = 16     # histograms across the batch from this batch size
 QUANTILES = (0.1, 0.5, 0.9)
+ESTIMATES, MODEL_ERROR = "Estimates", "Model error"
+
+
+def _q(q: float) -> str:
+    return f"q{round(q * 100):02d}"
 
 
 class Monitor:
-    """Scalars under ``z/``, ``theta/``, ``estimate/``, ``truth/``, ``error/``; histograms under ``batch/``;
-    figures under ``figures/``; settings as text and hparams. Charts pairing each estimate with its truth
-    are in the Custom Scalars tab."""
+    """The TensorBoard writer of one run (see the module docstring for the tags)."""
 
     def __init__(self, out: Path, run):
         self.run, self.batch = run, run.batch
-        # Members traced individually: all of a small batch, else the chosen ones (default: the first 3).
-        chosen = run.trace if run.trace is not None else range(min(3, run.batch))
-        self.traced = list(range(run.batch)) if run.batch <= PER_MEMBER_MAX else sorted(set(chosen))
+        chosen = run.trace if run.trace is not None else range(min(TRACED_DEFAULT, run.batch))
+        self.traced = sorted({b for b in chosen if 0 <= b < run.batch}) if run.batch > 1 else []
+        self.shared_truth = {k: float(v) for k, v in run.truth.items() if isinstance(v, (int, float))}
+        # The initial model's estimates (theta at its start), drawn in the figures; unknown for a resumed run.
+        self.initial = None if run.k else {k: v.detach().to(torch.float64).cpu() for k, v in
+                                           run.scenario.estimates(run.graph, run.settings).items()}
         out.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(log_dir=str(out), purge_step=run.k if run.k > 0 else None)
         self.n_logs = 0
         if run.k == 0:
-            settings = "\n".join(f"| {k} | {v} |" for k, v in run.settings.items())
+            settings = "\n".join(f"| {k} | {setting_text(v)} |" for k, v in run.settings.items())
             self.writer.add_text("settings", f"| setting | value |\n|---|---|\n{settings}", 0)
-            self.writer.add_custom_scalars({"estimates vs truth": {
-                key: ["Multiline", [f"estimate/{key}", f"estimate/{key}/mean", f"truth/{key}"]]
-                for key in run.truth}})
+            self.writer.add_custom_scalars(self.layout(list(run.truth)))
 
+    # --- tags ------------------------------------------------------------------------------------------------
+    def estimate_tag(self, key: str) -> str:
+        return f"{ESTIMATES}/{key}" if self.batch == 1 else f"{ESTIMATES}/{key} mean"
+
+    def layout(self, keys: list[str]) -> dict:
+        """The Custom Scalars layout: one category for the estimates, one for the model error."""
+        def series(key_tag: str, quantile_tag: str, member_tag: str, extra: list[str]) -> list[str]:
+            if self.batch == 1:
+                return [key_tag] + extra
+            return ([key_tag] + [f"quantiles/{quantile_tag} {_q(q)}" for q in QUANTILES] + extra
+                    + [f"members/{member_tag} m{b}" for b in self.traced])
+
+        charts: dict[str, list] = {}
+        for key in keys:
+            truth = [f"{ESTIMATES}/{key} truth"] if key in self.shared_truth else []
+            charts[key] = ["Multiline", series(self.estimate_tag(key), key, key, truth)]
+            tol = self.tolerance(key)
+            if tol:
+                what = "estimate" if self.batch == 1 else "mean"
+                charts[f"{key}: {what} within truth ± {tol:.3g}"] = [
+                    "Margin", [self.estimate_tag(key), f"bands/{key} low", f"bands/{key} high"]]
+            if self.batch > 1:
+                charts[f"{key}: mean within the 10-90% band"] = [
+                    "Margin", [self.estimate_tag(key), f"quantiles/{key} q10", f"quantiles/{key} q90"]]
+        z = {"z rms": ["Multiline", series(f"{MODEL_ERROR}/z rms", "z rms", "z rms", [])]}
+        return {"Estimates vs truth": charts, "Model error z = y - y_hat": z}
+
+    def tolerance(self, key: str) -> float | None:
+        """Half-width of the band around a shared truth: the scenario's requirement on the estimate where it has
+        one, else 1% of the truth (None without a shared, nonzero-band truth)."""
+        truth = self.shared_truth.get(key)
+        if truth is None:
+            return None
+        for req in self.run.scenario.requirements:
+            if req.key == f"estimates.{key}" and req.kind in ("abs_err", "rel_err"):
+                return req.bound if req.kind == "abs_err" else req.bound * abs(truth)
+        return 0.01 * abs(truth) or None
+
+    # --- logging ---------------------------------------------------------------------------------------------
     def log(self, step: int, z_rms: torch.Tensor, estimates: dict[str, torch.Tensor]) -> None:
-        w, B = self.writer, self.batch
+        """Log the batch at ``step``: z rms (B,) over the last interval and the estimates, each (B,)."""
+        w = self.writer
         finite = torch.isfinite(z_rms)
-        w.add_scalar("z/rms", float(torch.sqrt((z_rms[finite] ** 2).mean())) if finite.any() else math.nan, step)
-        traced = self.traced if B > 1 else []
-        for b in traced:
-            w.add_scalar(f"z/member_{b}", float(z_rms[b]), step)
-        if B > PER_MEMBER_MAX:
-            self._quantiles("z", z_rms, step)
+        w.add_scalar(f"{MODEL_ERROR}/z rms",
+                     float(torch.sqrt((z_rms[finite] ** 2).mean())) if finite.any() else math.nan, step)
+        self._spread("z rms", z_rms, step)
+        for key, v in estimates.items():
+            self._estimate(key, v, step)
         ident = self.run.graph.role("estimator")
         theta = ident.theta_free().detach().to(torch.float64).cpu()
         for i, name in enumerate(ident.theta_names):
-            w.add_scalar(f"theta/{name}", float(theta[:, i].mean()), step)
-            for b in traced:
-                w.add_scalar(f"theta/{name}/member_{b}", float(theta[b, i]), step)
-        for key, v in estimates.items():
-            if B == 1:
-                w.add_scalar(f"estimate/{key}", float(v[0]), step)
-            else:
-                w.add_scalar(f"estimate/{key}/mean", float(v.nanmean()), step)
-                for b in traced:
-                    w.add_scalar(f"estimate/{key}/member_{b}", float(v[b]), step)
-            truth = self.run.truth.get(key)
-            if isinstance(truth, (int, float)):
-                w.add_scalar(f"truth/{key}", float(truth), step)
-            if truth is not None:
-                err = (v - torch.as_tensor(truth, dtype=v.dtype)).abs()
-                w.add_scalar(f"error/{key}", float(err.nanmean()), step)
-                if B > PER_MEMBER_MAX:
-                    self._quantiles(f"error/{key}", err, step)
-        w.add_scalar("batch/diverged", float((~ident.alive).sum()), step)
-        if B >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
-            w.add_histogram("batch/z_rms", z_rms[finite], step)
-            for key, v in estimates.items():
+            w.add_scalar(f"theta/{name}", float(theta[:, i].nanmean()), step)
+        w.add_scalar("health/diverged", float((~ident.alive).sum()), step)
+        if self.batch >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
+            for key, v in {"z rms": z_rms, **estimates}.items():
                 ok = torch.isfinite(v)
                 if ok.any():
-                    w.add_histogram(f"batch/{key}", v[ok], step)
+                    w.add_histogram(f"spread/{key}", v[ok], step)
         self.n_logs += 1
 
-    def _quantiles(self, tag: str, v: torch.Tensor, step: int) -> None:
-        v = v[torch.isfinite(v)]
-        if v.numel():
-            for q, value in zip(QUANTILES, torch.quantile(v, torch.tensor(QUANTILES, dtype=v.dtype))):
-                self.writer.add_scalar(f"{tag}/q{int(q * 100):02d}", float(value), step)
+    def _estimate(self, key: str, v: torch.Tensor, step: int) -> None:
+        w = self.writer
+        w.add_scalar(self.estimate_tag(key), float(v.nanmean()), step)
+        truth = self.run.truth.get(key)
+        if key in self.shared_truth:
+            w.add_scalar(f"{ESTIMATES}/{key} truth", self.shared_truth[key], step)
+            tol = self.tolerance(key)
+            if tol:
+                w.add_scalar(f"bands/{key} low", self.shared_truth[key] - tol, step)
+                w.add_scalar(f"bands/{key} high", self.shared_truth[key] + tol, step)
+        if truth is not None:
+            err = (v - torch.as_tensor(truth, dtype=v.dtype)).abs()
+            w.add_scalar(f"errors/{key}", float(err.nanmean()), step)
+            if key not in self.shared_truth:       # a truth per member: the error stands beside the estimate
+                w.add_scalar(f"{ESTIMATES}/{key} |error| mean", float(err.nanmean()), step)
+        self._spread(key, v, step)
+
+    def _spread(self, name: str, v: torch.Tensor, step: int) -> None:
+        """Quantiles over the batch and the traced members' values."""
+        if self.batch == 1:
+            return
+        for b in self.traced:
+            self.writer.add_scalar(f"members/{name} m{b}", float(v[b]), step)
+        ok = v[torch.isfinite(v)]
+        if ok.numel():
+            for q, value in zip(QUANTILES, torch.quantile(ok, torch.tensor(QUANTILES, dtype=ok.dtype))):
+                self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
     def figures(self, figs: dict, out: Path) -> None:
+        """Save the figures as PNG in ``out`` and as images under ``figures/``."""
         import matplotlib.pyplot as plt
         for name, fig in figs.items():
             fig.savefig(out / f"{name}.png", dpi=110, bbox_inches="tight")
@@ -86,12 +156,99 @@ class Monitor:
             plt.close(fig)
 
     def close(self, summary: dict) -> None:
-        hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
-        metrics = {}
-        for group in ("estimates", "metrics"):
-            for k, v in summary[group].items():
-                vals = [x for x in (v if isinstance(v, list) else [v]) if x is not None]
-                if vals:
-                    metrics[f"final/{k}"] = sum(vals) / len(vals)
-        self.writer.add_hparams(hparams, metrics, run_name="hparams", global_step=self.run.k)
+        """Final values (``final/``, the HParams metrics) and the run's HParams session: its settings and status."""
+        if getattr(self.run, "hparams_session", True):      # a sweep writes its own sessions (rcotorch.sweep)
+            for tag, value in final_values(summary).items():
+                self.writer.add_scalar(tag, value, self.run.k)
+            hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
+            hparams.update(scenario=summary["scenario"], batch=summary["batch"], status=status_text(summary))
+            write_session(self.writer, hparams, session_status(summary))
         self.writer.close()
+
+
+def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
+    """The numbers of an HParams row, batch means where there are several members: ``final/<key>`` for each
+    estimate and metric, ``final/|error| <key>`` for each estimate with a truth, ``final/diverged`` (members)."""
+    out: dict[str, float] = {}
+    batch = int(summary.get("batch", 1))
+
+    def per_member(v) -> list:
+        return list(v) if isinstance(v, list) else [v] * batch
+
+    for key, v in summary["estimates"].items():
+        est = per_member(v)
+        out[f"final/{key}"] = _mean(est)
+        truth = summary.get("truth", {}).get(key)
+        if truth is not None:
+            out[f"final/|error| {key}"] = _mean([None if e is None else abs(e - t)
+                                                 for e, t in zip(est, per_member(truth))])
+    for key, v in summary["metrics"].items():
+        out[f"final/{key}"] = _mean(per_member(v))
+    out["final/diverged"] = float(member_status(summary).count("diverged"))
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def _mean(values: list) -> float | None:
+    """The mean of the finite values, None where there is none."""
+    vals = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return sum(vals) / len(vals) if vals else None
+
+
+def setting_text(value) -> str:
+    """A setting for display: a per-member list as its range and count."""
+    if isinstance(value, list) and len(value) > 4:
+        numbers = [v for v in value if isinstance(v, (int, float))]
+        span = f"{min(numbers):g}..{max(numbers):g}, " if len(numbers) == len(value) else ""
+        return f"per member ({span}{len(value)} values)"
+    return str(value)
+
+
+def member_status(summary: Mapping[str, Any]) -> list[str]:
+    """Each member's status: from ``summary['status']`` where the run reports one (a word, or one per member,
+    or dicts with a 'status'), else 'diverged' for the members in ``summary['diverged']`` and 'finished'."""
+    batch = int(summary.get("batch", 1))
+    given = summary.get("status")
+    if isinstance(given, str):
+        return [given] * batch
+    if isinstance(given, list) and len(given) == batch:
+        return [g.get("status", "finished") if isinstance(g, Mapping) else str(g) for g in given]
+    diverged = {d["member"] for d in summary.get("diverged", [])}
+    return ["diverged" if b in diverged else "finished" for b in range(batch)]
+
+
+def status_text(summary: Mapping[str, Any]) -> str:
+    """One member's status, or the count of each status in a batch ('converged 6, diverged 2')."""
+    status = member_status(summary)
+    if len(status) == 1:
+        return status[0]
+    counts: dict[str, int] = {}
+    for s in status:
+        counts[s] = counts.get(s, 0) + 1
+    return ", ".join(f"{s} {n}" for s, n in sorted(counts.items()))
+
+
+def session_status(summary: Mapping[str, Any]) -> str:
+    """HParams' session status: failure when a member diverged, success when every member converged."""
+    status = set(member_status(summary))
+    if "diverged" in status:
+        return "STATUS_FAILURE"
+    return "STATUS_SUCCESS" if status == {"converged"} else "STATUS_UNKNOWN"
+
+
+def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], status: str) -> None:
+    """Make the writer's run an HParams session with these hyperparameters and status. No experiment summary is
+    written: TensorBoard then builds the table from every session under its logdir, so runs of different
+    scenarios (with different settings) can share one folder."""
+    from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
+    from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+    from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+    _, start, _ = hparams_summaries(dict(hparams), {})
+    end = plugin_data_pb2.HParamsPluginData(
+        session_end_info=plugin_data_pb2.SessionEndInfo(status=api_pb2.Status.Value(status)),
+        version=metadata.PLUGIN_DATA_VERSION)
+    meta = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(plugin_name=metadata.PLUGIN_NAME,
+                                                                  content=end.SerializeToString()))
+    writer.file_writer.add_summary(start)
+    writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=metadata.SESSION_END_INFO_TAG,
+                                                                metadata=meta)]))

@@ -1,19 +1,29 @@
 """Scenarios: a named, reproducible refinement with default settings, truth, estimates and acceptance bounds.
 
-A scenario file in ``scenarios/`` defines ``SCENARIO``, an instance of a ``Scenario`` subclass. The runner
-(``rcotorch.runner``) builds its graph, steps it, logs it and writes ``summary.json`` with the keys the
-scenario declares.
+A scenario file defines ``SCENARIO``, an instance of a ``Scenario`` subclass. The runner (``rcotorch.runner``)
+builds its graph, steps it, logs it and writes ``summary.json`` with the keys the scenario declares.
+
+Where scenarios are found (``available``):
+
+* the scenarios shipped with the package, the modules of ``rcotorch.scenarios`` (the repository's top-level
+  ``scenarios/`` folder, installed as that package); they build on each other by relative import;
+* the ``.py`` files of every folder listed in the environment variable ``RCOTORCH_SCENARIOS`` (separated by
+  ``os.pathsep``), loaded by path; such a folder is put on ``sys.path``, so its files may import each other by
+  module name, and they may build on the shipped ones (``from rcotorch.scenarios.sdof_stiffness import
+  SdofStiffness``). A name defined twice is an error naming both files.
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import os
+import pkgutil
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -54,19 +64,42 @@ class Requirement:
         return f"{op} {self.bound:g}"
 
 
+class Setting(NamedTuple):
+    """What a scenario setting means: its ``unit`` ('' for labels, counts and dimensionless numbers), a
+    one-line ``meaning``, and the allowed values of a text setting (``choices``; empty: any)."""
+
+    unit: str
+    meaning: str
+    choices: tuple[str, ...] = ()
+
+
 class Scenario:
-    """Base class. Subclasses set the class attributes and implement ``build``, ``estimates`` and ``truth``."""
+    """Base class. Subclasses set the class attributes and implement ``build``, ``estimates`` and ``truth``.
+
+    ``settings`` maps each setting to its default value; ``about`` maps each setting to a ``Setting`` (or a
+    tuple ``(unit, meaning[, choices])``): what ``rcotorch show NAME`` prints.
+    """
 
     name: str = ""
     section: str = ""
     description: str = ""
     steps: int = 10000
     settings: Mapping[str, Any] = {}
+    about: Mapping[str, Setting | tuple] = {}
+    # Units of estimates and metrics that are not settings themselves, and of the measured output ('y').
+    units: Mapping[str, str] = {}
     requirements: tuple[Requirement, ...] = ()
     # Settings that may differ between the members of one batched run (physical parameters, tuning such as
     # p0 and lambda, seeds). The others fix the graph's structure (sample time, orders, nu); a sweep over
     # them runs one batch per distinct value.
     per_member: frozenset[str] = frozenset()
+
+    def setting(self, key: str) -> Setting:
+        """Unit, meaning and choices of one setting (meaning '' where the scenario does not document it)."""
+        if key not in self.settings:
+            raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(self.settings)}")
+        info = self.about.get(key, ("", ""))
+        return info if isinstance(info, Setting) else Setting(*info)
 
     def resolve(self, overrides: Mapping[str, Any] | None = None, seed: int | None = None) -> dict[str, Any]:
         """Default settings with overrides applied (unknown names and wrong types rejected)."""
@@ -74,7 +107,7 @@ class Scenario:
         for key, value in dict(overrides or {}).items():
             if key not in out:
                 raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(out)}")
-            out[key] = _coerce(self.name, key, value, out[key])
+            out[key] = self._value(key, value)
         if seed is not None:
             out["seed"] = int(seed)
         return out
@@ -87,7 +120,7 @@ class Scenario:
         for key in keys:
             if key not in out:
                 raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(out)}")
-            values = [_coerce(self.name, key, m.get(key, out[key]), self.settings[key]) for m in members]
+            values = [self._value(key, m.get(key, out[key])) for m in members]
             if key in self.per_member:
                 out[key] = values  # kept per member even when equal: a member's seed picks its own stream
                 continue
@@ -96,6 +129,20 @@ class Scenario:
                                   f"differ within one batch (per-member settings: {sorted(self.per_member)})")
             out[key] = values[0]
         return out
+
+    def unit(self, key: str) -> str:
+        """The unit of an estimate, metric or setting ('' where none is declared)."""
+        if key in self.units:
+            return self.units[key]
+        return self.setting(key).unit if key in self.settings else ""
+
+    def _value(self, key: str, value):
+        """An override converted to the default's type and checked against the setting's choices."""
+        value = _coerce(self.name, key, value, self.settings[key])
+        choices = self.setting(key).choices
+        if choices and value not in choices:
+            raise ConfigError(f"scenario '{self.name}': setting {key} must be one of {list(choices)}, got {value!r}")
+        return value
 
     def build(self, settings: Mapping[str, Any], batch: int, dtype: torch.dtype, device) -> Graph:
         """The graph for ``batch`` members; a per-member setting is a list of length ``batch``
@@ -116,6 +163,35 @@ class Scenario:
     def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
         """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
         return {}
+
+
+def describe(sc: Scenario) -> str:
+    """A scenario's card: name, section, description, steps, requirements, and a table of its settings with
+    defaults, units and meanings (``*`` marks the settings that may differ between the members of a batch)."""
+    lines = [f"{sc.name}" + (f"  [{sc.section}]" if sc.section else ""), f"  {sc.description}", "",
+             f"steps: {sc.steps} (change with --steps)"]
+    if sc.requirements:
+        lines.append("requirements: " + "; ".join(f"{r.key} {r.describe()}" for r in sc.requirements))
+    rows = [("setting", "default", "unit", "meaning")]
+    for key, default in sc.settings.items():
+        info = sc.setting(key)
+        meaning = info.meaning or "(not documented)"
+        if info.choices:
+            meaning += f" [one of: {', '.join(info.choices)}]"
+        rows.append((key + ("*" if key in sc.per_member else ""), _fmt_default(default), info.unit, meaning))
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    lines.append("")
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r[:3], widths)) + "  " + r[3] for r in rows]
+    lines.append("")
+    lines.append(f"Override with --set KEY=VALUE (rcotorch run {sc.name} --set KEY=VALUE ...)"
+                 + ("; * may differ between the members of one batch (sweeps)." if sc.per_member else "."))
+    return "\n".join(line.rstrip() for line in lines)
+
+
+def _fmt_default(value) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
 
 
 def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -145,30 +221,58 @@ def _coerce(scenario: str, key: str, value, default):
 
 
 def scenario_dirs() -> list[Path]:
-    dirs = [Path(p) for p in os.environ.get("RCOTORCH_SCENARIOS", "").split(os.pathsep) if p]
-    dirs.append(Path(__file__).resolve().parents[1] / "scenarios")
+    """The folders named in ``RCOTORCH_SCENARIOS`` that exist."""
+    dirs = [Path(p).expanduser() for p in os.environ.get("RCOTORCH_SCENARIOS", "").split(os.pathsep) if p]
     return [d for d in dirs if d.is_dir()]
 
 
-def available() -> dict[str, Scenario]:
-    """All scenarios found in the scenario directories, by name."""
-    found: dict[str, Scenario] = {}
-    for d in scenario_dirs():
-        if str(d) not in sys.path:  # scenario files may build on their siblings
-            sys.path.append(str(d))
-        for path in sorted(d.glob("*.py")):
-            if path.name.startswith("_"):
-                continue
-            name = f"rcotorch_scenario_{path.stem}"
-            module = sys.modules.get(name)
-            if module is None or getattr(module, "__file__", None) != str(path):
-                spec = importlib.util.spec_from_file_location(name, path)
-                module = importlib.util.module_from_spec(spec)
-                sys.modules[name] = module
+def _shipped_modules():
+    """The modules of ``rcotorch.scenarios`` (the scenarios installed with the package)."""
+    package = importlib.import_module("rcotorch.scenarios")
+    for info in sorted(pkgutil.iter_modules(package.__path__), key=lambda m: m.name):
+        if not info.name.startswith("_"):
+            yield importlib.import_module(f"rcotorch.scenarios.{info.name}")
+
+
+def _folder_modules(folder: Path):
+    """The ``.py`` files of a user's scenario folder, loaded by path (the folder joins ``sys.path``)."""
+    if str(folder) not in sys.path:  # scenario files may build on their siblings
+        sys.path.append(str(folder))
+    for path in sorted(folder.glob("*.py")):
+        if path.name.startswith("_"):
+            continue
+        name = f"rcotorch_user_scenario_{path.stem}"
+        module = sys.modules.get(name)
+        stamp = path.stat().st_mtime_ns
+        if module is None or getattr(module, "__file__", None) != str(path) or module.__dict__.get(
+                "_rcotorch_mtime") != stamp:                     # loaded once, again when the file changes
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            try:
                 spec.loader.exec_module(module)
-            sc = getattr(module, "SCENARIO", None)
-            if isinstance(sc, Scenario):
-                found.setdefault(sc.name, sc)
+            except Exception as e:
+                del sys.modules[name]
+                raise ConfigError(f"scenario file {path} (from RCOTORCH_SCENARIOS) fails to load: "
+                                  f"{type(e).__name__}: {e}") from e
+            module._rcotorch_mtime = stamp
+        yield module
+
+
+def available() -> dict[str, Scenario]:
+    """All scenarios, by name: the shipped ones, then those of the ``RCOTORCH_SCENARIOS`` folders."""
+    found: dict[str, Scenario] = {}
+    where: dict[str, str] = {}
+    modules = list(_shipped_modules())
+    for folder in scenario_dirs():
+        modules += list(_folder_modules(folder))
+    for module in modules:
+        sc = getattr(module, "SCENARIO", None)
+        if not isinstance(sc, Scenario):
+            continue
+        if sc.name in found and found[sc.name] is not sc:
+            raise ConfigError(f"two scenarios are named {sc.name!r}: {where[sc.name]} and {module.__file__}")
+        found[sc.name], where[sc.name] = sc, module.__file__
     return found
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
@@ -10,7 +11,7 @@ import torch
 
 from . import native, rng
 from .blocks import DEFAULT_DTYPE, Block
-from .data import Recording
+from .data import Derivation, Recording
 from .errors import ConfigError, DataError
 
 
@@ -127,23 +128,25 @@ class Recorded(Block):
     Args:
         data: a ``Recording`` or an array (T, columns), or one per member (B, T, columns).
         outputs: port name -> column name(s) or index(es), e.g. ``{'w': 'V1', 'y': 'V2'}``.
-        valid: where the recording marks samples invalid (non-finite, loaded with ``on_nonfinite='skip'``),
-            the block holds the last valid value and emits ``valid = 0`` on the extra output port ``valid``,
-            so an estimator wired to it skips that sample.
+        derive: derived signals, name -> ``rcotorch.data.difference / derivative / function``, computed once
+            from the whole recording when the block is built (playback stays a plain table); ``outputs`` may
+            name them, e.g. ``derive={"v": derivative("x", tau=0.01)}, outputs={"y": "v", ...}``.
+
+    Where the recording marks samples invalid (non-finite, loaded with ``on_nonfinite='skip'``), the block
+    holds the last valid value and emits ``valid = 0`` on the extra output port ``valid``, so an estimator
+    wired to it skips that sample.
 
     Reading past the end raises a ``DataError``; a graph checks the run length against it before starting.
     """
 
     def __init__(self, data, outputs: Mapping[str, str | int | Sequence[str | int]], name: str = "data",
-                 dt: float | None = None, dtype=DEFAULT_DTYPE):
-        if isinstance(data, Recording):
-            rec = data
-        else:
-            arr = np.asarray(data, dtype=np.float64)
-            if arr.ndim not in (2, 3):
-                raise DataError(f"block '{name}': data must be (T, columns) or (B, T, columns), got shape "
-                                f"{arr.shape}")
-            rec = Recording(arr, [str(i) for i in range(arr.shape[-1])], dt)
+                 dt: float | None = None, derive: Mapping[str, Derivation] | None = None, dtype=DEFAULT_DTYPE):
+        rec = _recording(data, name, dt)
+        if derive:
+            try:
+                rec = rec.derive(**derive)
+            except DataError as e:
+                raise DataError(f"block '{name}': {e}") from None
         values = rec.values if rec.values.ndim == 3 else rec.values[None]
         valid = np.isfinite(values) if rec.valid is None else np.broadcast_to(rec.valid, values.shape)
         cols, ports = [], {}
@@ -200,6 +203,16 @@ class Recorded(Block):
 
     def update(self, inputs):
         self.k += 1
+
+
+def _recording(data, name: str, dt: float | None) -> Recording:
+    """``data`` as a Recording: itself, or an array (T, columns) or (B, T, columns) with columns '0', '1', ..."""
+    if isinstance(data, Recording):
+        return data if dt is None or data.dt is not None else dataclasses.replace(data, dt=dt)
+    arr = np.asarray(data, dtype=np.float64)
+    if arr.ndim not in (2, 3):
+        raise DataError(f"block '{name}': data must be (T, columns) or (B, T, columns), got shape {arr.shape}")
+    return Recording(arr, [str(i) for i in range(arr.shape[-1])], dt)
 
 
 def _forward_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

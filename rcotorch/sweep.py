@@ -197,8 +197,10 @@ def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: 
     from .runner import Run
     local = [b for b, m in enumerate(shard["members"]) if m in set(shard.get("trace", ()))]
     try:
-        return Run(scenario, steps=steps, device=device, dtype=dtype, out=out, overrides=shard["common"],
-                   members=shard["settings"], trace=local or None)
+        run = Run(scenario, steps=steps, device=device, dtype=dtype, out=out, overrides=shard["common"],
+                  members=shard["settings"], trace=local or None)
+        run.hparams_session = False          # the sweep writes the HParams sessions (write_hparams)
+        return run
     except ConfigError as e:
         raise ConfigError(f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]}): "
                           f"{e}") from None
@@ -261,7 +263,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address)
     rows.sort(key=lambda r: r["member"])
     write_table(rows, out)
-    _write_hparams(rows, sweep, out)
+    write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
     return rows
 
 
@@ -295,17 +297,62 @@ def write_table(rows: list[dict[str, Any]], out: Path) -> None:
             w.writerow({k: ("" if v is None else v) for k, v in r.items()})
 
 
-HPARAMS_MAX = 256
+HPARAMS_MEMBERS_MAX = 400   # one HParams session (a TensorBoard run) per member up to this sweep size
 
 
-def _write_hparams(rows, sweep: Sweep, out: Path) -> None:
-    """One TensorBoard hparams entry per member (up to HPARAMS_MAX), under out/hparams."""
+def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dirs: list[Path]) -> None:
+    """HParams sessions of a sweep: one per member (``out/members/member_NNNNNN``) with its swept settings, seed,
+    status and final values (``final/``: estimates, absolute errors, metrics), while the sweep has at most
+    ``HPARAMS_MEMBERS_MAX`` members.
+
+    Every session is a run in TensorBoard's run list, and TensorBoard leaves every run unselected (empty
+    charts) once a logdir holds more than 500 runs; so a larger sweep makes each shard's run its session
+    (settings, ranges of the per-member ones, counts of each status, batch means) and says so in a text card
+    (``sweep``): the per-member table is ``sweep.csv``.
+    """
     from torch.utils.tensorboard import SummaryWriter
-    swept = list(sweep.grid) + list(sweep.random) + ["seed"]
-    with SummaryWriter(str(out / "hparams")) as w:
-        for r in rows[:HPARAMS_MAX]:
+
+    from .monitor import final_values, session_status, setting_text, status_text, write_session
+    if len(rows) <= HPARAMS_MEMBERS_MAX:
+        swept = list(sweep.grid) + list(sweep.random) + ["seed"]
+        settings = set(scenarios.get(sweep.scenario).settings)
+        for r in rows:
+            summary = _member_summary(r, settings)
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
-            metrics = {f"sweep/{k}": float(v) for k, v in r.items()
-                       if (k.startswith("err_") or k.startswith("est_")) and isinstance(v, (int, float))}
-            metrics["sweep/diverged"] = float(r["diverged"])
-            w.add_hparams(hp, metrics, run_name=f"member_{r['member']:06d}")
+            hp.update(scenario=sweep.scenario, shard=r["shard"], status=status_text(summary))
+            with SummaryWriter(str(out / "members" / f"member_{r['member']:06d}")) as w:
+                write_session(w, hp, session_status(summary))
+                for tag, value in final_values(summary).items():
+                    w.add_scalar(tag, value, 0)
+        return
+    note = (f"This sweep has {len(rows)} members. TensorBoard leaves every run unselected once a logdir holds "
+            f"more than 500 runs, and each HParams row is a run, so HParams shows one row per shard (sweeps up to "
+            f"{HPARAMS_MEMBERS_MAX} members get one row per member). The table of every member (settings, seed, "
+            f"estimates, errors, status) is {out / 'sweep.csv'} (and sweep.json).")
+    for index, folder in enumerate(shard_dirs):
+        part = [r for r in rows if r["shard"] == index]
+        if not part:
+            continue
+        summary = json.loads((folder / "summary.json").read_text())
+        summary["status"] = [r.get("status") or ("diverged" if r["diverged"] else "finished") for r in part]
+        hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
+              for k, v in summary["settings"].items()}
+        hp.update(scenario=sweep.scenario, members=f"{part[0]['member']}..{part[-1]['member']}",
+                  status=status_text(summary))
+        with SummaryWriter(str(folder)) as w:
+            write_session(w, hp, session_status(summary))
+            for tag, value in final_values(summary).items():
+                w.add_scalar(tag, value, summary["steps"])
+            w.add_text("sweep", note, 0)
+
+
+def _member_summary(row: Mapping[str, Any], settings: set[str]) -> dict[str, Any]:
+    """A member's row of the sweep table in the shape of a batch-of-one summary (``settings``: the scenario's
+    setting names, which the row holds beside the results)."""
+    est = {k[4:]: v for k, v in row.items() if k.startswith("est_")}
+    truth = {k[6:]: v for k, v in row.items() if k.startswith("truth_")}
+    skip = settings | {"member", "shard", "diverged", "diverged_at", "status"}
+    metrics = {k: v for k, v in row.items() if k not in skip and not k.startswith(("est_", "truth_", "err_"))
+               and isinstance(v, (int, float)) and not isinstance(v, bool)}
+    return {"batch": 1, "estimates": est, "truth": truth, "metrics": metrics, "status": row.get("status"),
+            "diverged": [{"member": 0, "step": row["diverged_at"]}] if row["diverged"] else []}

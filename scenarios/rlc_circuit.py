@@ -160,6 +160,24 @@ class RlcCircuit(Scenario):
                     R0_rel=0.0, noise=0.01, p0=100.0, lam=1.0, nu=50, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.L", "rel_err", 0.05), Requirement("estimates.C", "rel_err", 0.05),
                     Requirement("estimates.R", "rel_err", 0.05))
+    units = {"y": "V", "rel_rms_err_initial": "", "rel_rms_err_refined": ""}
+    about = dict(
+        Ts=("s", "sample time"),
+        R=("ohm", "true resistance"),
+        L=("H", "true inductance"),
+        C=("F", "true capacitance"),
+        initial=("", "initial model: L0, C0 from the relative errors below, or the paper's L0 = 2 uH, C0 = 1 F",
+                 ("nominal", "paper")),
+        L0_rel=("", "relative error of the initial L0: L0 = L (1 + L0_rel)"),
+        C0_rel=("", "relative error of the initial C0: C0 = C (1 + C0_rel)"),
+        R0_rel=("", "relative error of the model's R0 (R is taken as known: 0)"),
+        noise=("", "measurement noise std as a fraction of the rms voltage across R"),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
+        w_std=("V", "standard deviation of the white-noise source voltage w"),
+        seed=("", "seed of the source voltage and of the measurement noise"),
+    )
 
     def build(self, s, batch, dtype, device):
         L0, C0, R0 = initial_values(s)
@@ -230,7 +248,7 @@ class RlcCircuit(Scenario):
         curves["true circuit, sampled"] = np.asarray(truth_discrete(s)(zs)).reshape(-1)
         curves["refined, sampled (known model + gain)"] = np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)
         fig = frequency_figure(omega, curves, "series RLC: source voltage w -> voltage across R",
-                               nyquist=np.pi / s["Ts"])
+                               nyquist=np.pi / s["Ts"], unit="V/V")
         return {"frequency_response": fig}
 
 

@@ -26,6 +26,22 @@ class SdofDynamicImpedance(Scenario):
     requirements = (Requirement("estimates.dc_gain", "abs_err", 0.05),
                     Requirement("metrics.freq_rel_err_max", "max", 0.01))
     per_member = frozenset({"p0", "lam", "w_std", "seed"})
+    units = {"dc_gain": "N s/m", "y": "m/s"}
+    about = dict(
+        Ts=("s", "sample time (known model and unknown subsystem each ZOH-discretized at Ts)"),
+        m=("kg", "mass"),
+        k=("N/m", "stiffness"),
+        c=("N s/m", "damping"),
+        gain=("N/m", "numerator of the unknown impedance gain / (s + pole), velocity -> force"),
+        pole=("1/s", "pole of the unknown impedance gain / (s + pole)"),
+        nc=("", "order of the identified subsystem (past y0 and u in phi)"),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
+        w_std=("N", "standard deviation of the white-noise force w"),
+        seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
+        n_freq=("", "frequencies of the log grid 0.01 rad/s .. Nyquist for freq_rel_err_max"),
+    )
 
     def truth_tf(self, s):
         return control.sample_system(control.tf([s["gain"]], [1.0, s["pole"]]), s["Ts"], method="zoh")
@@ -55,7 +71,7 @@ class SdofDynamicImpedance(Scenario):
         ident = g.role("estimator").frequency_response(w)[0, :, 0, 0].cpu().numpy()
         return {"frequency_response": frequency_figure(
             w, {"identified (member 0)": ident, "true ZOH(10/(s+2))": self.truth_tf(s)(np.exp(1j * w * s["Ts"]))},
-            "Identified vs true unknown subsystem", nyquist=np.pi / s["Ts"])}
+            "Identified vs true unknown subsystem (velocity -> force)", nyquist=np.pi / s["Ts"], unit="N s/m")}
 
 
 SCENARIO = SdofDynamicImpedance()

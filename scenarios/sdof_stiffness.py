@@ -22,6 +22,21 @@ class SdofStiffness(Scenario):
                     w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dK", "abs_err", 0.01), Requirement("estimates.dC", "abs_err", 0.03))
     per_member = frozenset({"m", "K", "C", "dK", "dC", "p0", "lam", "w_std", "seed"})
+    units = {"y": "m/s"}
+    about = dict(
+        Ts=("s", "sample time (known model and truth ZOH-discretized at Ts)"),
+        m=("kg", "mass"),
+        K=("N/m", "stiffness of the known model"),
+        C=("N s/m", "damping of the known model"),
+        dK=("N/m", "stiffness change in the truth (what the refinement recovers)"),
+        dC=("N s/m", "damping change in the truth (what the refinement recovers)"),
+        nc=("", "order of the identified subsystem; 0: exactly proper static gain on [x, x']"),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
+        w_std=("N", "standard deviation of the white-noise force w"),
+        seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
+    )
 
     def build(self, s, batch, dtype, device):
         m, K, C, dK, dC = (member_values(s, key) for key in ("m", "K", "C", "dK", "dC"))

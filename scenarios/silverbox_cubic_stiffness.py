@@ -1,8 +1,9 @@
 """Real measured data: the Silverbox benchmark (an electronic Duffing oscillator), cubic spring refined by RCMR.
 
-Data: ``SNLS80mV.csv`` of the Silverbox benchmark (Wigren and Schoukens, ECC 2013), read from
-``../shared/data/silverbox/`` next to the project checkout (setting ``data``; see that folder's README).
-Input w = V1 (volts), output y = V2 (volts, the "position"), fs = 1e7 / 2^14 Hz.
+Data: ``SNLS80mV.csv`` of the Silverbox benchmark (Wigren and Schoukens, ECC 2013), obtained by
+``rcotorch.datasets.silverbox_files`` (downloaded once and verified, or a local copy in ``$RCOTORCH_SILVERBOX``;
+docs/data.md); setting ``data`` names another file. Input w = V1 (volts), output y = V2 (volts, the "position"),
+fs = 1e7 / 2^14 Hz.
 
 1. Known model (fitted here, not given): the linear part y'' = -a y' - b y + g (w + u) + d0, fitted by output
    error on the nearly linear, low-amplitude start of the "arrow" section, rows [fit_start, fit_stop)
@@ -42,7 +43,7 @@ from rcotorch.errors import ConfigError, DataError
 from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.scenario import Requirement, Scenario
 
-DEFAULT_DATA = Path(rt.__file__).resolve().parents[1].parent / "shared" / "data" / "silverbox" / "SNLS80mV.csv"
+SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's SNLS80mV.csv from rt.datasets
 
 
 def cube(s):
@@ -53,22 +54,32 @@ def cube(s):
 @lru_cache(maxsize=4)
 def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_rows: tuple[int, int],
              foh: bool, lead: float) -> tuple[rt.Recording, MassSpringDamper]:
-    silverbox = Path(path) == DEFAULT_DATA.resolve() and (w_col, y_col) == ("V1", "V2")
+    silverbox = Path(path).name == "SNLS80mV.csv" and (w_col, y_col) == ("V1", "V2")
     rec = rt.load(path, columns=[w_col, y_col], dt=Ts, units={"V1": "V", "V2": "V"} if silverbox else None)
     fit = rec.rows(*fit_rows)
     model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
     return rec, model
 
 
-def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
-    """The recording (input and output columns) and the fitted linear model for settings ``s`` (cached)."""
+def data_path(s) -> Path:
+    """The data file of settings ``s``: the Silverbox benchmark's SNLS80mV.csv (verified, from
+    ``rt.datasets``) for ``data=silverbox``, else the named file."""
+    if s["data"] == SILVERBOX:
+        try:
+            return rt.datasets.silverbox_files()["SNLS80mV.csv"].resolve()
+        except DataError as e:
+            raise DataError(f"scenario 'silverbox-cubic-stiffness': {e}") from None
     path = Path(s["data"]).expanduser()
     if not path.is_file():
-        hint = ("the Silverbox files are read from ../shared/data/silverbox/ next to the project checkout "
-                f"(expected {DEFAULT_DATA}); see that folder's README" if path == DEFAULT_DATA else
-                f"the default is {DEFAULT_DATA}")
-        raise DataError(f"scenario 'silverbox-cubic-stiffness': data file {path} not found; {hint}. Pass another "
-                        "path with --set data=PATH (a CSV, NPZ or .mat file with the input and output columns).")
+        raise DataError(f"scenario 'silverbox-cubic-stiffness': data file {path} not found. Pass another path with "
+                        "--set data=PATH (a CSV, NPZ or .mat file with the input and output columns), or "
+                        f"--set data={SILVERBOX} for the Silverbox benchmark.")
+    return path.resolve()
+
+
+def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
+    """The recording (input and output columns) and the fitted linear model for settings ``s`` (cached)."""
+    path = data_path(s)
     for a, b in (("fit_start", "fit_stop"), ("est_start", "est_stop"), ("val_start", "val_stop")):
         if not 0 <= s[a] < s[b]:
             raise ConfigError(f"scenario 'silverbox-cubic-stiffness': need 0 <= {a} < {b}, got {s[a]}, {s[b]}")
@@ -76,7 +87,7 @@ def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
         if s[f"{key}_stop"] - s[f"{key}_start"] <= s["n_init"]:
             raise ConfigError(f"scenario 'silverbox-cubic-stiffness': the {key} rows must be more than "
                               f"n_init = {s['n_init']}")
-    return _prepare(str(path.resolve()), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
+    return _prepare(str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
                     (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
 
 
@@ -100,8 +111,8 @@ def validate(s, theta: float) -> tuple[float, np.ndarray]:
     """Free-run RMS error [V] on the validation rows (after the first n_init) and the simulated output, for
     the linear model with the identified subsystem u = theta y0^3 (theta = 0: the initial linear model)."""
     prepare(s)
-    path = Path(s["data"]).expanduser()
-    return _validate(str(path.resolve()), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
+    path = data_path(s)
+    return _validate(str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
                      (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]),
                      (int(s["val_start"]), int(s["val_stop"])), int(s["n_init"]), float(theta))
 
@@ -111,12 +122,31 @@ class SilverboxCubicStiffness(Scenario):
     section = "real data"
     description = "Silverbox measurements: cubic spring k3/m refined on a linear m-d-k1 model fitted to the data"
     steps = 105712 - 40650          # the whole estimation multisine
-    settings = dict(data=str(DEFAULT_DATA), w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
+    settings = dict(data=SILVERBOX, w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
                     fit_start=100, fit_stop=4100, est_start=40650, est_stop=105712, val_start=105712,
                     val_stop=127400, n_init=50, foh=True, lead=0.5, p0=1e4, lam=1.0, nu=100)
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
+    units = {"k3_over_m": "1/(V^2 s^2)", "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V"}
+    about = dict(
+        data=("", "'silverbox' (the benchmark, downloaded once or from $RCOTORCH_SILVERBOX) or a CSV/NPZ/.mat file"),
+        w_column=("", "column of the input w (volts for the Silverbox)"),
+        y_column=("", "column of the measured output y (volts for the Silverbox)"),
+        Ts=("s", "sample time of the data"),
+        fit_start=("row", "first data row (0-based) of the stretch the linear initial model is fitted to"),
+        fit_stop=("row", "end (exclusive) of the fitting rows"),
+        est_start=("row", "first data row of the refinement (the estimation multisine)"),
+        est_stop=("row", "end (exclusive) of the refinement rows"),
+        val_start=("row", "first data row of the free-run validation"),
+        val_stop=("row", "end (exclusive) of the validation rows"),
+        n_init=("samples", "samples used to fit the initial state before refinement and validation"),
+        foh=("", "interpolate the input linearly between samples (first-order hold) in the model"),
+        lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
+    )
 
     def build(self, s, batch, dtype, device):
         rec, model = prepare(s)

@@ -135,6 +135,33 @@ class ThermosphereNoCooling(Scenario):
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
     per_member = frozenset({"f107", "storm_peak", "p0", "lam"})
+    units = {"y": "1e-12 kg/m^3", **{f"cooling_{km}km": "nW/m^3" for km in (120, 152, 200)},
+             "cooling_152km_true": "nW/m^3"}
+    about = dict(
+        Ts=("s", "sample time (one refinement step)"),
+        substeps=("", "backward-Euler substeps of the column per sample"),
+        dz_km=("km", "altitude spacing of the column's levels"),
+        f107=("sfu", "solar 10.7 cm flux F10.7 (1 sfu = 1e-22 W m^-2 Hz^-1)"),
+        storm_peak=("mW/m^2", "peak Joule and particle heating of the storm"),
+        storm_start_h=("h", "storm onset after the start of the run"),
+        storm_rise_h=("h", "time from storm onset to its peak"),
+        latitude=("deg", "latitude of the column"),
+        local_time0=("h", "local solar time at the start"),
+        spinup_days=("d", "quiet spin-up of the truth before the run (both columns start from it)"),
+        y_altitude_km=("km", "altitude of the measured mass density"),
+        node1_km=("km", "lowest altitude where the cooling is estimated"),
+        node2_km=("km", "middle altitude where the cooling is estimated"),
+        node3_km=("km", "highest altitude where the cooling is estimated"),
+        structure=("", "what the identified subsystem sees (docs/thermosphere.md)"),
+        nc=("", "order of the error-driven identified subsystem (structure=error)"),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z (nu Ts: how far ahead the cost looks)"),
+        theta_max=("", "upper bound of theta (projection onto [0, theta_max])"),
+        markov_method=("", "how the column is linearized for the Markov parameters: autograd or fd"),
+        refresh_every=("steps", "refresh the Markov parameters every N steps (0: never)"),
+        cooling_window_start_h=("h", "start of the window over which the cooling metrics are computed"),
+    )
 
     def __init__(self):
         self._initial_runs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -96,6 +96,27 @@ class TwoDofStiffness(Scenario):
     settings = dict(Ts=0.02, k1=0.7, dk1=0.4, k2=0.5, k3=0.6, dk3=0.5, c1=0.8, c2=0.8, c3=0.8,
                     sees="midpoint", truth="continuous", p0=1e3, lam=0.9995, nu=60, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dk1", "rel_err", 0.10), Requirement("estimates.dk3", "rel_err", 0.10))
+    units = {"y": "m/s"}
+    about = dict(
+        Ts=("s", "sample time"),
+        k1=("N/m", "wall-mass 1 spring of the known model"),
+        dk1=("N/m", "change of k1 in the truth (recovered)"),
+        k2=("N/m", "mass 1-mass 2 spring"),
+        k3=("N/m", "mass 2-wall spring of the known model"),
+        dk3=("N/m", "change of k3 in the truth (recovered)"),
+        c1=("N s/m", "wall-mass 1 damper"),
+        c2=("N s/m", "mass 1-mass 2 damper"),
+        c3=("N s/m", "mass 2-wall damper"),
+        sees=("", "positions the identified gain sees: mid-sample q + Ts/2 q' or the sampled q(k) (the paper's)",
+              ("midpoint", "sampled")),
+        truth=("", "continuous structure ZOH-discretized, or the discrete interconnection (exact for the gain)",
+               ("continuous", "discrete")),
+        p0=("", "initial RLS covariance P(0) = p0 I"),
+        lam=("", "RLS forgetting factor in (0, 1]"),
+        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
+        w_std=("N", "standard deviation of the white-noise force w (on both masses)"),
+        seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
+    )
 
     def build(self, s, batch, dtype, device):
         known = rt.LTI.from_control(known_model(s), inputs={"w": 1, "u": 2}, outputs={"y": 1, "y0": 2},
@@ -143,7 +164,7 @@ class TwoDofStiffness(Scenario):
     def figures(self, g, s):
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         fig = frequency_figure(omega, self._responses(g, s, omega),
-                               "2-DOF: force w -> velocity of mass 2", nyquist=np.pi / s["Ts"])
+                               "2-DOF: force w -> velocity of mass 2", nyquist=np.pi / s["Ts"], unit="m/(N s)")
         return {"frequency_response": fig}
 
 

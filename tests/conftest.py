@@ -1,5 +1,8 @@
 """Shared models for the rcotorch tests."""
 
+import os
+from pathlib import Path
+
 import control
 import numpy as np
 import pytest
@@ -9,6 +12,20 @@ import rcotorch as rt
 
 # The tests use small tensors; on a 2-core machine extra threads cost more than they give.
 torch.set_num_threads(1)
+
+# Measured data sets: the local copy beside the checkout (as in CI) stands in for the download.
+LOCAL_SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox"
+if LOCAL_SILVERBOX.is_dir():
+    os.environ.setdefault("RCOTORCH_SILVERBOX", str(LOCAL_SILVERBOX))
+
+
+@pytest.fixture(scope="session")
+def silverbox_csv() -> Path:
+    """The verified SNLS80mV.csv of the Silverbox benchmark (skips the test where it cannot be had)."""
+    try:
+        return rt.datasets.silverbox_files()["SNLS80mV.csv"]
+    except rt.DataError as e:
+        pytest.skip(f"the Silverbox data set is not available here: {e}")
 
 SDOF_A = [[0.0, 1.0], [-30.0, -5.0]]     # m = 1, k = 30, c = 5; states (q, v)
 SDOF_B = [[0.0, 0.0], [1.0, 1.0]]        # inputs w (exogenous force), u (force of the unknown subsystem)

@@ -1,14 +1,11 @@
 """Loading recorded data (CSV, NPZ), its checks, playback with gaps, and a Figure-1 run on data with a gap."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 import rcotorch as rt
-
-SILVERBOX = Path(__file__).parents[2] / "shared/data/silverbox/SNLS80mV.csv"
 
 
 def _write(tmp_path, text, name="d.csv"):
@@ -141,9 +138,8 @@ def test_npz_dict_of_vectors_and_single_matrix(tmp_path):
         rt.load(tmp_path / "bad2.npz")
 
 
-@pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
-def test_silverbox_file():
-    rec = rt.load(SILVERBOX)
+def test_silverbox_file(silverbox_csv):
+    rec = rt.load(silverbox_csv)
     assert rec.columns == ["V1", "V2"]
     assert rec.values.shape == (131072, 2)
     assert rec.valid is None

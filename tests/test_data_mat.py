@@ -1,14 +1,11 @@
 """Loading MATLAB .mat files (scipy.io), and units carried with a recording."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.io
 
 import rcotorch as rt
-
-SILVERBOX = Path(__file__).resolve().parents[2] / "shared/data/silverbox/SNLS80mV.csv"
 
 
 def _mat(tmp_path, file_name="d.mat", **variables):
@@ -21,9 +18,26 @@ def test_mat_row_and_column_vectors_scalars_and_strings(tmp_path):
     v1, v2 = np.linspace(0, 1, 7), np.arange(7.0) ** 2
     path = _mat(tmp_path, V1=v1[None, :], V2=v2[:, None], Ts=0.01, info="bench test", i16=np.arange(7, dtype=np.int16))
     rec = rt.load(path, dt=0.01)
-    assert rec.columns == ["V1", "V2", "i16"]                 # file order; the scalar and the string left out
+    assert rec.columns == ["V1", "V2", "i16"]                 # file order; the scalar and the string are metadata
     np.testing.assert_array_equal(rec.values, np.c_[v1, v2, np.arange(7.0)])
     assert rec.values.dtype == np.float64 and rec.dt == 0.01 and rec.path == str(path) and rec.valid is None
+    assert rec.metadata == {"Ts": 0.01, "info": "bench test"}
+
+
+def test_mat_scalars_are_metadata_kept_through_selections(tmp_path):
+    path = _mat(tmp_path, w=np.arange(9.0), y=np.ones(9), Ts=np.array([[0.002]]), gain=np.int32(4), name="rig 2")
+    rec = rt.load(path, columns=["y"], rows=(2, 6), dt="Ts")
+    assert rec.dt == 0.002 and rec.metadata == {"Ts": 0.002, "gain": 4, "name": "rig 2"}
+    assert isinstance(rec.metadata["gain"], int) and rec.rows(3, 5).metadata == rec.metadata
+    with pytest.raises(rt.DataError, match=r"dt='fs' names no scalar stored in the file; its scalars are \['Ts', "
+                                           r"'gain'\]"):
+        rt.load(path, dt="fs")
+    with pytest.raises(rt.DataError, match="sample time gain0 = 0.0 is not positive"):
+        rt.load(_mat(tmp_path, "z.mat", w=np.ones(3), gain0=0.0), dt="gain0")
+    npz = tmp_path / "d.npz"
+    np.savez(npz, w=np.arange(4.0), y=np.ones(4), dt=0.5, label="bench")
+    rec = rt.load(npz, dt="dt")
+    assert rec.columns == ["w", "y"] and rec.dt == 0.5 and rec.metadata == {"dt": 0.5, "label": "bench"}
 
 
 def test_mat_matrix_channels_samples_along_longer_dimension(tmp_path):
@@ -81,10 +95,9 @@ def test_mat_v4_and_complex(tmp_path):
         rt.load(path, columns=["z"])
 
 
-@pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
-def test_silverbox_as_mat_equals_csv(tmp_path):
+def test_silverbox_as_mat_equals_csv(tmp_path, silverbox_csv):
     """The benchmark stores V1, V2 as row vectors in its .mat files; a .mat written that way loads like the CSV."""
-    csv = rt.load(SILVERBOX, rows=(40650, 40750))
+    csv = rt.load(silverbox_csv, rows=(40650, 40750))
     path = _mat(tmp_path, V1=csv.column("V1")[None, :], V2=csv.column("V2")[None, :], fs=1e7 / 2 ** 14)
     mat = rt.load(path, columns=["V1", "V2"])
     np.testing.assert_array_equal(mat.values, csv.values)

@@ -1,5 +1,5 @@
 """Real-data refinement: the initial-model helpers (rcotorch.models.identification) against python-control, scipy and
-a fine continuous simulation; the README's worked example on a simulated Duffing oscillator with known c; and
+a fine continuous simulation; the worked example of docs/data.md on a simulated Duffing oscillator with known c; and
 the silverbox-cubic-stiffness scenario on the measured Silverbox data."""
 
 import re
@@ -17,9 +17,7 @@ from rcotorch import scenario as scenarios
 from rcotorch.models.identification import MassSpringDamper, rmse
 from rcotorch.runner import Run
 
-SILVERBOX = Path(__file__).resolve().parents[2] / "shared/data/silverbox/SNLS80mV.csv"
-README = Path(__file__).resolve().parents[1] / "README.md"
-needs_data = pytest.mark.skipif(not SILVERBOX.exists(), reason="silverbox data not available")
+DATA_DOC = Path(__file__).resolve().parents[1] / "docs" / "data.md"
 
 P = dict(a=40.0, b=(2 * np.pi * 60) ** 2, g=1.5e5, d0=-700.0)     # a Silverbox-like oscillator at dt = 1 ms
 
@@ -156,16 +154,16 @@ def test_fit_rejects_data_that_are_not_an_oscillator():
         MassSpringDamper.fit(w, y, 1e-3)
 
 
-# --- the README's worked example, on a simulated Duffing oscillator with known c ---------------------------------
-def _readme_example() -> str:
-    section = README.read_text().split("## Real measured data: Silverbox and your own CSV", 1)[1]
+# --- the worked example of docs/data.md, on a simulated Duffing oscillator with known c -------------------------
+def _worked_example() -> str:
+    section = DATA_DOC.read_text().split("## Worked example: your own measurements", 1)[1]
     section = section.split("\n## ", 1)[0]            # up to the next section
     blocks = re.findall(r"```py\n(.*?)```", section, flags=re.S)
     assert len(blocks) == 1
     return blocks[0]
 
 
-def test_readme_worked_example_recovers_a_known_cubic_spring(tmp_path, monkeypatch, capsys):
+def test_worked_example_recovers_a_known_cubic_spring(tmp_path, monkeypatch, capsys):
     dt, n, c = 1e-3, 15000, 8e5
     rng = np.random.default_rng(0)
     w = smooth_input(n, dt, seed=0) - 0.005
@@ -175,7 +173,7 @@ def test_readme_worked_example_recovers_a_known_cubic_spring(tmp_path, monkeypat
     (tmp_path / "my_data.csv").write_text("time [s],input [V],output [V]\n" + "\n".join(lines) + "\n")
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
-    exec(compile(_readme_example(), "README.md worked example", "exec"), ns)
+    exec(compile(_worked_example(), "docs/data.md worked example", "exec"), ns)
     assert ns["rec"].units == {"input": "V", "output": "V"}
     c_hat = ns["model"].cubic_coefficient(ns["theta"])
     assert abs(c_hat - c) < 0.05 * c, c_hat
@@ -190,13 +188,12 @@ def test_missing_data_file_is_a_clear_error(tmp_path):
     with pytest.raises(rt.DataError, match=r"data file .*nope\.csv not found.*--set data=PATH"):
         Run("silverbox-cubic-stiffness", out=tmp_path, overrides={"data": str(tmp_path / "nope.csv")})
     sc = scenarios.get("silverbox-cubic-stiffness")
-    assert Path(sc.settings["data"]) == SILVERBOX               # ../shared next to the checkout
+    assert sc.settings["data"] == "silverbox"                   # the data set of rcotorch.datasets
     s = sc.resolve({"data": "my.csv", "fit_stop": "3000", "foh": "false"})
     assert s["data"] == "my.csv" and s["fit_stop"] == 3000 and s["foh"] is False
 
 
-@needs_data
-def test_scenario_graph_and_validation_against_references(tmp_path):
+def test_scenario_graph_and_validation_against_references(tmp_path, silverbox_csv):
     """A short run: real playback through refinement(..., data=Recorded), the basis regressor named, and the
     validation errors recomputed independently (scipy dlsim for the linear model, an rcotorch graph for the
     refined one)."""
@@ -214,7 +211,7 @@ def test_scenario_graph_and_validation_against_references(tmp_path):
     theta = float(ident.theta[0, 0, 0])
     assert c == pytest.approx(-model.g * theta)
 
-    val = rt.load(SILVERBOX, rows=(105712, 127400))
+    val = rt.load(silverbox_csv, rows=(105712, 127400))
     w, y = val.column("V1"), val.column("V2")
     d = model.discrete
     # Initial model: state by linear least squares on the first 50 outputs, free run by scipy's dlsim.
@@ -233,9 +230,8 @@ def test_scenario_graph_and_validation_against_references(tmp_path):
     assert summary["metrics"]["val_rmse_refined"] == pytest.approx(rmse(y_ref[50:], y[50:]), rel=1e-6)
 
 
-@needs_data
 @pytest.mark.slow
-def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path):
+def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path, silverbox_csv):
     run = Run("silverbox-cubic-stiffness", out=tmp_path)
     run.advance(progress=False)
     summary = run.finish(figures=True)

@@ -46,7 +46,7 @@ def test_sweep_members_equal_separate_runs(tmp_path):
     table = list(csv.DictReader(open(tmp_path / "sweep.csv")))
     assert len(table) == 8 and {"member", "dK", "Ts", "dC", "seed", "est_dK", "err_dC", "diverged"} <= set(table[0])
     assert json.loads((tmp_path / "sweep.json").read_text()) == rows
-    assert (tmp_path / "shard_0000").is_dir() and (tmp_path / "hparams").is_dir()
+    assert (tmp_path / "shard_0000").is_dir() and (tmp_path / "members" / "member_000007").is_dir()
 
 
 def test_ray_backend_equals_local(tmp_path):

@@ -7,6 +7,8 @@ from collections.abc import Sequence
 import control
 import numpy as np
 
+from .structures import vector
+
 SIGNALS = ("charge", "current", "v_C", "v_R")
 
 
@@ -18,7 +20,9 @@ def series_rlc(R: float, L: float, C: float, measured: Sequence[str] = ("v_R",),
 
     Outputs are ``measured`` then ``sees``, each one of 'charge' (q), 'current' (i), 'v_C' (q / C, the
     capacitor voltage) or 'v_R' (R i, the voltage across the resistor). No output feeds an input through
-    (D = 0). Inputs are w, then u.
+    (D = 0). Inputs are w, then u. Signals are named as rcotorch's known model expects them: inputs ``w``,
+    ``u``; outputs ``y`` (``measured``) and ``y0`` (``sees``), ``[i]`` appended where there are several;
+    states ``q`` (charge) and ``i`` (current).
     """
     R, L, C = float(R), float(L), float(C)
     if min(R, L, C) <= 0:
@@ -32,4 +36,6 @@ def series_rlc(R: float, L: float, C: float, measured: Sequence[str] = ("v_R",),
         if sig not in rows:
             raise ValueError(f"unknown circuit signal {sig!r}: use one of {list(SIGNALS)}")
     Cm = np.array([rows[s] for s in outs])
-    return control.ss(A, Bm, Cm, np.zeros((len(outs), Bm.shape[1])))
+    names = dict(inputs=["w", "u"] if actuation else ["w"],
+                 outputs=vector("y", len(measured)) + vector("y0", len(sees)), states=["q", "i"])
+    return control.ss(A, Bm, Cm, np.zeros((len(outs), Bm.shape[1])), **names)

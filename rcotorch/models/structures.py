@@ -18,6 +18,10 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
     Outputs are ``measured`` then ``sees`` (the signals the unknown subsystem acts on), each an entry
     'position[i]' / 'velocity[i]' (or 'position' / 'velocity' for one degree of freedom). Inputs are w and,
     if ``actuation``, u (the unknown subsystem's forces, F_u = I by default).
+
+    The system's signals are named as rcotorch's known model expects them: inputs ``w`` and ``u``, outputs
+    ``y`` (the measured ones) and ``y0`` (the seen ones), with ``[i]`` appended where there are several;
+    states ``q[i]`` and ``qdot[i]`` (``q``, ``qdot`` for one degree of freedom).
     """
     M, C, K = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (M, C, K))
     n = M.shape[0]
@@ -39,7 +43,15 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
         return r
 
     Cm = np.array([row(s) for s in list(measured) + list(sees)])
-    return control.ss(A, Bm, Cm, np.zeros((Cm.shape[0], Bm.shape[1])))
+    names = dict(inputs=vector("w", Fw.shape[1]) + (vector("u", cols[1].shape[1]) if actuation else []),
+                 outputs=vector("y", len(measured)) + vector("y0", len(sees)),
+                 states=vector("q", n) + vector("qdot", n))
+    return control.ss(A, Bm, Cm, np.zeros((Cm.shape[0], Bm.shape[1])), **names)
+
+
+def vector(name: str, width: int) -> list[str]:
+    """python-control names of a signal of ``width`` components: [name] or [name[0], name[1], ...]."""
+    return [name] if width == 1 else [f"{name}[{i}]" for i in range(width)]
 
 
 def sdof(m: float, c: float, k: float, measured=("velocity",), sees=("position", "velocity"),

@@ -1,0 +1,124 @@
+"""The package as a user gets it: a wheel built from the checkout, installed (not editable) into a fresh virtual
+environment, and its command line run from another folder; and the scenario cards of ``rcotorch show``."""
+
+import json
+import os
+import shutil
+import site
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rcotorch import scenario as scenarios
+from rcotorch.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+LEFT_OUT = shutil.ignore_patterns(".git", ".venv", "runs", "build", "dist", "*.egg-info", "__pycache__",
+                                  ".pytest_cache", ".ruff_cache")
+
+
+def _sh(*cmd, **kw) -> subprocess.CompletedProcess:
+    out = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, timeout=600, **kw)
+    assert out.returncode == 0, f"{cmd}: exit {out.returncode}\n{out.stdout}\n{out.stderr}"
+    return out
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> tuple[Path, dict]:
+    """A virtual environment with the wheel of this checkout installed, reusing this environment's torch and
+    other dependencies offline (through a .pth file, added after the install so pip never sees them)."""
+    tmp = tmp_path_factory.mktemp("package")
+    src = tmp / "src"
+    shutil.copytree(ROOT, src, ignore=LEFT_OUT)
+    _sh(sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q", src,
+        "-w", tmp / "wheels")
+    wheel = next((tmp / "wheels").glob("rcotorch-*.whl"))
+    venv = tmp / "venv"
+    _sh(sys.executable, "-m", "venv", "--without-pip", venv)
+    python = venv / "bin" / "python"
+    _sh(sys.executable, "-m", "pip", "--python", python, "install", "--no-deps", "--no-index", "-q", wheel)
+    purelib = _sh(python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])").stdout.strip()
+    Path(purelib, "_test_dependencies.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "RCOTORCH_SCENARIOS")}
+    env["MPLBACKEND"] = "Agg"
+    elsewhere = tmp / "elsewhere"
+    elsewhere.mkdir()
+    return venv, dict(env=env, cwd=elsewhere)
+
+
+@pytest.mark.slow
+def test_wheel_lists_shows_and_runs_every_scenario_from_another_folder(installed, silverbox_csv):
+    venv, kw = installed
+    where = _sh(venv / "bin" / "python", "-c", "import rcotorch; print(rcotorch.__file__)", **kw).stdout
+    assert str(venv) in where and str(ROOT) not in where            # the installed copy, not the checkout
+    listed = _sh(venv / "bin" / "rcotorch", "list", **kw).stdout
+    names = sorted(line.split()[0] for line in listed.splitlines())
+    assert names == sorted(scenarios.available()) and len(names) >= 7
+    card = _sh(venv / "bin" / "rcotorch", "show", "sdof-stiffness", **kw).stdout
+    assert "dK*" in card and "N/m" in card and "stiffness change in the truth" in card
+    for name in names:
+        out = kw["cwd"] / "runs" / name
+        run = subprocess.run([venv / "bin" / "rcotorch", "run", name, "--steps", "20", "--no-figures", "--quiet",
+                              "--out", out], capture_output=True, text=True, timeout=600, **kw)
+        assert run.returncode in (0, 1), f"{name}: exit {run.returncode}\n{run.stdout}\n{run.stderr}"
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["scenario"] == name and summary["steps"] == 20
+
+
+def test_every_shipped_setting_is_documented():
+    for name, sc in scenarios.available().items():
+        for key in sc.settings:
+            info = sc.setting(key)
+            assert info.meaning, f"{name}: setting {key!r} has no meaning in Scenario.about"
+            assert all(isinstance(c, str) for c in info.choices)
+        assert not set(sc.about) - set(sc.settings), f"{name}: about names unknown settings"
+
+
+def test_show_prints_the_card(capsys):
+    assert main(["show", "twodof-stiffness"]) == 0
+    card = capsys.readouterr().out
+    lines = {line.split()[0]: line for line in card.splitlines() if line.strip()}
+    assert "dk1" in lines and "0.4" in lines["dk1"] and "N/m" in lines["dk1"]
+    assert "one of: midpoint, sampled" in lines["sees"]
+    assert "requirements: estimates.dk1 rel err < 0.1" in card and "steps: 20000" in card
+    assert main(["show", "twodof-stifness"]) == 2
+    assert "did you mean 'twodof-stiffness'" in capsys.readouterr().err
+
+
+def test_a_choice_outside_the_documented_ones_is_rejected():
+    sc = scenarios.get("twodof-stiffness")
+    with pytest.raises(scenarios.ConfigError, match=r"sees must be one of \['midpoint', 'sampled'\], got 'middle'"):
+        sc.resolve({"sees": "middle"})
+    with pytest.raises(scenarios.ConfigError, match=r"sees must be one of"):
+        sc.resolve_members({}, [{"sees": "sampled"}, {"sees": "half"}])
+
+
+def test_user_scenario_folders(tmp_path, monkeypatch):
+    """A folder in RCOTORCH_SCENARIOS: its files build on the shipped scenarios and on each other; a file that
+    fails to load, and a name defined twice, are errors naming the files."""
+    (tmp_path / "base_case.py").write_text(
+        "from rcotorch.scenarios.sdof_stiffness import SdofStiffness\n"
+        "class Stiffer(SdofStiffness):\n"
+        "    name = 'my-stiffer'\n"
+        "    settings = dict(SdofStiffness.settings, dK=0.8)\n"
+        "SCENARIO = Stiffer()\n")
+    (tmp_path / "variant.py").write_text(
+        "from base_case import Stiffer\n"
+        "class Softer(Stiffer):\n"
+        "    name = 'my-softer'\n"
+        "    settings = dict(Stiffer.settings, dK=0.1)\n"
+        "SCENARIO = Softer()\n")
+    monkeypatch.setenv("RCOTORCH_SCENARIOS", str(tmp_path))
+    found = scenarios.available()
+    assert found["my-stiffer"].settings["dK"] == 0.8 and found["my-softer"].settings["dK"] == 0.1
+    assert found["my-softer"].setting("dK").unit == "N/m"            # the documentation is inherited
+    (tmp_path / "clash.py").write_text("from variant import Softer\nSCENARIO = Softer()\n")
+    clash = r"two scenarios are named 'my-softer': \S*(clash|variant).py and \S*(clash|variant).py"
+    with pytest.raises(scenarios.ConfigError, match=clash):
+        scenarios.available()
+    (tmp_path / "clash.py").write_text("import no_such_module\n")
+    with pytest.raises(scenarios.ConfigError, match=r"clash.py \(from RCOTORCH_SCENARIOS\) fails to load: "
+                                                    r"ModuleNotFoundError"):
+        scenarios.available()
