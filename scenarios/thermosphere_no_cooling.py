@@ -148,19 +148,33 @@ class ThermosphereNoCooling(Scenario):
         latitude=("deg", "latitude of the column"),
         local_time0=("h", "local solar time at the start"),
         spinup_days=("d", "quiet spin-up of the truth before the run (both columns start from it)"),
-        y_altitude_km=("km", "altitude of the measured mass density"),
+        measured_km=("km", "altitudes of the measured mass densities, separated by commas (e.g. 407,150), each "
+                           "between 100 and 600 km"),
         node1_km=("km", "lowest altitude where the cooling is estimated"),
         node2_km=("km", "middle altitude where the cooling is estimated"),
         node3_km=("km", "highest altitude where the cooling is estimated"),
-        structure=("", "what the identified subsystem sees (docs/thermosphere.md)"),
+        structure=("", "what the identified subsystem sees: the Kockarts rate of the model's own state "
+                       "(known form), its node temperatures only, or the density error (docs/thermosphere.md)",
+                   STRUCTURES),
+        features=("", "basis of structure=temperature: r<p> = (exp(-2700 K/T) / exp(-2700 K/T_ref))^p, T_ref the "
+                      "node's initial temperature (with shared, the middle node's); lp<h>:r<p> its low-pass memory "
+                      "with time constant h hours"),
+        shared=("", "structure=temperature: one function of temperature for every node (tied theta) instead of "
+                    "one per node"),
         nc=("", "order of the error-driven identified subsystem (structure=error)"),
         p0=("", "initial RLS covariance P(0) = p0 I"),
         lam=("", "RLS forgetting factor in (0, 1]"),
         nu=("", "number of Markov parameters of u -> z (nu Ts: how far ahead the cost looks)"),
-        theta_max=("", "upper bound of theta (projection onto [0, theta_max])"),
-        markov_method=("", "how the column is linearized for the Markov parameters: autograd or fd"),
+        theta_max=("", "structure=kockarts: upper bound of theta (projection onto [0, theta_max])"),
+        markov_method=("", "how the column is linearized for the Markov parameters", ("autograd", "fd")),
         refresh_every=("steps", "refresh the Markov parameters every N steps (0: never)"),
         cooling_window_start_h=("h", "start of the window over which the cooling metrics are computed"),
+        replay=("", "after the run, replay the frozen identified subsystem on another space weather (replay_* "
+                    "metrics and figure)"),
+        replay_f107=("sfu", "F10.7 of the replay"),
+        replay_storm_peak=("mW/m^2", "peak storm heating of the replay"),
+        replay_storm_start_h=("h", "storm onset in the replay"),
+        replay_storm_rise_h=("h", "time from storm onset to its peak in the replay"),
     )
 
     def __init__(self):
@@ -168,11 +182,6 @@ class ThermosphereNoCooling(Scenario):
         self._replays: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def build(self, s, batch, dtype, device):
-        if s["structure"] not in STRUCTURES:
-            raise ConfigError(f"scenario '{self.name}': structure must be one of {STRUCTURES}, got {s['structure']!r}")
-        if s["markov_method"] not in ("autograd", "fd"):
-            raise ConfigError(f"scenario '{self.name}': markov_method must be 'autograd' or 'fd', "
-                              f"got {s['markov_method']!r}")
         return self._graph(s, batch, dtype, device)
 
     def _graph(self, s, batch, dtype, device, frozen: rt.Graph | None = None) -> rt.Graph:
