@@ -3,6 +3,8 @@ nothing else, its basis and memory against closed forms and scipy, densities at 
 blocks in ``refinement``, the frozen replay, and (slow) the goals with the smallest measurement set."""
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,3 +196,20 @@ def test_temperature_structure_meets_the_goals_with_densities_at_407_and_150_km(
     assert m["replay_density_err_ratio"] < 0.5 and m["replay_cooling_corr_152km"] > 0.8
     for fig in ("cooling_152km", "cooling_profiles", "density_error", "replay"):
         assert (tmp_path / f"{fig}.png").is_file()
+
+
+def test_results_table_script_runs_a_configuration():
+    """benchmarks/thermosphere_table.py on a tiny column: every table column present, the goals judged by the
+    bounds of SCENARIOS.md (density ratio < 0.25, correlation >= 0.8, relative rms <= 0.3)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import thermosphere_table
+
+    row = thermosphere_table.run_config({**SMALL, "structure": "temperature", "measured_km": "407,250"}, steps=30)
+    m = row["metrics"]
+    assert row["steps"] == 30 and all(v is not None and math.isfinite(v) for v in m.values())
+    assert set(m) >= {"density_err_ratio", "cooling_corr_152km", "cooling_rel_rms_152km", "replay_density_err_ratio",
+                      "replay_cooling_corr_152km", "replay_cooling_rel_rms_152km"}
+    expected = {"density_err_ratio": m["density_err_ratio"] < 0.25,
+                "cooling_corr_152km": m["cooling_corr_152km"] >= 0.8,
+                "cooling_rel_rms_152km": m["cooling_rel_rms_152km"] <= 0.3}
+    assert row["goals_met"] == expected and row["all_goals_met"] == all(expected.values())
