@@ -31,8 +31,8 @@ TUNING = {"kockarts": {}, "temperature": {"p0": 50.0}, "error": {}}
 MEASURED = ("407", "407,250", "407,150")
 CONFIGS = {f"{structure}@{km}": {"structure": structure, "measured_km": km, **TUNING[structure]}
            for structure in ("temperature", "kockarts", "error") for km in MEASURED}
-CONFIGS.update({f"temperature-shared@{km}": {"structure": "temperature", "measured_km": km, "shared": True,
-                                              **TUNING["temperature"]} for km in ("407", "407,150")})
+CONFIGS["temperature-shared@407,150"] = {"structure": "temperature", "measured_km": "407,150", "shared": True,
+                                         **TUNING["temperature"]}
 GOALS = {"density_err_ratio": ("<", 0.25), "cooling_corr_152km": (">=", 0.8), "cooling_rel_rms_152km": ("<=", 0.3)}
 REPLAY = ("replay_density_err_ratio", "replay_cooling_corr_152km", "replay_cooling_rel_rms_152km",
           "replay_cooling_profile_rel_rms")
