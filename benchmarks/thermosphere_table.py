@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -48,9 +49,10 @@ def met(metrics: dict) -> dict[str, bool]:
 def run_config(overrides: dict, steps: int | None = None, out: Path | None = None, figures: bool = False) -> dict:
     """One run: its settings, the table's metrics, the goals met, and its wall time [s]."""
     start = time.perf_counter()
-    run = Run(NAME, steps=steps, overrides=overrides, out=out)
-    run.advance(progress=False)
-    summary = run.finish(figures=figures) if out is not None else run.summary()
+    with tempfile.TemporaryDirectory() as scratch:              # without ``out`` the run's logs are not kept
+        run = Run(NAME, steps=steps, overrides=overrides, out=out or scratch)
+        run.advance(progress=False)
+        summary = run.finish(figures=figures) if out is not None else run.summary()
     metrics = {k: summary["metrics"].get(k) for k in COLUMNS}
     return {"overrides": overrides, "steps": summary["steps"], "metrics": metrics, "goals_met": met(metrics),
             "all_goals_met": all(met(metrics).values()), "diverged": summary["diverged"],
