@@ -9,7 +9,7 @@ known model.
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 
@@ -24,7 +24,8 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                physical: Block | None = None, data: Block | None = None, excitation: Block | None = None,
                nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
                device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
-               measured: str = "y", feeds: Mapping[str, str] | None = None) -> Graph:
+               measured: str = "y", feeds: Mapping[str, str] | None = None, blocks: Sequence[Block] = (),
+               connections: Iterable = ()) -> Graph:
     """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
 
     The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
@@ -39,8 +40,11 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
 
     The simulated system is ``known`` in feedback with ``identified`` (the RCO estimator); its regressor
     ports are fed by the known model's outputs of the same name (or ``w``), or as mapped by ``feeds``
-    ({estimator port: 'block.port'}). Unless the estimator already has Markov parameters, ``nu`` of them
-    are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its relative degree d on.
+    ({estimator port: 'block.port'}). Further blocks of the simulated system, e.g. filters that turn a known
+    model's output into the estimator's regressors, are given as ``blocks`` and wired by ``connections``
+    (as in ``Graph``); ``feeds`` then names their outputs. Unless the estimator already has Markov
+    parameters, ``nu`` of them are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its
+    relative degree d on.
     """
     given = [x is not None for x in (truth, physical, data)]
     if sum(given) != 1:
@@ -53,12 +57,12 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         raise PortError(f"refinement: known model '{known.name}' has no output '{measured}'; its outputs are "
                         f"{list(known.outputs)}")
     kn, en = known.name, identified.name
-    blocks: list[Block] = [known, identified]
-    conns: list[tuple[str, str]] = []
+    parts: list[Block] = [known, identified, *blocks]
+    conns: list = list(connections)
     if data is not None:
         if data.name != "data":
             raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
-        blocks.append(data)
+        parts.append(data)
         w_src, y_src = f"data.{exogenous}", f"data.{measured}"
         for p in (exogenous, measured):
             if p not in data.outputs:
@@ -67,7 +71,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         if excitation is None:
             raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
         excitation.name = "excitation"
-        blocks.append(excitation)
+        parts.append(excitation)
         w_src = "excitation.out"
         if truth is not None:
             plant = copy.deepcopy(known)
@@ -78,17 +82,17 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
             if len(sees) != 1:
                 raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
                                   f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
-            blocks += [plant, truth]
+            parts += [plant, truth]
             conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"unknown.{t_in}"),
                       (f"unknown.{t_out}", f"plant.{actuation}")]
             y_src = f"plant.{measured}"
         else:
             physical.name = "plant"
-            blocks.append(physical)
+            parts.append(physical)
             conns.append((w_src, f"plant.{exogenous}"))
             y_src = f"plant.{measured}"
     width = known.outputs[measured]
-    blocks.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
+    parts.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
     conns += [(y_src, "error.y"), (f"{kn}.{measured}", "error.y_hat"), (w_src, f"{kn}.{exogenous}"),
               (f"{en}.u", f"{kn}.{actuation}"), ("error.out", f"{en}.z")]
     feeds = dict(feeds or {})
@@ -115,7 +119,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
              "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}"}
     if data is None:
         roles["excitation"] = "excitation"
-    return Graph(blocks, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+    return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
 
 
 def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12

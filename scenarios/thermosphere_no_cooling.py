@@ -1,48 +1,81 @@
-"""Seed Section VII: the NO 5.3 um cooling a thermosphere model lacks, refined from the density at 407 km.
+"""Seed Section VII: the NO 5.3 um cooling a thermosphere model lacks, refined from measured mass densities.
 
 Physical system ("truth"): the reduced 1-D thermosphere column of ``rcotorch.models.thermosphere`` (100-600 km, 5 km
 levels) *with* Kockarts' NO cooling, driven by w = [F10.7, storm power]: F10.7 = 150 and a storm starting on day
-2 (peak 4 mW/m^2 six hours after onset). Measured: the mass density at 407 km, y in units of 1e-12 kg/m^3.
+2 (peak 4 mW/m^2 six hours after onset). Measured: the mass density at the altitudes ``measured_km`` (default 407
+km, the seed paper's case; e.g. ``'407,150'`` for two satellites), y in units of 1e-12 kg/m^3. With several
+densities, each counts by its relative error: the weight on z is R = diag((rho_1 / rho_i)^2), rho_i the initial
+density at altitude i.
 
 Known model ("initial model"): the same column *without* NO cooling, with an input u: the cooling at three
 altitudes (120, 152, 200 km, nW/m^3), interpolated linearly in between and subtracted in the energy equation.
 Both columns start from the truth's state after a 3-day quiet spin-up.
 
-Identified subsystem (``structure='kockarts'``, the default): a structured static gain on basis regressors, as
-in the Silverbox scenario. The known model computes y0_j, the Kockarts cooling rate of its *own* state (its T,
-O and NO densities) at node j with unit coefficient, and u_j(k) = theta_j y0_j(k) (diagonal mask): RCMR finds how
-strong the NO cooling is at each altitude from the density at 407 km alone; theta_j = 1 is Kockarts' strength.
-Physics constraints: u is saturated to u >= 0 (``u_bounds``: a cooling cannot heat) and theta projected onto
-[0, theta_max] (``theta_bounds``).
+Identified subsystem, ``structure``:
 
-``structure='error'`` is the seed paper's form: u = theta [z(k-1..k-nc); u(k-1..k-nc)], the cooling driven by the
-model error. It fits the density but not the cooling profile: with one measured density, the split of the
-cooling between altitudes is not identifiable (DESIGN.md, "which signals feed the identified subsystem").
+* ``'kockarts'`` (the default), the *known-form* variant: u_j = theta_j y0_j with y0_j the Kockarts cooling rate
+  that the known model's own state (its T, O and NO densities) would have at node j at unit strength (diagonal
+  mask). RCMR finds only a strength per altitude; theta_j = 1 is the truth. theta is projected onto
+  [0, theta_max].
+* ``'temperature'``, the seed paper's premise (the cooling's form is unknown, "most likely a function of
+  temperature"): u_j = sum_i theta_ji f_i(T_j), where the f_i are the basis functions ``features`` of the known
+  model's temperature at node j and their low-pass memories (``TemperatureFeatures``), nothing else. Per node
+  by default; ``shared=True`` ties theta across the nodes (one function of temperature for every node).
+* ``'error'``, the seed paper's literal form: u = theta [z(k-1..k-nc); u(k-1..k-nc)], driven by the model error.
+
+Every structure saturates u >= 0 (``u_bounds``: a cooling cannot heat).
 
 Markov parameters of u -> z: by linearizing the known model (``markov_method``: 'autograd' or 'fd') along its
 trajectory with w and u held, nu of them (2 days, the thermal memory of the lower thermosphere), refreshed every
 ``refresh_every`` steps from the model's present state and inputs.
 
 Metrics (SCENARIOS.md): ``density_err_ratio`` = rms(refined - truth) / rms(initial - truth) of the density at
-407 km over the last day (the initial model is the known model run with u = 0 on the same driver);
-``cooling_corr_152km`` and ``cooling_rel_rms_152km`` = rms(est - true)/rms(true) of the estimated and true NO
-cooling at 152 km, over the samples from ``cooling_window_start_h`` (one day of adaptation) to the end.
+407 km over the last day, whether or not 407 km is measured (the initial model is the known model run with u = 0
+on the same driver), and ``density_err_ratio_<alt>km`` at every other measured altitude; ``cooling_corr_152km``
+and ``cooling_rel_rms_152km`` = rms(est - true)/rms(true) of the estimated and true NO cooling at 152 km, over the
+samples from ``cooling_window_start_h`` (one day of adaptation) to the end; ``cooling_rel_rms_<node>km`` at the
+other nodes and ``cooling_profile_rel_rms`` over 100-300 km, the same window.
+
+Generalization (``replay``): after the run the identified subsystem is frozen (theta held, P = 0) and both
+columns are driven, from a quiet spin-up at ``replay_f107``, by another space-weather history (a storm of
+``replay_storm_peak`` at ``replay_storm_start_h``). The ``replay_*`` metrics score the frozen cooling over the
+whole replay, and ``replay_density_err_ratio`` compares it with the initial model at 407 km. (The ``'error'``
+structure's frozen controller is still fed by the replay's measured density.)
 """
 
 from __future__ import annotations
 
 import math
 import weakref
+from collections.abc import Callable
 from functools import lru_cache
 
 import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.models.thermosphere import Column, ColumnBlock, SpaceWeather, few_threads
+from rcotorch.models.thermosphere import Column, ColumnBlock, SpaceWeather, TemperatureFeatures, few_threads
 from rcotorch.scenario import Requirement, Scenario, member_values
 
-EVAL_ALTITUDE = 152e3
+EVAL_ALTITUDE = 152e3          # cooling metrics
+DENSITY_ALTITUDE = 407e3       # density_err_ratio
+PROFILE_TOP = 300e3            # cooling_profile_rel_rms covers 100-300 km
+FIGURE12_DAYS = (0.5, 0.8, 1.6, 2.7)   # the seed's Figure 12: days after adaptation starts
+STRUCTURES = ("kockarts", "temperature", "error")
+REPLAY = ("f107", "storm_peak", "storm_start_h", "storm_rise_h")
+
+
+def measured_altitudes(s) -> list[float]:
+    """The measured altitudes [m] of setting ``measured_km`` ('407' or '407,150')."""
+    text = str(s["measured_km"])
+    try:
+        km = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise ConfigError(f"setting measured_km must be altitudes in km separated by commas (e.g. '407,150'), "
+                          f"got {text!r}") from None
+    if not km or any(not 100.0 < a < 600.0 for a in km) or len(set(km)) != len(km):
+        raise ConfigError(f"setting measured_km: give distinct altitudes between 100 and 600 km, got {text!r}")
+    return [a * 1e3 for a in km]
 
 
 def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
@@ -67,17 +100,37 @@ def initial_state(s) -> torch.Tensor:
                     float(s["local_time0"]), float(s["Ts"]), int(s["substeps"])).clone()
 
 
+def replay_settings(s) -> dict:
+    """The settings of the generalization replay: the run's, with the replay's space weather."""
+    return {**s, **{key: s[f"replay_{key}"] for key in REPLAY}}
+
+
+def densities(column: Column, altitudes) -> Callable[[torch.Tensor], torch.Tensor]:
+    """State -> mass densities at ``altitudes`` [1e-12 kg/m^3], (B, len(altitudes))."""
+    return lambda x: torch.cat([column.density_at(x, a) for a in altitudes], 1)
+
+
+def _rms(v: torch.Tensor) -> torch.Tensor:
+    return v.pow(2).mean(1).sqrt()
+
+
+def _corr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    da, db = a - a.mean(1, keepdim=True), b - b.mean(1, keepdim=True)
+    return (da * db).sum(1) / (da.pow(2).sum(1) * db.pow(2).sum(1)).sqrt()
+
+
 class ThermosphereNoCooling(Scenario):
     name = "thermosphere-no-cooling"
     section = "VII"
     description = ("reduced thermosphere column: NO cooling at three altitudes refined from the mass density at "
-                   "407 km (truth with NO cooling, initial model without)")
+                   "407 km or more altitudes (truth with NO cooling, initial model without)")
     steps = 480                       # 5 days at Ts = 900 s
     settings = dict(Ts=900.0, substeps=2, dz_km=5.0, f107=150.0, storm_peak=4.0, storm_start_h=48.0,
-                    storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, y_altitude_km=407.0,
-                    node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts", nc=2, p0=1.0, lam=1.0,
-                    nu=192, theta_max=10.0, markov_method="autograd", refresh_every=24,
-                    cooling_window_start_h=24.0)
+                    storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, measured_km="407",
+                    node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts",
+                    features="r2,lp12:r2,lp3:r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192, theta_max=10.0,
+                    markov_method="autograd", refresh_every=24, cooling_window_start_h=24.0, replay=True,
+                    replay_f107=110.0, replay_storm_peak=6.0, replay_storm_start_h=30.0, replay_storm_rise_h=4.0)
     requirements = (Requirement("metrics.density_err_ratio", "max", 0.25),
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
@@ -95,99 +148,170 @@ class ThermosphereNoCooling(Scenario):
         latitude=("deg", "latitude of the column"),
         local_time0=("h", "local solar time at the start"),
         spinup_days=("d", "quiet spin-up of the truth before the run (both columns start from it)"),
-        y_altitude_km=("km", "altitude of the measured mass density"),
+        measured_km=("km", "altitudes of the measured mass densities, separated by commas (e.g. 407,150), each "
+                           "between 100 and 600 km"),
         node1_km=("km", "lowest altitude where the cooling is estimated"),
         node2_km=("km", "middle altitude where the cooling is estimated"),
         node3_km=("km", "highest altitude where the cooling is estimated"),
-        structure=("", "what the identified subsystem sees (docs/thermosphere.md)"),
+        structure=("", "what the identified subsystem sees: the Kockarts rate of the model's own state "
+                       "(known form), its node temperatures only, or the density error (docs/thermosphere.md)",
+                   STRUCTURES),
+        features=("", "basis of structure=temperature: r<p> = (exp(-2700 K/T) / exp(-2700 K/T_ref))^p, T_ref the "
+                      "node's initial temperature (with shared, the middle node's); lp<h>:r<p> its low-pass memory "
+                      "with time constant h hours"),
+        shared=("", "structure=temperature: one function of temperature for every node (tied theta) instead of "
+                    "one per node"),
         nc=("", "order of the error-driven identified subsystem (structure=error)"),
         p0=("", "initial RLS covariance P(0) = p0 I"),
         lam=("", "RLS forgetting factor in (0, 1]"),
         nu=("", "number of Markov parameters of u -> z (nu Ts: how far ahead the cost looks)"),
-        theta_max=("", "upper bound of theta (projection onto [0, theta_max])"),
-        markov_method=("", "how the column is linearized for the Markov parameters: autograd or fd"),
+        theta_max=("", "structure=kockarts: upper bound of theta (projection onto [0, theta_max])"),
+        markov_method=("", "how the column is linearized for the Markov parameters", ("autograd", "fd")),
         refresh_every=("steps", "refresh the Markov parameters every N steps (0: never)"),
         cooling_window_start_h=("h", "start of the window over which the cooling metrics are computed"),
+        replay=("", "after the run, replay the frozen identified subsystem on another space weather (replay_* "
+                    "metrics and figure)"),
+        replay_f107=("sfu", "F10.7 of the replay"),
+        replay_storm_peak=("mW/m^2", "peak storm heating of the replay"),
+        replay_storm_start_h=("h", "storm onset in the replay"),
+        replay_storm_rise_h=("h", "time from storm onset to its peak in the replay"),
     )
 
     def __init__(self):
         self._initial_runs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        self._replays: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def build(self, s, batch, dtype, device):
-        if s["structure"] not in ("kockarts", "error"):
-            raise ConfigError(f"scenario '{self.name}': structure must be 'kockarts' or 'error', "
-                              f"got {s['structure']!r}")
-        if s["markov_method"] not in ("autograd", "fd"):
-            raise ConfigError(f"scenario '{self.name}': markov_method must be 'autograd' or 'fd', "
-                              f"got {s['markov_method']!r}")
+        return self._graph(s, batch, dtype, device)
+
+    def _graph(self, s, batch, dtype, device, frozen: rt.Graph | None = None) -> rt.Graph:
+        """The refinement graph; with ``frozen`` (a trained graph) its identified subsystem, held fixed."""
         truth, model = columns(s, dtype)
         x0 = initial_state(s).to(dtype)
-        y_alt = s["y_altitude_km"] * 1e3
-        known = ColumnBlock(model, {"y": lambda x: model.density_at(x, y_alt), "y0": model.no_cooling_at_nodes},
-                            x0=x0, name="known", dtype=dtype,
-                            record=lambda x, ins: torch.cat([model.density_at(x, y_alt), ins["u"], ins["w"]], 1))
-        plant = ColumnBlock(truth, {"y": lambda x: truth.density_at(x, y_alt)}, x0=x0, name="plant", dtype=dtype,
-                            record=lambda x, ins: torch.cat([truth.density_at(x, y_alt),
+        measured = measured_altitudes(s)
+        alts = [DENSITY_ALTITUDE, *measured]
+        outputs = {"y": densities(model, measured)}
+        if s["structure"] == "kockarts":
+            outputs["y0"] = model.no_cooling_at_nodes
+        elif s["structure"] == "temperature":
+            outputs["T"] = model.temperature_at_nodes
+        known = ColumnBlock(model, outputs, x0=x0, name="known", dtype=dtype,
+                            record=lambda x, ins: torch.cat([densities(model, alts)(x), ins["u"], ins["w"]], 1))
+        plant = ColumnBlock(truth, {"y": densities(truth, measured)}, x0=x0, name="plant", dtype=dtype,
+                            record=lambda x, ins: torch.cat([densities(truth, alts)(x),
                                                              truth.no_cooling_profile(x)], 1))
         f107, peak = member_values(s, "f107", dtype), member_values(s, "storm_peak", dtype)
         driver = SpaceWeather(s["Ts"], f107, peak, start=s["storm_start_h"], rise=s["storm_rise_h"], dtype=dtype)
-        w0 = torch.stack([f107.reshape(-1), torch.zeros_like(f107).reshape(-1)], 1)
-        nu = int(s["nu"])
-        H = known.markov("u", "y", nu + 1, inputs={"w": w0}, method=s["markov_method"])
-        beta = (-H[:, 1:]).expand(batch, -1, -1, -1).contiguous()
+        if frozen is None:
+            w0 = torch.stack([f107.reshape(-1), torch.zeros_like(f107).reshape(-1)], 1)
+            H = known.markov("u", "y", int(s["nu"]) + 1, inputs={"w": w0}, method=s["markov_method"])
+            beta = (-H[:, 1:]).expand(batch, -1, -1, -1).contiguous()
+        else:
+            beta = frozen.role("estimator").beta
+        rho = densities(truth, measured)(x0[:1])[0]
         common = dict(p0=member_values(s, "p0", dtype), lam=member_values(s, "lam", dtype), markov=beta,
-                      first_delay=1, u_bounds=(0.0, math.inf), dtype=dtype)     # a cooling cannot heat
+                      first_delay=1, u_bounds=(0.0, math.inf), n_z=len(measured),
+                      R=torch.diag((rho[0] / rho) ** 2), dtype=dtype)     # a cooling cannot heat
+        if frozen is not None:
+            common["theta0"] = frozen.role("estimator").theta.detach()
+        extra, wiring, feeds = [], [], None
         if s["structure"] == "kockarts":
             ident = rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, mask=torch.eye(3, dtype=torch.bool),
                                                 theta_bounds=(0.0, s["theta_max"]), **common)
-            feeds = None
+        elif s["structure"] == "temperature":
+            T_ref = frozen.blocks["features"].T_ref if frozen is not None else self._reference(s, model, x0)
+            features = TemperatureFeatures(s["features"], T_ref, s["Ts"], T_init=model.temperature_at_nodes(x0),
+                                           dtype=dtype)
+            ident = self._temperature_estimator(s, features, model, common)
+            extra, wiring, feeds = [features], ["known.T -> features.T"], {"f": "features.f"}
         else:
-            ident = rt.RCOEstimator({"e": 1}, n_u=3, nc=int(s["nc"]), **common)
+            ident = rt.RCOEstimator({"e": len(measured)}, n_u=3, nc=int(s["nc"]), **common)
             feeds = {"e": "error.out"}
-        graph = rt.refinement(known, ident, physical=plant, excitation=driver, feeds=feeds, batch_size=batch,
-                              dtype=dtype, device=device)
-        if s["refresh_every"] > 0:   # Markov parameters from the column at its present state, w and u
+        graph = rt.refinement(known, ident, physical=plant, excitation=driver, feeds=feeds, blocks=extra,
+                              connections=wiring, batch_size=batch, dtype=dtype, device=device)
+        if frozen is not None:     # theta held: P = 0 makes every update a no-op
+            ident.P.zero_()
+            ident.alive.copy_(frozen.role("estimator").alive)
+        elif s["refresh_every"] > 0:   # Markov parameters from the column at its present state, w and u
             graph.add_hook(rt.MarkovRefresh(graph, s["refresh_every"], method=s["markov_method"]))
         return graph
 
+    @staticmethod
+    def _reference(s, model: Column, x0: torch.Tensor) -> torch.Tensor:
+        """Reference temperatures of the Arrhenius basis: each node's initial temperature, or with ``shared``
+        one value for every node (the middle node's), so that one function of temperature serves them all."""
+        T0 = model.temperature_at_nodes(x0)
+        return T0[:, 1:2].expand(-1, T0.shape[1]).clone() if s["shared"] else T0
+
+    @staticmethod
+    def _temperature_estimator(s, features: TemperatureFeatures, model: Column, common) -> rt.RCOEstimator:
+        """u_j = sum_i theta_ji f_i(T_j): node j sees only its own features; ``shared`` ties theta_ji across j."""
+        n, nt = model.n_nodes, len(features.terms)
+        tie = torch.full((n, n * nt), -1, dtype=torch.int64)
+        for j in range(n):
+            tie[j, j * nt:(j + 1) * nt] = torch.arange(nt) + (0 if s["shared"] else j * nt)
+        km = [f"{float(a) / 1e3:g}km" for a in model.nodes]
+        names = [f"{t}@{km[j]}" for j in range(n) for t in features.terms]
+        columns_of = {name: (lambda sig, c=c: sig["f"][:, c:c + 1]) for c, name in enumerate(names)}
+        return rt.RCOEstimator.static_gain({"f": n * nt}, n_u=n, features=columns_of, tie=tie, **common)
+
     # --- traces ------------------------------------------------------------------------------------------------
     def traces(self, g, s) -> dict[str, torch.Tensor]:
-        """Per member and sample (B, K): the densities at 407 km of truth, refined and initial model [1e-12 kg/m^3],
-        the true and estimated NO cooling at 152 km [nW/m^3], the storm power [mW/m^2]; the profiles (B, K, n) of
-        true and estimated cooling; the time t [h] (K,)."""
+        """Per member and sample (B, K): the densities of truth, refined and initial model at 407 km and the measured
+        altitudes (B, K, 1 + n_z) [1e-12 kg/m^3], the true and estimated NO cooling at 152 km [nW/m^3], the storm
+        power [mW/m^2]; the profiles (B, K, n) of true and estimated cooling; the time t [h] (K,)."""
         truth, model = g.role("physical").column, g.role("known").column
         kn, pl = g.role("known").history, g.role("physical").history
         B, K = kn.shape[:2]
-        est_profile = 1e9 * model.identified_cooling(kn[:, :, 1:4].reshape(B * K, 3))
+        m = 1 + len(measured_altitudes(s))
+        est_profile = 1e9 * model.identified_cooling(kn[:, :, m:m + 3].reshape(B * K, 3))
 
         def f64(t):
             return t.detach().to(device="cpu", dtype=torch.float64)
 
         return {"t": torch.arange(K, dtype=torch.float64) * s["Ts"] / 3600.0,
-                "y_true": f64(pl[:, :, 0]), "y_refined": f64(kn[:, :, 0]), "y_initial": f64(self.initial_model(g, s)),
-                "cooling_true": f64(truth.at(pl[:, :, 1:].reshape(B * K, -1), EVAL_ALTITUDE).reshape(B, K)),
+                "y_true": f64(pl[:, :, :m]), "y_refined": f64(kn[:, :, :m]), "y_initial": f64(self.initial_model(g, s)),
+                "cooling_true": f64(truth.at(pl[:, :, m:].reshape(B * K, -1), EVAL_ALTITUDE).reshape(B, K)),
                 "cooling_est": f64(model.at(est_profile, EVAL_ALTITUDE).reshape(B, K)),
-                "true_profile": f64(pl[:, :, 1:]), "est_profile": f64(est_profile.reshape(B, K, -1)),
-                "storm": f64(kn[:, :, 5])}
+                "true_profile": f64(pl[:, :, m:]), "est_profile": f64(est_profile.reshape(B, K, -1)),
+                "storm": f64(kn[:, :, m + 4])}
 
     def initial_model(self, g, s) -> torch.Tensor:
-        """Density at 407 km (B, K) of the initial model (the known column with u = 0) on the recorded driver."""
+        """Densities (B, K, 1 + n_z) of the initial model (the known column with u = 0) on the recorded driver, at
+        407 km and the measured altitudes."""
         known = g.role("known")
-        w = known.history[:, :, 4:6]
+        m = 1 + len(measured_altitudes(s))
+        w = known.history[:, :, m + 3:m + 5]
         B, K = w.shape[:2]
         cached = self._initial_runs.get(g)
         if cached is not None and cached.shape[1] == K:
             return cached
         x = known.x0.expand(B, -1).clone()
         u = x.new_zeros(B, 3)
+        observe = densities(known.column, [DENSITY_ALTITUDE, *measured_altitudes(s)])
         ys = []
         with torch.no_grad(), few_threads(x.numel()):
             for k in range(K):
-                ys.append(known.column.density_at(x, s["y_altitude_km"] * 1e3))
+                ys.append(observe(x))
                 x = known.column.step(x, w[:, k], u)
-        out = torch.cat(ys, 1) if ys else x.new_zeros(B, 0)
+        out = torch.stack(ys, 1) if ys else x.new_zeros(B, 0, m)
         self._initial_runs[g] = out
         return out
+
+    def replay(self, g, s) -> dict[str, torch.Tensor]:
+        """Traces of the frozen identified subsystem on the replay's space weather, as many steps as the run."""
+        K = g.role("known").history.shape[1]
+        cached = self._replays.get(g)
+        if cached is not None and cached[0] == K:
+            return cached[1]
+        rs = replay_settings(s)
+        est = g.role("estimator")
+        rg = self._graph(rs, g.batch_size, est.theta.dtype, est.theta.device, frozen=g)
+        with torch.no_grad():
+            rg.advance(K)
+        tr = self.traces(rg, rs)
+        self._replays[g] = (K, tr)
+        return tr
 
     # --- summary -----------------------------------------------------------------------------------------------
     def estimates(self, g, s):
@@ -196,89 +320,135 @@ class ThermosphereNoCooling(Scenario):
         out = {f"cooling_{int(round(float(z) / 1e3))}km": u[:, j] for j, z in enumerate(model.nodes)}
         out["cooling_152km"] = model.at(1e9 * model.identified_cooling(ident.u_now), EVAL_ALTITUDE)[:, 0]
         if plant.history.shape[1]:
-            last = plant.history[:, -1, 1:]
+            last = plant.history[:, -1, 1 + len(measured_altitudes(s)):]
             out["cooling_152km_true"] = plant.column.at(last, EVAL_ALTITUDE)[:, 0]
         return {k: v.to(torch.float64) for k, v in out.items()}
 
     def metrics(self, g, s):
         tr = self.traces(g, s)
-        K = tr["y_true"].shape[1]
+        K = tr["cooling_true"].shape[1]
         if K == 0:
             nan = torch.full((g.batch_size,), math.nan, dtype=torch.float64)
             return {"density_err_ratio": nan, "cooling_corr_152km": nan, "cooling_rel_rms_152km": nan}
         day = min(K, int(round(86400.0 / s["Ts"])))
         start = int(math.ceil(s["cooling_window_start_h"] * 3600.0 / s["Ts"]))
-        start = start if start < K - 1 else 0
+        out = self._scores(tr, s, g.role("known").column, K - day, start if start < K - 1 else 0)
+        if s["replay"]:
+            rtr = self.replay(g, s)
+            scores = self._scores(rtr, replay_settings(s), g.role("known").column, 0, 0)
+            out.update({f"replay_{k}": scores[k] for k in ("density_err_ratio", "cooling_corr_152km",
+                                                          "cooling_rel_rms_152km", "cooling_profile_rel_rms")})
+        return out
 
-        def rms(v):
-            return v.pow(2).mean(1).sqrt()
+    @staticmethod
+    def _scores(tr, s, model: Column, density_from: int, cooling_from: int) -> dict[str, torch.Tensor]:
+        """Density error ratios from sample ``density_from``, cooling scores from ``cooling_from``."""
+        refined = _rms((tr["y_refined"] - tr["y_true"])[:, density_from:])       # (B, 1 + n_z)
+        initial = _rms((tr["y_initial"] - tr["y_true"])[:, density_from:])
+        est, true = tr["cooling_est"][:, cooling_from:], tr["cooling_true"][:, cooling_from:]
+        out = {"density_err_ratio": refined[:, 0] / initial[:, 0], "cooling_corr_152km": _corr(est, true),
+               "cooling_rel_rms_152km": _rms(est - true) / _rms(true),
+               "density_rms_err_refined": refined[:, 0], "density_rms_err_initial": initial[:, 0],
+               "cooling_rms_true_152km": _rms(true)}
+        for i, a in enumerate(measured_altitudes(s)):
+            if a != DENSITY_ALTITUDE:
+                out[f"density_err_ratio_{a / 1e3:g}km"] = refined[:, 1 + i] / initial[:, 1 + i]
+        for a in model.nodes.tolist():
+            if a != EVAL_ALTITUDE:
+                e = model.at(tr["est_profile"].flatten(0, 1), a).reshape(est.shape[0], -1)[:, cooling_from:]
+                t = model.at(tr["true_profile"].flatten(0, 1), a).reshape(est.shape[0], -1)[:, cooling_from:]
+                out[f"cooling_rel_rms_{a / 1e3:g}km"] = _rms(e - t) / _rms(t)
+        low = model.z <= PROFILE_TOP
+        diff = (tr["est_profile"] - tr["true_profile"])[:, cooling_from:, low.cpu()]
+        out["cooling_profile_rel_rms"] = _rms(diff.flatten(1)) / _rms(tr["true_profile"][:, cooling_from:,
+                                                                                          low.cpu()].flatten(1))
+        return out
 
-        refined = rms((tr["y_refined"] - tr["y_true"])[:, K - day:])
-        initial = rms((tr["y_initial"] - tr["y_true"])[:, K - day:])
-        est, true = tr["cooling_est"][:, start:], tr["cooling_true"][:, start:]
-        de, dt = est - est.mean(1, keepdim=True), true - true.mean(1, keepdim=True)
-        corr = (de * dt).sum(1) / (de.pow(2).sum(1) * dt.pow(2).sum(1)).sqrt()
-        return {"density_err_ratio": refined / initial, "cooling_corr_152km": corr,
-                "cooling_rel_rms_152km": rms(est - true) / rms(true),
-                "density_rms_err_refined": refined, "density_rms_err_initial": initial,
-                "cooling_rms_true_152km": rms(true)}
-
+    # --- figures -----------------------------------------------------------------------------------------------
     def figures(self, g, s):
+        tr = self.traces(g, s)
+        if tr["t"].shape[0] < 2:
+            return {}
+        figs = {"cooling_152km": self._cooling_figure(tr, s, "NO cooling at 152 km: truth and estimate "
+                                                              "(cf. seed Fig. 11)", s["cooling_window_start_h"]),
+                "cooling_profiles": self._profile_figure(tr, g.role("known").column),
+                "density_error": self._density_figure(tr, s)}
+        if s["replay"]:
+            figs["replay"] = self._replay_figure(self.replay(g, s), s)
+        return figs
+
+    @staticmethod
+    def _cooling_figure(tr, s, title: str, adaptation_h: float | None, ax=None):
         import matplotlib.pyplot as plt
 
-        tr = self.traces(g, s)
-        t, K = tr["t"].numpy(), tr["t"].shape[0]
-        if K < 2:
-            return {}
-        figs = {}
-        start = s["cooling_window_start_h"]
-
-        fig, ax = plt.subplots(figsize=(8, 3.6))
+        fig = None
+        if ax is None:
+            fig, ax = plt.subplots(figsize=(8, 3.6))
+        t = tr["t"].numpy()
         ax.plot(t, tr["cooling_true"][0].numpy(), "k", lw=1.6, label="true (Kockarts NO cooling)")
-        ax.plot(t, tr["cooling_est"][0].numpy(), "--", color="tab:blue", lw=1.3, label="estimated (RCMR)")
-        ax.axvspan(t[0], min(start, t[-1]), color="0.9", label="adaptation (outside the metric window)")
+        ax.plot(t, tr["cooling_est"][0].numpy(), "--", color="tab:blue", lw=1.3,
+                label="estimated (RCMR)" if adaptation_h is not None else "frozen identified subsystem")
+        if adaptation_h is not None:
+            ax.axvspan(t[0], min(adaptation_h, t[-1]), color="0.9", label="adaptation (outside the metric window)")
         ax.set_xlabel("time [h]")
         ax.set_ylabel("NO cooling at 152 km [nW/m^3]")
         ax2 = ax.twinx()
         ax2.plot(t, tr["storm"][0].numpy(), ":", color="tab:red", lw=1)
         ax2.set_ylabel("storm power [mW/m^2]", color="tab:red")
         ax.legend(loc="upper left", fontsize=8)
-        ax.set_title("NO cooling at 152 km: truth and estimate (cf. seed Fig. 11)")
+        ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
-        figs["cooling_152km"] = fig
+        return fig
 
-        peak = s["storm_start_h"] + s["storm_rise_h"]
-        wanted = [24.0, peak, peak + 18.0, t[-1]]
-        idx = sorted({min(K - 1, max(0, int(round(h * 3600.0 / s["Ts"])))) for h in wanted})
-        z = g.role("known").column.z.cpu().numpy() / 1e3
-        top = z <= 300.0
+    @staticmethod
+    def _profile_figure(tr, model: Column):
+        """True and estimated profiles at the times of the seed's Figure 12 (days after adaptation starts)."""
+        import matplotlib.pyplot as plt
+
+        t = tr["t"].numpy()
+        dt_h = float(t[1] - t[0])
+        idx = [(d, int(round(24.0 * d / dt_h))) for d in FIGURE12_DAYS if int(round(24.0 * d / dt_h)) < len(t)]
+        if not idx:
+            idx = [(t[-1] / 24.0, len(t) - 1)]
+        z = model.z.cpu().numpy() / 1e3
+        low = z <= PROFILE_TOP / 1e3
+        nodes = model.nodes.cpu().numpy() / 1e3
+        at_node = [int(round((a - z[0]) / (z[1] - z[0]))) for a in nodes]
         fig, axes = plt.subplots(1, len(idx), figsize=(2.6 * len(idx) + 1, 4), sharey=True, squeeze=False)
-        nodes = g.role("known").column.nodes.cpu().numpy() / 1e3
-        for ax, k in zip(axes[0], idx):
+        for ax, (day, k) in zip(axes[0], idx):
             est = tr["est_profile"][0, k].numpy()
-            ax.plot(tr["true_profile"][0, k].numpy()[top], z[top], "k", lw=1.6, label="true")
-            ax.plot(est[top], z[top], "--", color="tab:blue", lw=1.3, label="estimated")
-            ax.plot(tr["est_profile"][0, k].numpy()[[int(round((a - z[0]) / (z[1] - z[0]))) for a in nodes]],
-                    nodes, "o", color="tab:blue", ms=4)
-            ax.set_title(f"t = {t[k]:.1f} h", fontsize=9)
+            ax.plot(tr["true_profile"][0, k].numpy()[low], z[low], "k", lw=1.6, label="true")
+            ax.plot(est[low], z[low], "--", color="tab:blue", lw=1.3, label="estimated")
+            ax.plot(est[at_node], nodes, "o", color="tab:blue", ms=4)
+            ax.set_title(f"{day:g} d (t = {t[k]:.1f} h)", fontsize=9)
             ax.set_xlabel("NO cooling [nW/m^3]")
             ax.grid(alpha=0.3)
         axes[0, 0].set_ylabel("altitude [km]")
         axes[0, 0].legend(fontsize=8)
-        fig.suptitle("NO cooling profiles: truth and estimate at three nodes (cf. seed Fig. 12)")
+        fig.suptitle("NO cooling profiles, days after adaptation starts: truth and estimate at the nodes "
+                     "(cf. seed Fig. 12)", fontsize=10)
         fig.tight_layout()
-        figs["cooling_profiles"] = fig
+        return fig
 
+    @staticmethod
+    def _density_figure(tr, s):
+        import matplotlib.pyplot as plt
+
+        t = tr["t"].numpy()
         fig, (ax, ae) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
         yt, y0, y1 = (tr[k][0].numpy() for k in ("y_true", "y_initial", "y_refined"))
-        ax.plot(t, yt, "k", lw=1.6, label="truth (with NO cooling)")
-        ax.plot(t, y0, color="tab:orange", lw=1.2, label="initial model (no NO cooling)")
-        ax.plot(t, y1, "--", color="tab:blue", lw=1.2, label="refined model (RCMR)")
+        ax.plot(t, yt[:, 0], "k", lw=1.6, label="truth (with NO cooling)")
+        ax.plot(t, y0[:, 0], color="tab:orange", lw=1.2, label="initial model (no NO cooling)")
+        ax.plot(t, y1[:, 0], "--", color="tab:blue", lw=1.2, label="refined model (RCMR)")
         ax.set_ylabel("density at 407 km [1e-12 kg/m^3]")
         ax.legend(fontsize=8)
         ax.set_title("Mass density at 407 km (cf. seed Fig. 13)")
-        ae.plot(t, 100 * (y0 - yt) / yt, color="tab:orange", lw=1.2, label="initial - truth")
-        ae.plot(t, 100 * (y1 - yt) / yt, color="tab:blue", lw=1.2, label="refined - truth")
+        ae.plot(t, 100 * (y0[:, 0] - yt[:, 0]) / yt[:, 0], color="tab:orange", lw=1.2, label="initial - truth, 407 km")
+        ae.plot(t, 100 * (y1[:, 0] - yt[:, 0]) / yt[:, 0], color="tab:blue", lw=1.2, label="refined - truth, 407 km")
+        for i, a in enumerate(measured_altitudes(s)):
+            if a != DENSITY_ALTITUDE:
+                ae.plot(t, 100 * (y1[:, 1 + i] - yt[:, 1 + i]) / yt[:, 1 + i], lw=1.0,
+                        label=f"refined - truth, {a / 1e3:g} km (measured)")
         ae.axvspan(max(t[0], t[-1] - 24.0), t[-1], color="0.9", label="last day (metric)")
         ae.set_ylabel("density error [%]")
         ae.set_xlabel("time [h]")
@@ -286,8 +456,24 @@ class ThermosphereNoCooling(Scenario):
         for a in (ax, ae):
             a.grid(alpha=0.3)
         fig.tight_layout()
-        figs["density_error"] = fig
-        return figs
+        return fig
+
+    def _replay_figure(self, tr, s):
+        import matplotlib.pyplot as plt
+
+        fig, (ax, ae) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        self._cooling_figure(tr, s, f"Frozen identified subsystem on another space weather: F10.7 = "
+                                    f"{s['replay_f107']:g}, storm of {s['replay_storm_peak']:g} mW/m^2 at "
+                                    f"{s['replay_storm_start_h']:g} h", None, ax=ax)
+        t, yt, y0, y1 = tr["t"].numpy(), *(tr[k][0, :, 0].numpy() for k in ("y_true", "y_initial", "y_refined"))
+        ae.plot(t, 100 * (y0 - yt) / yt, color="tab:orange", lw=1.2, label="initial model - truth")
+        ae.plot(t, 100 * (y1 - yt) / yt, color="tab:blue", lw=1.2, label="frozen refined model - truth")
+        ae.set_ylabel("density error at 407 km [%]")
+        ae.set_xlabel("time [h]")
+        ae.legend(fontsize=8)
+        ae.grid(alpha=0.3)
+        fig.tight_layout()
+        return fig
 
 
 SCENARIO = ThermosphereNoCooling()

@@ -343,6 +343,12 @@ class Column(nn.Module):
         profile = self.no_cooling_profile(x)
         return torch.cat([self.at(profile, float(a)) for a in self.nodes], 1)
 
+    def temperature_at_nodes(self, x: torch.Tensor) -> torch.Tensor:
+        """The temperature of state x at the cooling nodes, (B, nodes) [K]: what a temperature-only identified
+        subsystem sees (nothing of the composition, the NO density or the cooling law)."""
+        T = x[:, : self.n]
+        return torch.cat([self.at(T, float(a)) for a in self.nodes], 1)
+
     def initial_state(self, batch: int = 1) -> torch.Tensor:
         """A start for a spin-up (batch, 2n + 1): a Bates profile (T_inf = 1000 K, shape 0.02 /km), no NO, t = 0."""
         T = bates_profile(self.z, 1000.0, self.T_bottom, 0.02e-3).unsqueeze(0).expand(batch, -1)
@@ -458,6 +464,122 @@ class SpaceWeather(Block):
 
     def update(self, inputs):
         self.k += 1
+
+
+#: Scale of the Arrhenius basis of ``TemperatureFeatures``: the NO 5.3 um quantum h nu / k, Kockarts' 2700 K. The
+#: powers r^p of the basis span activation temperatures p x 2700 K.
+ACTIVATION_K = 2700.0
+
+
+@dataclass(frozen=True)
+class Term:
+    """One basis function of ``TemperatureFeatures``: r^power, or its low-pass memory with time constant
+    ``memory_h`` hours (0: the present value)."""
+
+    power: float
+    memory_h: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> Term:
+        """'r2' (r^2 now) or 'lp6:r2' (r^2 low-passed with a 6 h time constant)."""
+        body, memory = text.strip(), 0.0
+        try:
+            if ":" in body:
+                head, body = body.split(":", 1)
+                if not head.startswith("lp"):
+                    raise ValueError
+                memory = float(head[2:])
+            if not body.startswith("r"):
+                raise ValueError
+            power = float(body[1:])
+        except ValueError:
+            raise ConfigError(f"temperature feature {text!r}: write 'r<p>' (the Arrhenius factor to the power p) "
+                              f"or 'lp<hours>:r<p>' (its low-pass memory), e.g. 'r1,lp3:r2,r3'") from None
+        if memory < 0 or not math.isfinite(power) or not math.isfinite(memory):
+            raise ConfigError(f"temperature feature {text!r}: the power must be finite and the memory >= 0 hours")
+        return cls(power, memory)
+
+    def __str__(self) -> str:
+        r = f"r{self.power:g}"
+        return f"lp{self.memory_h:g}:{r}" if self.memory_h else r
+
+
+class TemperatureFeatures(Block):
+    """Regressors of a temperature-only identified subsystem: basis functions of the known model's temperatures
+    at the cooling nodes, and low-pass memories of them.
+
+    At node j, r_j = exp(-Theta / T_j) / exp(-Theta / T_ref_j) is an Arrhenius factor that is 1 at the node's
+    reference temperature T_ref_j (Theta = ``activation``). Each ``Term`` is r_j^p or its first-order low-pass
+    memory m(k) = a m(k-1) + (1 - a) r_j(k)^p, a = exp(-dt / tau), which includes the present sample and starts
+    from the value at ``T_init`` (the model's initial temperatures). The reference temperatures are part of the
+    identified function (keep them when the function is reused); ``T_init`` only starts the memory.
+
+    Input ``T`` (B, nodes) [K]; output ``f`` (B, nodes x terms), node-major: ``f[:, j * len(terms) + i]`` is
+    term i at node j. Nothing but temperatures enters: the features carry no density, composition or cooling
+    law. ``names`` lists the features.
+
+    Args:
+        terms: the basis, e.g. ``'r1,lp3:r2,r3'`` or a sequence of such strings or ``Term``s.
+        T_ref: reference temperatures (nodes,) or (B, nodes) [K].
+        dt: sample time [s].
+        T_init: initial temperatures for the memory (default ``T_ref``).
+        activation: Theta [K].
+    """
+
+    def __init__(self, terms: str | Sequence[str | Term], T_ref, dt: float, T_init=None,
+                 activation: float = ACTIVATION_K, name: str = "features", dtype=DEFAULT_DTYPE):
+        terms = terms.split(",") if isinstance(terms, str) else terms
+        self.terms = tuple(t if isinstance(t, Term) else Term.parse(t) for t in terms)
+        if not self.terms:
+            raise ConfigError(f"block '{name}': no temperature features given")
+        if dt <= 0 or activation <= 0:
+            raise ConfigError(f"block '{name}': dt and the activation temperature must be positive")
+        T_ref = torch.as_tensor(T_ref, dtype=dtype)
+        T_ref = T_ref.reshape(1, -1) if T_ref.dim() < 2 else T_ref
+        T_init = T_ref if T_init is None else torch.as_tensor(T_init, dtype=dtype).reshape(-1, T_ref.shape[1])
+        if bool((T_ref <= 0).any()) or bool((T_init <= 0).any()):
+            raise ConfigError(f"block '{name}': temperatures must be positive (kelvin)")
+        nodes = T_ref.shape[1]
+        super().__init__(name, {"T": nodes}, {"f": nodes * len(self.terms)})
+        self.activation = float(activation)
+        self.memory = [i for i, t in enumerate(self.terms) if t.memory_h > 0]
+        self.names = [f"{t}@{j}" for j in range(nodes) for t in self.terms]
+        self.register_buffer("T_ref", T_ref)
+        self.register_buffer("T_init", T_init)
+        self.register_buffer("decay", torch.tensor([math.exp(-dt / (3600.0 * self.terms[i].memory_h))
+                                                    for i in self.memory], dtype=dtype).reshape(1, -1, 1))
+        self.register_buffer("m", torch.zeros(0, len(self.memory), nodes, dtype=dtype))
+
+    def _powers(self, T: torch.Tensor, which: Sequence[int]) -> torch.Tensor:
+        """r^p of the terms ``which`` at temperatures T (B, nodes): (B, len(which), nodes)."""
+        log_r = self.activation * (1.0 / self.T_ref - 1.0 / T)
+        p = torch.tensor([self.terms[i].power for i in which], dtype=T.dtype, device=T.device).reshape(1, -1, 1)
+        return torch.exp(p * log_r.unsqueeze(1))
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        self.check_batch(self.T_ref, "T_ref")
+        self.check_batch(self.T_init, "T_init")
+        self.m = self._powers(self.T_init.expand(batch_size, -1), self.memory).clone()
+
+    def feedthrough(self):
+        return {"f": ("T",)}
+
+    def _memory_now(self, T: torch.Tensor) -> torch.Tensor:
+        return self.decay * self.m + (1.0 - self.decay) * self._powers(T, self.memory)
+
+    def output(self, port, inputs):
+        T = inputs["T"]
+        f = self._powers(T, range(len(self.terms)))                                   # (B, terms, nodes)
+        if self.memory:
+            m = self._memory_now(T)
+            f = torch.stack([m[:, self.memory.index(i)] if i in self.memory else f[:, i]
+                             for i in range(len(self.terms))], 1)
+        return f.transpose(1, 2).flatten(1)
+
+    def update(self, inputs):
+        if self.memory:
+            self.set_state(m=self._memory_now(inputs["T"]))
 
 
 def interpolation_basis(z: torch.Tensor, nodes: torch.Tensor) -> torch.Tensor:
