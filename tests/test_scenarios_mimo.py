@@ -100,6 +100,7 @@ def test_rlc_noisy_physical_block_checkpoints_and_resumes_bitwise(tmp_path):
         first = Run("rlc-circuit", steps=200, batch=2, out=tmp_path / "b")
         first.advance(progress=False)
         first.save()
+        first.close()                   # a live run holds its folder
         resumed = Run.resume(tmp_path / "b", steps=400)
         resumed.advance(progress=False)
     assert torch.equal(straight.graph.blocks["identified"].theta, resumed.graph.blocks["identified"].theta)

@@ -162,6 +162,7 @@ def test_scenario_checkpoint_resumes_exactly(tmp_path):
     part = Run("thermosphere-no-cooling", steps=9, overrides=over, out=tmp_path / "part")
     part.advance(progress=False)
     part.save()
+    part.close()                        # a live run holds its folder
     resumed = Run.resume(tmp_path / "part", steps=16)
     resumed.advance(progress=False)
     for name in ("known", "plant"):
