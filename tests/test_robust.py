@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import rcotorch as rt
+from rcotorch.refinement import holdoff_samples
 
 BETA = 0.7
 
@@ -93,3 +94,53 @@ def test_trace_bound_keeps_the_direction_of_P():
 def test_bad_option_values_are_refused(key, value):
     with pytest.raises(rt.errors.ConfigError, match=key):
         rt.RCOEstimator.static_gain({"y0": 1}, **{key: value})
+
+
+def _sdof_data(gap: slice, steps=20000):
+    """sdof-stiffness (K=0.6, C=0.8, dK=0.5) as a recording of w and the measured velocity, w missing at ``gap``."""
+    m, C, K, dK, Ts = 1.0, 0.8, 0.6, 0.5, 0.01
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(m, C, K, sees=["position", "velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=Ts, name="known")
+    plant = rt.LTI.continuous(*rt.models.sdof_matrices(m, C, K + dK, sees=[], actuation=False),
+                              inputs=["w"], outputs=["y"], dt=Ts, name="plant")
+    A, B, Cm, D = (t[0].numpy() for t in (plant.A, plant.B, plant.C, plant.D))
+    w = np.random.default_rng(1).normal(size=steps)
+    x, y = np.zeros(A.shape[0]), np.empty(steps)
+    for k in range(steps):
+        y[k] = Cm[0] @ x + D[0, 0] * w[k]
+        x = A @ x + B[:, 0] * w[k]
+    values = np.stack([w, y], 1)
+    valid = np.ones_like(values, dtype=bool)
+    values[gap, 0], valid[gap, 0] = np.nan, False
+    rec = rt.data.Recording(values, ["w", "y"], Ts, valid=valid)
+    return known, rec
+
+
+def test_missing_inputs_do_not_bias_sdof_stiffness():
+    known, rec = _sdof_data(slice(8000, 8010))
+
+    def dk(**kw):
+        g = rt.refinement(known, rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3), nu=15,
+                          data=rt.Recorded(rec, {"w": "w", "y": "y"}), **kw)
+        g.advance(rec.values.shape[0])
+        return -float(g.role("estimator").dc_gain()[0, 0, 0]), g
+
+    biased, _ = dk(input_holdoff=0)          # the fault: theta held at the gap only, the model runs on
+    held, g = dk()                           # the hold-off derived from the known model
+    assert abs(biased - 0.5) > 5 * abs(held - 0.5) and abs(biased - 0.5) > 3e-3
+    assert abs(held - 0.5) < 0.01
+    # the hold-off: the known model's w -> y response (envelope exp(-0.4 t)) below 1e-3 of its peak, plus the window
+    n = g.blocks["data"].holdoff["w"]
+    assert n == holdoff_samples(known, g.role("estimator"))
+    assert 0.75 * np.log(1e3) / 0.4 / 0.01 < n < 1.2 * np.log(1e3) / 0.4 / 0.01 + 16
+    valid = g.blocks["data"].valid_mask[0, :, 0].numpy()
+    assert valid[8000:8010 + n].sum() == 0 and valid[8010 + n] == 1 and valid[:8000].all()
+
+
+def test_holdoff_marks_samples_after_an_input_gap():
+    _, rec = _sdof_data(slice(10, 12), steps=40)
+    data = rt.Recorded(rec, {"w": "w", "y": "y"}, holdoff={"w": 5})
+    np.testing.assert_array_equal(data.valid_mask[0, :, 0].numpy(),
+                                  [1.0] * 10 + [0.0] * 7 + [1.0] * 23)
+    with pytest.raises(rt.errors.ConfigError, match="holdoff"):
+        rt.Recorded(rec, {"w": "w", "y": "y"}, holdoff={"w": -1})
