@@ -24,6 +24,17 @@ P is (n_theta x n_theta) over the free parameters only; for a plain estimator T 
 A member whose z, Psi or theta becomes non-finite, or whose P loses definiteness, is frozen (theta and P
 held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where the optional ``valid`` input is
 0 (a skipped measurement) the update is skipped, theta and P held.
+
+Robustness options (each off by default, each a scalar or one value per member):
+
+* ``r_delta``: a penalty r_delta |eta_hat - eta(k)|^2 on the parameters' change, added to the retrospective
+  cost at every step. It enters the update as n_theta pseudo-measurement rows sqrt(r_delta) I with residual 0
+  (weight 1) next to the rows of z, so the update is the exact minimizer of
+  lam^(k+1) |eta - eta_0|^2 / p0 + sum_j lam^(k-j) (|z_hat_j(eta)|^2_R + r_delta |eta - eta(j)|^2).
+* ``normalize``: a scale s; the rows of z are divided by m(k) = sqrt(1 + |Psi(k)|_F^2 / s^2) before the update
+  (normalized RLS), i.e. row j of the cost is weighted by 1 / m(j)^2.
+* ``p_max``: a bound on trace(P); after an update, a living member whose trace exceeds it has P scaled by
+  p_max / trace(P) (covariance windup with lam < 1 and weak excitation).
 """
 
 from __future__ import annotations
@@ -74,13 +85,22 @@ class RCOEstimator(Block):
             actually applied.
         theta_bounds: (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each
             update (P unchanged).
+        r_delta: weight of the penalty r_delta |eta - eta(k)|^2 on the parameters' change in the retrospective
+            cost, scalar or one per member (>= 0); None (the default) leaves it out. Larger values slow and
+            smooth the estimate (noisy data, a member that jumps).
+        normalize: scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the
+            update divided by sqrt(1 + |Psi|_F^2 / s^2), which bounds the step for large signals. None (the
+            default): not normalized.
+        p_max: bound on trace(P), scalar or one per member (> 0): after each update P is scaled by
+            p_max / trace(P) where the trace exceeds it (covariance windup). None (the default): unbounded.
     """
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
                  features: Term | Sequence[Term] | Mapping[str, Term | Callable[[dict], torch.Tensor]] | None = None,
                  proper: bool = False, feed_u: bool = True, mask=None, tie=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
-                 u_bounds=None, theta_bounds=None, name: str = "identified", dtype=DEFAULT_DTYPE):
+                 u_bounds=None, theta_bounds=None, r_delta=None, normalize=None, p_max=None,
+                 name: str = "identified", dtype=DEFAULT_DTYPE):
         signals = dict(signals)
         if "z" in signals or "valid" in signals or "u" in signals:
             raise ConfigError(f"block '{name}': 'z', 'u' and 'valid' are reserved port names")
@@ -111,6 +131,7 @@ class RCOEstimator(Block):
             if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
                 raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
             self.register_buffer(key, t)
+        self._options(r_delta, normalize, p_max, dtype)
         R = torch.as_tensor(R, dtype=dtype)
         R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
         if tuple(R.shape) != (n_z, n_z):
@@ -153,6 +174,17 @@ class RCOEstimator(Block):
         width = max(nc, 1) * (self.n_sig + (n_u if self.feed_u else 0))
         self._phi_is_past = (not self.proper and tail.numel() == width
                              and bool(torch.equal(tail, torch.arange(width))))
+
+    def _options(self, r_delta, normalize, p_max, dtype) -> None:
+        """The robustness options as buffers (None when off): sqrt(r_delta), 1 / s^2 and p_max, each (1,) or (B,)."""
+        for key, value, low, stored in (("r_delta", r_delta, 0.0, torch.sqrt), ("normalize", normalize, None,
+                                         lambda t: 1.0 / (t * t)), ("p_max", p_max, None, lambda t: t)):
+            t = None if value is None else torch.as_tensor(value, dtype=dtype).reshape(-1)
+            if t is not None and not bool(torch.isfinite(t).all() & ((t >= low) if low is not None else (t > 0)).all()):
+                bound = "finite and >= 0" if low is not None else "finite and > 0"
+                raise ConfigError(f"block '{self.name}': {key} must be {bound}, got {value!r}")
+            self.register_buffer({"r_delta": "rd_sqrt", "normalize": "norm_inv_s2"}.get(key, key),
+                                 None if t is None else stored(t))
 
     def _structure(self, mask, tie) -> None:
         """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of
@@ -346,8 +378,9 @@ class RCOEstimator(Block):
 
     def reset(self, batch_size: int) -> None:
         super().reset(batch_size)
-        for key in ("p0", "lam", "theta0", "beta"):
-            self.check_batch(getattr(self, key), key)
+        for key in ("p0", "lam", "theta0", "beta", "rd_sqrt", "norm_inv_s2", "p_max"):
+            if getattr(self, key) is not None:
+                self.check_batch(getattr(self, key), key)
         B, dt, dev = batch_size, self.theta0.dtype, self.theta0.device
         self.theta = self.theta0.expand(B, -1, -1).clone()
         eye = torch.eye(self.n_theta, dtype=dt, device=dev)
@@ -435,8 +468,13 @@ class RCOEstimator(Block):
         active = self.alive
         if "valid" in inputs:
             active = active & (inputs["valid"].reshape(B) > 0.5)
-        theta_flat, _, ok = rls_update(theta_flat, self.P, psi_t.mT, z_r, self._lam_arg(), self.r_inv, active,
+        psi_u, z_u, r_inv = self._rows(psi_t, z_r)
+        theta_flat, _, ok = rls_update(theta_flat, self.P, psi_u.mT, z_u, self._lam_arg(), r_inv, active,
                                        inplace=True)                            # theta (all free) and P in place
+        if self.p_max is not None:                                              # trace bound on P
+            tr = self.P.diagonal(dim1=1, dim2=2).sum(-1)
+            scale = torch.where(self.alive & ok & (tr > self.p_max), self.p_max / tr, 1.0)
+            self.P.mul_(scale.reshape(B, 1, 1))
         if self.tied:                                                           # Theta = T eta
             self.theta.view(B, -1).index_copy_(1, self.free, theta_flat.index_select(1, self.param_of[self.free]))
         elif not self.all_free:
@@ -456,6 +494,21 @@ class RCOEstimator(Block):
                                past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
         self.k += 1
         memo.remember(self, "k", (self.k,), k + 1)
+
+    def _rows(self, psi_t: torch.Tensor, z_r: torch.Tensor):
+        """The rows of the update (Psi^T (B, l, n), their residuals (B, l), R^-1 (l, l)): the rows of z, divided
+        by m = sqrt(1 + |Psi|_F^2 / s^2) when normalized, then sqrt(r_delta) I with residual 0 for the penalty."""
+        r_inv = self.r_inv
+        if self.norm_inv_s2 is not None:
+            m = torch.sqrt(1.0 + psi_t.square().sum((1, 2)) * self.norm_inv_s2)
+            psi_t, z_r = psi_t / m.reshape(-1, 1, 1), z_r / m.reshape(-1, 1)
+        if self.rd_sqrt is not None:
+            B, n = psi_t.shape[0], psi_t.shape[2]
+            eye = torch.eye(n, dtype=psi_t.dtype, device=psi_t.device)
+            psi_t = torch.cat([psi_t, (self.rd_sqrt.reshape(-1, 1, 1) * eye).expand(B, n, n)], dim=1)
+            z_r = torch.cat([z_r, z_r.new_zeros(B, n)], dim=1)
+            r_inv = torch.block_diag(r_inv, eye)
+        return psi_t, z_r, r_inv
 
     # --- native form ------------------------------------------------------------------------------------
     def lower(self, b) -> None:
@@ -479,6 +532,9 @@ class RCOEstimator(Block):
         (tlo, thi), (ulo, uhi) = [(-1, -1) if lo is None else
                                   tuple(b.param(v.reshape(-1).expand(w).reshape(1, w)) for v in (lo, hi))
                                   for lo, hi, w in low_high]
+        r_inv = self.r_inv if self.rd_sqrt is None else \
+            torch.block_diag(self.r_inv, torch.eye(self.n_theta, dtype=self.r_inv.dtype))
+        nl = r_inv.shape[0]
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
                       W=W, NUM=W - self.first_delay, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
@@ -486,10 +542,12 @@ class RCOEstimator(Block):
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
                       BETA=b.param(self._beta_rev()), LAM=b.param(self.lam.reshape(-1, 1)),
-                      RINV=b.param(self.r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
+                      RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
                       Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
                       UOUT=b.output("u"),
-                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta)))
+                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl)),
+                      NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
+                                (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         args = [fields[key] for key in kernels.RCO_FIELD]
         args += [flat[j] for j in self._gather.tolist()] + self.param_of.tolist() + self.rep.tolist()
         b.emit("RCO_OUT", args, port="u")

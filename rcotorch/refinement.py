@@ -25,7 +25,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
                device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
                measured: str = "y", feeds: Mapping[str, str] | None = None, blocks: Sequence[Block] = (),
-               connections: Iterable = ()) -> Graph:
+               connections: Iterable = (), input_holdoff: int | None = None) -> Graph:
     """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
 
     The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
@@ -45,6 +45,11 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     (as in ``Graph``); ``feeds`` then names their outputs. Unless the estimator already has Markov
     parameters, ``nu`` of them are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its
     relative degree d on.
+
+    Recorded data with missing samples of the input ``w``: the known model runs on with the held input, so
+    after a gap the update is held (``valid`` = 0) for ``input_holdoff`` samples, by default the samples until
+    the known model's impulse response w -> y has decayed below 1e-3 of its peak for good, plus the
+    estimator's window (``holdoff_samples``). A hold-off set on the data block itself is kept.
     """
     given = [x is not None for x in (truth, physical, data)]
     if sum(given) != 1:
@@ -106,13 +111,16 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         else:
             raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
                             f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
-    if data is not None and "valid" in data.outputs:
-        conns.append(("data.valid", f"{en}.valid"))
     if identified.beta.shape[1] == 0:
         if nu is None:
             raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
         beta, d = derive_markov(known, actuation, measured, nu)
         identified.set_markov(beta, d)
+    if data is not None and hasattr(data, "gaps") and data.gaps(exogenous) and exogenous not in data.holdoff:
+        n = holdoff_samples(known, identified, exogenous, measured) if input_holdoff is None else input_holdoff
+        data.set_holdoff({exogenous: n})
+    if data is not None and "valid" in data.outputs:
+        conns.append(("data.valid", f"{en}.valid"))
     if identified.dt is None:
         identified.dt = known.dt
     roles = {"estimator": en, "known": kn, "physical": "data" if data is not None else "plant",
@@ -120,6 +128,17 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     if data is None:
         roles["excitation"] = "excitation"
     return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+
+
+def holdoff_samples(known: LTI, identified: RCOEstimator, exogenous: str = "w", measured: str = "y",
+                    tol: float = 1e-3, horizon: int = 20_000) -> int:
+    """Samples to hold the update after a missing input sample: until the known model's impulse response
+    exogenous -> measured stays below ``tol`` times its peak (within ``horizon``), plus the estimator's window
+    (its Markov parameters and past regressors)."""
+    H = known.markov(exogenous, measured, horizon).abs().flatten(2).amax(2).amax(0)      # (horizon,)
+    above = (H > tol * H.max()).nonzero()
+    decay = int(above[-1]) + 1 if above.numel() else 0
+    return decay + identified.window + identified.nc
 
 
 def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12

@@ -133,11 +133,16 @@ class Recorded(Block):
     holds the last valid value and emits ``valid = 0`` on the extra output port ``valid``, so an estimator
     wired to it skips that sample.
 
-    Reading past the end raises a ``DataError``; a graph checks the run length against it before starting.
+    ``holdoff``: port -> samples; after a missing sample of that port, ``valid`` stays 0 for that many further
+    samples. A missing *input* is held at its last value, so a model driven by it is wrong until its response
+    to the wrong input has decayed; ``rcotorch.refinement`` sets the input's hold-off from the known model
+    unless one is given here. Reading past the end raises a ``DataError``; a graph checks the run length
+    against it before starting.
     """
 
     def __init__(self, data, outputs: Mapping[str, str | int | Sequence[str | int]], name: str = "data",
-                 dt: float | None = None, derive: Mapping[str, Derivation] | None = None, dtype=DEFAULT_DTYPE):
+                 dt: float | None = None, derive: Mapping[str, Derivation] | None = None,
+                 holdoff: Mapping[str, int] | None = None, dtype=DEFAULT_DTYPE):
         rec = _recording(data, name, dt)
         if derive:
             try:
@@ -168,12 +173,37 @@ class Recorded(Block):
         self.first_row = rec.first_row
         self.length = values.shape[1]
         self.register_buffer("values", torch.as_tensor(held, dtype=dtype))
-        self.register_buffer("valid_mask", torch.as_tensor(valid.all(axis=2, keepdims=True), dtype=dtype))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self._slices, start = {}, 0
         for port, w in ports.items():
             self._slices[port] = slice(start, start + w)
             start += w
+        self._valid, self.holdoff = valid, {}
+        self.register_buffer("valid_mask", None)
+        self.set_holdoff(dict(holdoff or {}))
+
+    def gaps(self, port: str) -> bool:
+        """Whether the recording misses a sample of ``port``."""
+        return not self._valid[:, :, self._slices[port]].all()
+
+    def set_holdoff(self, holdoff: Mapping[str, int]) -> None:
+        """Samples for which ``valid`` stays 0 after a missing sample, per port (added to those already set)."""
+        for port, n in holdoff.items():
+            if port not in self._slices:
+                raise ConfigError(f"block '{self.name}': holdoff names '{port}', not one of its outputs "
+                                  f"{list(self._slices)}")
+            if not isinstance(n, (int, np.integer)) or n < 0:
+                raise ConfigError(f"block '{self.name}': holdoff for '{port}' must be a non-negative integer, "
+                                  f"got {n!r}")
+            self.holdoff[port] = int(n)
+        ok = self._valid.all(axis=2)                                            # (B, T)
+        for port, n in self.holdoff.items():
+            missing = ~self._valid[:, :, self._slices[port]].all(axis=2)
+            steps = np.arange(missing.shape[1])
+            last = np.maximum.accumulate(np.where(missing, steps, -n - 1), axis=1)   # the last missing sample
+            ok &= steps - last > n                                              # and the n samples after it
+        dtype = self.values.dtype
+        self.valid_mask = torch.as_tensor(ok[:, :, None], dtype=dtype, device=self.values.device)
 
     @property
     def max_steps(self) -> int:

@@ -132,6 +132,14 @@ OPTIONS = {
             F.affine("y0[0]", 3.0, 0.1), F.monomial(y0=2), F.product("y0[0]", "y0[1]")]),
     "features over a whole port": lambda: rt.RCOEstimator.static_gain(
         {"y0": 2}, p0=100.0, features=[F.port("y0"), F.power("y0", 3)]),
+    "penalty on theta's change, per member": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=1, p0=P0, r_delta=[0.0, 0.1, 1.0, 10.0]),
+    "normalized regressors, per member": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=1, p0=P0, normalize=[0.1, 1.0, 10.0, 1e3]),
+    "trace bound on P, per member": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=1, p0=P0, lam=0.99, p_max=[1.0, 50.0, 1e3, 1e6]),
+    "every robustness option, tied": lambda: rt.RCOEstimator(
+        {"y0": 2}, nc=2, p0=100.0, tie=[[0, 1, 0, 1, 2, 3]], lam=0.995, r_delta=0.5, normalize=2.0, p_max=200.0),
 }
 MIMO_OPTIONS = {   # both velocities measured (n_z = 2)
     "MIMO dynamic": lambda: rt.RCOEstimator({"y0": 2}, n_u=2, n_z=2, nc=1, p0=10.0),
@@ -142,6 +150,9 @@ MIMO_OPTIONS = {   # both velocities measured (n_z = 2)
     "MIMO features, two z channels": lambda: rt.RCOEstimator(
         {"y0": 2}, n_u=2, n_z=2, nc=1, p0=100.0, R=[[1.0, 0.2], [0.2, 2.0]],
         features=[F.power("y0", 3), F.sign("y0[0]")]),
+    "MIMO robustness options, two z channels": lambda: rt.RCOEstimator(
+        {"y0": 2}, n_u=2, n_z=2, nc=1, p0=100.0, R=[[1.0, 0.2], [0.2, 2.0]], lam=0.995, r_delta=[0.1, 1.0, 2.0, 5.0],
+        normalize=1.0, p_max=500.0),
 }
 
 

@@ -168,8 +168,8 @@ static inline ALWAYS void bind_put(const int64_t *x, int64_t b, int64_t c, doubl
 static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
 
 /* Scratch slots of one estimator update (lanes.h, rco_upd). */
-static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n) {
-    return n_z * n_u * (n_phi + n_u) + n * n_z + n + 2 + rls_scratch(n, n_z);
+static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nl) {
+    return n_z * n_u * (n_phi + n_u) + n * nl + n + 2 + nl + rls_scratch(n, nl);
 }
 
 typedef struct {
@@ -397,9 +397,9 @@ static PyObject *py_uniform_grid(PyObject *self, PyObject *args) {
 }
 
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
-    long long n_u, n_z, n_phi, n;
-    if (!PyArg_ParseTuple(args, "LLLL", &n_u, &n_z, &n_phi, &n)) return NULL;
-    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n));
+    long long n_u, n_z, n_phi, n, nl;
+    if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
+    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n, nl));
 }
 
 static PyMethodDef METHODS[] = {
@@ -409,7 +409,7 @@ static PyMethodDef METHODS[] = {
                                   "lanes, threads): one RLS step of every member, in place"},
     {"uniform_grid", py_uniform_grid, METH_VARARGS,
      "uniform_grid(B, seeds, members, start, length, width, u1, u2, threads): the uniforms of rng.normal"},
-    {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta): scratch slots"},
+    {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
     {NULL, NULL, 0, NULL},
 };
 

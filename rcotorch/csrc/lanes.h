@@ -376,16 +376,57 @@ static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
     }
 }
 
+/* The rows of the RLS step (estimator.py, _rows): z_R into zrx, the rows of z divided by
+ * m = sqrt(1 + |Psi|_F^2 / s^2) when normalized (NORM), then sqrt(r_delta) I with residual 0 (RDQ). */
+static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, int64_t n, int64_t n_z, int64_t nl,
+                                double *restrict psi, const double *restrict zr, double *restrict zrx) {
+    for (int64_t z = 0; z < n_z; z++) {
+        const double *a = AT(zr, z);
+        double *x = AT(zrx, z);
+        LANES x[l] = a[l];
+    }
+    if (e[E_NORM] >= 0) {
+        const double *is2 = SL(e[E_NORM]);
+        double ss[VL], mm[VL];
+        LANES ss[l] = 0.0;
+        for (int64_t z = 0; z < n_z; z++) /* |Psi|_F^2 in the order of Psi^T (z, p) */
+            for (int64_t p = 0; p < n; p++) {
+                const double *ps = AT(psi, p * nl + z);
+                LANES ss[l] += ps[l] * ps[l];
+            }
+        LANES mm[l] = sqrt(1.0 + ss[l] * is2[l]);
+        for (int64_t z = 0; z < n_z; z++) {
+            double *x = AT(zrx, z);
+            LANES x[l] /= mm[l];
+            for (int64_t p = 0; p < n; p++) {
+                double *ps = AT(psi, p * nl + z);
+                LANES ps[l] /= mm[l];
+            }
+        }
+    }
+    if (e[E_RDQ] >= 0) {
+        const double *rq = SL(e[E_RDQ]);
+        for (int64_t q = 0; q < n; q++) {
+            double *x = AT(zrx, n_z + q);
+            LANES x[l] = 0.0;
+            for (int64_t p = 0; p < n; p++) {
+                double *ps = AT(psi, p * nl + n_z + q);
+                LANES ps[l] = p == q ? rq[l] : 0.0;
+            }
+        }
+    }
+}
+
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
  * the theta box, the member's health and the regressor histories. */
 static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                int64_t t) {
     int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT];
-    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
+    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W, nl = e[E_NL];
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
     double *scr = SL(e[E_SCRATCH]);
-    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * n_z), *act = AT(eta, n);
-    double *okv = AT(act, 1), *rls_scr = AT(okv, 1);
+    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
+    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into rows pr and pr + W */
         const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
@@ -422,7 +463,7 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
         double *et = AT(eta, p);
         LANES et[l] = th[l];
         for (int64_t z = 0; z < n_z; z++) {
-            double *ps = AT(psi, p * n_z + z);
+            double *ps = AT(psi, p * nl + z);
             int first = 1;
             for (int64_t en = 0; en < nent; en++) {
                 if (param_of[en] != p) continue;
@@ -436,14 +477,15 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
         double *o = AT(zr, z), d[VL];
         LANES d[l] = 0.0;
         for (int64_t p = 0; p < n; p++) {
-            const double *ps = AT(psi, p * n_z + z), *et = AT(eta, p);
+            const double *ps = AT(psi, p * nl + z), *et = AT(eta, p);
             LANES d[l] += ps[l] * et[l];
         }
         LANES o[l] += d[l];
     }
+    FN(rco_rows)(e, S, n, n_z, nl, psi, zr, zrx);
     const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
     LANES act[l] = alive[l] != 0.0 && (!valid || valid[l] > 0.5);
-    FN(rls)(n, n_z, eta, SL(e[E_P]), psi, zr, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
+    FN(rls)(n, nl, eta, SL(e[E_P]), psi, zrx, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
     for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
         if (param_of[en] < 0) continue;
         double *th = SL(e[E_THETA] + en);
@@ -456,6 +498,23 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
             const double *lo = SL(e[E_TLO] + en), *hi = SL(e[E_THI] + en);
             LANES th[l] = clampd(th[l], lo[l], hi[l]);
         }
+    if (e[E_PMAX] >= 0) { /* trace bound: P scaled by p_max / trace(P) where a living member exceeds it */
+        double *P = SL(e[E_P]), tr[VL], c[VL];
+        const double *pm = SL(e[E_PMAX]);
+        LANES tr[l] = 0.0;
+        for (int64_t i = 0; i < n; i++) {
+            const double *pii = AT(P, i * n + i);
+            LANES tr[l] += pii[l];
+        }
+        LANES {
+            int fine = okv[l] != 0.0 || act[l] == 0.0;
+            c[l] = alive[l] != 0.0 && fine && tr[l] > pm[l] ? pm[l] / tr[l] : 1.0;
+        }
+        for (int64_t i = 0; i < n * n; i++) {
+            double *pij = AT(P, i);
+            LANES pij[l] *= c[l];
+        }
+    }
     double *dv = SL(e[E_DIV]);
     LANES { /* a member that fails while active is frozen, its step recorded */
         int fine = okv[l] != 0.0 || act[l] == 0.0;
