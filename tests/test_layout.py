@@ -1,0 +1,120 @@
+"""The package's import graph: no circles (also through imports inside functions), the kernels at the bottom,
+the physical models apart from the library core."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import rcotorch
+
+ROOT = Path(rcotorch.__file__).resolve().parent
+CORE_BELOW_MODELS = {"blocks", "estimator", "graph", "kernels", "lowering", "rls", "sources", "lti", "features"}
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for p in ROOT.rglob("*.py"):
+        parts = p.relative_to(ROOT.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        mods[name] = p
+    return mods
+
+
+def _imports(mods: dict[str, Path], lazy: bool) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (at module level, or anywhere when ``lazy``)."""
+    graph = {}
+    for name, path in mods.items():
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        tree = ast.parse(path.read_text(), str(path))
+        nodes = ast.walk(tree) if lazy else tree.body
+        targets = set()
+        for node in nodes:
+            if isinstance(node, ast.ImportFrom):
+                base = package[:len(package) - node.level + 1] if node.level else []
+                module = ".".join(base + ([node.module] if node.module else []))
+                for alias in node.names:
+                    sub = f"{module}.{alias.name}"
+                    if sub in mods or not _is_package_path(mods, module):
+                        targets.add(sub if sub in mods else module)
+                    elif not _compiled(mods, module, alias.name):
+                        targets.add(module)       # a name defined by the package's __init__
+            elif isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names}
+        graph[name] = {t for t in targets if t in mods and t != name}
+    return graph
+
+
+def _is_package_path(mods: dict[str, Path], module: str) -> bool:
+    return module in mods and mods[module].name == "__init__.py"
+
+
+def _compiled(mods: dict[str, Path], package: str, name: str) -> bool:
+    """Whether ``from package import name`` names a submodule not written in Python (the compiled engine):
+    a name the package's ``__init__`` does not bind."""
+    tree = ast.parse(mods[package].read_text())
+    bound = set()
+    for node in tree.body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            bound |= {(a.asname or a.name).split(".")[0] for a in node.names}
+        elif isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            bound.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            for t in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                bound |= {n.id for n in ast.walk(t) if isinstance(n, ast.Name)}
+    return name not in bound
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, found, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_circle_finder_finds_a_planted_circle():
+    assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circle_at_module_level_or_inside_functions():
+    mods = _modules()
+    assert "rcotorch.kernels" in mods and "rcotorch.estimator" in mods
+    for lazy in (False, True):
+        graph = _imports(mods, lazy)
+        # the package itself re-exports everything; a module importing `rcotorch` is an edge to all of it
+        assert _circles(graph) == [], f"import circle ({'inside functions too' if lazy else 'module level'})"
+
+
+def test_kernels_are_at_the_bottom_and_the_core_does_not_import_the_models():
+    mods = _modules()
+    graph = _imports(mods, lazy=True)
+    assert graph["rcotorch.kernels"] == set()
+    for name in CORE_BELOW_MODELS:
+        deps = graph[f"rcotorch.{name}"]
+        assert not any(d.startswith(("rcotorch.models", "rcotorch.scenarios")) for d in deps), (name, deps)
