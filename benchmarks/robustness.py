@@ -11,12 +11,12 @@ so the table also shows how well the health verdict agrees with the truth.
     .venv/bin/python benchmarks/robustness.py --variant penalty:r_delta=0.1psi2 --variant norm:normalize=1psi
 
 A variant's value may be given relative to the scenario's own scales, which a pilot run (one member at the
-scenario's defaults, the first fifth of its steps, at most 2000) measures: ``psi`` is the size of the update's
-regressor, the rms of |Psi(k)|_F (Psi = sum_i beta_i phi(k-i), beta the Markov parameters of u -> z, phi the
-identified subsystem's regressor); ``psi2`` its square; ``np0`` is n_theta times p0 (the trace of P(0)), e.g.
-``0.1psi2``. The values used are recorded per scenario and variant (``overrides`` and ``scales`` in the JSON).
-``--append`` merges the results into the JSON file instead of replacing it (a scenario and variant run again
-replaces its earlier row).
+scenario's defaults, the first fifth of its steps, at most 2000, at least 50 past the estimator's window)
+measures: ``psi`` is the size of the update's regressor, the rms of |Psi(k)|_F (Psi = sum_i beta_i phi(k-i),
+beta the Markov parameters of u -> z, phi the identified subsystem's regressor); ``psi2`` its square; ``np0``
+is n_theta times p0 (the trace of P(0)), e.g. ``0.1psi2``. The values used are recorded per scenario and
+variant (``overrides`` and ``scales`` in the JSON). ``--append`` merges the results into the JSON file instead
+of replacing it (a scenario and variant run again replaces its earlier row).
 
 Writes ``benchmarks/results/robustness.json`` and prints a Markdown table (docs/health.md shows it).
 """
@@ -54,9 +54,9 @@ def scales(name: str) -> dict[str, float]:
     the PyTorch engine, which lets the estimator's update be watched): the rms of |Psi|_F over the steps
     after the estimator's window first filled."""
     sc = scenarios.get(name)
-    steps = min(2000, max(1, sc.steps // 5))
     g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
     est = g.role("estimator")
+    steps = min(sc.steps, max(min(2000, sc.steps // 5), est.window + 50))
     seen: list[torch.Tensor] = []
     rows = est._rows
 
@@ -139,10 +139,17 @@ def study(name: str, seeds: list[int], overrides: dict, steps: int | None, devic
     }
 
 
+def agreement(r: dict) -> float:
+    """The fraction of members whose verdict agrees with the requirements: converged and meeting them, or not
+    converged or diverged and failing one."""
+    c, p = r["counts"], r["pass"]
+    return (p["converged"] + c["not_converged"] - p["not_converged"] + c["diverged"] - p["diverged"]) / r["members"]
+
+
 def table(results: list[dict]) -> str:
     lines = ["| scenario | variant | members | converged | not converged | diverged (reasons) | "
-             "meet requirements: converged / not converged |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+             "meet requirements: converged / not converged | verdict agrees |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         c, p, f = r["counts"], r["pass"], r["fraction"]
         reasons = ", ".join(f"{k} {v}" for k, v in r["reasons"].items())
@@ -150,7 +157,8 @@ def table(results: list[dict]) -> str:
         variant = f"{r['variant']} ({values})" if values else r["variant"]
         lines.append(f"| `{r['scenario']}` | {variant} | {r['members']} | {100 * f['converged']:.0f}% | "
                      f"{100 * f['not_converged']:.0f}% | {100 * f['diverged']:.0f}%{f' ({reasons})' if reasons else ''}"
-                     f" | {p['converged']}/{c['converged']} / {p['not_converged']}/{c['not_converged']} |")
+                     f" | {p['converged']}/{c['converged']} / {p['not_converged']}/{c['not_converged']} | "
+                     f"{100 * agreement(r):.0f}% |")
     return "\n".join(lines)
 
 
@@ -188,6 +196,8 @@ def main() -> None:
         done = {(r["scenario"], r["variant"]) for r in results}
         earlier = json.loads(path.read_text())["results"] if path.is_file() else []
         results = [r for r in earlier if (r["scenario"], r["variant"]) not in done] + results
+        variants = {v: i for i, v in enumerate(dict.fromkeys(["defaults"] + [r["variant"] for r in results]))}
+        results.sort(key=lambda r: (r["scenario"], variants[r["variant"]]))
     print(table(results))
     common.write_json({"machine": common.machine(dev), "seeds": len(seeds), "results": results}, "robustness",
                       args.out)
