@@ -8,6 +8,15 @@ so the table also shows how well the health verdict agrees with the truth.
 
     .venv/bin/python benchmarks/robustness.py --threads 1                      # every scenario at defaults
     .venv/bin/python benchmarks/robustness.py --scenarios sdof-stiffness --variant lam:lam=0.999
+    .venv/bin/python benchmarks/robustness.py --variant penalty:r_delta=0.1psi2 --variant norm:normalize=1psi
+
+A variant's value may be given relative to the scenario's own scales, which a pilot run (one member at the
+scenario's defaults, the first fifth of its steps, at most 2000, at least 50 past the estimator's window)
+measures: ``psi`` is the size of the update's regressor, the rms of |Psi(k)|_F (Psi = sum_i beta_i phi(k-i),
+beta the Markov parameters of u -> z, phi the identified subsystem's regressor); ``psi2`` its square; ``np0``
+is n_theta times p0 (the trace of P(0)), e.g. ``0.1psi2``. The values used are recorded per scenario and
+variant (``overrides`` and ``scales`` in the JSON). ``--append`` merges the results into the JSON file instead
+of replacing it (a scenario and variant run again replaces its earlier row).
 
 Writes ``benchmarks/results/robustness.json`` and prints a Markdown table (docs/health.md shows it).
 """
@@ -16,11 +25,14 @@ from __future__ import annotations
 
 import argparse
 import collections
+import json
+import re
 import tempfile
 import time
 from pathlib import Path
 
 import common
+import torch
 
 from rcotorch import scenario as scenarios
 from rcotorch.health import STATUSES
@@ -32,6 +44,45 @@ def _variant(text: str) -> tuple[str, dict[str, str]]:
     name, _, pairs = text.partition(":")
     settings = dict(p.split("=", 1) for p in pairs.split(",") if p)
     return name, settings
+
+
+_RELATIVE = re.compile(r"^\s*([-+0-9.eE]+)\s*\*?\s*(psi2|psi|np0)\s*$")
+
+
+def scales(name: str) -> dict[str, float]:
+    """The scenario's scales for relative variant values, from a pilot run of one member at its defaults (on
+    the PyTorch engine, which lets the estimator's update be watched): the rms of |Psi|_F over the steps
+    after the estimator's window first filled."""
+    sc = scenarios.get(name)
+    g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
+    est = g.role("estimator")
+    steps = min(sc.steps, max(min(2000, sc.steps // 5), est.window + 50))
+    seen: list[torch.Tensor] = []
+    rows = est._rows
+
+    def watched(psi_t, z_r):
+        if int(g.k) >= est.window:
+            seen.append(psi_t.detach().square().sum((1, 2)))
+        return rows(psi_t, z_r)
+    est._rows = watched
+    for _ in range(steps):
+        g.step()
+    psi = float(torch.cat(seen).mean().sqrt()) if seen else float("nan")
+    return {"psi": psi, "psi2": psi * psi, "np0": float(est.n_theta * est.p0.max())}
+
+
+def resolve(name: str, settings: dict[str, str], cache: dict) -> dict[str, object]:
+    """Variant settings with relative values ('0.1psi2') turned into numbers for scenario ``name``."""
+    out: dict[str, object] = {}
+    for key, value in settings.items():
+        m = _RELATIVE.match(value) if isinstance(value, str) else None
+        if m is None:
+            out[key] = value
+            continue
+        if name not in cache:
+            cache[name] = scales(name)
+        out[key] = float(f"{float(m.group(1)) * cache[name][m.group(2)]:.3g}")
+    return out
 
 
 def _runs(name: str, seeds: list[int], overrides: dict, steps: int | None, device: str, tmp: Path) -> list[dict]:
@@ -88,17 +139,31 @@ def study(name: str, seeds: list[int], overrides: dict, steps: int | None, devic
     }
 
 
+def agreement(r: dict) -> float:
+    """The fraction of members whose verdict agrees with the requirements: converged and meeting them, or not
+    converged or diverged and failing one."""
+    c, p = r["counts"], r["pass"]
+    return (p["converged"] + c["not_converged"] - p["not_converged"] + c["diverged"] - p["diverged"]) / r["members"]
+
+
 def table(results: list[dict]) -> str:
     lines = ["| scenario | variant | members | converged | not converged | diverged (reasons) | "
-             "meet requirements: converged / not converged |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+             "meet requirements: converged / not converged | verdict agrees |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         c, p, f = r["counts"], r["pass"], r["fraction"]
         reasons = ", ".join(f"{k} {v}" for k, v in r["reasons"].items())
-        lines.append(f"| `{r['scenario']}` | {r['variant']} | {r['members']} | {100 * f['converged']:.0f}% | "
+        values = ", ".join(f"{k}={_fmt(v)}" for k, v in r["overrides"].items())
+        variant = f"{r['variant']} ({values})" if values else r["variant"]
+        lines.append(f"| `{r['scenario']}` | {variant} | {r['members']} | {100 * f['converged']:.0f}% | "
                      f"{100 * f['not_converged']:.0f}% | {100 * f['diverged']:.0f}%{f' ({reasons})' if reasons else ''}"
-                     f" | {p['converged']}/{c['converged']} / {p['not_converged']}/{c['not_converged']} |")
+                     f" | {p['converged']}/{c['converged']} / {p['not_converged']}/{c['not_converged']} | "
+                     f"{100 * agreement(r):.0f}% |")
     return "\n".join(lines)
+
+
+def _fmt(value) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def main() -> None:
@@ -108,7 +173,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=64, help="seeds per scenario (default 64)")
     ap.add_argument("--steps", type=int, help="steps (default: each scenario's)")
     ap.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
-                    help="also run with these settings (repeatable)")
+                    help="also run with these settings (repeatable); a value may be relative, e.g. 0.1psi2")
+    ap.add_argument("--append", action="store_true", help="merge into the JSON file instead of replacing it")
     args = ap.parse_args()
     dev = common.setup(args)
     if dev is None:
@@ -117,13 +183,21 @@ def main() -> None:
     seeds = list(range(2 if args.quick else args.seeds))
     steps = 200 if args.quick else args.steps
     variants = [("defaults", {})] + [_variant(v) for v in args.variant]
-    results = []
+    results, cache = [], {}
     for name in names:
-        for label, overrides in variants:
+        for label, given in variants:
+            overrides = resolve(name, given, cache)
             r = study(name, seeds, overrides, steps, str(dev))
-            r["variant"] = label
+            r.update(variant=label, given=given, scales=cache.get(name))
             results.append(r)
             print(table([r]).splitlines()[-1], flush=True)
+    if args.append:
+        path = Path(args.out) if args.out else common.RESULTS / "robustness.json"
+        done = {(r["scenario"], r["variant"]) for r in results}
+        earlier = json.loads(path.read_text())["results"] if path.is_file() else []
+        results = [r for r in earlier if (r["scenario"], r["variant"]) not in done] + results
+        variants = {v: i for i, v in enumerate(dict.fromkeys(["defaults"] + [r["variant"] for r in results]))}
+        results.sort(key=lambda r: (r["scenario"], variants[r["variant"]]))
     print(table(results))
     common.write_json({"machine": common.machine(dev), "seeds": len(seeds), "results": results}, "robustness",
                       args.out)

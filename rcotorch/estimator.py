@@ -51,6 +51,9 @@ from .errors import ConfigError, DimensionError
 from .features import Term, as_terms
 from .rls import rls_update
 
+# The buffer that holds each robustness option (see ``RCOEstimator._options``).
+_OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
+
 
 class RCOEstimator(Block):
     """Identified subsystem u = theta phi with the retrospective-cost RLS update.
@@ -131,7 +134,7 @@ class RCOEstimator(Block):
             if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
                 raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
             self.register_buffer(key, t)
-        self._options(r_delta, normalize, p_max, dtype)
+        self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
         R = torch.as_tensor(R, dtype=dtype)
         R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
         if tuple(R.shape) != (n_z, n_z):
@@ -175,16 +178,27 @@ class RCOEstimator(Block):
         self._phi_is_past = (not self.proper and tail.numel() == width
                              and bool(torch.equal(tail, torch.arange(width))))
 
-    def _options(self, r_delta, normalize, p_max, dtype) -> None:
+    def _options(self, dtype, **values) -> None:
         """The robustness options as buffers (None when off): sqrt(r_delta), 1 / s^2 and p_max, each (1,) or (B,)."""
-        for key, value, low, stored in (("r_delta", r_delta, 0.0, torch.sqrt), ("normalize", normalize, None,
-                                         lambda t: 1.0 / (t * t)), ("p_max", p_max, None, lambda t: t)):
+        for key, value in values.items():
+            low, stored = {"r_delta": (0.0, torch.sqrt), "normalize": (None, lambda t: 1.0 / (t * t)),
+                           "p_max": (None, lambda t: t)}[key]
             t = None if value is None else torch.as_tensor(value, dtype=dtype).reshape(-1)
             if t is not None and not bool(torch.isfinite(t).all() & ((t >= low) if low is not None else (t > 0)).all()):
                 bound = "finite and >= 0" if low is not None else "finite and > 0"
                 raise ConfigError(f"block '{self.name}': {key} must be {bound}, got {value!r}")
-            self.register_buffer({"r_delta": "rd_sqrt", "normalize": "norm_inv_s2"}.get(key, key),
-                                 None if t is None else stored(t))
+            self.register_buffer(_OPTION_BUFFER[key], None if t is None else stored(t))
+
+    def set_options(self, r_delta=None, normalize=None, p_max=None) -> None:
+        """Switch robustness options on after construction, before the graph runs: each value given replaces
+        that option (checked as in the constructor: a scalar or one value per member); None leaves it as is."""
+        given = {k: v for k, v in (("r_delta", r_delta), ("normalize", normalize), ("p_max", p_max)) if v is not None}
+        self._options(self.theta0.dtype, **given)
+        for key in given:
+            t = getattr(self, _OPTION_BUFFER[key])
+            setattr(self, _OPTION_BUFFER[key], t.to(self.theta0.device))
+            if self.batch_size:                                   # already reset for a batch
+                self.check_batch(t, key)
 
     def _structure(self, mask, tie) -> None:
         """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of

@@ -15,6 +15,7 @@ Where scenarios are found (``available``):
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.util
 import math
@@ -74,11 +75,32 @@ class Setting(NamedTuple):
     choices: tuple[str, ...] = ()
 
 
+#: Robustness options of the RCO estimator (``RCOEstimator``'s arguments of the same names) that every scenario
+#: offers as settings, with their defaults: 0 leaves the option off, so a scenario's results do not change.
+ESTIMATOR_OPTIONS: Mapping[str, float] = {"r_delta": 0.0, "normalize": 0.0, "p_max": 0.0}
+ESTIMATOR_OPTIONS_ABOUT: Mapping[str, Setting] = {
+    "r_delta": Setting("", "penalty r_delta |theta - theta(k)|^2 on theta's change in the retrospective cost "
+                           "(smooths and slows the estimate); 0: off"),
+    "normalize": Setting("", "scale s of normalized regressors: the update is divided by sqrt(1 + |Psi|^2 / s^2) "
+                             "(bounds the step on large signals); 0: off"),
+    "p_max": Setting("", "bound on trace(P): P is scaled down to it after an update (covariance windup); 0: off"),
+}
+#: The options that may differ between the members of one batch (a zero penalty is the same as none; a
+#: scale or bound cannot be off for some members only, so a sweep over them runs one batch per value).
+ESTIMATOR_OPTIONS_PER_MEMBER = frozenset({"r_delta"})
+
+
 class Scenario:
     """Base class. Subclasses set the class attributes and implement ``build``, ``estimates`` and ``truth``.
 
     ``settings`` maps each setting to its default value; ``about`` maps each setting to a ``Setting`` (or a
     tuple ``(unit, meaning[, choices])``): what ``rcotorch show NAME`` prints.
+
+    Every scenario also has the settings of ``ESTIMATOR_OPTIONS`` (added to ``settings``, ``about`` and
+    ``per_member`` when the subclass is defined, unless it declares them itself): the graph that ``build``
+    returns gets them on its estimator (the block of role 'estimator', ``RCOEstimator.set_options``) when they
+    are nonzero. A scenario that passes these options to its estimator itself, or offers other ones, lists
+    the options it leaves to the base class in ``estimator_options`` (() for none).
     """
 
     name: str = ""
@@ -94,6 +116,28 @@ class Scenario:
     # p0 and lambda, seeds). The others fix the graph's structure (sample time, orders, nu); a sweep over
     # them runs one batch per distinct value.
     per_member: frozenset[str] = frozenset()
+    # The estimator options that the base class offers as settings and applies after ``build`` (see above).
+    estimator_options: tuple[str, ...] = tuple(ESTIMATOR_OPTIONS)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        options = tuple(cls.estimator_options)
+        unknown = set(options) - set(ESTIMATOR_OPTIONS)
+        if unknown:
+            raise ConfigError(f"scenario class {cls.__name__}: estimator_options {sorted(unknown)} are not among "
+                              f"{list(ESTIMATOR_OPTIONS)}")
+        cls.settings = {**cls.settings, **{k: ESTIMATOR_OPTIONS[k] for k in options if k not in cls.settings}}
+        cls.about = {**cls.about, **{k: ESTIMATOR_OPTIONS_ABOUT[k] for k in options if k not in cls.about}}
+        cls.per_member = frozenset(cls.per_member) | (ESTIMATOR_OPTIONS_PER_MEMBER & set(options))
+        build = cls.__dict__.get("build")
+        if build is not None and not getattr(build, "_sets_estimator_options", False):
+            @functools.wraps(build)
+            def build_with_options(self, settings, batch, dtype, device):
+                graph = build(self, settings, batch, dtype, device)
+                apply_estimator_options(graph, settings, self.estimator_options)
+                return graph
+            build_with_options._sets_estimator_options = True
+            cls.build = build_with_options
 
     def setting(self, key: str) -> Setting:
         """Unit, meaning and choices of one setting (meaning '' where the scenario does not document it)."""
@@ -198,6 +242,24 @@ def _fmt_default(value) -> str:
 def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """A setting as a tensor: shape () when shared by the batch, (B,) when it is per member."""
     return torch.as_tensor(settings[key], dtype=dtype)
+
+
+def apply_estimator_options(graph: Graph, settings: Mapping[str, Any], options=tuple(ESTIMATOR_OPTIONS)) -> None:
+    """Switch on the robustness options among ``options`` that ``settings`` sets (nonzero for some member) on
+    the graph's estimator (role 'estimator'); options at 0 leave the estimator as the scenario built it."""
+    given = {}
+    for key in options:
+        if key not in settings:
+            continue
+        values = member_values(settings, key, dtype=torch.float64)
+        if bool((values != 0).any()):
+            given[key] = values
+    if not given:
+        return
+    if "estimator" not in graph.roles:
+        raise ConfigError(f"settings {sorted(given)} need the graph's estimator (role 'estimator'); this graph "
+                          f"declares roles {sorted(graph.roles)}")
+    graph.role("estimator").set_options(**given)
 
 
 def _coerce(scenario: str, key: str, value, default):

@@ -169,6 +169,7 @@ class RlcCircuit(Scenario):
     requirements = (Requirement("estimates.L", "rel_err", 0.05), Requirement("estimates.C", "rel_err", 0.05),
                     Requirement("estimates.R", "rel_err", 0.05))
     units = {"y": "V", "rel_rms_err_initial": "", "rel_rms_err_refined": ""}
+    per_member = frozenset({"seed"})        # one seed per member: member b draws the streams of its own seed
     about = dict(
         Ts=("s", "sample time"),
         R=("ohm", "true resistance"),
@@ -192,7 +193,9 @@ class RlcCircuit(Scenario):
         G = series_rlc(R0, L0, C0, measured=["v_R"], sees=["v_C", "v_R"])
         known = rt.LTI.from_control(G, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
         truth = rt.LTI.from_control(truth_discrete(s), inputs=["w"], outputs=["y"], name="circuit")
-        physical = NoisyMeasurement(truth, std=s["noise"] * output_rms(s), seed=s["seed"] + 7919)
+        seed = s["seed"]
+        noise_seed = [x + 7919 for x in seed] if isinstance(seed, list) else seed + 7919
+        physical = NoisyMeasurement(truth, std=s["noise"] * output_rms(s), seed=noise_seed)
         ident = rt.RCOEstimator.static_gain({"y0": 2, "w": 1}, p0=s["p0"], lam=s["lam"])
         return rt.refinement(known, ident, physical=physical,
                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"]), nu=s["nu"],

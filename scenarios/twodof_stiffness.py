@@ -97,6 +97,7 @@ class TwoDofStiffness(Scenario):
                     sees="midpoint", truth="continuous", p0=1e3, lam=0.9995, nu=60, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dk1", "rel_err", 0.10), Requirement("estimates.dk3", "rel_err", 0.10))
     units = {"y": "m/s"}
+    per_member = frozenset({"seed"})        # one seed per member: member b draws the stream (seed[b], 0)
     about = dict(
         Ts=("s", "sample time"),
         k1=("N/m", "wall-mass 1 spring of the known model"),

@@ -144,3 +144,60 @@ def test_holdoff_marks_samples_after_an_input_gap():
                                   [1.0] * 10 + [0.0] * 7 + [1.0] * 23)
     with pytest.raises(rt.errors.ConfigError, match="holdoff"):
         rt.Recorded(rec, {"w": "w", "y": "y"}, holdoff={"w": -1})
+
+
+# --- the options as scenario settings ------------------------------------------------------------------------
+
+def _estimator(name, batch=1, members=None, **overrides):
+    from rcotorch import scenario
+    sc = scenario.get(name)
+    s = sc.resolve_members(overrides, members) if members else sc.resolve(overrides)
+    return sc.build(s, batch, torch.float64, "cpu")
+
+
+@pytest.mark.parametrize("name", ["sdof-stiffness", "sdof-stiffness-damping", "rlc-circuit", "twodof-stiffness"])
+def test_every_scenario_offers_the_options_off_by_default(name):
+    from rcotorch import scenario
+    sc = scenario.get(name)
+    assert {k: sc.settings[k] for k in ("r_delta", "normalize", "p_max")} == dict(r_delta=0.0, normalize=0.0, p_max=0.0)
+    assert "r_delta" in sc.per_member and "normalize" not in sc.per_member
+    est = _estimator(name).role("estimator")
+    assert est.rd_sqrt is None and est.norm_inv_s2 is None and est.p_max is None
+
+
+def test_options_set_as_settings_reach_the_estimator_and_run_as_if_built_with_them():
+    g = _estimator("sdof-stiffness", batch=2, r_delta="0.5", normalize=2, p_max="30")
+    est = g.role("estimator")
+    assert float(est.rd_sqrt) == pytest.approx(0.5 ** 0.5) and float(est.norm_inv_s2) == 0.25
+    assert float(est.p_max) == 30.0
+    # the same graph built with the options on the estimator itself gives the same run, bit for bit
+    from rcotorch import scenario
+    sc = scenario.get("sdof-stiffness")
+    s = sc.resolve()
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(s["m"], s["C"], s["K"], sees=["position", "velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
+    plant = rt.LTI.continuous(*rt.models.sdof_matrices(s["m"], s["C"] + s["dC"], s["K"] + s["dK"], sees=[],
+                                                       actuation=False), inputs=["w"], outputs=["y"], dt=s["Ts"])
+    ident = rt.RCOEstimator.static_gain({"y0": 2}, p0=s["p0"], lam=s["lam"], r_delta=0.5, normalize=2.0, p_max=30.0)
+    direct = rt.refinement(known, ident, physical=plant, excitation=rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"]),
+                           nu=s["nu"], batch_size=2)
+    g.advance(3000)
+    direct.advance(3000)
+    assert torch.equal(g.role("estimator").theta, direct.role("estimator").theta)
+    assert float(g.role("estimator").P[0].trace()) <= 30.0 * (1 + 1e-12)
+
+
+def test_penalty_may_differ_between_members_and_zero_is_no_penalty():
+    g = _estimator("sdof-stiffness", batch=2, members=[{"r_delta": 0.0}, {"r_delta": 1e-3}])
+    assert g.role("estimator").rd_sqrt.tolist() == [0.0, pytest.approx(1e-3 ** 0.5)]
+    off = _estimator("sdof-stiffness", batch=2, members=[{"r_delta": 0.0}, {"r_delta": 0.0}]).role("estimator")
+    assert off.rd_sqrt is None
+
+
+def test_options_run_from_the_command_line_and_are_refused_when_out_of_range(tmp_path):
+    from rcotorch.runner import Run
+    with Run("sdof-stiffness", steps=500, out=tmp_path / "a", overrides={"p_max": "100", "normalize": "0.01"}) as run:
+        run.advance(progress=False)
+        assert run.summary()["settings"]["p_max"] == 100.0
+    with pytest.raises(rt.errors.ConfigError, match="p_max"):
+        Run("sdof-stiffness", steps=10, out=tmp_path / "b", overrides={"p_max": "-1"})

@@ -169,3 +169,15 @@ def test_rlc_from_the_papers_initial_guesses_fails_as_documented(tmp_path):
     assert est["L"] < 0.1 * 55e-3 and est["C"] > 10 * 23.5e-6
     assert not summary["requirements"]["estimates.L"]["pass"]
     assert met["rel_rms_err_refined"] < 0.5 * met["rel_rms_err_initial"]
+
+
+@pytest.mark.parametrize("name", ["twodof-stiffness", "rlc-circuit"])
+def test_seeds_may_differ_between_members_as_their_single_runs(name, tmp_path):
+    with Run(name, steps=300, members=[{"seed": 3}, {"seed": 5}], out=tmp_path / "batch") as run:
+        run.advance(progress=False)
+        batch = run.graph.role("estimator").theta.clone()
+    for b, seed in enumerate((3, 5)):
+        with Run(name, steps=300, seed=seed, out=tmp_path / f"single-{seed}") as run:
+            run.advance(progress=False)
+            assert torch.equal(run.graph.role("estimator").theta[0], batch[b])
+    assert not torch.equal(batch[0], batch[1])
