@@ -148,12 +148,28 @@ class Monitor:
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
     def figures(self, figs: dict, out: Path) -> None:
-        """Save the figures as PNG in ``out`` and as images under ``figures/``."""
+        """Save the figures as PNG in ``out`` and as images under ``figures/`` (each drawn once: TensorBoard
+        gets the PNG file's bytes)."""
+        import io
+
         import matplotlib.pyplot as plt
+        from PIL import Image
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        from .outputs import atomic_write
         for name, fig in figs.items():
-            fig.savefig(out / f"{name}.png", dpi=110, bbox_inches="tight")
-            self.writer.add_figure(f"figures/{name}", fig, self.run.k, close=False)
+            if fig.get_layout_engine() is None:
+                fig.set_layout_engine("tight")             # laid out while it is drawn
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png", dpi=110)
             plt.close(fig)
+            png = buf.getvalue()
+            atomic_write(out / f"{name}.png", lambda f, png=png: f.write(png))
+            im = Image.open(io.BytesIO(png))
+            image = Summary.Image(height=im.height, width=im.width, colorspace=len(im.getbands()),
+                                  encoded_image_string=png)
+            self.writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=f"figures/{name}", image=image)]),
+                                                self.run.k)
 
     def close(self, summary: dict) -> None:
         """Final values (``final/``, the HParams metrics) and the run's HParams session: its settings and status."""

@@ -4,7 +4,8 @@ Cadences, fixed when a run is created and kept by a resume:
 
 * health checks every ``health.check_every(steps)`` steps (about 100 per run, the same for any batch size);
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
-  batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch;
+  batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
+  check steps where the interval is longer than the checks';
 * checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C).
 
 What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
@@ -26,7 +27,7 @@ import torch
 
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError
-from .health import STATUSES, Criteria, Health
+from .health import STATUSES, Criteria, Health, check_every
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
@@ -73,9 +74,12 @@ def _positive_int(value, what: str) -> int:
 
 def default_log_every(steps: int, batch: int) -> int:
     """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
-    least MIN_LOGS logs), since a log reads every member."""
+    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' is the
+    nearest multiple of theirs, so that logs fall on check steps: every stop of the engine costs a pass over
+    the whole batch's state."""
     logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
-    return max(1, math.ceil(steps / logs))
+    every, check = max(1, math.ceil(steps / logs)), check_every(steps)
+    return check * max(1, round(every / check)) if every > check else every
 
 
 def default_out(name: str) -> Path:
