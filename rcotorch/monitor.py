@@ -227,7 +227,8 @@ def member_status(summary: Mapping[str, Any]) -> list[str]:
     if isinstance(given, str):
         return [given] * batch
     if isinstance(given, list) and len(given) == batch:
-        return [g.get("status", "finished") if isinstance(g, Mapping) else str(g) for g in given]
+        return [g if type(g) is str else g.get("status", "finished") if isinstance(g, Mapping) else str(g)
+                for g in given]
     diverged = {d["member"] for d in summary.get("diverged", [])}
     return ["diverged" if b in diverged else "finished" for b in range(batch)]
 

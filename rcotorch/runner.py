@@ -359,11 +359,11 @@ class Run:
             t = (est if group == "estimates" else met).get(key)
             if t is None:
                 continue
-            truth = member_truth(self.truth.get(key), self.batch)
-            per_member = [req.check(float(x), tv) for x, tv in zip(t.reshape(-1).tolist(), truth)]
-            checks[req.key] = {"requirement": req.describe(),
-                               "value": self._values(torch.tensor([q for q, _ in per_member])),
-                               "pass": all(ok for _, ok in per_member)}
+            truth = self.truth.get(key)
+            q, ok = req.check(t.reshape(-1).to(torch.float64),
+                              None if truth is None else torch.tensor(member_truth(truth, self.batch),
+                                                                      dtype=torch.float64))
+            checks[req.key] = {"requirement": req.describe(), "value": self._values(q), "pass": bool(ok.all())}
         return checks
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
