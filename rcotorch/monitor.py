@@ -206,7 +206,7 @@ def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
 
 def _mean(values: list) -> float | None:
     """The mean of the finite values, None where there is none."""
-    vals = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    vals = [x for x in map(float, (v for v in values if v is not None)) if math.isfinite(x)]
     return sum(vals) / len(vals) if vals else None
 
 

@@ -27,7 +27,7 @@ import torch
 
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError
-from .health import STATUSES, Criteria, Health, check_every
+from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
@@ -349,7 +349,7 @@ class Run:
         }
 
     def _values(self, t: torch.Tensor):
-        vals = [None if not math.isfinite(x) else float(x) for x in t.reshape(self.batch).tolist()]
+        vals = finite_list(t.reshape(self.batch))
         return vals[0] if self.batch == 1 else vals
 
     def _requirements(self, est: dict[str, torch.Tensor], met: dict[str, torch.Tensor]) -> dict[str, Any]:
