@@ -363,7 +363,9 @@ class Run:
             q, ok = req.check(t.reshape(-1).to(torch.float64),
                               None if truth is None else torch.tensor(member_truth(truth, self.batch),
                                                                       dtype=torch.float64))
-            checks[req.key] = {"requirement": req.describe(), "value": self._values(q), "pass": bool(ok.all())}
+            # the reported quantity in torch's default dtype (float32 unless changed), as it always was
+            checks[req.key] = {"requirement": req.describe(), "value": self._values(q.to(torch.get_default_dtype())),
+                               "pass": bool(ok.all())}
         return checks
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
