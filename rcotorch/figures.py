@@ -22,15 +22,15 @@ def run_figures(run) -> dict:
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
     if keys and len(t):
-        fig, axes = plt.subplots(len(keys), 1, figsize=(7.5, 2.4 * len(keys) + 0.8), sharex=True, squeeze=False)
+        fig, axes = plt.subplots(len(keys), 1, figsize=(7.5, 2.4 * len(keys) + 0.8), sharex=True, squeeze=False,
+                                 layout="tight")
         for ax, key in zip(axes[:, 0], keys):
             _estimate_panel(ax, run, key, t, torch.stack(h[key]).numpy())
         axes[-1, 0].set_xlabel(xlabel)
         axes[0, 0].set_title(f"{run.scenario.name}: estimates")
-        fig.tight_layout()
         figs["estimates"] = fig
     if len(t):
-        fig, ax = plt.subplots(figsize=(7.5, 3.0))
+        fig, ax = plt.subplots(figsize=(7.5, 3.0), layout="tight")
         z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
         ax.semilogy(t, z, lw=1, label=_member_labels(z.shape[1], run.batch))
         ax.set_xlabel(xlabel)
@@ -39,7 +39,6 @@ def run_figures(run) -> dict:
         ax.grid(alpha=0.3, which="both")
         if z.shape[1] > 1:
             ax.legend(fontsize=8, ncol=2)
-        fig.tight_layout()
         figs["model_error"] = fig
     return figs
 
@@ -76,7 +75,7 @@ def _with_unit(label: str, unit: str) -> str:
 def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = ""):
     """Bode magnitude (in ``unit``, the unit of output per unit of input) and phase of named complex responses
     {label: (F,) array}; the Nyquist frequency dotted."""
-    fig, (am, ap) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    fig, (am, ap) = plt.subplots(2, 1, figsize=(7, 5), sharex=True, layout="tight")
     for label, resp in curves.items():
         resp = np.asarray(resp)
         style = "--" if "true" in label.lower() else "-"

@@ -92,6 +92,14 @@ def _definite(P: torch.Tensor) -> torch.Tensor:
     return (torch.linalg.cholesky_ex(P.to(torch.float64)).info == 0) & torch.isfinite(P).flatten(1).all(1)
 
 
+def finite_list(t: torch.Tensor) -> list:
+    """The values of ``t`` as a list of floats, None where a value is not finite."""
+    values = t.reshape(-1).to(torch.float64).tolist()
+    if bool(torch.isfinite(t).all()):
+        return values
+    return [x if math.isfinite(x) else None for x in values]
+
+
 def check_every(steps: int) -> int:
     """Steps between health checks for a run of ``steps`` steps: about 100 checks, at most 1000 steps apart."""
     return min(1000, max(1, steps // 100))
@@ -259,14 +267,15 @@ class Health:
         the criteria."""
         B = verdict["status"].numel()
         status = [STATUSES[i] for i in verdict["status"].tolist()]
-        reason = [Reason(r).label if r else None for r in verdict["reason"].tolist()]
+        labels = {int(r): Reason(r).label for r in verdict["reason"].unique().tolist() if r}
+        reason = [labels[r] if r else None for r in verdict["reason"].tolist()]
         step = [None if st != "diverged" else int(k) for st, k in zip(status, verdict["diverged_at"].tolist())]
 
         def plain(values: list) -> Any:
             return values[0] if B == 1 else values
 
         def numbers(t: torch.Tensor) -> Any:
-            return plain([float(x) if math.isfinite(x) else None for x in t.tolist()])
+            return plain(finite_list(t))
         return {"counts": {st: status.count(st) for st in STATUSES}, "status": plain(status),
                 "reason": plain(reason), "diverged_at": plain(step),
                 "theta_change": numbers(verdict["theta_change"]), "z_ratio": numbers(verdict["z_ratio"]),

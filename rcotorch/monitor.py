@@ -148,12 +148,28 @@ class Monitor:
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
     def figures(self, figs: dict, out: Path) -> None:
-        """Save the figures as PNG in ``out`` and as images under ``figures/``."""
+        """Save the figures as PNG in ``out`` and as images under ``figures/`` (each drawn once: TensorBoard
+        gets the PNG file's bytes)."""
+        import io
+
         import matplotlib.pyplot as plt
+        from PIL import Image
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        from .outputs import atomic_write
         for name, fig in figs.items():
-            fig.savefig(out / f"{name}.png", dpi=110, bbox_inches="tight")
-            self.writer.add_figure(f"figures/{name}", fig, self.run.k, close=False)
+            if fig.get_layout_engine() is None:
+                fig.set_layout_engine("tight")             # laid out while it is drawn
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png", dpi=110)
             plt.close(fig)
+            png = buf.getvalue()
+            atomic_write(out / f"{name}.png", lambda f, png=png: f.write(png))
+            im = Image.open(io.BytesIO(png))
+            image = Summary.Image(height=im.height, width=im.width, colorspace=len(im.getbands()),
+                                  encoded_image_string=png)
+            self.writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=f"figures/{name}", image=image)]),
+                                                self.run.k)
 
     def close(self, summary: dict) -> None:
         """Final values (``final/``, the HParams metrics) and the run's HParams session: its settings and status."""
@@ -190,7 +206,7 @@ def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
 
 def _mean(values: list) -> float | None:
     """The mean of the finite values, None where there is none."""
-    vals = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    vals = [x for x in map(float, (v for v in values if v is not None)) if math.isfinite(x)]
     return sum(vals) / len(vals) if vals else None
 
 
@@ -211,7 +227,8 @@ def member_status(summary: Mapping[str, Any]) -> list[str]:
     if isinstance(given, str):
         return [given] * batch
     if isinstance(given, list) and len(given) == batch:
-        return [g.get("status", "finished") if isinstance(g, Mapping) else str(g) for g in given]
+        return [g if type(g) is str else g.get("status", "finished") if isinstance(g, Mapping) else str(g)
+                for g in given]
     diverged = {d["member"] for d in summary.get("diverged", [])}
     return ["diverged" if b in diverged else "finished" for b in range(batch)]
 

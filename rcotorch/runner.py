@@ -4,7 +4,8 @@ Cadences, fixed when a run is created and kept by a resume:
 
 * health checks every ``health.check_every(steps)`` steps (about 100 per run, the same for any batch size);
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
-  batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch;
+  batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
+  check steps where the interval is longer than the checks';
 * checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C).
 
 What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
@@ -26,7 +27,7 @@ import torch
 
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError
-from .health import STATUSES, Criteria, Health
+from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
@@ -73,9 +74,12 @@ def _positive_int(value, what: str) -> int:
 
 def default_log_every(steps: int, batch: int) -> int:
     """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
-    least MIN_LOGS logs), since a log reads every member."""
+    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' is the
+    nearest multiple of theirs, so that logs fall on check steps: every stop of the engine costs a pass over
+    the whole batch's state."""
     logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
-    return max(1, math.ceil(steps / logs))
+    every, check = max(1, math.ceil(steps / logs)), check_every(steps)
+    return check * max(1, round(every / check)) if every > check else every
 
 
 def default_out(name: str) -> Path:
@@ -345,7 +349,7 @@ class Run:
         }
 
     def _values(self, t: torch.Tensor):
-        vals = [None if not math.isfinite(x) else float(x) for x in t.reshape(self.batch).tolist()]
+        vals = finite_list(t.reshape(self.batch))
         return vals[0] if self.batch == 1 else vals
 
     def _requirements(self, est: dict[str, torch.Tensor], met: dict[str, torch.Tensor]) -> dict[str, Any]:
@@ -355,11 +359,13 @@ class Run:
             t = (est if group == "estimates" else met).get(key)
             if t is None:
                 continue
-            truth = member_truth(self.truth.get(key), self.batch)
-            per_member = [req.check(float(x), tv) for x, tv in zip(t.reshape(-1).tolist(), truth)]
-            checks[req.key] = {"requirement": req.describe(),
-                               "value": self._values(torch.tensor([q for q, _ in per_member])),
-                               "pass": all(ok for _, ok in per_member)}
+            truth = self.truth.get(key)
+            q, ok = req.check(t.reshape(-1).to(torch.float64),
+                              None if truth is None else torch.tensor(member_truth(truth, self.batch),
+                                                                      dtype=torch.float64))
+            # the reported quantity in torch's default dtype (float32 unless changed), as it always was
+            checks[req.key] = {"requirement": req.describe(), "value": self._values(q.to(torch.get_default_dtype())),
+                               "pass": bool(ok.all())}
         return checks
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:

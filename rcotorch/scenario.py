@@ -46,16 +46,14 @@ class Requirement:
     bound: float
     inclusive: bool = False
 
-    def check(self, value: float, truth: float | None = None) -> tuple[float, bool]:
-        """Return (the checked quantity, pass)."""
+    def check(self, value, truth=None):
+        """Return (the checked quantity, pass): floats, or tensors of every member's values (a NaN fails)."""
         if self.kind == "abs_err":
             q = abs(value - truth)
         elif self.kind == "rel_err":
             q = abs(value - truth) / abs(truth)
         else:
             q = value
-        if q != q:  # NaN
-            return q, False
         if self.kind == "min":
             return q, q >= self.bound
         return q, (q <= self.bound if self.inclusive else q < self.bound)

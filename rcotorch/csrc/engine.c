@@ -143,27 +143,6 @@ static inline ALWAYS double clampd(double x, double lo, double hi) {
     return v > hi ? hi : v;
 }
 
-static inline char *bind_addr(const int64_t *x, int64_t b, int64_t c, int64_t esize) {
-    int64_t off = b * x[BF_MSTRIDE] + (c / x[BF_INNER]) * x[BF_OSTRIDE] + c % x[BF_INNER];
-    return (char *)(intptr_t)x[BF_PTR] + off * esize;
-}
-
-static inline ALWAYS double bind_get(const int64_t *x, int64_t b, int64_t c) {
-    switch (x[BF_KIND]) {
-    case KIND_F64: return *(const double *)bind_addr(x, b, c, 8);
-    case KIND_BOOL: return *(const uint8_t *)bind_addr(x, b, c, 1) ? 1.0 : 0.0;
-    default: return (double)*(const int64_t *)bind_addr(x, b, c, 8);
-    }
-}
-
-static inline ALWAYS void bind_put(const int64_t *x, int64_t b, int64_t c, double v) {
-    switch (x[BF_KIND]) {
-    case KIND_F64: *(double *)bind_addr(x, b, c, 8) = v; break;
-    case KIND_BOOL: *(uint8_t *)bind_addr(x, b, c, 1) = v != 0.0; break;
-    default: *(int64_t *)bind_addr(x, b, c, 8) = (int64_t)v; break;
-    }
-}
-
 /* Scratch slots of one RLS step with n parameters and nl channels (lanes.h, rls). */
 static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
 

@@ -551,13 +551,29 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
 /* ------------------------------------------------------------------------------------------------------ */
 /* Running a program                                                                                       */
 /* ------------------------------------------------------------------------------------------------------ */
+/* Load and store walk each binding's elements in order (c = o * INNER + i: row o, entry i) with each lane's
+ * member offset computed once per binding, the element type chosen once per row of entries. */
 static inline void FN(load)(const int64_t *bd, int64_t nbind, double *S, int64_t b0, int64_t nb) {
     for (int64_t q = 0; q < nbind; q++) {
         const int64_t *x = bd + q * BF_N;
         if (!(x[BF_MODE] & 1)) continue;
-        for (int64_t c = 0; c < x[BF_COUNT]; c++) {
-            double *d = SL(x[BF_SLOT] + c);
-            LANES d[l] = bind_get(x, b0 + (l < nb ? l : nb - 1), c); /* spare lanes repeat the last member */
+        const int64_t inner = x[BF_INNER], count = x[BF_COUNT], kind = x[BF_KIND];
+        int64_t m[VL];
+        LANES m[l] = (b0 + (l < nb ? l : nb - 1)) * x[BF_MSTRIDE]; /* spare lanes repeat the last member */
+        double *d = SL(x[BF_SLOT]);
+        for (int64_t c = 0, o = 0; c < count; o += x[BF_OSTRIDE]) {
+            int64_t n = count - c < inner ? count - c : inner;
+            if (kind == KIND_F64) {
+                const double *p = (const double *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL) LANES d[l] = p[m[l] + i];
+            } else if (kind == KIND_BOOL) {
+                const uint8_t *p = (const uint8_t *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL) LANES d[l] = p[m[l] + i] ? 1.0 : 0.0;
+            } else {
+                const int64_t *p = (const int64_t *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL) LANES d[l] = (double)p[m[l] + i];
+            }
+            c += n;
         }
     }
 }
@@ -566,9 +582,24 @@ static inline void FN(store)(const int64_t *bd, int64_t nbind, const double *S, 
     for (int64_t q = 0; q < nbind; q++) {
         const int64_t *x = bd + q * BF_N;
         if (!(x[BF_MODE] & 2)) continue;
-        for (int64_t c = 0; c < x[BF_COUNT]; c++) {
-            const double *d = SL(x[BF_SLOT] + c);
-            for (int64_t l = 0; l < nb; l++) bind_put(x, b0 + l, c, d[l]);
+        const int64_t inner = x[BF_INNER], count = x[BF_COUNT], kind = x[BF_KIND], ms = x[BF_MSTRIDE];
+        const double *d = SL(x[BF_SLOT]);
+        for (int64_t c = 0, o = b0 * ms; c < count; o += x[BF_OSTRIDE]) {
+            int64_t n = count - c < inner ? count - c : inner;
+            if (kind == KIND_F64) {
+                double *p = (double *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL)
+                    for (int64_t l = 0; l < nb; l++) p[l * ms + i] = d[l];
+            } else if (kind == KIND_BOOL) {
+                uint8_t *p = (uint8_t *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL)
+                    for (int64_t l = 0; l < nb; l++) p[l * ms + i] = d[l] != 0.0;
+            } else {
+                int64_t *p = (int64_t *)(intptr_t)x[BF_PTR] + o;
+                for (int64_t i = 0; i < n; i++, d += VL)
+                    for (int64_t l = 0; l < nb; l++) p[l * ms + i] = (int64_t)d[l];
+            }
+            c += n;
         }
     }
 }
