@@ -363,8 +363,7 @@ class Run:
             q, ok = req.check(t.reshape(-1).to(torch.float64),
                               None if truth is None else torch.tensor(member_truth(truth, self.batch),
                                                                       dtype=torch.float64))
-            # the reported quantity in torch's default dtype (float32 unless changed), as it always was
-            checks[req.key] = {"requirement": req.describe(), "value": self._values(q.to(torch.get_default_dtype())),
+            checks[req.key] = {"requirement": req.describe(), "value": self._values(q),
                                "pass": bool(ok.all())}
         return checks
 

@@ -24,6 +24,8 @@ def test_cli_run_writes_summary_events_and_figures(tmp_path, capsys):
     for key in ("Ts", "nc", "p0", "lam", "nu", "seed"):
         assert key in summary["settings"]
     assert (out / "estimates.png").stat().st_size > 1000
+    # the requirement's reported error is the float64 difference of estimate and truth (not rounded to float32)
+    assert summary["requirements"]["estimates.dK"]["value"] == abs(summary["estimates"]["dK"] - 0.5)
     printed = capsys.readouterr().out
     assert "estimates.dK" in printed and "truth" in printed
 
