@@ -83,6 +83,13 @@ ESTIMATOR_OPTIONS_ABOUT: Mapping[str, Setting] = {
                              "(bounds the step on large signals); 0: off"),
     "p_max": Setting("", "bound on trace(P): P is scaled down to it after an update (covariance windup); 0: off"),
 }
+#: What ``rcotorch show`` says of the estimator's usual settings, in a scenario that has them and does not
+#: describe them itself.
+ESTIMATOR_SETTINGS_ABOUT: Mapping[str, Setting] = {
+    "p0": Setting("", "initial RLS covariance P(0) = p0 I"),
+    "lam": Setting("", "RLS forgetting factor in (0, 1]"),
+    "nu": Setting("", "number of Markov parameters of u -> z in the retrospective cost"),
+}
 #: The options that may differ between the members of one batch (a zero penalty is the same as none; a
 #: scale or bound cannot be off for some members only, so a sweep over them runs one batch per value).
 ESTIMATOR_OPTIONS_PER_MEMBER = frozenset({"r_delta"})
@@ -92,7 +99,8 @@ class Scenario:
     """Base class. Subclasses set the class attributes and implement ``build``, ``estimates`` and ``truth``.
 
     ``settings`` maps each setting to its default value; ``about`` maps each setting to a ``Setting`` (or a
-    tuple ``(unit, meaning[, choices])``): what ``rcotorch show NAME`` prints.
+    tuple ``(unit, meaning[, choices])``): what ``rcotorch show NAME`` prints (``p0``, ``lam`` and ``nu`` have
+    a standard meaning, ``ESTIMATOR_SETTINGS_ABOUT``, unless the subclass describes them).
 
     Every scenario also has the settings of ``ESTIMATOR_OPTIONS`` (added to ``settings``, ``about`` and
     ``per_member`` when the subclass is defined, unless it declares them itself): the graph that ``build``
@@ -125,7 +133,9 @@ class Scenario:
             raise ConfigError(f"scenario class {cls.__name__}: estimator_options {sorted(unknown)} are not among "
                               f"{list(ESTIMATOR_OPTIONS)}")
         cls.settings = {**cls.settings, **{k: ESTIMATOR_OPTIONS[k] for k in options if k not in cls.settings}}
-        cls.about = {**cls.about, **{k: ESTIMATOR_OPTIONS_ABOUT[k] for k in options if k not in cls.about}}
+        common = {k: v for k, v in ESTIMATOR_SETTINGS_ABOUT.items() if k in cls.settings and k not in cls.about}
+        cls.about = {**cls.about, **common,
+                     **{k: ESTIMATOR_OPTIONS_ABOUT[k] for k in options if k not in cls.about}}
         cls.per_member = frozenset(cls.per_member) | (ESTIMATOR_OPTIONS_PER_MEMBER & set(options))
         build = cls.__dict__.get("build")
         if build is not None and not getattr(build, "_sets_estimator_options", False):

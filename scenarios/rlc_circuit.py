@@ -181,9 +181,6 @@ class RlcCircuit(Scenario):
         C0_rel=("", "relative error of the initial C0: C0 = C (1 + C0_rel)"),
         R0_rel=("", "relative error of the model's R0 (R is taken as known: 0)"),
         noise=("", "measurement noise std as a fraction of the rms voltage across R"),
-        p0=("", "initial RLS covariance P(0) = p0 I"),
-        lam=("", "RLS forgetting factor in (0, 1]"),
-        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
         w_std=("V", "standard deviation of the white-noise source voltage w"),
         seed=("", "seed of the source voltage and of the measurement noise"),
     )

@@ -31,9 +31,6 @@ class SdofStiffness(Scenario):
         dK=("N/m", "stiffness change in the truth (what the refinement recovers)"),
         dC=("N s/m", "damping change in the truth (what the refinement recovers)"),
         nc=("", "order of the identified subsystem; 0: exactly proper static gain on [x, x']"),
-        p0=("", "initial RLS covariance P(0) = p0 I"),
-        lam=("", "RLS forgetting factor in (0, 1]"),
-        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
         w_std=("N", "standard deviation of the white-noise force w"),
         seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
     )

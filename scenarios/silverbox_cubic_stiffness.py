@@ -138,9 +138,6 @@ class SilverboxCubicStiffness(Scenario):
         n_init=("samples", "samples used to fit the initial state before refinement and validation"),
         foh=("", "interpolate the input linearly between samples (first-order hold) in the model"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
-        p0=("", "initial RLS covariance P(0) = p0 I"),
-        lam=("", "RLS forgetting factor in (0, 1]"),
-        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
     )
 
     def build(self, s, batch, dtype, device):

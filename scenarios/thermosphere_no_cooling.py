@@ -162,8 +162,6 @@ class ThermosphereNoCooling(Scenario):
         shared=("", "structure=temperature: one function of temperature for every node (tied theta) instead of "
                     "one per node"),
         nc=("", "order of the error-driven identified subsystem (structure=error)"),
-        p0=("", "initial RLS covariance P(0) = p0 I"),
-        lam=("", "RLS forgetting factor in (0, 1]"),
         nu=("", "number of Markov parameters of u -> z (nu Ts: how far ahead the cost looks)"),
         theta_max=("", "structure=kockarts: upper bound of theta (projection onto [0, theta_max])"),
         markov_method=("", "how the column is linearized for the Markov parameters", ("autograd", "fd")),

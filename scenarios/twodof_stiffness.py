@@ -112,9 +112,6 @@ class TwoDofStiffness(Scenario):
               ("midpoint", "sampled")),
         truth=("", "continuous structure ZOH-discretized, or the discrete interconnection (exact for the gain)",
                ("continuous", "discrete")),
-        p0=("", "initial RLS covariance P(0) = p0 I"),
-        lam=("", "RLS forgetting factor in (0, 1]"),
-        nu=("", "number of Markov parameters of u -> z in the retrospective cost"),
         w_std=("N", "standard deviation of the white-noise force w (on both masses)"),
         seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
     )
