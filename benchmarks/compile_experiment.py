@@ -25,12 +25,12 @@ NAME = "sdof-stiffness-damping"
 
 def core(win, k, phi_now, u_now, z, beta_rev, theta, P, alive, diverged_at, past, past_u, cur, r_inv):
     """RCOEstimator.update for n_z = n_u = 1, all free, lambda = 1, nc = 1, as a pure tensor program."""
-    W2, B, m = win.shape
-    W, nu, n_phi = W2 // 2, beta_rev.shape[-1], m - 1
+    W, B, m = win.shape
+    nu, n_phi = beta_rev.shape[-1], m - 1
     p = k % W
     row = torch.cat([phi_now, u_now], 1)
-    win.index_copy_(0, torch.stack([p, p + W]), row.unsqueeze(0).expand(2, B, m))
-    rows = win.index_select(0, p + 1 + torch.arange(nu, device=win.device))
+    win.index_copy_(0, p.reshape(1), row.unsqueeze(0))
+    rows = win.index_select(0, (p + 1 + torch.arange(nu, device=win.device)) % W)
     prod = (beta_rev[0] @ rows.reshape(nu, B * m)).reshape(B, m)
     psi = prod[:, :n_phi]
     theta_flat = theta.view(B, -1)

@@ -165,7 +165,7 @@ class RCOEstimator(Block):
         # Per-member state (created by reset).
         for key, shape in (("theta", (0, n_u, self.n_phi)), ("P", (0, self.n_theta, self.n_theta)),
                            ("past", (0, max(nc, 1), self.n_sig)), ("past_u", (0, max(nc, 1), n_u)),
-                           ("win", (2, 0, self.n_phi + n_u)),    # [phi, u] history, see update()
+                           ("win", (0, 0, self.n_phi + n_u)),    # [phi, u] history, see update()
                            ("phi_now", (0, self.n_phi)), ("u_now", (0, n_u)), ("z_r", (0, n_z))):
             self.register_buffer(key, torch.zeros(shape, dtype=dtype))
         self.register_buffer("alive", torch.zeros(0, dtype=torch.bool))
@@ -402,7 +402,7 @@ class RCOEstimator(Block):
         nc1 = max(self.nc, 1)
         self.past = torch.zeros(B, nc1, self.n_sig, dtype=dt, device=dev)
         self.past_u = torch.zeros(B, nc1, self.n_u, dtype=dt, device=dev)
-        self.win = torch.zeros(2 * max(self.window, 1), B, self.n_phi + self.n_u, dtype=dt, device=dev)
+        self.win = torch.zeros(max(self.window, 1), B, self.n_phi + self.n_u, dtype=dt, device=dev)
         self.phi_now = torch.zeros(B, self.n_phi, dtype=dt, device=dev)
         self.u_now = torch.zeros(B, self.n_u, dtype=dt, device=dev)
         self.z_r = torch.zeros(B, self.n_z, dtype=dt, device=dev)
@@ -438,32 +438,38 @@ class RCOEstimator(Block):
         """beta_t reversed in time, (Bp, n_z * n_u, nu): entry j weighs delay d + nu - 1 - j."""
         return memo.derived(self, "beta_rev", (self.beta_t,), lambda: self.beta_t.flip(-1).contiguous())
 
+    def _beta_ring(self, p: int) -> torch.Tensor:
+        """The weights of the window's rows at a step with k mod W = p, (Bp, n_z * n_u, W): row r holds the
+        sample of delay (p - r) mod W, weighed by beta at that delay, or by 0 below the first delay."""
+        padded = memo.derived(self, "beta_padded", (self.beta_t,), lambda: torch.nn.functional.pad(
+            self._beta_rev(), (0, self.first_delay)))                     # entry j weighs delay W - 1 - j
+        return padded.roll(p + 1, dims=-1)
+
     def _lam_arg(self):
         """lam for rls_update: the Python float 1.0 when every member has lam = 1 (no division by lambda)."""
         return memo.derived(self, "lam", (self.lam,), lambda: 1.0 if bool((self.lam == 1).all()) else self.lam)
 
     def update(self, inputs):
         W = self.window
-        if self.win.shape[0] != 2 * W:
+        if self.win.shape[0] != W:
             if W == 0:
                 raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov=, call set_markov() "
                                   "(e.g. with Graph.markov('identified.u', 'error.out', n)), or build the graph "
                                   "with rcotorch.refinement, which derives them from the known model")
             raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
         B, n_phi, n_u, n_z = self.batch_size, self.n_phi, self.n_u, self.n_z
-        m, nu = n_phi + n_u, W - self.first_delay
+        m = n_phi + n_u
         k = self._step_index()
-        # Ring buffer of [phi(t), u(t)], time-major and doubled: rows t mod W and t mod W + W both hold time t,
-        # so the samples at delays d+nu-1 .. d (times k-W+1 .. k-d) are the contiguous rows p+1 .. p+nu.
+        # Ring buffer of [phi(t), u(t)], time-major: row t mod W holds time t, so the W rows hold the delays
+        # 0 .. W-1; every row is weighed (by 0 below the first delay), the same products on both engines.
         p = k % W
-        self.win[p::W] = torch.cat([self.phi_now, self.u_now], dim=1)
-        past = self.win[p + 1:p + 1 + nu]                                       # (nu, B, m), oldest first
-        beta = self._beta_rev()                                                 # (Bp, n_z * n_u, nu)
+        self.win[p] = torch.cat([self.phi_now, self.u_now], dim=1)
+        beta = self._beta_ring(p)                                               # (Bp, n_z * n_u, W)
         # One product gives sum_i beta_i[z, a] phi(k-i)[j] and sum_i beta_i[z, a] u(k-i)[c]: (B, z, a, j|c).
         if beta.shape[0] == 1 and n_z * n_u == 1:
-            prod = (beta[0] @ past.reshape(nu, B * m)).reshape(B, 1, 1, m)
+            prod = (beta[0] @ self.win.view(W, B * m)).reshape(B, 1, 1, m)
         else:
-            prod = torch.bmm(beta.expand(B, -1, -1), past.transpose(0, 1)).reshape(B, n_z, n_u, m)
+            prod = torch.bmm(beta.expand(B, -1, -1), self.win.transpose(0, 1)).reshape(B, n_z, n_u, m)
         psi_t = prod[..., :n_phi].reshape(B, n_z, -1)                           # Psi^T, Theta row-major
         if n_u == 1:
             zeta = inputs["z"] - prod[:, :, 0, n_phi]                           # z - sum_i beta_i u(k-i)
@@ -531,13 +537,13 @@ class RCOEstimator(Block):
         if self.features is not None and self.terms is None:
             b.refuse("features are Python functions (the native engine runs rcotorch.features terms)")
         W = self.window
-        if W == 0 or self.win.shape[0] != 2 * W:
+        if W == 0 or self.win.shape[0] != W:
             b.refuse("has no Markov parameters, or they changed since reset()")
         if self.alive.dtype != torch.bool:
             b.refuse("alive is not boolean")
         st = {key: b.state(key) for key in ("theta", "P", "phi_now", "u_now", "z_r", "alive", "diverged_at", "past",
                                            "past_u")}
-        st["win"] = b.state("win", rows=2 * W)
+        st["win"] = b.state("win", rows=W)
         cur = self._lower_regressors(b)
         nc1 = max(self.nc, 1)
         flat = list(range(cur, cur + self.n_sig)) + list(range(st["past"], st["past"] + nc1 * self.n_sig)) + \

@@ -155,7 +155,7 @@ class Health:
         if y_sq is not None:
             s["y_all"] += y_sq
             s["n_all"] += n
-        if k - n >= s["k_ref"]:
+        if k - n >= max(s["k_ref"], self.window_start):   # inside the window (earlier sums would be reset)
             s["z_win"] += z_sq
             if y_sq is not None:
                 s["y_win"] += y_sq

@@ -27,6 +27,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
@@ -142,9 +143,9 @@ class Monitor:
             return
         for b in self.traced:
             self.writer.add_scalar(f"members/{name} m{b}", float(v[b]), step)
-        ok = v[torch.isfinite(v)]
-        if ok.numel():
-            for q, value in zip(QUANTILES, torch.quantile(ok, torch.tensor(QUANTILES, dtype=ok.dtype))):
+        ok = v[torch.isfinite(v)].numpy()
+        if ok.size:      # numpy's quantiles: the same linear interpolation as torch.quantile, several times faster
+            for q, value in zip(QUANTILES, np.quantile(ok, QUANTILES)):
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
     def figures(self, figs: dict, out: Path) -> None:
@@ -206,8 +207,9 @@ def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
 
 def _mean(values: list) -> float | None:
     """The mean of the finite values, None where there is none."""
-    vals = [x for x in map(float, (v for v in values if v is not None)) if math.isfinite(x)]
-    return sum(vals) / len(vals) if vals else None
+    vals = np.array([math.nan if v is None else v for v in values], dtype=np.float64)
+    vals = vals[np.isfinite(vals)]
+    return float(vals.mean()) if vals.size else None
 
 
 def setting_text(value) -> str:

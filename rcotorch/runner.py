@@ -272,7 +272,7 @@ class Run:
         self.open_output()
         path = Path(path) if path else self.out / CHECKPOINT
         state = {
-            "format": 2, "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
+            "format": 3, "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
             "dtype": self.dtype_name, "settings": self.settings, "log_every": self.log_every,
             "trace": self.trace, "graph": self.graph.state_dict(),
             "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
@@ -299,7 +299,7 @@ class Run:
         if not path.is_file():
             raise CheckpointError(f"--resume {directory}: no {CHECKPOINT} there")
         state = load_checkpoint(path)
-        if state.get("format") != 2:
+        if state.get("format") != 3:
             raise CheckpointError(f"{path}: written by another version of rcotorch (format {state.get('format')})")
         _check_resume(path, state, expect or {})
         run = cls(state["scenario"], steps=steps or state["steps"], batch=state["batch"],

@@ -428,22 +428,38 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
     double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
-    for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into rows pr and pr + W */
+    for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into row pr of the ring */
         const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
-        double *r1 = SL(e[E_WIN] + pr * m + j), *r2 = SL(e[E_WIN] + (pr + W) * m + j);
-        LANES r1[l] = r2[l] = v[l];
+        double *r1 = SL(e[E_WIN] + pr * m + j);
+        LANES r1[l] = v[l];
     }
-    for (int64_t q = 0; q < n_z * n_u; q++) { /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) */
-        const double *restrict c = SL(e[E_BETA] + q * nu), *restrict w = SL(e[E_WIN] + (pr + 1) * m);
-        for (int64_t j = 0; j < m; j++) { /* oldest first, even and odd i summed apart (two shorter chains) */
+    /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i): every row of the ring, oldest first (row
+     * (pr + 1 + i) mod W holds delay W - 1 - i), the rows below the first delay (i >= nu) weighed by 0 as on
+     * the PyTorch engine; even and odd i summed apart (two shorter chains). */
+    const double *restrict win = SL(e[E_WIN]);
+    for (int64_t q = 0; q < n_z * n_u; q++) {
+        const double *restrict c = SL(e[E_BETA] + q * nu);
+        for (int64_t j = 0; j < m; j++) {
             double even[VL], odd[VL];
             LANES even[l] = odd[l] = 0.0;
-            int64_t i = 0;
+            int64_t i = 0, r = pr + 1 == W ? 0 : pr + 1;
+#define RING_NEXT(r) ((r) + 1 == W ? 0 : (r) + 1)
             for (; i + 1 < nu; i += 2) {
-                PMAC(even, AT(c, i), AT(w, i * m + j), e[E_SHARED]);
-                PMAC(odd, AT(c, i + 1), AT(w, (i + 1) * m + j), e[E_SHARED]);
+                PMAC(even, AT(c, i), AT(win, r * m + j), e[E_SHARED]);
+                r = RING_NEXT(r);
+                PMAC(odd, AT(c, i + 1), AT(win, r * m + j), e[E_SHARED]);
+                r = RING_NEXT(r);
             }
-            if (i < nu) PMAC(even, AT(c, i), AT(w, i * m + j), e[E_SHARED]);
+            if (i < nu) {
+                PMAC(even, AT(c, i), AT(win, r * m + j), e[E_SHARED]);
+                r = RING_NEXT(r);
+                i++;
+            }
+            for (; i < W; i++, r = RING_NEXT(r)) {
+                const double *x = AT(win, r * m + j);
+                LANES even[l] += 0.0 * x[l];
+            }
+#undef RING_NEXT
             double *p = AT(prod, q * m + j);
             LANES p[l] = even[l] + odd[l];
         }
