@@ -45,6 +45,7 @@ from typing import Any
 
 import torch
 
+from . import kernels
 from .errors import ConfigError
 
 STATUSES = ("converged", "not_converged", "diverged")
@@ -64,6 +65,11 @@ class Reason(enum.IntEnum):
     @property
     def label(self) -> str:
         return self.name.lower()
+
+
+# The bounds' reasons in the order of precedence of Health._bounds_exceeded (the compiled kernel's order).
+_BOUND_REASONS = (int(Reason.NOT_POSITIVE_DEFINITE), int(Reason.COVARIANCE_WINDUP), int(Reason.U_RUNAWAY),
+                  int(Reason.THETA_RUNAWAY))
 
 
 @dataclass(frozen=True)
@@ -134,9 +140,12 @@ class Health:
         """sum of phi phi^T over the regressors of the last steps the estimator keeps (its window of
         d + nu steps), (B, n_phi, n_phi), and how many steps that is."""
         est = self.est
-        W = max(est.window, 1)
-        phi = est.win[:W, :, :est.n_phi].detach().to(torch.float64)         # (W, B, n_phi): each time once
-        return torch.einsum("wbi,wbj->bij", phi, phi), W
+        W = est.win.shape[0]                                                # each time once
+        gram = kernels.window_gram(est.win.detach(), est.n_phi)
+        if gram is None:
+            phi = est.win[:, :, :est.n_phi].detach().to(torch.float64)      # (W, B, n_phi)
+            gram = torch.einsum("wbi,wbj->bij", phi, phi)
+        return gram, W
 
     def set_target(self, steps: int) -> None:
         """The run ends at ``steps``: the window starts at the check step at or after steps - window * steps
@@ -173,21 +182,27 @@ class Health:
         s["samples"] += 1
 
     def _bounds_exceeded(self) -> torch.Tensor:
-        """Reason codes (0: none) of alive members beyond the runaway or windup bounds."""
+        """Reason codes (0: none) of alive members beyond the runaway or windup bounds (in one pass of the
+        compiled kernel on the CPU, else in PyTorch)."""
         est, s, c = self.est, self.state, self.criteria
         f64 = torch.float64
-        P = est.P.detach().to(f64)
-        trace = P.diagonal(dim1=1, dim2=2).sum(-1)
-        code = torch.where(_definite(P), 0, int(Reason.NOT_POSITIVE_DEFINITE))
-        code = torch.where(trace > c.windup * est.n_theta * est.p0.to(f64), int(Reason.COVARIANCE_WINDUP), code)
+        windup = c.windup * est.n_theta * est.p0.to(f64)
         if s["n_all"] and s["samples"]:       # phi's scale from the earlier checks: a jump of phi is u's
             u_scale = self.u_scale()
             bound = torch.where(u_scale > 0, c.runaway * u_scale, math.inf)
             phi_rms = torch.sqrt(s["phi_sq"] / s["samples"])
-            u_pot = (est.theta.detach().to(f64).abs() * phi_rms.unsqueeze(1)).sum(-1).amax(-1)
-            u_now = est.u_now.detach().to(f64).abs().amax(-1)
-            code = torch.where(u_now > bound, int(Reason.U_RUNAWAY), code)
-            code = torch.where(u_pot > bound, int(Reason.THETA_RUNAWAY), code)
+        else:
+            bound, phi_rms = torch.full_like(s["z_win"], math.inf), torch.zeros_like(s["phi_sq"])
+        code = kernels.health_bounds(est.P, est.theta, est.u_now, phi_rms, bound, windup, est.alive, _BOUND_REASONS)
+        if code is not None:
+            return code
+        P = est.P.detach().to(f64)
+        code = torch.where(_definite(P), 0, int(Reason.NOT_POSITIVE_DEFINITE))
+        code = torch.where(P.diagonal(dim1=1, dim2=2).sum(-1) > windup, int(Reason.COVARIANCE_WINDUP), code)
+        u_pot = (est.theta.detach().to(f64).abs() * phi_rms.unsqueeze(1)).sum(-1).amax(-1)
+        u_now = est.u_now.detach().to(f64).abs().amax(-1)
+        code = torch.where(u_now > bound, int(Reason.U_RUNAWAY), code)
+        code = torch.where(u_pot > bound, int(Reason.THETA_RUNAWAY), code)
         return torch.where(est.alive, code, 0)
 
     def u_scale(self) -> torch.Tensor:

@@ -2,11 +2,13 @@
 
 The bottom of the import graph: this module imports only torch. It loads the extension, takes the engine's
 op codes and record layouts from the names the extension exports (``csrc/engine.h`` is their one
-definition), and wraps the three kernels with the checks they need:
+definition), and wraps the kernels with the checks they need:
 
 * ``run``: a lowered graph for T steps (``rcotorch.lowering`` builds the program);
 * ``rls_``: ``rls_update`` in place through the same RLS code as the estimator's native step;
-* ``uniform_grid``: the integer hashing behind ``rcotorch.rng.normal`` on a grid.
+* ``uniform_grid``: the integer hashing behind ``rcotorch.rng.normal`` on a grid;
+* ``health_bounds``: the member health checks' bounds (``rcotorch.health``) of every member;
+* ``window_gram``: the sum of the regressors' outer products over the estimator's window.
 
 Without the extension (no C compiler when the package was installed) everything runs on PyTorch and the
 first use warns once. ``RCOTORCH_ENGINE=torch`` turns the kernels off for the whole process, and
@@ -157,3 +159,36 @@ def uniform_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length:
     _engine.uniform_grid(B, seeds.data_ptr(), members.data_ptr(), int(start), int(length), int(width),
                          u1.data_ptr(), u2.data_ptr(), threads())
     return u1, u2
+
+
+def health_bounds(P: torch.Tensor, theta: torch.Tensor, u_now: torch.Tensor, phi_rms: torch.Tensor,
+                  bound: torch.Tensor, windup: torch.Tensor, alive: torch.Tensor, reasons: tuple[int, int, int, int]
+                  ) -> torch.Tensor | None:
+    """The codes of ``Health._bounds_exceeded`` (P (B, n, n), theta (B, n_u, n_phi), u_now (B, n_u), phi_rms
+    (B, n_phi), bound and windup (B,), alive (B,); ``reasons``: the codes of P not positive definite, windup,
+    u runaway, theta runaway), or None where the kernel does not apply (not allowed here, not the CPU or
+    float64): then the caller runs PyTorch."""
+    if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in (P, theta, u_now)):
+        return None
+    B, n = P.shape[0], P.shape[-1]
+    n_u, n_phi = theta.shape[1], theta.shape[2]
+
+    def f64(t: torch.Tensor, *shape: int) -> torch.Tensor:
+        return t.detach().to(torch.float64).expand(*shape).contiguous()
+    args = [f64(P, B, n, n), f64(theta, B, n_u, n_phi), f64(u_now, B, n_u), f64(phi_rms, B, n_phi),
+            f64(bound, B), f64(windup, B), alive.reshape(B).to(torch.uint8).contiguous()]
+    args.append(torch.tensor(reasons, dtype=torch.int64))
+    code = torch.empty(B, dtype=torch.int64)
+    _engine.health_bounds(B, n, n_u, n_phi, *(t.data_ptr() for t in args), code.data_ptr(), threads())
+    return code
+
+
+def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
+    """sum_w x x^T over the rows of a time-major window (W, B, m), x = win[w, b, :n], as (B, n, n), or None where
+    the kernel does not apply (not allowed here, not the CPU, float64 and contiguous)."""
+    if not allowed() or win.device.type != "cpu" or win.dtype != torch.float64 or not win.is_contiguous():
+        return None
+    W, B, m = win.shape
+    out = torch.empty(B, n, n, dtype=torch.float64)
+    _engine.window_gram(W, B, m, n, win.data_ptr(), out.data_ptr(), threads())
+    return out

@@ -183,3 +183,58 @@ def test_a_million_steps_with_forgetting_and_weak_excitation_end_classified_and_
     assert h["status"][3] == "diverged" and h["reason"][3] == "covariance_windup"
     assert h["status"][2] == "diverged" and h["reason"][2] == "covariance_windup"
     assert float(est.P[3].diagonal().max()) < 1e6 * 1e3 * 2 * (1 / 0.995) ** check_every(1_000_000)
+
+
+def test_the_bounds_kernel_gives_each_reason_as_the_pytorch_checks_do():
+    """One member per case, with its reason worked out by hand: the compiled checks and the PyTorch ones (the
+    reference, run with the kernels disabled) give the same codes, precedence included."""
+    from rcotorch import kernels
+    sc = scenarios.get("sdof-stiffness")
+    g = sc.build(sc.resolve(), 9, torch.float64, "cpu")
+    health = Health(g, 1000)
+    est = health.est
+    n = est.n_theta
+    eye = torch.eye(n, dtype=torch.float64)
+    P = torch.stack([eye] * 9)
+    P[1] = -eye                                              # not positive definite
+    P[2, 0, 1] = P[2, 1, 0] = 2.0                            # symmetric, indefinite (det 1 - 4 < 0)
+    P[3, 0, 0] = math.nan                                    # not finite
+    P[4] = 1e7 * float(est.p0.reshape(-1)[0]) * eye          # trace beyond windup * n * p0
+    P[5, 1, 1] = math.inf                                    # overflowed: windup takes precedence
+    theta = torch.zeros_like(est.theta)
+    theta[6, 0, 0] = 1e9                                     # theta runaway
+    u_now = torch.zeros_like(est.u_now)
+    u_now[7] = -1e9                                          # u runaway
+    theta[8, 0, 0], P[8] = 1e9, -eye                         # theta runaway over not positive definite
+    alive = torch.ones(9, dtype=torch.bool)
+    est.set_state(P=P, theta=theta, u_now=u_now, alive=alive)
+    s = health.state
+    s["y_all"].fill_(1.0)
+    s["n_all"], s["samples"] = 1, 1
+    s["phi_sq"].fill_(1.0)
+    windup_p = health.criteria.windup * n * float(est.p0.reshape(-1)[0])
+    assert float(P[4].trace()) > windup_p > float(P[0].trace())
+    R = Reason
+    expected = [0, R.NOT_POSITIVE_DEFINITE, R.NOT_POSITIVE_DEFINITE, R.NOT_POSITIVE_DEFINITE,
+                R.COVARIANCE_WINDUP, R.COVARIANCE_WINDUP, R.THETA_RUNAWAY, R.U_RUNAWAY, R.THETA_RUNAWAY]
+    assert kernels.available()
+    fast = health._bounds_exceeded()
+    with kernels.disabled():
+        reference = health._bounds_exceeded()
+    assert reference.tolist() == [int(r) for r in expected]
+    assert fast.tolist() == reference.tolist()
+    est.set_state(alive=torch.zeros(9, dtype=torch.bool))    # frozen members are not checked again
+    assert health._bounds_exceeded().tolist() == [0] * 9
+
+
+def test_the_window_gram_kernel_sums_the_regressors_outer_products():
+    """sum_w x x^T over the rows of a (W, B, m) window, x the first n entries, against numpy."""
+    from rcotorch import kernels
+    rng = np.random.default_rng(3)
+    win = torch.from_numpy(rng.standard_normal((7, 300, 5)))
+    gram = kernels.window_gram(win, 3)
+    x = win.numpy()[:, :, :3]
+    expected = np.stack([x[:, b].T @ x[:, b] for b in range(300)])
+    np.testing.assert_allclose(gram.numpy(), expected, rtol=1e-13, atol=1e-13)
+    with kernels.disabled():
+        assert kernels.window_gram(win, 3) is None            # the caller's PyTorch path takes over

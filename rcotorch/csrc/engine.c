@@ -3,6 +3,8 @@
  *   run          a graph lowered to instructions (rcotorch/lowering.py), run for T steps
  *   rls          rls_update on batched tensors, through the same RLS code as the estimator's step
  *   uniform_grid the integer part of rcotorch.rng.normal on a (member, step, component) grid
+ *   health_bounds the member health checks' bounds (definiteness, windup, runaway) of every member
+ *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
  *
  * Members are independent, so a batch is cut into chunks of VL lanes (VL = 1, 4, 8 or 16, chosen by the
  * caller from the batch size); each chunk runs all T steps on its own (a thread per chunk, OpenMP), so
@@ -375,6 +377,113 @@ static PyObject *py_uniform_grid(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* The health checks' bounds (health.py, Health._bounds_exceeded) for members [0, B): code[b] = the reason
+ * (reason[0..3], health.Reason's codes) of an alive member beyond a bound, else 0. Later tests take precedence:
+ * P not positive definite or not finite (reason[0]), trace(P) > windup[b] (reason[1]), max_a |u_now[b, a]| >
+ * bound[b] (reason[2]), max_a sum_j |theta[b, a, j]| phi_rms[b, j] > bound[b] (reason[3]). Comparisons with NaN
+ * are false, as in PyTorch. */
+static int health_bounds(int64_t B, int64_t n, int64_t n_u, int64_t n_phi, const double *P, const double *theta,
+                         const double *u_now, const double *phi_rms, const double *bound, const double *windup,
+                         const uint8_t *alive, const int64_t *reason, int64_t *code, int nthreads) {
+    int fail = 0;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 4096) reduction(| : fail)
+#endif
+    {
+        double *L = (double *)malloc((size_t)(n > 0 ? n * n : 1) * sizeof(double));
+        if (!L) {
+            fail = 1;
+        } else {
+#ifdef _OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t b = 0; b < B; b++) {
+                const double *p = P + b * n * n;
+                int ok = 1;
+                int64_t c = 0;
+                double trace = 0.0;
+                for (int64_t i = 0; i < n * n; i++) ok = ok && fabs(p[i]) < INFINITY;
+                for (int64_t j = 0; j < n && ok; j++) { /* Cholesky of the lower triangle */
+                    double d = p[j * n + j];
+                    for (int64_t k = 0; k < j; k++) d -= L[j * n + k] * L[j * n + k];
+                    if (!(d > 0.0)) {
+                        ok = 0;
+                        break;
+                    }
+                    L[j * n + j] = sqrt(d);
+                    for (int64_t i = j + 1; i < n; i++) {
+                        double x = p[i * n + j];
+                        for (int64_t k = 0; k < j; k++) x -= L[i * n + k] * L[j * n + k];
+                        L[i * n + j] = x / L[j * n + j];
+                    }
+                }
+                for (int64_t i = 0; i < n; i++) trace += p[i * n + i];
+                if (!ok) c = reason[0];
+                if (trace > windup[b]) c = reason[1];
+                double u_max = 0.0, pot_max = 0.0;
+                for (int64_t a = 0; a < n_u; a++) {
+                    double u = fabs(u_now[b * n_u + a]), pot = 0.0;
+                    for (int64_t j = 0; j < n_phi; j++)
+                        pot += fabs(theta[(b * n_u + a) * n_phi + j]) * phi_rms[b * n_phi + j];
+                    u_max = a == 0 || u > u_max || u != u ? u : u_max;          /* amax: NaN wins */
+                    pot_max = a == 0 || pot > pot_max || pot != pot ? pot : pot_max;
+                }
+                if (u_max > bound[b]) c = reason[2];
+                if (pot_max > bound[b]) c = reason[3];
+                code[b] = alive[b] ? c : 0;
+            }
+            free(L);
+        }
+    }
+    return fail;
+}
+
+static PyObject *py_health_bounds(PyObject *self, PyObject *args) {
+    long long B, n, n_u, n_phi;
+    unsigned long long P, theta, u_now, phi_rms, bound, windup, alive, reason, code;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "LLLLKKKKKKKKKi", &B, &n, &n_u, &n_phi, &P, &theta, &u_now, &phi_rms, &bound,
+                          &windup, &alive, &reason, &code, &nthreads))
+        return NULL;
+    int fail;
+    Py_BEGIN_ALLOW_THREADS
+    fail = health_bounds(B, n, n_u, n_phi, ADDR(P), ADDR(theta), ADDR(u_now), ADDR(phi_rms), ADDR(bound),
+                         ADDR(windup), ADDR(alive), ADDR(reason), ADDR(code), nthreads);
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+/* out[b] = sum_w x_wb x_wb^T for x_wb = win[w, b, :n] of a time-major (W, B, m) window: the sum of the outer
+ * products of the regressors it holds (health.py, Health._recent_phi). */
+static void window_gram(int64_t W, int64_t B, int64_t m, int64_t n, const double *win, double *out, int nthreads) {
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B >= 4096)
+#endif
+    for (int64_t b0 = 0; b0 < B; b0 += 256) { /* blocks of members, each row of the window read in order */
+        int64_t b1 = b0 + 256 < B ? b0 + 256 : B;
+        for (int64_t i = b0 * n * n; i < b1 * n * n; i++) out[i] = 0.0;
+        for (int64_t w = 0; w < W; w++)
+            for (int64_t b = b0; b < b1; b++) {
+                const double *x = win + (w * B + b) * m;
+                double *o = out + b * n * n;
+                for (int64_t i = 0; i < n; i++)
+                    for (int64_t j = 0; j < n; j++) o[i * n + j] += x[i] * x[j];
+            }
+    }
+}
+
+static PyObject *py_window_gram(PyObject *self, PyObject *args) {
+    long long W, B, m, n;
+    unsigned long long win, out;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "LLLLKKi", &W, &B, &m, &n, &win, &out, &nthreads)) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    window_gram(W, B, m, n, ADDR(win), ADDR(out), nthreads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
     long long n_u, n_z, n_phi, n, nl;
     if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
@@ -388,6 +497,12 @@ static PyMethodDef METHODS[] = {
                                   "lanes, threads): one RLS step of every member, in place"},
     {"uniform_grid", py_uniform_grid, METH_VARARGS,
      "uniform_grid(B, seeds, members, start, length, width, u1, u2, threads): the uniforms of rng.normal"},
+    {"health_bounds", py_health_bounds, METH_VARARGS,
+     "health_bounds(B, n, n_u, n_phi, P, theta, u_now, phi_rms, bound, windup, alive, reason, code, threads): the "
+     "health "
+     "checks' bounds"},
+    {"window_gram", py_window_gram, METH_VARARGS,
+     "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
     {NULL, NULL, 0, NULL},
 };
