@@ -2,7 +2,7 @@
 
 Cadences, fixed when a run is created and kept by a resume:
 
-* health checks every ``health.check_every(steps)`` steps (about 100 per run, the same for any batch size);
+* health checks every ``health.check_every(steps)`` steps (about 50 per run, the same for any batch size);
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
   batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
   check steps where the interval is longer than the checks';
