@@ -15,7 +15,7 @@ from setuptools.command.build_ext import build_ext
 # depend on the instruction set, the lane width or the batch it runs in.
 # Loops over lanes are marked for vectorization (OpenMP simd, no OpenMP runtime needed); -fno-trapping-math
 # and -fno-math-errno let selects and square roots vectorize and change no value.
-FLAGS = ["-O2", "-ftree-vectorize", "-fvect-cost-model=dynamic", "-ffp-contract=off", "-fno-math-errno",
+FLAGS = ["-O3", "-ftree-vectorize", "-fvect-cost-model=dynamic", "-ffp-contract=off", "-fno-math-errno",
          "-fno-trapping-math", "-fno-tree-loop-distribute-patterns", "-fopenmp-simd", "-std=gnu11"]
 OPENMP = ["-fopenmp"]
 

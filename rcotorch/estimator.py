@@ -565,7 +565,8 @@ class RCOEstimator(Block):
                       RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
                       Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
                       UOUT=b.output("u"),
-                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl)),
+                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl,
+                                                                        W)),
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         args = [fields[key] for key in kernels.RCO_FIELD]

@@ -55,11 +55,12 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         }
         LANES {
             double sv = (lam_one ? rinv[l] : lam[l] * rinv[l]) + s[l]; /* S = lam R^-1 + psi^T P psi */
-            int ok0 = sv > 0.0 && sv < INFINITY, gg = ok0 && active[l] != 0.0;
+            int ok0 = (sv > 0.0) & (sv < INFINITY), gg = ok0 & (active[l] != 0.0);
             ok[l] = ok0;
             s[l] = gg ? sv : 1.0;
             go[l] = gg;
-            g[l] = gg ? zr[l] / s[l] : 0.0;
+            double q = zr[l] / s[l]; /* every lane loads (no masked loads) */
+            g[l] = gg ? q : 0.0;
             sum[l] = 0.0;
         }
         for (int64_t i = 0; i < n; i++) {
@@ -72,8 +73,8 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         }
         LANES {
             int fin = fabs(sum[l]) < INFINITY;
-            ok[l] = ok[l] != 0.0 && fin;
-            go[l] = go[l] != 0.0 && fin;
+            ok[l] = (ok[l] != 0.0) & fin;
+            go[l] = (go[l] != 0.0) & fin;
             g[l] = go[l] != 0.0 ? 1.0 / sqrt(s[l]) : 0.0;
         }
         for (int64_t i = 0; i < n; i++) {
@@ -99,7 +100,7 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         LANES ok[l] = 1.0;
         for (int64_t e = 0; e < nl * nl; e++) {
             const double *sc = AT(Lm, e);
-            LANES ok[l] = ok[l] != 0.0 && fabs(sc[l]) < INFINITY;
+            LANES ok[l] = (ok[l] != 0.0) & (fabs(sc[l]) < INFINITY);
         }
         for (int64_t j = 0; j < nl; j++) { /* Cholesky S = L L^T in place (lower triangle) */
             double *ljj = AT(Lm, j * nl + j), d[VL];
@@ -110,7 +111,7 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
             }
             LANES {
                 double piv = ljj[l] - d[l];
-                ok[l] = ok[l] != 0.0 && piv > 0.0;
+                ok[l] = (ok[l] != 0.0) & (piv > 0.0);
                 ljj[l] = sqrt(piv > 0.0 ? piv : 1.0);
             }
             for (int64_t i = j + 1; i < nl; i++) {
@@ -123,7 +124,7 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
                 LANES lij[l] = (lij[l] - d[l]) / ljj[l];
             }
         }
-        LANES go[l] = ok[l] != 0.0 && active[l] != 0.0;
+        LANES go[l] = (ok[l] != 0.0) & (active[l] != 0.0);
         for (int64_t i = 0; i < nl; i++) /* L where go, else I */
             for (int64_t j = 0; j <= i; j++) {
                 double *lij = AT(Lm, i * nl + j), e = i == j ? 1.0 : 0.0;
@@ -133,7 +134,10 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
             for (int64_t c = 0; c < nl; c++) {
                 double *x = r < 0 ? AT(v, c) : AT(Wm, r * nl + c);
                 const double *b = r < 0 ? AT(zr, c) : AT(a, r * nl + c), *lcc = AT(Lm, c * nl + c);
-                LANES x[l] = go[l] != 0.0 ? b[l] : 0.0;
+                LANES {
+                    double bv = b[l];
+                    x[l] = go[l] != 0.0 ? bv : 0.0;
+                }
                 for (int64_t k = 0; k < c; k++) {
                     const double *lck = AT(Lm, c * nl + k), *xk = r < 0 ? AT(v, k) : AT(Wm, r * nl + k);
                     LANES x[l] -= lck[l] * xk[l];
@@ -154,8 +158,8 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         }
         LANES {
             int fin = fabs(sum[l]) < INFINITY;
-            ok[l] = ok[l] != 0.0 && fin;
-            go[l] = go[l] != 0.0 && fin;
+            ok[l] = (ok[l] != 0.0) & fin;
+            go[l] = (go[l] != 0.0) & fin;
         }
         for (int64_t i = 0; i < n; i++) {
             double *st = AT(step, i);
@@ -181,7 +185,10 @@ static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
                 }
                 LANES p[l] -= d[l];
             }
-            if (!lam_one) LANES p[l] /= go[l] != 0.0 ? lam[l] : 1.0;
+            if (!lam_one) LANES {
+                double lv = lam[l];
+                p[l] /= go[l] != 0.0 ? lv : 1.0;
+            }
         }
     for (int64_t i = 0; i < n; i++) {
         double *t = AT(th, i);
@@ -426,42 +433,43 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
     double *scr = SL(e[E_SCRATCH]);
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
-    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
+    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl), *wr = AT(rls_scr, rls_scratch(n, nl));
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into row pr of the ring */
         const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
         double *r1 = SL(e[E_WIN] + pr * m + j);
         LANES r1[l] = v[l];
     }
-    /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i): every row of the ring, oldest first (row
-     * (pr + 1 + i) mod W holds delay W - 1 - i), the rows below the first delay (i >= nu) weighed by 0 as on
-     * the PyTorch engine; even and odd i summed apart (two shorter chains). */
+    /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over every row of the ring: row r holds delay
+     * (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] (wr: beta_rev rolled to this step), by 0 below
+     * the first delay as on the PyTorch engine; rows in memory order, in four chains. */
     const double *restrict win = SL(e[E_WIN]);
+    const int64_t sh = e[E_SHARED];
     for (int64_t q = 0; q < n_z * n_u; q++) {
         const double *restrict c = SL(e[E_BETA] + q * nu);
-        for (int64_t j = 0; j < m; j++) {
-            double even[VL], odd[VL];
-            LANES even[l] = odd[l] = 0.0;
-            int64_t i = 0, r = pr + 1 == W ? 0 : pr + 1;
-#define RING_NEXT(r) ((r) + 1 == W ? 0 : (r) + 1)
-            for (; i + 1 < nu; i += 2) {
-                PMAC(even, AT(c, i), AT(win, r * m + j), e[E_SHARED]);
-                r = RING_NEXT(r);
-                PMAC(odd, AT(c, i + 1), AT(win, r * m + j), e[E_SHARED]);
-                r = RING_NEXT(r);
-            }
+        for (int64_t r = 0; r < W; r++) {
+            int64_t i = r - pr - 1 < 0 ? r - pr - 1 + W : r - pr - 1;
+            double *w = AT(wr, r);
             if (i < nu) {
-                PMAC(even, AT(c, i), AT(win, r * m + j), e[E_SHARED]);
-                r = RING_NEXT(r);
-                i++;
+                const double *ci = AT(c, i);
+                if (VL == 1 || sh) { w[0] = ci[0]; } else { LANES w[l] = ci[l]; }
+            } else {
+                if (VL == 1 || sh) { w[0] = 0.0; } else { LANES w[l] = 0.0; }
             }
-            for (; i < W; i++, r = RING_NEXT(r)) {
-                const double *x = AT(win, r * m + j);
-                LANES even[l] += 0.0 * x[l];
+        }
+        for (int64_t j = 0; j < m; j++) {
+            double a0[VL], a1[VL], a2[VL], a3[VL];
+            LANES a0[l] = a1[l] = a2[l] = a3[l] = 0.0;
+            int64_t r = 0;
+            for (; r + 3 < W; r += 4) {
+                PMAC(a0, AT(wr, r), AT(win, r * m + j), sh);
+                PMAC(a1, AT(wr, r + 1), AT(win, (r + 1) * m + j), sh);
+                PMAC(a2, AT(wr, r + 2), AT(win, (r + 2) * m + j), sh);
+                PMAC(a3, AT(wr, r + 3), AT(win, (r + 3) * m + j), sh);
             }
-#undef RING_NEXT
+            for (; r < W; r++) PMAC(a0, AT(wr, r), AT(win, r * m + j), sh);
             double *p = AT(prod, q * m + j);
-            LANES p[l] = even[l] + odd[l];
+            LANES p[l] = (a0[l] + a1[l]) + (a2[l] + a3[l]);
         }
     }
     for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
@@ -500,7 +508,11 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     }
     FN(rco_rows)(e, S, n, n_z, nl, psi, zr, zrx);
     const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
-    LANES act[l] = alive[l] != 0.0 && (!valid || valid[l] > 0.5);
+    if (valid) { /* & and |, not && and ||, in lane loops: no conditional (masked) loads */
+        LANES act[l] = (alive[l] != 0.0) & (valid[l] > 0.5);
+    } else {
+        LANES act[l] = alive[l] != 0.0;
+    }
     FN(rls)(n, nl, eta, SL(e[E_P]), psi, zrx, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
     for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
         if (param_of[en] < 0) continue;
@@ -523,8 +535,8 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
             LANES tr[l] += pii[l];
         }
         LANES {
-            int fine = okv[l] != 0.0 || act[l] == 0.0;
-            c[l] = alive[l] != 0.0 && fine && tr[l] > pm[l] ? pm[l] / tr[l] : 1.0;
+            int fine = (okv[l] != 0.0) | (act[l] == 0.0);
+            c[l] = (alive[l] != 0.0) & fine & (tr[l] > pm[l]) ? pm[l] / tr[l] : 1.0;
         }
         for (int64_t i = 0; i < n * n; i++) {
             double *pij = AT(P, i);
@@ -533,11 +545,9 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     }
     double *dv = SL(e[E_DIV]);
     LANES { /* a member that fails while active is frozen, its step recorded */
-        int fine = okv[l] != 0.0 || act[l] == 0.0;
-        if (alive[l] != 0.0 && !fine) {
-            dv[l] = (double)k;
-            alive[l] = 0.0;
-        }
+        int fine = (okv[l] != 0.0) | (act[l] == 0.0), dies = (alive[l] != 0.0) & !fine;
+        dv[l] = dies ? (double)k : dv[l];
+        alive[l] = dies ? 0.0 : alive[l];
     }
     if (e[E_NC]) { /* shift the regressor histories */
         int64_t nc1 = e[E_NC1], n_sig = e[E_NSIG], ps = e[E_PAST], us = e[E_PASTU];
