@@ -318,8 +318,8 @@ class Graph(nn.Module):
         for sig in signals.values():
             self._port(sig, "output")
         getters = {key: ref for key, ref in record.items() if callable(ref)}
-        bufs = {sig: torch.empty(steps // every, self.batch_size, self.blocks[sig[0]].outputs[sig[1]],
-                                 dtype=_dtype(self), device=self.k.device) for sig in set(signals.values())}
+        bufs = {sig: kernels.empty((steps // every, self.batch_size, self.blocks[sig[0]].outputs[sig[1]]),
+                                   _dtype(self), self.k.device) for sig in set(signals.values())}
         traces: dict[str, list] = {key: [] for key in getters}
         bar = None
         if progress:

@@ -8,7 +8,9 @@ definition), and wraps the kernels with the checks they need:
 * ``rls_``: ``rls_update`` in place through the same RLS code as the estimator's native step;
 * ``uniform_grid``: the integer hashing behind ``rcotorch.rng.normal`` on a grid;
 * ``health_bounds``: the member health checks' bounds (``rcotorch.health``) of every member;
-* ``window_gram``: the sum of the regressors' outer products over the estimator's window.
+* ``window_gram``: the sum of the regressors' outer products over the estimator's window;
+
+and ``empty``, the allocation of the large buffers the engine fills (recordings).
 
 Without the extension (no C compiler when the package was installed) everything runs on PyTorch and the
 first use warns once. ``RCOTORCH_ENGINE=torch`` turns the kernels off for the whole process, and
@@ -19,7 +21,9 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import ctypes
 import os
+import sys
 import threading
 import warnings
 
@@ -192,3 +196,33 @@ def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     out = torch.empty(B, n, n, dtype=torch.float64)
     _engine.window_gram(W, B, m, n, win.data_ptr(), out.data_ptr(), threads())
     return out
+
+
+_HUGE = 2 << 20              # the huge page size of x86-64 and arm64 Linux
+_MADV_HUGEPAGE = 14
+
+
+def _libc_madvise():
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).madvise
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int
+    return fn
+
+
+_MADVISE = _libc_madvise() if sys.platform.startswith("linux") else None
+
+
+def empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.Tensor:
+    """``torch.empty``; a large CPU buffer is first advised to the kernel as huge-page memory (Linux
+    ``madvise(MADV_HUGEPAGE)``, before anything touches it), so that filling it faults one page per 2 MiB
+    instead of one per 4 KiB (a 190 MB recording: about 0.04 s of faults instead of 0.12 s). Elsewhere, or
+    where the system refuses, a plain ``torch.empty``."""
+    t = torch.empty(shape, dtype=dtype, device=device)
+    if _MADVISE is not None and t.device.type == "cpu":
+        start = -(-t.data_ptr() // _HUGE) * _HUGE                        # the whole huge pages inside the buffer
+        end = (t.data_ptr() + t.numel() * t.element_size()) // _HUGE * _HUGE
+        if end > start:
+            _MADVISE(start, end - start, _MADV_HUGEPAGE)                  # advice only: a refusal changes nothing
+    return t

@@ -473,3 +473,35 @@ def test_a_subclass_that_changes_a_block_keeps_the_graph_on_pytorch(sdof_known):
     g = rt.refinement(sdof_known(DT), rt.RCOEstimator({"y0": 1}, nc=1), truth=Leaky([[0.1]], name="unknown"),
                       excitation=rt.WhiteNoise(1), nu=4)
     assert "overrides output() of Gain" in g.native_status()
+
+
+def _anon_huge_kib(lo: int, hi: int) -> int:
+    """AnonHugePages (KiB) of this process's mappings that overlap [lo, hi)."""
+    total, inside = 0, False
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            head = line.split()[0]
+            if "-" in head and not head.endswith(":"):
+                a, b = (int(x, 16) for x in head.split("-"))
+                inside = a < hi and b > lo
+            elif inside and head == "AnonHugePages:":
+                total += int(line.split()[1])
+    return total
+
+
+def test_large_recording_buffers_are_backed_by_huge_pages():
+    """kernels.empty advises a large buffer as huge-page memory before it is touched: once filled, the
+    system backs it with 2 MiB pages (where it offers them on request), and the values are those written."""
+    try:
+        mode = open("/sys/kernel/mm/transparent_hugepage/enabled").read()
+    except OSError:
+        pytest.skip("no transparent huge pages on this system")
+    if "[never]" in mode:
+        pytest.skip("transparent huge pages are off on this system")
+    buf = kernels.empty((64, 1024, 128), torch.float64)      # 64 MiB
+    buf.fill_(1.5)
+    lo = buf.data_ptr()
+    assert _anon_huge_kib(lo, lo + buf.numel() * 8) >= 32 * 1024
+    assert buf.shape == (64, 1024, 128) and float(buf.sum()) == 1.5 * buf.numel()
+    small = kernels.empty((3, 2), torch.float64)               # below one huge page: a plain tensor
+    assert small.shape == (3, 2) and small.dtype == torch.float64
