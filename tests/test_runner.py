@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from rcotorch import ConfigError
+from rcotorch.errors import CheckpointError
 from rcotorch.cli import main
 from rcotorch.runner import Run
 
@@ -133,3 +134,22 @@ def test_a_diverging_member_is_frozen_and_reported(tmp_path):
     clean.advance(progress=False)
     th, th_clean = ident.theta, clean.graph.blocks["identified"].theta
     assert torch.equal(th[[0, 2]], th_clean[[0, 2]])
+
+
+def test_a_checkpoint_of_another_format_is_refused_with_exit_2(tmp_path, capsys):
+    """A checkpoint written with the doubled regressor ring (format 2) does not fit this version's state: a
+    resume refuses it, naming the file and its format, and leaves it as it was."""
+    from rcotorch.outputs import load_checkpoint, save_checkpoint
+    run = Run("sdof-stiffness", steps=40, out=tmp_path / "old")
+    run.advance(progress=False)
+    path = run.save()
+    run.close()
+    state = load_checkpoint(path)
+    state["format"] = 2
+    save_checkpoint(path, state)
+    before = path.read_bytes()
+    with pytest.raises(CheckpointError, match=r"checkpoint\.pt: written by another version of rcotorch \(format 2\)"):
+        Run.resume(tmp_path / "old")
+    assert main(["run", "--resume", str(tmp_path / "old"), "--quiet"]) == 2
+    assert "format 2" in capsys.readouterr().err
+    assert path.read_bytes() == before
