@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from rcotorch import ConfigError
-from rcotorch.errors import CheckpointError
 from rcotorch.cli import main
+from rcotorch.errors import CheckpointError
 from rcotorch.runner import Run
 
 
