@@ -33,6 +33,7 @@ from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = 3   # the layout of checkpoint.pt (3: the estimator's ring of regressors has W rows)
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
 HISTORY_MAX = 1000
@@ -272,7 +273,7 @@ class Run:
         self.open_output()
         path = Path(path) if path else self.out / CHECKPOINT
         state = {
-            "format": 3, "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
+            "format": CHECKPOINT_FORMAT, "scenario": self.scenario.name, "steps": self.steps, "batch": self.batch,
             "dtype": self.dtype_name, "settings": self.settings, "log_every": self.log_every,
             "trace": self.trace, "graph": self.graph.state_dict(),
             "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
@@ -299,7 +300,7 @@ class Run:
         if not path.is_file():
             raise CheckpointError(f"--resume {directory}: no {CHECKPOINT} there")
         state = load_checkpoint(path)
-        if state.get("format") != 3:
+        if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"{path}: written by another version of rcotorch (format {state.get('format')})")
         _check_resume(path, state, expect or {})
         run = cls(state["scenario"], steps=steps or state["steps"], batch=state["batch"],

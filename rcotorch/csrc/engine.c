@@ -498,9 +498,8 @@ static PyMethodDef METHODS[] = {
     {"uniform_grid", py_uniform_grid, METH_VARARGS,
      "uniform_grid(B, seeds, members, start, length, width, u1, u2, threads): the uniforms of rng.normal"},
     {"health_bounds", py_health_bounds, METH_VARARGS,
-     "health_bounds(B, n, n_u, n_phi, P, theta, u_now, phi_rms, bound, windup, alive, reason, code, threads): the "
-     "health "
-     "checks' bounds"},
+     "health_bounds(B, n, n_u, n_phi, P, theta, u_now, phi_rms, bound, windup, alive, reason, code, threads): "
+     "the health checks' bounds"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows, window): scratch slots"},
