@@ -24,8 +24,11 @@ fraction of the steps (the window starts at a check step):
   ``(theta_end - theta_start) phi(k)`` over the window's regressors phi(k), divided by the larger rms of
   ``theta_end phi(k)`` and ``theta_start phi(k)`` (or by ``1e-3 u_scale`` when both are smaller, so that an
   identified subsystem that is zero is judged against the data's scale); at most ``theta_tol``: the identified
-  subsystem has settled. A drift of theta along directions the data does not see (a pole and a zero moving
-  together, say) does not count, since it does not change the subsystem's output;
+  subsystem has settled. The regressors are those the estimator keeps (its last d + nu) of the steps since
+  the previous check, each once: every step of the window when the checks are closer than d + nu steps, a
+  sample of d + nu steps before each check when they are further apart. A drift of theta along directions
+  the data does not see (a pole and a zero moving together, say) does not count, since it does not change
+  the subsystem's output;
 * ``z_ratio = rms(z) / rms(y)`` over the window, at most ``z_tol``: the refined model explains the data (a
   member whose measured output is zero over the window has learned nothing: its z_ratio is NaN and it is
   not converged).
@@ -137,16 +140,24 @@ class Health:
     def _theta(self) -> torch.Tensor:
         return self.est.theta.detach().to(torch.float64).clone()
 
-    def _recent_phi(self) -> tuple[torch.Tensor, int]:
-        """sum of phi phi^T over the regressors of the last steps the estimator keeps (its window of
-        d + nu steps), (B, n_phi, n_phi), and how many steps that is."""
+    def _recent_phi(self, steps: int | None = None) -> tuple[torch.Tensor, int]:
+        """sum of phi phi^T over the regressors of the last ``steps`` steps, each once (at most the d + nu
+        steps the estimator keeps in its window; all of those by default), (B, n_phi, n_phi), and how many
+        steps that is."""
         est = self.est
-        W = est.win.shape[0]                                                # each time once
-        gram = kernels.window_gram(est.win.detach(), est.n_phi)
-        if gram is None:
-            phi = est.win[:, :, :est.n_phi].detach().to(torch.float64)      # (W, B, n_phi)
-            gram = torch.einsum("wbi,wbj->bij", phi, phi)
-        return gram, W
+        W, k = est.win.shape[0], int(est.k)          # row t mod W holds the regressor of update t
+        n = min(W, k, W if steps is None else steps)
+        first, last = (k - n) % W, (k - 1) % W
+        rows = [est.win[first:last + 1]] if first <= last else [est.win[first:], est.win[:last + 1]]
+        gram = torch.zeros(est.win.shape[1], est.n_phi, est.n_phi, dtype=torch.float64, device=est.win.device)
+        for part in rows if n else []:
+            part = part.detach()
+            g = kernels.window_gram(part, est.n_phi)
+            if g is None:
+                phi = part[:, :, :est.n_phi].to(torch.float64)                  # (w, B, n_phi)
+                g = torch.einsum("wbi,wbj->bij", phi, phi)
+            gram += g
+        return gram, n
 
     def set_target(self, steps: int) -> None:
         """The run ends at ``steps``: the window starts at the check step at or after steps - window * steps
@@ -170,7 +181,7 @@ class Health:
             if y_sq is not None:
                 s["y_win"] += y_sq
             s["n_win"] += n
-            phi, count = self._recent_phi()
+            phi, count = self._recent_phi(n)
             s["phi_win"] += phi
             s["phi_n"] += count
         if k == self.window_start and k > s["k_ref"]:
@@ -206,10 +217,12 @@ class Health:
         code = torch.where(u_pot > bound, int(Reason.THETA_RUNAWAY), code)
         return torch.where(est.alive, code, 0)
 
-    def u_scale(self) -> torch.Tensor:
-        """The data's scale of u per member, rms(y) / |beta| (0 before any measured output was seen)."""
+    def u_scale(self, y_sq: torch.Tensor | None = None, n: int = 0) -> torch.Tensor:
+        """The data's scale of u per member, rms(y) / |beta| (0 before any measured output was seen), with
+        ``y_sq``, the sum of y^2 over ``n`` steps since the last check, when given."""
         s = self.state
-        y_rms = torch.sqrt(s["y_all"] / max(s["n_all"], 1))
+        y_all, n_all = (s["y_all"], s["n_all"]) if y_sq is None else (s["y_all"] + y_sq, s["n_all"] + n)
+        y_rms = torch.sqrt(y_all / max(n_all, 1))
         return y_rms / self.est.beta.detach().to(torch.float64).flatten(1).norm(dim=1)
 
     def _freeze(self, code: torch.Tensor, k: int) -> None:
@@ -247,13 +260,16 @@ class Health:
         ``diverged_at`` (-1 when alive), ``theta_change``, ``z_ratio`` (NaN when there is no measured output)
         and ``z_rms`` (over the window)."""
         s, c = self.state, self.criteria
-        z_win, y_win = s["z_win"], s["y_win"]
-        n_win = s["n_win"]
+        z_win, y_win, phi_win = s["z_win"], s["y_win"], s["phi_win"]
+        n_win, phi_n = s["n_win"], s["phi_n"]
         if n and int(self.graph.k) - n >= s["k_ref"]:
             z_win = z_win + z_sq
             y_win = y_win + (y_sq if y_sq is not None else 0.0)
             n_win += n
-        change = self._theta_change()
+            phi, count = self._recent_phi(n)
+            phi_win, phi_n = phi_win + phi, phi_n + count
+        floor = 1e-3 * self.u_scale(y_sq, n) if s["n_all"] or y_sq is not None else None
+        change = self._theta_change(phi_win, phi_n, floor)
         if y_sq is None and not s["n_all"]:
             ratio = torch.full_like(change, math.nan)
             settled = change <= c.theta_tol
@@ -265,17 +281,21 @@ class Health:
         return {"status": code, "reason": self.reasons(), "diverged_at": self.est.diverged_at.clone(),
                 "theta_change": change, "z_ratio": ratio, "z_rms": torch.sqrt(z_win / max(n_win, 1))}
 
-    def _theta_change(self) -> torch.Tensor:
-        """theta's relative change over the window, measured on the window's regressors (module docstring)."""
+    def _theta_change(self, phi: torch.Tensor, count: int, floor: torch.Tensor | None) -> torch.Tensor:
+        """theta's relative change over the window, measured on the window's regressors (the sum of their outer
+        products ``phi`` over ``count`` steps; the estimator's last regressors when the window has none yet),
+        relative to at least ``floor`` (None: no floor)."""
         s = self.state
-        phi, count = (s["phi_win"], s["phi_n"]) if s["phi_n"] else self._recent_phi()
-        phi = phi / count
+        if not count:
+            phi, count = self._recent_phi()
+        phi = phi / max(count, 1)
 
         def sq(t: torch.Tensor) -> torch.Tensor:       # mean square of t phi(k), summed over u's entries
             return torch.einsum("bui,bij,buj->b", t, phi, t)
         theta, ref = self._theta(), s["theta_ref"]
-        floor = (1e-3 * self.u_scale()) ** 2 if s["n_all"] else torch.zeros_like(phi[:, 0, 0])
-        size = torch.maximum(torch.maximum(sq(theta), sq(ref)), torch.nan_to_num(floor, posinf=0.0))
+        size = torch.maximum(sq(theta), sq(ref))
+        if floor is not None:
+            size = torch.maximum(size, torch.nan_to_num(floor ** 2, posinf=0.0))
         return torch.where(size > 0, torch.sqrt(sq(theta - ref) / size), 0.0)
 
     def report(self, verdict: dict[str, torch.Tensor]) -> dict[str, Any]:

@@ -95,23 +95,12 @@ def test_no_excitation_with_lambda_one_is_not_converged(tmp_path):
     assert summary["health"]["status"] == "not_converged" and summary["health"]["z_ratio"] is None
 
 
-def test_statuses_and_their_numbers_against_recorded_signals(tmp_path):
-    """A well-tuned member converges, one with a tiny p0 (slow adaptation: z stays large) does not.
-
-    z_ratio equals the rms of z over the window over that of y, and theta_change the rms of
-    (theta_end - theta_start) phi over that of theta phi, both from signals recorded at every step of a
-    separate stepping of the same members (theta's change is measured on regressors sampled at the checks, so
-    it agrees to sampling error; member 1's theta stays near zero, so its change is measured against the
-    data's scale of u, rms(y) / |beta|)."""
-    steps = 2000
-    run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}])
-    run.advance(progress=False)
-    verdict = run.summary()["health"]
-    run.close()
-    assert verdict["status"] == ["converged", "not_converged"]
-    start = verdict["criteria"]["window_start"]
-    assert start == steps - steps // 5
-    g = scenarios.get("sdof-stiffness").build(run.settings, 2, torch.float64, "cpu")
+def _recorded_verdict(run: Run, steps: int, start: int) -> tuple[np.ndarray, np.ndarray]:
+    """z_ratio and theta_change of the window from ``start`` to ``steps``, from signals recorded at every step of
+    a separate stepping of the run's members: rms(z) / rms(y) over the window, and the rms of
+    (theta_end - theta_start) phi over the window's regressors over the larger rms of theta_end phi and
+    theta_start phi (or 1e-3 of the data's scale of u, rms(y) / |beta|, for a theta near zero)."""
+    g = scenarios.get(run.scenario.name).build(run.settings, run.batch, torch.float64, "cpu")
     est = g.role("estimator")
     z_sig, y_sig = g.role_signal("error"), g.role_signal("measured")
     z2, y2, y2_all, phis = 0.0, 0.0, 0.0, []
@@ -124,18 +113,56 @@ def test_statuses_and_their_numbers_against_recorded_signals(tmp_path):
             z2 = z2 + (out[z_sig] ** 2).sum(1)
             y2 = y2 + (out[y_sig] ** 2).sum(1)
             phis.append(est.phi_now.clone())
-    np.testing.assert_allclose(verdict["z_ratio"], torch.sqrt(z2 / y2).numpy(), rtol=1e-9)
     phi = torch.stack(phis)                                                  # (T, B, n_phi)
     theta_end = est.theta
 
     def rms(theta):
         return torch.sqrt((torch.einsum("bui,tbi->tbu", theta, phi) ** 2).sum(-1).mean(0))
-    u_scale = torch.sqrt(y2_all / steps) / est.beta.flatten(1).norm(dim=1)  # the floor for a theta near zero
+    u_scale = torch.sqrt(y2_all / steps) / est.beta.flatten(1).norm(dim=1)
     change = rms(theta_end - theta_start) / torch.maximum(torch.maximum(rms(theta_end), rms(theta_start)),
                                                           1e-3 * u_scale)
-    np.testing.assert_allclose(verdict["theta_change"], change.numpy(), rtol=0.25)
+    return torch.sqrt(z2 / y2).numpy(), change.numpy()
+
+
+def test_statuses_and_their_numbers_against_recorded_signals(tmp_path):
+    """A well-tuned member converges, one with a tiny p0 (slow adaptation: z stays large) does not.
+
+    z_ratio and theta_change agree with the values from signals recorded at every step (``_recorded_verdict``);
+    with checks 40 steps apart and 16 regressors kept by the estimator, theta's change is measured on
+    regressors sampled at the checks, so it agrees to sampling error (member 1's theta stays near zero, so its
+    change is measured against the data's scale of u)."""
+    steps = 2000
+    run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}])
+    run.advance(progress=False)
+    verdict = run.summary()["health"]
+    run.close()
+    assert verdict["status"] == ["converged", "not_converged"]
+    start = verdict["criteria"]["window_start"]
+    assert start == steps - steps // 5
+    z_ratio, change = _recorded_verdict(run, steps, start)
+    np.testing.assert_allclose(verdict["z_ratio"], z_ratio, rtol=1e-9)
+    np.testing.assert_allclose(verdict["theta_change"], change, rtol=0.25)
     c = Criteria()
     assert verdict["theta_change"][0] < c.theta_tol and verdict["z_ratio"][0] < c.z_tol < verdict["z_ratio"][1]
+
+
+def test_theta_change_counts_each_regressor_of_the_window_once(tmp_path):
+    """Checks closer than the estimator's window (a check every 4 steps, 16 regressors kept, as in any run whose
+    nu exceeds 2% of its steps): each check adds the regressors of the steps since the last one, so every
+    regressor of the convergence window enters theta's change once and none from before it, and the steps
+    after the last check enter the verdict too. theta_change then equals the value from recorded signals to
+    rounding (adding the estimator's whole window at every check counted most regressors four times and reached
+    12 steps before the window)."""
+    steps = 202                                   # the last check is at step 200: two steps after it
+    run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}])
+    run.advance(progress=False)
+    verdict = run.summary()["health"]
+    run.close()
+    every = check_every(steps)
+    assert every == 4 < run.graph.role("estimator").window == 16 and steps % every == 2
+    z_ratio, change = _recorded_verdict(run, steps, verdict["criteria"]["window_start"])
+    np.testing.assert_allclose(verdict["z_ratio"], z_ratio, rtol=1e-9)
+    np.testing.assert_allclose(verdict["theta_change"], change, rtol=1e-9)
 
 
 def test_an_estimator_that_reports_its_own_reason_is_read(sdof_known):
