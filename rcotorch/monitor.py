@@ -17,7 +17,10 @@ Custom Scalars: per estimate one chart of estimate (or mean and quantiles), trut
 separately named series; a margin chart of the estimate (batch mean) inside the band truth ± tolerance (the
 scenario's requirement, else 1% of the truth; tags ``bands/<key> low|high``); for batches a margin chart of the
 mean inside its 10-90% band; the model error likewise. HParams: the run itself is the session (its settings,
-final estimates and errors, status).
+final estimates and errors, status). TensorBoard's HParams table shows five hyperparameter columns until others
+are ticked: the first five of its list, which holds those that differ between sessions first, each part in
+name order (capitals before lower case). The status is named ``*status`` (``STATUS_HPARAM``) so that it leads
+both parts: it is shown by default whatever the settings are called.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ TRACED_DEFAULT = 3     # members traced individually when the run does not choos
 HISTOGRAM_MIN = 16     # histograms across the batch from this batch size
 QUANTILES = (0.1, 0.5, 0.9)
 ESTIMATES, MODEL_ERROR = "Estimates", "Model error"
+STATUS_HPARAM = "*status"   # '*' sorts before letters and digits: the first column of the HParams table
 
 
 def _q(q: float) -> str:
@@ -178,8 +182,8 @@ class Monitor:
             for tag, value in final_values(summary).items():
                 self.writer.add_scalar(tag, value, self.run.k)
             hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
-            hparams.update(scenario=summary["scenario"], batch=summary["batch"], status=status_text(summary))
-            write_session(self.writer, hparams, session_status(summary))
+            hparams.update(scenario=summary["scenario"], batch=summary["batch"])
+            write_session(self.writer, hparams, summary)
         self.writer.close()
 
 
@@ -254,17 +258,18 @@ def session_status(summary: Mapping[str, Any]) -> str:
     return "STATUS_SUCCESS" if status == {"converged"} else "STATUS_UNKNOWN"
 
 
-def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], status: str) -> None:
-    """Make the writer's run an HParams session with these hyperparameters and status. No experiment summary is
-    written: TensorBoard then builds the table from every session under its logdir, so runs of different
-    scenarios (with different settings) can share one folder."""
+def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], summary: Mapping[str, Any]) -> None:
+    """Make the writer's run an HParams session with these hyperparameters and the status of ``summary``'s
+    members (``STATUS_HPARAM``, ``status_text``; the session's own status, ``session_status``). No experiment
+    summary is written: TensorBoard then builds the table from every session under its logdir, so runs of
+    different scenarios (with different settings) can share one folder."""
     from tensorboard.compat.proto.summary_pb2 import Summary, SummaryMetadata
     from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
     from torch.utils.tensorboard.summary import hparams as hparams_summaries
 
-    _, start, _ = hparams_summaries(dict(hparams), {})
+    _, start, _ = hparams_summaries({**hparams, STATUS_HPARAM: status_text(summary)}, {})
     end = plugin_data_pb2.HParamsPluginData(
-        session_end_info=plugin_data_pb2.SessionEndInfo(status=api_pb2.Status.Value(status)),
+        session_end_info=plugin_data_pb2.SessionEndInfo(status=api_pb2.Status.Value(session_status(summary))),
         version=metadata.PLUGIN_DATA_VERSION)
     meta = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(plugin_name=metadata.PLUGIN_NAME,
                                                                   content=end.SerializeToString()))

@@ -452,16 +452,16 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     """
     from torch.utils.tensorboard import SummaryWriter
 
-    from .monitor import final_values, session_status, setting_text, status_text, write_session
+    from .monitor import final_values, setting_text, write_session
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
         settings = set(scenarios.get(sweep.scenario).settings)
         for r in rows:
             summary = _member_summary(r, settings)
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
-            hp.update(scenario=sweep.scenario, shard=r["shard"], status=status_text(summary))
+            hp.update(scenario=sweep.scenario, shard=r["shard"])
             with SummaryWriter(str(out / "members" / f"member_{r['member']:06d}")) as w:
-                write_session(w, hp, session_status(summary))
+                write_session(w, hp, summary)
                 for tag, value in final_values(summary).items():
                     w.add_scalar(tag, value, 0)
         return
@@ -477,10 +477,9 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         summary["status"] = [r.get("status") or ("diverged" if r["diverged"] else "finished") for r in part]
         hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
               for k, v in summary["settings"].items()}
-        hp.update(scenario=sweep.scenario, members=f"{part[0]['member']}..{part[-1]['member']}",
-                  status=status_text(summary))
+        hp.update(scenario=sweep.scenario, members=f"{part[0]['member']}..{part[-1]['member']}")
         with SummaryWriter(str(folder)) as w:
-            write_session(w, hp, session_status(summary))
+            write_session(w, hp, summary)
             for tag, value in final_values(summary).items():
                 w.add_scalar(tag, value, summary["steps"])
             w.add_text("sweep", note, 0)

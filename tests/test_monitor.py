@@ -63,6 +63,19 @@ def _layout(mux, run) -> layout_pb2.Layout:
     return layout_pb2.Layout.FromString(event.tensor_proto.string_val[0])
 
 
+HPARAMS_SHOWN = 5     # TensorBoard's HParams table shows the first five hyperparameters of its list at first
+
+
+def _hparams_order(mux) -> list[str]:
+    """The hyperparameters in the order TensorBoard's HParams dashboard lists them (those that differ between
+    sessions first, each part by name), computed by TensorBoard's own backend from the sessions read back."""
+    from tensorboard.plugins.hparams import backend_context
+
+    content = mux.PluginRunToTagToContent(hp_metadata.PLUGIN_NAME)
+    experiment = backend_context.Context(None).experiment_from_metadata(None, "", False, content, [])
+    return [h.name for h in experiment.hparam_infos]
+
+
 def test_a_single_run_is_one_run_with_estimates_beside_truth(tmp_path):
     run, summary, mux = _run(tmp_path, steps=600, log_every=50)
     assert list(mux.Runs()) == ["sdof-stiffness"]                 # no second run for HParams
@@ -81,9 +94,24 @@ def test_a_single_run_is_one_run_with_estimates_beside_truth(tmp_path):
     assert "figures/estimates" in _tags(mux, "sdof-stiffness", "images")
     hp = _sessions(mux)["sdof-stiffness"]
     assert hp["scenario"] == "sdof-stiffness" and hp["p0"] == 1000.0
-    assert hp["status"] == summary["health"]["status"] in ("converged", "not_converged")
+    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"] in ("converged", "not_converged")
     charts = {c.title: list(c.multiline.tag) for c in _layout(mux, "sdof-stiffness").category[0].chart}
     assert charts["dK"] == ["Estimates/dK", "Estimates/dK truth"]
+
+
+def test_the_status_is_among_the_hparams_columns_shown_by_default(tmp_path):
+    """TensorBoard shows the first five hyperparameters of its list until others are ticked. The status leads
+    the list: in a run whose settings have capital names (rlc-circuit: C, C0_rel, L, L0_rel, R, R0_rel, which
+    sort before a lower-case 'status'), and beside runs of other scenarios with a status that differs."""
+    _run(tmp_path, "rlc-circuit", steps=200, log_every=50)
+    order = _hparams_order(_mux(tmp_path / "runs"))
+    assert order[0] == monitor.STATUS_HPARAM, order[:HPARAMS_SHOWN]
+    assert sorted(order[1:HPARAMS_SHOWN]) == ["C", "C0_rel", "L", "L0_rel"]       # a plain 'status' came later
+    _run(tmp_path, "sdof-stiffness", steps=2000, members=[{"p0": 1e6}, {"p0": 1e-5}])    # one not converged
+    mux = _mux(tmp_path / "runs")
+    statuses = {hp[monitor.STATUS_HPARAM] for hp in _sessions(mux).values()}
+    assert len(statuses) == 2, statuses
+    assert _hparams_order(mux)[0] == monitor.STATUS_HPARAM
 
 
 def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
@@ -106,8 +134,8 @@ def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     band = charts["dK: mean within the 10-90% band"].margin.series[0]
     assert (band.value, band.lower, band.upper) == ("Estimates/dK mean", "quantiles/dK q10", "quantiles/dK q90")
     counts = summary["health"]["counts"]
-    assert _sessions(mux)["sdof-stiffness"]["status"] == ", ".join(f"{s} {n}" for s, n in sorted(counts.items())
-                                                                   if n)
+    expected = ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if n)
+    assert _sessions(mux)["sdof-stiffness"][monitor.STATUS_HPARAM] == expected
 
 
 def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
@@ -161,7 +189,7 @@ def test_a_sweep_writes_one_session_per_member(tmp_path):
     for r in rows:
         run = f"members/member_{r['member']:06d}"
         assert sessions[run]["dK"] == r["dK"] and sessions[run]["seed"] == r["seed"]
-        assert sessions[run]["status"] == r["status"] in ("converged", "not_converged")
+        assert sessions[run][monitor.STATUS_HPARAM] == r["status"] in ("converged", "not_converged")
         assert _last(mux, run, "final/dK") == pytest.approx(r["est_dK"])
         assert _last(mux, run, "final/|error| dK") == pytest.approx(abs(r["err_dK"]))
         assert _last(mux, run, "final/z_rms_final") == pytest.approx(r["z_rms_final"])
@@ -176,7 +204,7 @@ def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkey
     sessions = _sessions(mux)
     last = [r["status"] for r in rows if r["shard"] == 1]
     assert sessions["shard_0000"]["members"] == "0..3" and len(last) == 2
-    assert sessions["shard_0001"]["status"] == ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last)))
+    assert sessions["shard_0001"][monitor.STATUS_HPARAM] == ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last)))
     assert sessions["shard_0000"]["Ts"] == 0.01 and sessions["shard_0000"]["nu"] == 10
     assert sessions["shard_0000"]["dK"] == "[0.3, 0.3, 0.5, 0.5]"             # per member, short: as it is
     assert "final/dK" in _tags(mux, "shard_0000")
@@ -231,7 +259,9 @@ def test_tensorboard_serves_one_run_per_run_and_every_member_in_hparams(tmp_path
         assert sorted(runs) == sorted(expected + ["sweep/shard_0000", "sweep/shard_0001"])
         experiment = _post(f"{base}/data/plugin/hparams/experiment", {"experimentName": ""})
         hparams = {h["name"] for h in experiment["hparamInfos"]}
-        assert {"scenario", "status", "p0", "dK", "gain", "seed"} <= hparams, ", ".join(sorted(hparams))
+        assert {"scenario", monitor.STATUS_HPARAM, "p0", "dK", "gain", "seed"} <= hparams, ", ".join(sorted(hparams))
+        shown = [h["name"] for h in experiment["hparamInfos"]][:HPARAMS_SHOWN]      # the columns shown at first
+        assert monitor.STATUS_HPARAM in shown, shown
         metrics = {m["name"]["tag"] for m in experiment["metricInfos"]}
         assert {"final/dK", "final/dc_gain", "final/|error| dK", "final/freq_rel_err_max"} <= metrics
     finally:
