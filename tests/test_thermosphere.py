@@ -172,9 +172,19 @@ def test_scenario_checkpoint_resumes_exactly(tmp_path):
 
 
 @pytest.mark.slow
-def test_scenario_meets_its_requirements(tmp_path):
-    """Default settings: density error at 407 km cut to under a quarter, NO cooling at 152 km tracked."""
+def test_scenario_meets_its_requirements_and_is_not_converged(tmp_path):
+    """Default settings: density error at 407 km cut to under a quarter, NO cooling at 152 km tracked.
+
+    Its health is not_converged: the refined model explains the data (z under 10% of y over the last day), but
+    the strength per altitude is still moving by more than the 2% tolerance. The verdict's theta_change equals
+    the change recomputed from theta and the regressors recorded at every step (every regressor of the last
+    day once: the checks are 9 steps apart, the estimator keeps 193), and the change per node is above 2% at
+    two of the three nodes: the three-node fit of the cooling is pulled along by the column's recovery from the
+    storm."""
     run = Run("thermosphere-no-cooling", out=tmp_path)
+    est = run.graph.role("estimator")
+    thetas, phis = [], []
+    run.graph.add_hook(lambda g: (thetas.append(est.theta.detach().clone()), phis.append(est.phi_now.clone())))
     run.advance(progress=False)
     summary = run.finish(figures=True)
     failed = {k: v for k, v in summary["requirements"].items() if not v["pass"]}
@@ -184,3 +194,14 @@ def test_scenario_meets_its_requirements(tmp_path):
     for fig in ("cooling_152km", "cooling_profiles", "density_error"):
         assert (tmp_path / f"{fig}.png").is_file()
     assert {"cooling_120km", "cooling_152km", "cooling_200km", "cooling_152km_true"} <= set(summary["estimates"])
+    health = summary["health"]
+    start = health["criteria"]["window_start"]
+    assert health["status"] == "not_converged" and start == 387 and health["z_ratio"] < 0.1
+    theta_start, theta_end, phi = thetas[start - 1], thetas[-1], torch.stack(phis[start:])   # phi: (T, B, n)
+
+    def rms(theta):
+        return torch.sqrt((torch.einsum("bui,tbi->tbu", theta, phi) ** 2).sum(-1).mean(0))
+    change = float(rms(theta_end - theta_start) / torch.maximum(rms(theta_end), rms(theta_start)))
+    assert health["theta_change"] == pytest.approx(change, rel=1e-9) and change > 0.02
+    per_node = (theta_end - theta_start).diagonal(dim1=1, dim2=2) / theta_start.diagonal(dim1=1, dim2=2)
+    assert int((per_node.abs() > 0.02).sum()) >= 2, per_node
