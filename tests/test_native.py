@@ -257,6 +257,39 @@ def test_engines_take_turns_and_step_sees_native_state():
     assert int(b.k) == 200 and int(b.blocks["identified"].k) == 200 and int(b.blocks["excitation"].k) == 200
 
 
+@pytest.mark.parametrize("states,regressors", [(1, 1), (2, 3), (4, 5), (6, 6), (7, 7)])
+def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states, regressors):
+    """One member alone runs LTI blocks of up to 6 states and SISO estimators of up to 6 parameters compiled
+    with their sizes as constants (7: the general code). The arithmetic is the same: the member equals member 0
+    of a batch in 16 lanes bit for bit, and the PyTorch engine to rounding."""
+    rng = np.random.default_rng(10 * states + regressors)
+    A = -np.diag(np.linspace(1.0, 3.0, states)) + 0.3 * np.eye(states, k=1)
+    Bk, Cy0 = rng.normal(size=(states, 2)), rng.normal(size=(regressors, states))
+    Cy = rng.normal(size=(1, states))
+    known_sys = control.ss(A, Bk, np.vstack([Cy, Cy0]), np.zeros((1 + regressors, 2)))
+    truth_sys = control.ss(A - 0.4 * np.outer(Bk[:, 1], Cy0[0]), Bk[:, :1], Cy, [[0.0]])
+
+    def build(B):
+        known = rt.LTI.from_control(known_sys, inputs={"w": 1, "u": 1}, outputs={"y": 1, "y0": regressors},
+                                    dt=DT, name="known")
+        truth = rt.LTI.from_control(truth_sys, inputs=["w"], outputs=["y"], dt=DT, name="plant")
+        est = rt.RCOEstimator.static_gain({"y0": regressors}, p0=100.0, lam=0.999)
+        return rt.refinement(known, est, physical=truth, excitation=rt.WhiteNoise(1, seed=list(range(3, 3 + B))),
+                             nu=9, batch_size=B)
+
+    one_torch, one = _run_both(lambda: build(1), 300)
+    _assert_same_state(one_torch, one)
+    batch = build(40)                                 # 16 lanes: the general code
+    batch.engine = "native"
+    batch.advance(300)
+    e1, eb = one.blocks["identified"], batch.blocks["identified"]
+    assert e1.theta.numel() == regressors and bool(e1.alive.all()) and float(e1.theta.abs().max()) > 1e-3
+    for key in ("theta", "P", "z_r"):
+        assert torch.equal(getattr(e1, key)[0], getattr(eb, key)[0]), key
+    assert torch.equal(e1.win[:, 0], eb.win[:, 0])
+    assert torch.equal(one.blocks["known"].x[0], batch.blocks["known"].x[0])
+
+
 def test_diverging_member_is_frozen_natively():
     a_ = np.exp(-2.0 * DT)
     poles = [a_, 10.0, 0.9 * a_]

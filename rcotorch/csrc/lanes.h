@@ -8,7 +8,28 @@
  *
  * The equations follow the PyTorch blocks, the reference semantics: blocks.py (Gain, Sum), lti.py, sources.py
  * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
+ *
+ * One member alone (VL = 1) is bound by latency, not by arithmetic: loops over sizes known only at run time
+ * cost more than their few multiply-adds. There the LTI blocks (n <= SMALL states) and the SISO estimator
+ * (n <= SMALL parameters, one per regressor) run copies of the same functions compiled with their sizes as
+ * constants (SMALL_SIZES), which the compiler unrolls; the arithmetic, and so every result, is the same.
  */
+
+#define SMALL 6
+/* At VL = 1, call(c) with the constant c = v and return when 1 <= v <= SMALL; else go on (the caller then
+ * calls with v itself). */
+#define SMALL_SIZES(v, call)                                                                                 \
+    do {                                                                                                     \
+        if (VL == 1) switch (v) {                                                                            \
+            case 1: call(1); return;                                                                         \
+            case 2: call(2); return;                                                                         \
+            case 3: call(3); return;                                                                         \
+            case 4: call(4); return;                                                                         \
+            case 5: call(5); return;                                                                         \
+            case 6: call(6); return;                                                                         \
+            default: break;                                                                                  \
+        }                                                                                                    \
+    } while (0)
 
 #define LANES _Pragma("omp simd") for (int l = 0; l < VL; l++)
 #define SL(s) (S + (int64_t)(s) * VL)
@@ -29,7 +50,7 @@
 /* RLS (rls.py, rls_update): theta (n), P (n x n), psi (n x nl), zr (nl), lam (1), rinv (nl x nl), active (1)  */
 /* in lane arrays; ok (1) out: 0 where S is not positive definite and finite or the step is not finite.     */
 /* ------------------------------------------------------------------------------------------------------ */
-static void FN(rls)(int64_t n, int64_t nl, double *restrict th,
+static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         double *restrict P, const double *restrict psi, const double *restrict zr, const double *restrict lam,
         int lam_one, const double *restrict rinv, const double *restrict active, double *restrict ok,
         double *restrict scr) {
@@ -237,8 +258,8 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
 }
 
 /* out = C[rows] x + sum_f D[rows, columns_f] u_f */
-static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
-    int64_t n = a[0], w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
+static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n) {
+    int64_t w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
@@ -253,8 +274,8 @@ static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
 }
 
 /* x = A x + sum_q B[:, columns_q] u_q */
-static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
-    int64_t n = a[0], mt = a[1], as = a[2], bs = a[3], xs = a[4], sh = a[6], nin = a[7];
+static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n) {
+    int64_t mt = a[1], as = a[2], bs = a[3], xs = a[4], sh = a[6], nin = a[7];
     double *xn = SL(a[5]);
     for (int64_t r = 0; r < n; r++) {
         double acc[VL];
@@ -274,6 +295,20 @@ static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
         const double *v = AT(xn, r);
         LANES x[l] = v[l];
     }
+}
+
+static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
+#define CALL(c) FN(lti_out_n)(a, S, c)
+    SMALL_SIZES(a[0], CALL);
+#undef CALL
+    FN(lti_out_n)(a, S, a[0]);
+}
+
+static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
+#define CALL(c) FN(lti_upd_n)(a, S, c)
+    SMALL_SIZES(a[0], CALL);
+#undef CALL
+    FN(lti_upd_n)(a, S, a[0]);
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
@@ -426,10 +461,10 @@ static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, i
 
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
  * the theta box, the member's health and the regressor histories. */
-static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
-                               int64_t t) {
-    int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT];
-    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W, nl = e[E_NL];
+static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
+                                      int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
+                                      int64_t nl) {
+    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
     double *scr = SL(e[E_SCRATCH]);
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
@@ -447,15 +482,33 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
     const int64_t sh = e[E_SHARED];
     for (int64_t q = 0; q < n_z * n_u; q++) {
         const double *restrict c = SL(e[E_BETA] + q * nu);
+        /* delay i in row pr + 1 + i up to the ring's end (split), then in row i - off: two runs of rows, no
+         * branch on the boundary, which moves every step */
+        const int64_t off = W - pr - 1, split = off < nu ? off : nu;
+        const int one = VL == 1 || sh;
         for (int64_t r = 0; r < W; r++) {
-            int64_t i = r - pr - 1 < 0 ? r - pr - 1 + W : r - pr - 1;
             double *w = AT(wr, r);
-            if (i < nu) {
-                const double *ci = AT(c, i);
-                if (VL == 1 || sh) { w[0] = ci[0]; } else { LANES w[l] = ci[l]; }
-            } else {
-                if (VL == 1 || sh) { w[0] = 0.0; } else { LANES w[l] = 0.0; }
-            }
+            if (one) { w[0] = 0.0; } else { LANES w[l] = 0.0; }
+        }
+        for (int64_t i = 0; i < nu; i++) {
+            double *w = AT(wr, i < split ? pr + 1 + i : i - off);
+            const double *ci = AT(c, i);
+            if (one) { w[0] = ci[0]; } else { LANES w[l] = ci[l]; }
+        }
+        if (VL == 1) { /* one member: the same four chains, with a row's m columns side by side */
+            double acc[4 * m];
+            for (int64_t j = 0; j < 4 * m; j++) acc[j] = 0.0;
+            int64_t r = 0;
+            for (; r + 3 < W; r += 4)
+                for (int64_t h = 0; h < 4; h++) {
+                    const double wv = wr[r + h], *x = win + (r + h) * m;
+                    for (int64_t j = 0; j < m; j++) acc[h * m + j] += wv * x[j];
+                }
+            for (; r < W; r++)
+                for (int64_t j = 0; j < m; j++) acc[j] += wr[r] * win[r * m + j];
+            for (int64_t j = 0; j < m; j++)
+                prod[q * m + j] = (acc[j] + acc[m + j]) + (acc[2 * m + j] + acc[3 * m + j]);
+            continue;
         }
         for (int64_t j = 0; j < m; j++) {
             double a0[VL], a1[VL], a2[VL], a3[VL];
@@ -572,6 +625,17 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
             LANES d[l] = v[l];
         }
     }
+}
+
+static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
+                               int64_t t) {
+    int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT], nl = e[E_NL];
+    if (n_u == 1 && n_z == 1 && nl == 1 && n == n_phi && nent == n) { /* SISO, one parameter per regressor */
+#define CALL(c) FN(rco_upd_n)(e, S, ctr, t, 1, 1, c, c, c, 1)
+        SMALL_SIZES(n, CALL);
+#undef CALL
+    }
+    FN(rco_upd_n)(e, S, ctr, t, n_u, n_z, n_phi, n, nent, nl);
 }
 
 /* ------------------------------------------------------------------------------------------------------ */
