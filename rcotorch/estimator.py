@@ -31,8 +31,10 @@ Robustness options (each off by default, each a scalar or one value per member):
   cost at every step. It enters the update as n_theta pseudo-measurement rows sqrt(r_delta) I with residual 0
   (weight 1) next to the rows of z, so the update is the exact minimizer of
   lam^(k+1) |eta - eta_0|^2 / p0 + sum_j lam^(k-j) (|z_hat_j(eta)|^2_R + r_delta |eta - eta(j)|^2).
-* ``normalize``: a scale s; the rows of z are divided by m(k) = sqrt(1 + |Psi(k)|_F^2 / s^2) before the update
-  (normalized RLS), i.e. row j of the cost is weighted by 1 / m(j)^2.
+* ``normalize``: a scale s; the rows of z are divided by m(k) = sqrt(1 + |Psi(k)|_R^2 / s^2) before the update
+  (normalized RLS), i.e. step j of the cost is weighted by 1 / m(j)^2. |Psi|_R^2 = sum_p Psi_p^T R Psi_p is the
+  regressors' size in the cost's own weight R (the Frobenius norm for R = I), so channels of z in different
+  units count as the cost counts them.
 * ``p_max``: a bound on trace(P); after an update, a living member whose trace exceeds it has P scaled by
   p_max / trace(P) (covariance windup with lam < 1 and weak excitation).
 """
@@ -92,7 +94,8 @@ class RCOEstimator(Block):
             cost, scalar or one per member (>= 0); None (the default) leaves it out. Larger values slow and
             smooth the estimate (noisy data, a member that jumps).
         normalize: scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the
-            update divided by sqrt(1 + |Psi|_F^2 / s^2), which bounds the step for large signals. None (the
+            update divided by sqrt(1 + |Psi|_R^2 / s^2) (module docstring), which bounds the step for large
+            signals. None (the
             default): not normalized.
         p_max: bound on trace(P), scalar or one per member (> 0): after each update P is scaled by
             p_max / trace(P) where the trace exceeds it (covariance windup). None (the default): unbounded.
@@ -140,6 +143,7 @@ class RCOEstimator(Block):
         if tuple(R.shape) != (n_z, n_z):
             raise DimensionError(f"block '{name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
         self.register_buffer("r_inv", torch.linalg.inv(R))
+        self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
             torch.as_tensor(theta0, dtype=dtype).reshape(-1, n_u, self.n_phi)
         theta0 = theta0 * self.mask
@@ -517,10 +521,10 @@ class RCOEstimator(Block):
 
     def _rows(self, psi_t: torch.Tensor, z_r: torch.Tensor):
         """The rows of the update (Psi^T (B, l, n), their residuals (B, l), R^-1 (l, l)): the rows of z, divided
-        by m = sqrt(1 + |Psi|_F^2 / s^2) when normalized, then sqrt(r_delta) I with residual 0 for the penalty."""
+        by m = sqrt(1 + |Psi|_R^2 / s^2) when normalized, then sqrt(r_delta) I with residual 0 for the penalty."""
         r_inv = self.r_inv
         if self.norm_inv_s2 is not None:
-            m = torch.sqrt(1.0 + psi_t.square().sum((1, 2)) * self.norm_inv_s2)
+            m = torch.sqrt(1.0 + (psi_t * (self.r_weight @ psi_t)).sum((1, 2)) * self.norm_inv_s2)
             psi_t, z_r = psi_t / m.reshape(-1, 1, 1), z_r / m.reshape(-1, 1)
         if self.rd_sqrt is not None:
             B, n = psi_t.shape[0], psi_t.shape[2]
@@ -567,6 +571,7 @@ class RCOEstimator(Block):
                       UOUT=b.output("u"),
                       SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl,
                                                                         W)),
+                      RW=-1 if self.norm_inv_s2 is None else b.param(self.r_weight.reshape(1, -1)),
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         args = [fields[key] for key in kernels.RCO_FIELD]

@@ -60,6 +60,32 @@ def test_normalized_regressors_minimize_the_weighted_cost(s):
     np.testing.assert_allclose(est.theta[0, 0].numpy(), expected, rtol=1e-9, atol=1e-12)
 
 
+def test_normalized_regressors_measure_psi_in_the_cost_weight():
+    """Two z channels in units 1000x apart, weighed back by R: the normalization measures Psi as the cost does,
+    |Psi|_R^2 = sum_p Psi_p^T R Psi_p, so the large channel's units do not shrink every step (with the plain
+    Frobenius norm, its rows would set m alone)."""
+    beta, R, s, lam, p0 = np.array([0.7, 700.0]), np.diag([1.0, 1e-6]), 2.0, 0.98, 10.0
+    rng = np.random.default_rng(4)
+    est = rt.RCOEstimator.static_gain({"y0": 2}, n_z=2, R=R.tolist(), p0=p0, lam=lam,
+                                      markov=[[[beta[0]], [beta[1]]]], first_delay=1, normalize=s)
+    est.reset(1)
+    phi_prev, u_prev, rows = np.zeros(2), 0.0, []
+    for _ in range(40):
+        y0 = torch.tensor(rng.normal(size=(1, 2)) * 3.0)
+        z = torch.tensor(rng.normal(size=(1, 2)) * [1.0, 1000.0])
+        u = float(est.output("u", {"y0": y0})[0, 0])
+        rows.append((np.outer(phi_prev, beta), z[0].numpy() - beta * u_prev))      # Psi (2 params, 2 z), zeta
+        est.update({"y0": y0, "z": z})
+        phi_prev, u_prev = y0[0].numpy(), u
+    K = len(rows)
+    H, g = lam ** K / p0 * np.eye(2), np.zeros(2)
+    for j, (psi, zeta) in enumerate(rows):
+        w = lam ** (K - 1 - j) / (1.0 + np.trace(psi @ R @ psi.T) / s**2)
+        H += w * psi @ R @ psi.T
+        g -= w * psi @ R @ zeta
+    np.testing.assert_allclose(est.theta[0, 0].numpy(), np.linalg.solve(H, g), rtol=1e-9, atol=1e-12)
+
+
 def _windup(steps, **options):
     est = rt.RCOEstimator.static_gain({"y0": 2}, p0=1.0, lam=0.9, markov=[[[BETA]]], first_delay=1, **options)
     est.reset(2)

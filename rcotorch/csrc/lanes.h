@@ -419,7 +419,7 @@ static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
 }
 
 /* The rows of the RLS step (estimator.py, _rows): z_R into zrx, the rows of z divided by
- * m = sqrt(1 + |Psi|_F^2 / s^2) when normalized (NORM), then sqrt(r_delta) I with residual 0 (RDQ). */
+ * m = sqrt(1 + |Psi|_R^2 / s^2) when normalized (NORM; R in RW), then sqrt(r_delta) I with residual 0 (RDQ). */
 static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, int64_t n, int64_t n_z, int64_t nl,
                                 double *restrict psi, const double *restrict zr, double *restrict zrx) {
     for (int64_t z = 0; z < n_z; z++) {
@@ -428,13 +428,19 @@ static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, i
         LANES x[l] = a[l];
     }
     if (e[E_NORM] >= 0) {
-        const double *is2 = SL(e[E_NORM]);
+        const double *is2 = SL(e[E_NORM]), *rw = SL(e[E_RW]);
         double ss[VL], mm[VL];
         LANES ss[l] = 0.0;
-        for (int64_t z = 0; z < n_z; z++) /* |Psi|_F^2 in the order of Psi^T (z, p) */
+        for (int64_t z = 0; z < n_z; z++) /* |Psi|_R^2 = sum Psi^T * (R Psi^T), in the order of Psi^T (z, p) */
             for (int64_t p = 0; p < n; p++) {
                 const double *ps = AT(psi, p * nl + z);
-                LANES ss[l] += ps[l] * ps[l];
+                double rp[VL];
+                LANES rp[l] = 0.0;
+                for (int64_t y = 0; y < n_z; y++) {
+                    const double *r = AT(rw, z * n_z + y), *py = AT(psi, p * nl + y);
+                    LANES rp[l] += r[l] * py[l];
+                }
+                LANES ss[l] += ps[l] * rp[l];
             }
         LANES mm[l] = sqrt(1.0 + ss[l] * is2[l]);
         for (int64_t z = 0; z < n_z; z++) {
