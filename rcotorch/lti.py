@@ -40,7 +40,16 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     M = torch.zeros(*batch, n + m, n + m, dtype=dtype)
     M[..., :n, :n] = A
     M[..., :n, n:] = B
-    E = torch.linalg.matrix_exp(M * dt)
+    M = M * dt
+    if M.dim() > 2 and M[..., 0, 0].numel() > 1:      # members that share their physics: one exponential each
+        flat = M.reshape(-1, (n + m) ** 2)
+        if bool((flat == flat[0]).all()):
+            unique, index = flat[:1], torch.zeros(flat.shape[0], dtype=torch.long)
+        else:
+            unique, index = torch.unique(flat, dim=0, return_inverse=True)
+        E = torch.linalg.matrix_exp(unique.reshape(-1, n + m, n + m))[index].reshape(M.shape)
+    else:
+        E = torch.linalg.matrix_exp(M)
     return E[..., :n, :n], E[..., :n, n:]
 
 
