@@ -95,8 +95,7 @@ class RCOEstimator(Block):
             smooth the estimate (noisy data, a member that jumps).
         normalize: scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the
             update divided by sqrt(1 + |Psi|_R^2 / s^2) (module docstring), which bounds the step for large
-            signals. None (the
-            default): not normalized.
+            signals. None (the default): not normalized.
         p_max: bound on trace(P), scalar or one per member (> 0): after each update P is scaled by
             p_max / trace(P) where the trace exceeds it (covariance windup). None (the default): unbounded.
     """

@@ -41,7 +41,7 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     M[..., :n, :n] = A
     M[..., :n, n:] = B
     M = M * dt
-    if M.dim() > 2 and M[..., 0, 0].numel() > 1:      # members that share their physics: one exponential each
+    if M[..., 0, 0].numel() > 1:                   # members that share their physics: one exponential each
         flat = M.reshape(-1, (n + m) ** 2)
         if bool((flat == flat[0]).all()):
             unique, index = flat[:1], torch.zeros(flat.shape[0], dtype=torch.long)

@@ -636,7 +636,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
 static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                int64_t t) {
     int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT], nl = e[E_NL];
-    if (n_u == 1 && n_z == 1 && nl == 1 && n == n_phi && nent == n) { /* SISO, one parameter per regressor */
+    if (n_u == 1 && n_z == 1 && nl == 1 && n == n_phi) { /* SISO, one parameter per regressor */
 #define CALL(c) FN(rco_upd_n)(e, S, ctr, t, 1, 1, c, c, c, 1)
         SMALL_SIZES(n, CALL);
 #undef CALL
