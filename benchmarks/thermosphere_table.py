@@ -34,6 +34,12 @@ CONFIGS = {f"{structure}@{km}": {"structure": structure, "measured_km": km, **TU
            for structure in ("temperature", "kockarts", "error") for km in MEASURED}
 CONFIGS["temperature-shared@407,150"] = {"structure": "temperature", "measured_km": "407,150", "shared": True,
                                          **TUNING["temperature"]}
+#: The known form with a strength per node: interpolated in the strength (the Kockarts shape between the nodes) or,
+#: ``-linear``, in the cooling.
+for km in ("407", "407,150"):
+    CONFIGS[f"kockarts-node@{km}"] = {"structure": "kockarts", "measured_km": km, "strengths": "node"}
+    CONFIGS[f"kockarts-node-linear@{km}"] = {"structure": "kockarts", "measured_km": km, "strengths": "node",
+                                             "interpolate": "cooling"}
 GOALS = {"density_err_ratio": ("<", 0.25), "cooling_corr_152km": (">=", 0.8), "cooling_rel_rms_152km": ("<=", 0.3)}
 REPLAY = ("replay_density_err_ratio", "replay_cooling_corr_152km", "replay_cooling_rel_rms_152km",
           "replay_cooling_profile_rel_rms")
@@ -54,19 +60,33 @@ def run_config(overrides: dict, steps: int | None = None, out: Path | None = Non
         run.advance(progress=False)
         summary = run.finish(figures=figures) if out is not None else run.summary()
     metrics = {k: summary["metrics"].get(k) for k in COLUMNS}
+    health = {k: summary["health"][k] for k in ("status", "reason", "theta_change", "z_ratio")}
     return {"overrides": overrides, "steps": summary["steps"], "metrics": metrics, "goals_met": met(metrics),
-            "all_goals_met": all(met(metrics).values()), "diverged": summary["diverged"],
+            "all_goals_met": all(met(metrics).values()), "diverged": summary["diverged"], "health": health,
             "seconds": round(time.perf_counter() - start, 1)}
 
 
-def markdown(rows: dict, columns=COLUMNS) -> str:
-    """The table as Markdown (docs/thermosphere.md), goals met in bold."""
-    head = ["structure", "measured km", *(f"`{c}`" for c in columns)]
+def health_cell(h: dict | None) -> str:
+    """A row's health: the status, with theta's change over the window or the divergence reason."""
+    if h is None:
+        return "-"
+    if h["status"] == "diverged":
+        return f"diverged ({h['reason']})"
+    change = h["theta_change"]
+    return h["status"] if change is None else f"{h['status']} ({100 * change:.1f}%)"
+
+
+def markdown(rows: dict, columns=COLUMNS, health: bool = False) -> str:
+    """The table as Markdown (docs/thermosphere.md), goals met in bold; ``health``: a column with each run's
+    health status (theta's change over the window in per cent)."""
+    head = ["structure", "measured km", *(f"`{c}`" for c in columns), *(["health"] if health else [])]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for label, r in rows.items():
         structure, km = label.split("@")
         cells = ["-" if r["metrics"][k] is None else f"**{r['metrics'][k]:.3f}**" if r["goals_met"].get(k) else
                  f"{r['metrics'][k]:.3f}" for k in columns]
+        if health:
+            cells.append(health_cell(r.get("health")))
         lines.append("| " + " | ".join([structure, km.replace(",", ", "), *cells]) + " |")
     return "\n".join(lines)
 
@@ -98,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
              "yes" if r["all_goals_met"] else "no"] for label, r in result["rows"].items()]
     print(table(rows, ["configuration", *COLUMNS, "goals"]))
     if args.markdown:
-        print(markdown(result["rows"], COLUMNS[:6]))
+        print(markdown(result["rows"], COLUMNS[:6], health=True))
         print(markdown(result["rows"], REPLAY))
     print(f"wrote {path}")
     return 0

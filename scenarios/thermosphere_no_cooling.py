@@ -8,14 +8,17 @@ densities, each counts by its relative error: the weight on z is R = diag((rho_1
 density at altitude i.
 
 Known model ("initial model"): the same column *without* NO cooling, with an input u: the cooling at three
-altitudes (120, 152, 200 km, nW/m^3), interpolated linearly in between and subtracted in the energy equation.
-Both columns start from the truth's state after a 3-day quiet spin-up.
+altitudes (120, 152, 200 km, nW/m^3), filled in between (``interpolate``) and subtracted in the energy equation:
+linearly in the cooling, or, for the known form, in proportion to the model's own Kockarts rate y0(z) (linearly
+in the strength u_j / y0_j, so the profile is y0(z) times the interpolated strength). Both columns start from the
+truth's state after a 3-day quiet spin-up.
 
 Identified subsystem, ``structure``:
 
 * ``'kockarts'`` (the default), the *known-form* variant: u_j = theta_j y0_j with y0_j the Kockarts cooling rate
-  that the known model's own state (its T, O and NO densities) would have at node j at unit strength (diagonal
-  mask). RCMR finds only a strength per altitude; theta_j = 1 is the truth. theta is projected onto
+  that the known model's own state (its T, O and NO densities) would have at node j at unit strength. RCMR finds
+  only the strength of the law: one for the whole profile (``strengths='one'``, the default: one density fixes
+  one number) or one per node (``'node'``, a diagonal theta). theta = 1 is the truth. theta is projected onto
   [0, theta_max].
 * ``'temperature'``, the seed paper's premise (the cooling's form is unknown, "most likely a function of
   temperature"): u_j = sum_i theta_ji f_i(T_j), where the f_i are the basis functions ``features`` of the known
@@ -50,6 +53,7 @@ import weakref
 from collections.abc import Callable
 from functools import lru_cache
 
+import numpy as np
 import torch
 
 import rcotorch as rt
@@ -78,12 +82,24 @@ def measured_altitudes(s) -> list[float]:
     return [a * 1e3 for a in km]
 
 
+def interpolation(s) -> str:
+    """How the known model fills the cooling between the nodes (setting ``interpolate``; ``auto``: the strength
+    for the known-form structure, the cooling for the others)."""
+    if s["interpolate"] == "auto":
+        return "strength" if s["structure"] == "kockarts" else "cooling"
+    if s["interpolate"] == "strength" and s["structure"] != "kockarts":
+        raise ConfigError(f"setting interpolate='strength' shapes the cooling by the Kockarts rate, which only "
+                          f"structure='kockarts' may know; structure={s['structure']!r} interpolates the cooling")
+    return s["interpolate"]
+
+
 def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
     """The truth column (with NO cooling) and the known model (without it, with the cooling input u)."""
     common = dict(dz=s["dz_km"] * 1e3, latitude=s["latitude"], local_time0=s["local_time0"], dt=s["Ts"],
                   substeps=int(s["substeps"]), dtype=dtype)
     nodes = (s["node1_km"] * 1e3, s["node2_km"] * 1e3, s["node3_km"] * 1e3)
-    return Column(no_cooling=True, **common), Column(no_cooling=False, cooling_nodes=nodes, **common)
+    return (Column(no_cooling=True, **common),
+            Column(no_cooling=False, cooling_nodes=nodes, interpolate=interpolation(s), **common))
 
 
 @lru_cache(maxsize=8)
@@ -127,10 +143,11 @@ class ThermosphereNoCooling(Scenario):
     steps = 480                       # 5 days at Ts = 900 s
     settings = dict(Ts=900.0, substeps=2, dz_km=5.0, f107=150.0, storm_peak=4.0, storm_start_h=48.0,
                     storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, measured_km="407",
-                    node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts",
-                    features="r2,lp12:r2,lp3:r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192, theta_max=10.0,
-                    markov_method="autograd", refresh_every=24, cooling_window_start_h=24.0, replay=True,
-                    replay_f107=110.0, replay_storm_peak=6.0, replay_storm_start_h=30.0, replay_storm_rise_h=4.0)
+                    node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts", strengths="one",
+                    interpolate="auto", features="r2,lp12:r2,lp3:r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192,
+                    theta_max=10.0, markov_method="autograd", refresh_every=24, cooling_window_start_h=24.0,
+                    replay=True, replay_f107=110.0, replay_storm_peak=6.0, replay_storm_start_h=30.0,
+                    replay_storm_rise_h=4.0)
     requirements = (Requirement("metrics.density_err_ratio", "max", 0.25),
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
@@ -153,6 +170,12 @@ class ThermosphereNoCooling(Scenario):
         node1_km=("km", "lowest altitude where the cooling is estimated"),
         node2_km=("km", "middle altitude where the cooling is estimated"),
         node3_km=("km", "highest altitude where the cooling is estimated"),
+        strengths=("", "structure=kockarts: one strength of the Kockarts law for the whole profile, or one per "
+                       "node", ("one", "node")),
+        interpolate=("", "how the known model fills the cooling between the nodes: linearly in the cooling, or "
+                         "(structure=kockarts) in proportion to its own Kockarts rate, linearly in the strength "
+                         "u_j / y0_j; auto: strength for kockarts, cooling otherwise",
+                     ("auto", "strength", "cooling")),
         structure=("", "what the identified subsystem sees: the Kockarts rate of the model's own state "
                        "(known form), its node temperatures only, or the density error (docs/thermosphere.md)",
                    STRUCTURES),
@@ -193,8 +216,11 @@ class ThermosphereNoCooling(Scenario):
             outputs["y0"] = model.no_cooling_at_nodes
         elif s["structure"] == "temperature":
             outputs["T"] = model.temperature_at_nodes
-        known = ColumnBlock(model, outputs, x0=x0, name="known", dtype=dtype,
-                            record=lambda x, ins: torch.cat([densities(model, alts)(x), ins["u"], ins["w"]], 1))
+        def record(x, ins):   # densities, u, w and, for interpolate='strength', the model's Kockarts rate
+            shape = [model.no_cooling_profile(x)] if model.interpolate == "strength" else []
+            return torch.cat([densities(model, alts)(x), ins["u"], ins["w"], *shape], 1)
+
+        known = ColumnBlock(model, outputs, x0=x0, name="known", dtype=dtype, record=record)
         plant = ColumnBlock(truth, {"y": densities(truth, measured)}, x0=x0, name="plant", dtype=dtype,
                             record=lambda x, ins: torch.cat([densities(truth, alts)(x),
                                                              truth.no_cooling_profile(x)], 1))
@@ -214,8 +240,10 @@ class ThermosphereNoCooling(Scenario):
             common["theta0"] = frozen.role("estimator").theta.detach()
         extra, wiring, feeds = [], [], None
         if s["structure"] == "kockarts":
-            ident = rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, mask=torch.eye(3, dtype=torch.bool),
-                                                theta_bounds=(0.0, s["theta_max"]), **common)
+            labels = torch.arange(3) if s["strengths"] == "node" else 0      # one strength: one label for all
+            tie = torch.where(torch.eye(3, dtype=torch.bool), labels, -1)
+            ident = rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, tie=tie, theta_bounds=(0.0, s["theta_max"]),
+                                                **common)
         elif s["structure"] == "temperature":
             T_ref = frozen.blocks["features"].T_ref if frozen is not None else self._reference(s, model, x0)
             features = TemperatureFeatures(s["features"], T_ref, s["Ts"], T_init=model.temperature_at_nodes(x0),
@@ -262,7 +290,8 @@ class ThermosphereNoCooling(Scenario):
         kn, pl = g.role("known").history, g.role("physical").history
         B, K = kn.shape[:2]
         m = 1 + len(measured_altitudes(s))
-        est_profile = 1e9 * model.identified_cooling(kn[:, :, m:m + 3].reshape(B * K, 3))
+        rate = kn[:, :, m + 5:].reshape(B * K, -1) if model.interpolate == "strength" else None
+        est_profile = 1e9 * model.identified_cooling(kn[:, :, m:m + 3].reshape(B * K, 3), rate)
 
         def f64(t):
             return t.detach().to(device="cpu", dtype=torch.float64)
@@ -316,7 +345,8 @@ class ThermosphereNoCooling(Scenario):
         ident, model, plant = g.role("estimator"), g.role("known").column, g.role("physical")
         u = ident.u_now.to(torch.float64)
         out = {f"cooling_{int(round(float(z) / 1e3))}km": u[:, j] for j, z in enumerate(model.nodes)}
-        out["cooling_152km"] = model.at(1e9 * model.identified_cooling(ident.u_now), EVAL_ALTITUDE)[:, 0]
+        rate = model.no_cooling_profile(g.role("known").x) if model.interpolate == "strength" else None
+        out["cooling_152km"] = model.at(1e9 * model.identified_cooling(ident.u_now, rate), EVAL_ALTITUDE)[:, 0]
         if plant.history.shape[1]:
             last = plant.history[:, -1, 1 + len(measured_altitudes(s)):]
             out["cooling_152km_true"] = plant.column.at(last, EVAL_ALTITUDE)[:, 0]
@@ -411,13 +441,12 @@ class ThermosphereNoCooling(Scenario):
         z = model.z.cpu().numpy() / 1e3
         low = z <= PROFILE_TOP / 1e3
         nodes = model.nodes.cpu().numpy() / 1e3
-        at_node = [int(round((a - z[0]) / (z[1] - z[0]))) for a in nodes]
         fig, axes = plt.subplots(1, len(idx), figsize=(2.6 * len(idx) + 1, 4), sharey=True, squeeze=False)
         for ax, (day, k) in zip(axes[0], idx):
             est = tr["est_profile"][0, k].numpy()
             ax.plot(tr["true_profile"][0, k].numpy()[low], z[low], "k", lw=1.6, label="true")
             ax.plot(est[low], z[low], "--", color="tab:blue", lw=1.3, label="estimated")
-            ax.plot(est[at_node], nodes, "o", color="tab:blue", ms=4)
+            ax.plot(np.interp(nodes, z, est), nodes, "o", color="tab:blue", ms=4)   # on the curve, off the grid too
             ax.set_title(f"{day:g} d (t = {t[k]:.1f} h)", fontsize=9)
             ax.set_xlabel("NO cooling [nW/m^3]")
             ax.grid(alpha=0.3)

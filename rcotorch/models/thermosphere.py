@@ -147,6 +147,8 @@ BANDS = (
 )
 
 
+#: How a column fills its identified cooling in between the nodes (``Column(interpolate=...)``).
+INTERPOLATIONS = ("cooling", "strength")
 #: Below this many state entries (batch x levels) the column runs on one intra-op thread (see ``few_threads``).
 SINGLE_THREAD_BELOW = 65536
 
@@ -179,6 +181,9 @@ class Column(nn.Module):
         n_bottom, T_bottom: O, O2, N2 densities [m^-3] and temperature [K] at the lower boundary.
         no_cooling: include the NO 5.3 um cooling (the truth) or not (the initial model).
         cooling_nodes: altitudes [m] of the identified cooling; empty for a column without input ``u``.
+        interpolate: how the node coolings u fill the column between the nodes (``identified_cooling``):
+            ``'cooling'``, linearly; ``'strength'``, in proportion to the column's own Kockarts rate, linearly in
+            the strength u_j / rate(z_j) (a cooling of the Kockarts form whose strength varies with altitude).
         latitude: of the column [deg] (equinox).
         local_time0: local solar time at t = 0 [h].
         dt: sample time [s], ``substeps`` backward-Euler substeps per sample.
@@ -188,7 +193,8 @@ class Column(nn.Module):
 
     def __init__(self, z_bottom: float = 100e3, z_top: float = 600e3, dz: float = 5e3,
                  n_bottom: Sequence[float] = N_100KM, T_bottom: float = T_100KM, no_cooling: bool = True,
-                 cooling_nodes: Sequence[float] = (), latitude: float = 30.0, local_time0: float = 0.0,
+                 cooling_nodes: Sequence[float] = (), interpolate: str = "cooling", latitude: float = 30.0,
+                 local_time0: float = 0.0,
                  dt: float = 900.0, substeps: int = 2, storm_altitude: float = 125e3, storm_width: float = 20e3,
                  radius: float = R_EARTH, bands: Sequence[Band] = BANDS, dtype=DEFAULT_DTYPE):
         super().__init__()
@@ -198,7 +204,10 @@ class Column(nn.Module):
                               f"dz = {dz} m, with at least 4 levels")
         if substeps < 1 or dt <= 0:
             raise ConfigError(f"thermosphere column: need dt > 0 and substeps >= 1, got {dt}, {substeps}")
+        if interpolate not in INTERPOLATIONS:
+            raise ConfigError(f"thermosphere column: interpolate must be one of {INTERPOLATIONS}, got {interpolate!r}")
         self.n, self.dz, self.dt, self.substeps = n, float(dz), float(dt), int(substeps)
+        self.interpolate = interpolate
         self.T_bottom, self.no_cooling = float(T_bottom), bool(no_cooling)
         self.insolation_mean = math.cos(math.radians(latitude)) / math.pi
         self.local_time0 = float(local_time0)
@@ -274,9 +283,16 @@ class Column(nn.Module):
         collisions = NO_K_O * n_O
         return NO_HNU * NO_A10 * n_NO * collisions * torch.exp(-NO_THETA / T) / (collisions + NO_A10)
 
-    def identified_cooling(self, u: torch.Tensor) -> torch.Tensor:
-        """The cooling profile (B, n) [W/m^3] of node values u (B, nodes) [nW/m^3]."""
-        return 1e-9 * u @ self.cooling_basis
+    def identified_cooling(self, u: torch.Tensor, rate: torch.Tensor | None = None) -> torch.Tensor:
+        """The cooling profile (B, n) [W/m^3] of node values u (B, nodes) [nW/m^3]: interpolated linearly between
+        the nodes, or with ``interpolate='strength'`` rate(z) sum_j (u_j / rate(z_j)) hat_j(z), ``rate`` (B, n) the
+        column's Kockarts rate (any unit): the profile has the rate's shape and the value u_j at node j."""
+        if self.interpolate == "cooling":
+            return 1e-9 * u @ self.cooling_basis
+        if rate is None:
+            raise ConfigError("thermosphere column: interpolate='strength' needs the Kockarts rate profile")
+        at_nodes = torch.cat([self.at(rate, float(a)) for a in self.nodes], 1).clamp(min=torch.finfo(rate.dtype).tiny)
+        return 1e-9 * rate * ((u / at_nodes) @ self.cooling_basis)
 
     def tendencies(self, x: torch.Tensor, w: torch.Tensor, u: torch.Tensor | None = None) -> dict:
         """Diagnostics of state x under driver w and identified cooling u: T, densities n (B, 3, n), n_NO, t,
@@ -289,7 +305,7 @@ class Column(nn.Module):
         no = self.no_cooling_rate(T, n[:, 0], n_no)
         cooling = no if self.no_cooling else torch.zeros_like(no)
         if u is not None and self.n_nodes:
-            cooling = cooling + self.identified_cooling(u)
+            cooling = cooling + self.identified_cooling(u, no)
         return {"T": T, "n": n, "n_NO": n_no, "t": t, "heat_capacity": (self.cp * n).sum(1),
                 "heating": heating + storm, "no_cooling": no, "cooling": cooling,
                 "no_production": NO_YIELD * (ions + STORM_PARTICLE_SHARE * storm / W_ION)}
