@@ -27,7 +27,7 @@ def run_figures(run) -> dict:
         for ax, key in zip(axes[:, 0], keys):
             _estimate_panel(ax, run, key, t, torch.stack(h[key]).numpy())
         axes[-1, 0].set_xlabel(xlabel)
-        axes[0, 0].set_title(f"{run.scenario.name}: estimates")
+        _title(axes[0, 0], f"{run.scenario.name}: estimates")
         figs["estimates"] = fig
     if len(t):
         fig, ax = plt.subplots(figsize=(7.5, 3.0), layout="tight")
@@ -35,7 +35,7 @@ def run_figures(run) -> dict:
         ax.semilogy(t, z, lw=1, label=_member_labels(z.shape[1], run.batch))
         ax.set_xlabel(xlabel)
         ax.set_ylabel(_with_unit("rms of z = y - y_hat", run.scenario.unit("y")))
-        ax.set_title(f"{run.scenario.name}: model error (rms over each log interval)")
+        _title(ax, f"{run.scenario.name}: model error (rms over each log interval)")
         ax.grid(alpha=0.3, which="both")
         if z.shape[1] > 1:
             ax.legend(fontsize=8, ncol=2)
@@ -59,6 +59,12 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
     ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best", ncol=2 if lines.shape[1] > 2 else 1)
+
+
+def _title(ax, text: str) -> None:
+    """A title on the axes' top edge: where matplotlib puts it on axes without tick labels above them, which it
+    would otherwise confirm by laying out every tick label of the figure once more."""
+    ax.set_title(text, y=1.0)
 
 
 def _member_labels(n: int, batch: int) -> list[str]:
@@ -89,5 +95,5 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
     ap.set_ylabel("phase [deg]")
     ap.set_xlabel("frequency [rad/s]")
     am.legend()
-    am.set_title(title)
+    _title(am, title)
     return fig

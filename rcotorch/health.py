@@ -46,6 +46,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from . import kernels
@@ -69,6 +70,11 @@ class Reason(enum.IntEnum):
     def label(self) -> str:
         return self.name.lower()
 
+
+# Per-member words of summary.json, indexed by the status and Reason codes (object arrays: a batch's list in
+# one numpy indexing instead of a Python loop over its members).
+_STATUS_WORDS = np.array(STATUSES, dtype=object)
+_REASON_LABELS = np.array([None] + [r.label for r in Reason if r], dtype=object)
 
 # The bounds' reasons in the order of precedence of Health._bounds_exceeded (the compiled kernel's order).
 _BOUND_REASONS = (int(Reason.NOT_POSITIVE_DEFINITE), int(Reason.COVARIANCE_WINDUP), int(Reason.U_RUNAWAY),
@@ -301,18 +307,21 @@ class Health:
     def report(self, verdict: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The verdict for ``summary.json``: per-member lists (plain values for a batch of one), counts and
         the criteria."""
-        B = verdict["status"].numel()
-        status = [STATUSES[i] for i in verdict["status"].tolist()]
-        labels = {int(r): Reason(r).label for r in verdict["reason"].unique().tolist() if r}
-        reason = [labels[r] if r else None for r in verdict["reason"].tolist()]
-        step = [None if st != "diverged" else int(k) for st, k in zip(status, verdict["diverged_at"].tolist())]
+        code = verdict["status"].cpu().numpy()
+        B = code.size
+        reason = _REASON_LABELS[verdict["reason"].cpu().numpy()]
+        step = np.full(B, None, dtype=object)           # the step where diverged, None where alive
+        diverged = code == STATUSES.index("diverged")
+        step[diverged] = verdict["diverged_at"].cpu().numpy()[diverged].tolist()
+        counts = np.bincount(code, minlength=len(STATUSES)).tolist()
 
-        def plain(values: list) -> Any:
+        def plain(values: np.ndarray | list) -> Any:
+            values = values.tolist() if isinstance(values, np.ndarray) else values
             return values[0] if B == 1 else values
 
         def numbers(t: torch.Tensor) -> Any:
             return plain(finite_list(t))
-        return {"counts": {st: status.count(st) for st in STATUSES}, "status": plain(status),
+        return {"counts": dict(zip(STATUSES, counts)), "status": plain(_STATUS_WORDS[code]),
                 "reason": plain(reason), "diverged_at": plain(step),
                 "theta_change": numbers(verdict["theta_change"]), "z_ratio": numbers(verdict["z_ratio"]),
                 "criteria": dict(asdict(self.criteria), check_every=self.every,

@@ -16,13 +16,13 @@ run is.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import orjson
 import torch
 
 from . import scenario as scenarios
@@ -334,10 +334,9 @@ class Run:
                                      self.counters["acc"])
         met.setdefault("z_rms_final", verdict["z_rms"].cpu())
         health = self.health.report(verdict)
-        status = verdict["status"].tolist()
+        members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
-                     "reason": (health["reason"] if self.batch == 1 else health["reason"][b])}
-                    for b in range(self.batch) if STATUSES[status[b]] == "diverged"]
+                     "reason": (health["reason"] if self.batch == 1 else health["reason"][b])} for b in members]
         return {
             "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
             "device": str(self.device.type), "engine": self.graph.ran_engine or
@@ -429,12 +428,18 @@ def _members(settings: Mapping[str, Any], batch: int) -> list[dict[str, Any]] | 
 
 
 def to_json(obj: Any, indent: int = 0) -> str:
-    """JSON with one key per line and every list on one line (readable, and fast for large batches)."""
+    """JSON with one key per line and every list on one line (readable, and fast for large batches: orjson
+    writes a float in the fewest digits that read back as the same float64, about 20x faster than the json
+    module; a value that is not finite becomes null)."""
     if isinstance(obj, Mapping) and obj:
         pad = " " * (indent + 2)
-        items = [f"{pad}{json.dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
+        items = [f"{pad}{_dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
-    return json.dumps(obj)
+    return _dumps(obj)
+
+
+def _dumps(obj: Any) -> str:
+    return orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS).decode()
 
 
 def health_line(summary: Mapping[str, Any]) -> str:
