@@ -152,23 +152,16 @@ class Monitor:
             for q, value in zip(QUANTILES, np.quantile(ok.numpy(), QUANTILES)):
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
-    def figures(self, figs: dict, out: Path) -> None:
-        """Save the figures as PNG in ``out`` and as images under ``figures/`` (each drawn once: TensorBoard
-        gets the PNG file's bytes)."""
+    def figures(self, pngs: dict[str, bytes], out: Path) -> None:
+        """Save the figures (PNG bytes, ``rcotorch.figures.png``) in ``out`` and as images under ``figures/``
+        (TensorBoard gets the PNG file's bytes)."""
         import io
 
-        import matplotlib.pyplot as plt
         from PIL import Image
         from tensorboard.compat.proto.summary_pb2 import Summary
 
         from .outputs import atomic_write
-        for name, fig in figs.items():
-            if fig.get_layout_engine() is None:
-                fig.set_layout_engine("tight")             # laid out while it is drawn
-            buf = io.BytesIO()
-            fig.savefig(buf, format="png", dpi=110)
-            plt.close(fig)
-            png = buf.getvalue()
+        for name, png in pngs.items():
             atomic_write(out / f"{name}.png", lambda f, png=png: f.write(png))
             im = Image.open(io.BytesIO(png))
             image = Summary.Image(height=im.height, width=im.width, colorspace=len(im.getbands()),

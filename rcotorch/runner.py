@@ -369,21 +369,25 @@ class Run:
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
         """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
-        (unless ``close`` is False)."""
+        (unless ``close`` is False). The run's own figures (from its history) are drawn on a second thread
+        while summary.json and the checkpoint are written; the scenario's figures (which may read the graph
+        and use pyplot) are drawn before, in this thread."""
         self._start_monitor()
         if self._pending_log():
             self._log()
         summary = self.summary()
-        write_text(self.out / "summary.json", to_json(summary) + "\n")
         if figures:
-            from .figures import run_figures
-            figs = run_figures(self)
-            figs.update(self.scenario.figures(self.graph, self.settings))
-            self.monitor.figures(figs, self.out)
+            from .figures import draw_meanwhile, pngs, run_figures
+            scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
+            run_pngs = draw_meanwhile(lambda: run_figures(self))
+        write_text(self.out / "summary.json", to_json(summary) + "\n")
+        self.save()
+        if figures:
+            self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
         for status, count in summary["health"]["counts"].items():
             self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
         self.monitor.close(summary)
-        self.save()
+        self.folder.register()
         if close:
             self.close()
         return summary
