@@ -2,7 +2,8 @@
 
 Cadences, fixed when a run is created and kept by a resume:
 
-* health checks every ``health.check_every(steps)`` steps (about 50 per run, the same for any batch size);
+* health checks (``Health.is_check``): every ``health.check_every(steps)`` steps (2% of the run) in the
+  convergence window, every second such step before it (about 30 per run, the same for any batch size);
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
   batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
   check steps where the interval is longer than the checks';
@@ -75,12 +76,12 @@ def _positive_int(value, what: str) -> int:
 
 def default_log_every(steps: int, batch: int) -> int:
     """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
-    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' is the
-    nearest multiple of theirs, so that logs fall on check steps: every stop of the engine costs a pass over
-    the whole batch's state."""
+    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' (in the
+    convergence window) is the nearest multiple of twice theirs (their spacing before the window), so that
+    logs fall on check steps: every stop of the engine costs a pass over the whole batch's state."""
     logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
     every, check = max(1, math.ceil(steps / logs)), check_every(steps)
-    return check * max(1, round(every / check)) if every > check else every
+    return 2 * check * max(1, round(every / (2 * check))) if every > check else every
 
 
 def default_out(name: str) -> Path:
@@ -204,11 +205,11 @@ class Run:
         try:
             while self.k < until:
                 k = self.k
-                end = min(until, _next(k, self.log_every), _next(k, self.health.every),
+                end = min(until, _next(k, self.log_every), self.health.next_check(k),
                           _next(k, checkpoint_every) if checkpoint_every else until)
                 self.graph.advance(end - k, accumulate=acc)
                 self.counters["acc"] += end - k
-                if end % self.health.every == 0:
+                if self.health.is_check(end):
                     self._check()
                 if end % self.log_every == 0:
                     self._log()
