@@ -8,8 +8,8 @@ for the whole process, so only figures made without it can be drawn off the main
 from __future__ import annotations
 
 import io
+import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import matplotlib
 
@@ -134,7 +134,19 @@ def draw_meanwhile(make: Callable[[], dict]) -> Callable[[], dict[str, bytes]]:
     PNG bytes (and raises what the drawing raised). ``make`` must make its figures without pyplot and read only
     what the caller leaves unchanged until it waits. The figures are the same bytes as drawn in the caller's
     thread; what the thread gains is the caller's time in file writes, hashing and fsync (which leave Python)."""
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rcotorch-figures")
-    done = pool.submit(lambda: pngs(make()))
-    pool.shutdown(wait=False)
-    return done.result
+    out: dict = {}
+
+    def draw() -> None:
+        try:
+            out["pngs"] = pngs(make())
+        except BaseException as e:     # handed to the caller when it waits
+            out["error"] = e
+    thread = threading.Thread(target=draw, name="rcotorch-figures", daemon=True)   # a 2nd Ctrl-C quits at once
+    thread.start()
+
+    def wait() -> dict[str, bytes]:
+        thread.join()
+        if "error" in out:
+            raise out["error"]
+        return out["pngs"]
+    return wait
