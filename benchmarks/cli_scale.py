@@ -9,7 +9,7 @@
 * **Checkpoint size**: the final checkpoint of runs that differ only in their number of steps. Target: it
   does not grow with the steps.
 
-    .venv/bin/python benchmarks/cli_scale.py --threads 1      # about 3 min on a 2-core machine
+    .venv/bin/python benchmarks/cli_scale.py --threads 1      # about 1.5 min on a 2-core machine
     .venv/bin/python benchmarks/cli_scale.py --threads 1 --overhead-only   # the overhead alone, printed
 
 Writes ``benchmarks/results/cli_scale.json``.
