@@ -9,7 +9,8 @@
 * **Checkpoint size**: the final checkpoint of runs that differ only in their number of steps. Target: it
   does not grow with the steps.
 
-    .venv/bin/python benchmarks/cli_scale.py --threads 1      # about 3 min on a 2-core machine
+    .venv/bin/python benchmarks/cli_scale.py --threads 1      # about 1.5 min on a 2-core machine
+    .venv/bin/python benchmarks/cli_scale.py --threads 1 --overhead-only   # the overhead alone, printed
 
 Writes ``benchmarks/results/cli_scale.json``.
 """
@@ -88,6 +89,8 @@ def main() -> None:
     ap.add_argument("--memory-batch", type=int, default=262144, help="batch of the peak-memory measurement")
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--overhead-only", action="store_true",
+                    help="measure only the overhead and print it (no peak memory, no checkpoint sizes, no JSON)")
     args = ap.parse_args()
     dev = common.setup(args)
     if dev is None:
@@ -103,6 +106,8 @@ def main() -> None:
         overhead = min(whole) / min(engine) - 1
         print(f"B = {args.batch}, {args.steps} steps: engine {min(engine):.2f} s, rcotorch run {min(whole):.2f} s "
               f"-> the command line adds {100 * overhead:.0f}%")
+        if args.overhead_only:
+            return
         memory = peak_memory(args.memory_batch, args.steps, args.threads, tmp)
         print(f"B = {args.memory_batch}, {args.steps} steps: peak {memory['peak_gib']:.2f} GiB "
               f"({memory['seconds']:.0f} s), checkpoint {memory['checkpoint_bytes'] / 2 ** 20:.1f} MiB")

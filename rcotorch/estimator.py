@@ -629,8 +629,11 @@ class RCOEstimator(Block):
         return torch.linalg.solve(den, num)
 
     def dc_gain(self) -> torch.Tensor:
-        """DC gain of the identified subsystem, (B, n_u, n_sig): (I - sum M_l)^-1 sum N_l."""
+        """DC gain of the identified subsystem, (B, n_u, n_sig): (I - sum M_l)^-1 sum N_l (sum N_l without
+        fed-back u, where M = 0: no solve, which costs several ms for a batch of 65,536)."""
         N, M = self.coefficients()
+        if not self.feed_u:
+            return N.sum(1)
         eye = torch.eye(self.n_u, dtype=N.dtype, device=N.device)
         return torch.linalg.solve(eye - M.sum(1), N.sum(1))
 

@@ -1,15 +1,25 @@
-"""Matplotlib figures of a run: estimates vs time with the truth, model error, frequency responses."""
+"""Matplotlib figures of a run: estimates vs time with the truth, model error, frequency responses; PNG bytes of
+figures, drawn on a second thread where the caller has other work meanwhile.
+
+The figures here are made with matplotlib's ``Figure`` (Agg), not pyplot: pyplot keeps one list of open figures
+for the whole process, so only figures made without it can be drawn off the main thread.
+"""
 
 from __future__ import annotations
+
+import io
+import threading
+from collections.abc import Callable
 
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 MAX_LINES = 8
+DPI = 110
 
 
 def run_figures(run) -> dict:
@@ -22,20 +32,21 @@ def run_figures(run) -> dict:
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
     if keys and len(t):
-        fig, axes = plt.subplots(len(keys), 1, figsize=(7.5, 2.4 * len(keys) + 0.8), sharex=True, squeeze=False,
-                                 layout="tight")
+        fig = Figure(figsize=(7.5, 2.4 * len(keys) + 0.8), layout="tight")
+        axes = fig.subplots(len(keys), 1, sharex=True, squeeze=False)
         for ax, key in zip(axes[:, 0], keys):
             _estimate_panel(ax, run, key, t, torch.stack(h[key]).numpy())
         axes[-1, 0].set_xlabel(xlabel)
-        axes[0, 0].set_title(f"{run.scenario.name}: estimates")
+        _title(axes[0, 0], f"{run.scenario.name}: estimates")
         figs["estimates"] = fig
     if len(t):
-        fig, ax = plt.subplots(figsize=(7.5, 3.0), layout="tight")
+        fig = Figure(figsize=(7.5, 3.0), layout="tight")
+        ax = fig.subplots()
         z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
         ax.semilogy(t, z, lw=1, label=_member_labels(z.shape[1], run.batch))
         ax.set_xlabel(xlabel)
         ax.set_ylabel(_with_unit("rms of z = y - y_hat", run.scenario.unit("y")))
-        ax.set_title(f"{run.scenario.name}: model error (rms over each log interval)")
+        _title(ax, f"{run.scenario.name}: model error (rms over each log interval)")
         ax.grid(alpha=0.3, which="both")
         if z.shape[1] > 1:
             ax.legend(fontsize=8, ncol=2)
@@ -61,6 +72,12 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
     ax.legend(fontsize=8, loc="best", ncol=2 if lines.shape[1] > 2 else 1)
 
 
+def _title(ax, text: str) -> None:
+    """A title on the axes' top edge: where matplotlib puts it on axes without tick labels above them, which it
+    would otherwise confirm by laying out every tick label of the figure once more."""
+    ax.set_title(text, y=1.0)
+
+
 def _member_labels(n: int, batch: int) -> list[str]:
     labels = [f"member {b}" for b in range(n)]
     if batch > n:
@@ -75,7 +92,8 @@ def _with_unit(label: str, unit: str) -> str:
 def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = ""):
     """Bode magnitude (in ``unit``, the unit of output per unit of input) and phase of named complex responses
     {label: (F,) array}; the Nyquist frequency dotted."""
-    fig, (am, ap) = plt.subplots(2, 1, figsize=(7, 5), sharex=True, layout="tight")
+    fig = Figure(figsize=(7, 5), layout="tight")
+    am, ap = fig.subplots(2, 1, sharex=True)
     for label, resp in curves.items():
         resp = np.asarray(resp)
         style = "--" if "true" in label.lower() else "-"
@@ -89,5 +107,46 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
     ap.set_ylabel("phase [deg]")
     ap.set_xlabel("frequency [rad/s]")
     am.legend()
-    am.set_title(title)
+    _title(am, title)
     return fig
+
+
+def png(fig) -> bytes:
+    """The figure as PNG bytes at ``DPI``, laid out tightly unless it has a layout of its own (one drawing); a
+    figure that pyplot made is closed (removed from pyplot's list)."""
+    if fig.get_layout_engine() is None:
+        fig.set_layout_engine("tight")             # laid out while it is drawn
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    if fig.canvas.manager is not None:
+        import matplotlib.pyplot as plt
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def pngs(figs: dict) -> dict[str, bytes]:
+    """{name: PNG bytes} of {name: figure}."""
+    return {name: png(fig) for name, fig in figs.items()}
+
+
+def draw_meanwhile(make: Callable[[], dict]) -> Callable[[], dict[str, bytes]]:
+    """Start drawing the figures ``make()`` returns on a second thread; the returned function waits for their
+    PNG bytes (and raises what the drawing raised). ``make`` must make its figures without pyplot and read only
+    what the caller leaves unchanged until it waits. The figures are the same bytes as drawn in the caller's
+    thread; what the thread gains is the caller's time in file writes, hashing and fsync (which leave Python)."""
+    out: dict = {}
+
+    def draw() -> None:
+        try:
+            out["pngs"] = pngs(make())
+        except BaseException as e:     # handed to the caller when it waits
+            out["error"] = e
+    thread = threading.Thread(target=draw, name="rcotorch-figures", daemon=True)   # a 2nd Ctrl-C quits at once
+    thread.start()
+
+    def wait() -> dict[str, bytes]:
+        thread.join()
+        if "error" in out:
+            raise out["error"]
+        return out["pngs"]
+    return wait

@@ -14,8 +14,11 @@
 The data's scale of u is ``u_scale = rms(y) / |beta|``: rms(y) is the rms of the measured output so far and
 ``|beta|`` the Frobenius norm of the Markov parameters of u -> z that the estimator uses, so a u of size
 ``u_scale`` moves z by about the rms of the data within nu steps. ``phi_j,rms`` is the rms of regressor entry
-j sampled at the checks. The three bounds are checked every ``check_every(steps)`` steps (the same steps for
-any batch size, so a sweep member is frozen at the same step as its separate run).
+j sampled at the checks. The three bounds are checked at the check steps (``Health.is_check``): every
+``check_every(steps)`` steps (2% of the run) from the convergence window's start on, every second of these
+before it, about 30 checks a run; the same steps for any batch size, so a sweep member is frozen at the same
+step as its separate run. Each check stops the engine (a pass over the batch's state): the window keeps every
+check for its statistics, the checks before it only watch the bounds.
 
 **Converged** or **not_converged** (members that were never frozen) is decided over the last ``window``
 fraction of the steps (the window starts at a check step):
@@ -46,6 +49,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from . import kernels
@@ -69,6 +73,11 @@ class Reason(enum.IntEnum):
     def label(self) -> str:
         return self.name.lower()
 
+
+# Per-member words of summary.json, indexed by the status and Reason codes (object arrays: a batch's list in
+# one numpy indexing instead of a Python loop over its members).
+_STATUS_WORDS = np.array(STATUSES, dtype=object)
+_REASON_LABELS = np.array([None] + [r.label for r in Reason if r], dtype=object)
 
 # The bounds' reasons in the order of precedence of Health._bounds_exceeded (the compiled kernel's order).
 _BOUND_REASONS = (int(Reason.NOT_POSITIVE_DEFINITE), int(Reason.COVARIANCE_WINDUP), int(Reason.U_RUNAWAY),
@@ -110,15 +119,15 @@ def finite_list(t: torch.Tensor) -> list:
 
 
 def check_every(steps: int) -> int:
-    """Steps between health checks for a run of ``steps`` steps: about 50 checks (2% of the run apart), at most
-    1000 steps apart. Each check stops the engine, which costs a pass over the batch's state."""
+    """Steps between health checks in the convergence window of a run of ``steps`` steps (2% of the run, at
+    most 1000); twice as many between the checks before the window (``Health.is_check``)."""
     return min(1000, max(1, steps // 50))
 
 
 class Health:
     """Per-member health of one run: statistics gathered at every check, runaway and windup freezing, and
-    the final status. ``check`` is called every ``every`` steps with the sums of z^2 and y^2 over the steps
-    since the last check (per member); ``status`` classifies every member."""
+    the final status. ``check`` is called at the check steps (``is_check``, ``next_check``) with the sums of
+    z^2 and y^2 over the steps since the last check (per member); ``status`` classifies every member."""
 
     def __init__(self, graph, steps: int, criteria: Criteria | None = None):
         self.graph, self.est = graph, graph.role("estimator")
@@ -169,8 +178,18 @@ class Health:
             self.window_start = start
 
     # --- along the run ------------------------------------------------------------------------------------
+    def is_check(self, k: int) -> bool:
+        """Whether step k is a check step: a multiple of ``every`` from the window's start on, of ``2 * every``
+        before it (where the checks only watch the bounds)."""
+        return k % self.every == 0 and (k >= self.window_start or k % (2 * self.every) == 0)
+
+    def next_check(self, k: int) -> int:
+        """The first check step after step k."""
+        step = (k // self.every + 1) * self.every
+        return step if self.is_check(step) else step + self.every
+
     def check(self, z_sq: torch.Tensor, y_sq: torch.Tensor | None, n: int) -> None:
-        """At a check step (graph.k a multiple of ``every``): gather the sums of the last ``n`` steps, note
+        """At a check step (``is_check(graph.k)``): gather the sums of the last ``n`` steps, note
         the members the estimator froze, and freeze members that ran away or wound up."""
         s, k = self.state, int(self.graph.k)
         if y_sq is not None:
@@ -301,18 +320,21 @@ class Health:
     def report(self, verdict: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The verdict for ``summary.json``: per-member lists (plain values for a batch of one), counts and
         the criteria."""
-        B = verdict["status"].numel()
-        status = [STATUSES[i] for i in verdict["status"].tolist()]
-        labels = {int(r): Reason(r).label for r in verdict["reason"].unique().tolist() if r}
-        reason = [labels[r] if r else None for r in verdict["reason"].tolist()]
-        step = [None if st != "diverged" else int(k) for st, k in zip(status, verdict["diverged_at"].tolist())]
+        code = verdict["status"].cpu().numpy()
+        B = code.size
+        reason = _REASON_LABELS[verdict["reason"].cpu().numpy()]
+        step = np.full(B, None, dtype=object)           # the step where diverged, None where alive
+        diverged = code == STATUSES.index("diverged")
+        step[diverged] = verdict["diverged_at"].cpu().numpy()[diverged].tolist()
+        counts = np.bincount(code, minlength=len(STATUSES)).tolist()
 
-        def plain(values: list) -> Any:
+        def plain(values: np.ndarray | list) -> Any:
+            values = values.tolist() if isinstance(values, np.ndarray) else values
             return values[0] if B == 1 else values
 
         def numbers(t: torch.Tensor) -> Any:
             return plain(finite_list(t))
-        return {"counts": {st: status.count(st) for st in STATUSES}, "status": plain(status),
+        return {"counts": dict(zip(STATUSES, counts)), "status": plain(_STATUS_WORDS[code]),
                 "reason": plain(reason), "diverged_at": plain(step),
                 "theta_change": numbers(verdict["theta_change"]), "z_ratio": numbers(verdict["z_ratio"]),
                 "criteria": dict(asdict(self.criteria), check_every=self.every,

@@ -26,6 +26,7 @@ both parts: it is shown by default whatever the settings are called.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -106,25 +107,25 @@ class Monitor:
     def log(self, step: int, z_rms: torch.Tensor, estimates: dict[str, torch.Tensor]) -> None:
         """Log the batch at ``step``: z rms (B,) over the last interval and the estimates, each (B,)."""
         w = self.writer
-        finite = torch.isfinite(z_rms)
-        w.add_scalar(f"{MODEL_ERROR}/z rms",
-                     float(torch.sqrt((z_rms[finite] ** 2).mean())) if finite.any() else math.nan, step)
-        self._spread("z rms", z_rms, step)
+        finite = {key: _finite(v) for key, v in {"z rms": z_rms, **estimates}.items()}
+        z_ok = finite["z rms"]
+        w.add_scalar(f"{MODEL_ERROR}/z rms", float(torch.sqrt((z_ok ** 2).mean())) if z_ok.numel() else math.nan,
+                     step)
+        self._spread("z rms", z_rms, z_ok, step)
         for key, v in estimates.items():
-            self._estimate(key, v, step)
+            self._estimate(key, v, finite[key], step)
         ident = self.run.graph.role("estimator")
         theta = ident.theta_free().detach().to(torch.float64).cpu()
         for i, name in enumerate(ident.theta_names):
             w.add_scalar(f"theta/{name}", float(theta[:, i].nanmean()), step)
         w.add_scalar("health/diverged", float((~ident.alive).sum()), step)
         if self.batch >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
-            for key, v in {"z rms": z_rms, **estimates}.items():
-                ok = torch.isfinite(v)
-                if ok.any():
-                    w.add_histogram(f"spread/{key}", v[ok], step)
+            for key, ok in finite.items():
+                if ok.numel():
+                    w.add_histogram(f"spread/{key}", ok, step)
         self.n_logs += 1
 
-    def _estimate(self, key: str, v: torch.Tensor, step: int) -> None:
+    def _estimate(self, key: str, v: torch.Tensor, ok: torch.Tensor, step: int) -> None:
         w = self.writer
         w.add_scalar(self.estimate_tag(key), float(v.nanmean()), step)
         truth = self.run.truth.get(key)
@@ -139,36 +140,28 @@ class Monitor:
             w.add_scalar(f"errors/{key}", float(err.nanmean()), step)
             if key not in self.shared_truth:       # a truth per member: the error stands beside the estimate
                 w.add_scalar(f"{ESTIMATES}/{key} |error| mean", float(err.nanmean()), step)
-        self._spread(key, v, step)
+        self._spread(key, v, ok, step)
 
-    def _spread(self, name: str, v: torch.Tensor, step: int) -> None:
-        """Quantiles over the batch and the traced members' values."""
+    def _spread(self, name: str, v: torch.Tensor, ok: torch.Tensor, step: int) -> None:
+        """Quantiles over the batch (of its finite values ``ok``) and the traced members' values."""
         if self.batch == 1:
             return
         for b in self.traced:
             self.writer.add_scalar(f"members/{name} m{b}", float(v[b]), step)
-        ok = v[torch.isfinite(v)].numpy()
-        if ok.size:      # numpy's quantiles: the same linear interpolation as torch.quantile, several times faster
-            for q, value in zip(QUANTILES, np.quantile(ok, QUANTILES)):
+        if ok.numel():      # numpy's quantiles: the same linear interpolation as torch.quantile, several times faster
+            for q, value in zip(QUANTILES, np.quantile(ok.numpy(), QUANTILES)):
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
 
-    def figures(self, figs: dict, out: Path) -> None:
-        """Save the figures as PNG in ``out`` and as images under ``figures/`` (each drawn once: TensorBoard
-        gets the PNG file's bytes)."""
+    def figures(self, pngs: dict[str, bytes], out: Path) -> None:
+        """Save the figures (PNG bytes, ``rcotorch.figures.png``) in ``out`` and as images under ``figures/``
+        (TensorBoard gets the PNG file's bytes)."""
         import io
 
-        import matplotlib.pyplot as plt
         from PIL import Image
         from tensorboard.compat.proto.summary_pb2 import Summary
 
         from .outputs import atomic_write
-        for name, fig in figs.items():
-            if fig.get_layout_engine() is None:
-                fig.set_layout_engine("tight")             # laid out while it is drawn
-            buf = io.BytesIO()
-            fig.savefig(buf, format="png", dpi=110)
-            plt.close(fig)
-            png = buf.getvalue()
+        for name, png in pngs.items():
             atomic_write(out / f"{name}.png", lambda f, png=png: f.write(png))
             im = Image.open(io.BytesIO(png))
             image = Summary.Image(height=im.height, width=im.width, colorspace=len(im.getbands()),
@@ -187,33 +180,38 @@ class Monitor:
         self.writer.close()
 
 
+def _finite(v: torch.Tensor) -> torch.Tensor:
+    """The finite values of a CPU tensor, in order (the tensor itself when all are: the common case costs one
+    pass of numpy's isfinite instead of a masked copy)."""
+    ok = np.isfinite(v.numpy())
+    return v if ok.all() else v[torch.from_numpy(ok)]
+
+
 def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
     """The numbers of an HParams row, batch means where there are several members: ``final/<key>`` for each
     estimate and metric, ``final/|error| <key>`` for each estimate with a truth, ``final/diverged`` (members)."""
     out: dict[str, float] = {}
     batch = int(summary.get("batch", 1))
 
-    def per_member(v) -> list:
-        return list(v) if isinstance(v, list) else [v] * batch
+    def per_member(v) -> np.ndarray:     # one value per member, NaN for None
+        return np.array(v if isinstance(v, list) else [v] * batch, dtype=np.float64)
 
     for key, v in summary["estimates"].items():
         est = per_member(v)
         out[f"final/{key}"] = _mean(est)
         truth = summary.get("truth", {}).get(key)
         if truth is not None:
-            out[f"final/|error| {key}"] = _mean([None if e is None else abs(e - t)
-                                                 for e, t in zip(est, per_member(truth))])
+            out[f"final/|error| {key}"] = _mean(np.abs(est - per_member(truth)))
     for key, v in summary["metrics"].items():
         out[f"final/{key}"] = _mean(per_member(v))
     out["final/diverged"] = float(member_status(summary).count("diverged"))
     return {k: v for k, v in out.items() if v is not None}
 
 
-def _mean(values: list) -> float | None:
+def _mean(values: np.ndarray) -> float | None:
     """The mean of the finite values, None where there is none."""
-    vals = np.array([math.nan if v is None else v for v in values], dtype=np.float64)
-    vals = vals[np.isfinite(vals)]
-    return float(vals.mean()) if vals.size else None
+    values = values[np.isfinite(values)]
+    return float(values.mean()) if values.size else None
 
 
 def setting_text(value) -> str:
@@ -244,10 +242,7 @@ def status_text(summary: Mapping[str, Any]) -> str:
     status = member_status(summary)
     if len(status) == 1:
         return status[0]
-    counts: dict[str, int] = {}
-    for s in status:
-        counts[s] = counts.get(s, 0) + 1
-    return ", ".join(f"{s} {n}" for s, n in sorted(counts.items()))
+    return ", ".join(f"{s} {n}" for s, n in sorted(Counter(status).items()))
 
 
 def session_status(summary: Mapping[str, Any]) -> str:

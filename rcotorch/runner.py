@@ -2,7 +2,8 @@
 
 Cadences, fixed when a run is created and kept by a resume:
 
-* health checks every ``health.check_every(steps)`` steps (about 50 per run, the same for any batch size);
+* health checks (``Health.is_check``): every ``health.check_every(steps)`` steps (2% of the run) in the
+  convergence window, every second such step before it (about 30 per run, the same for any batch size);
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
   batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
   check steps where the interval is longer than the checks';
@@ -16,13 +17,13 @@ run is.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import orjson
 import torch
 
 from . import scenario as scenarios
@@ -75,12 +76,12 @@ def _positive_int(value, what: str) -> int:
 
 def default_log_every(steps: int, batch: int) -> int:
     """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
-    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' is the
-    nearest multiple of theirs, so that logs fall on check steps: every stop of the engine costs a pass over
-    the whole batch's state."""
+    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' (in the
+    convergence window) is the nearest multiple of twice theirs (their spacing before the window), so that
+    logs fall on check steps: every stop of the engine costs a pass over the whole batch's state."""
     logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
     every, check = max(1, math.ceil(steps / logs)), check_every(steps)
-    return check * max(1, round(every / check)) if every > check else every
+    return 2 * check * max(1, round(every / (2 * check))) if every > check else every
 
 
 def default_out(name: str) -> Path:
@@ -204,11 +205,11 @@ class Run:
         try:
             while self.k < until:
                 k = self.k
-                end = min(until, _next(k, self.log_every), _next(k, self.health.every),
+                end = min(until, _next(k, self.log_every), self.health.next_check(k),
                           _next(k, checkpoint_every) if checkpoint_every else until)
                 self.graph.advance(end - k, accumulate=acc)
                 self.counters["acc"] += end - k
-                if end % self.health.every == 0:
+                if self.health.is_check(end):
                     self._check()
                 if end % self.log_every == 0:
                     self._log()
@@ -334,10 +335,9 @@ class Run:
                                      self.counters["acc"])
         met.setdefault("z_rms_final", verdict["z_rms"].cpu())
         health = self.health.report(verdict)
-        status = verdict["status"].tolist()
+        members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
-                     "reason": (health["reason"] if self.batch == 1 else health["reason"][b])}
-                    for b in range(self.batch) if STATUSES[status[b]] == "diverged"]
+                     "reason": (health["reason"] if self.batch == 1 else health["reason"][b])} for b in members]
         return {
             "scenario": sc.name, "steps": self.k, "batch": self.batch, "dtype": self.dtype_name,
             "device": str(self.device.type), "engine": self.graph.ran_engine or
@@ -370,21 +370,25 @@ class Run:
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
         """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
-        (unless ``close`` is False)."""
+        (unless ``close`` is False). The run's own figures (from its history) are drawn on a second thread
+        while summary.json and the checkpoint are written; the scenario's figures (which may read the graph
+        and use pyplot) are drawn before, in this thread."""
         self._start_monitor()
         if self._pending_log():
             self._log()
         summary = self.summary()
-        write_text(self.out / "summary.json", to_json(summary) + "\n")
         if figures:
-            from .figures import run_figures
-            figs = run_figures(self)
-            figs.update(self.scenario.figures(self.graph, self.settings))
-            self.monitor.figures(figs, self.out)
+            from .figures import draw_meanwhile, pngs, run_figures
+            scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
+            run_pngs = draw_meanwhile(lambda: run_figures(self))
+        write_text(self.out / "summary.json", to_json(summary) + "\n")
+        self.save()
+        if figures:
+            self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
         for status, count in summary["health"]["counts"].items():
             self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
         self.monitor.close(summary)
-        self.save()
+        self.folder.register()
         if close:
             self.close()
         return summary
@@ -429,12 +433,18 @@ def _members(settings: Mapping[str, Any], batch: int) -> list[dict[str, Any]] | 
 
 
 def to_json(obj: Any, indent: int = 0) -> str:
-    """JSON with one key per line and every list on one line (readable, and fast for large batches)."""
+    """JSON with one key per line and every list on one line (readable, and fast for large batches: orjson
+    writes a float in the fewest digits that read back as the same float64, about 20x faster than the json
+    module; a value that is not finite becomes null)."""
     if isinstance(obj, Mapping) and obj:
         pad = " " * (indent + 2)
-        items = [f"{pad}{json.dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
+        items = [f"{pad}{_dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
-    return json.dumps(obj)
+    return _dumps(obj)
+
+
+def _dumps(obj: Any) -> str:
+    return orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS).decode()
 
 
 def health_line(summary: Mapping[str, Any]) -> str:

@@ -27,17 +27,18 @@ def test_theta_runaway_is_frozen_with_finite_state_and_the_others_untouched(tmp_
     kw = dict(steps=4000, batch=3)
     run = Run("sdof-stiffness", out=tmp_path / "run", **kw)
     every = check_every(4000)
-    run.advance(until=2000 - 1, progress=False)
+    run.advance(until=1920 - 1, progress=False)
     est = run.graph.role("estimator")
     theta = est.theta.clone()
     theta[1] = 1e8                                   # member 1's estimate runs away (one step before a check)
     est.set_state(theta=theta)
     run.advance(progress=False)
     summary = run.finish(figures=False)
-    assert 2000 % every == 0
-    assert summary["diverged"] == [{"member": 1, "step": 2000, "reason": "theta_runaway"}]
+    # Before the convergence window (from step 3200) the checks are 2 * every apart: 1920 = 12 * 160 is one.
+    assert every == 80 and run.health.window_start == 3200 and run.health.is_check(1920)
+    assert summary["diverged"] == [{"member": 1, "step": 1920, "reason": "theta_runaway"}]
     assert summary["health"]["status"] == ["converged", "diverged", "converged"]
-    assert summary["health"]["diverged_at"] == [None, 2000, None]
+    assert summary["health"]["diverged_at"] == [None, 1920, None]
     assert est.alive.tolist() == [True, False, True]
     assert torch.isfinite(est.theta).all() and torch.isfinite(est.P).all()
     assert torch.equal(est.theta[[0, 2]], _clean_theta(tmp_path, "sdof-stiffness", **kw)[[0, 2]])
@@ -61,30 +62,55 @@ def test_a_model_that_blows_up_is_a_u_runaway(tmp_path):
 
 def test_p_not_positive_definite_is_reported(tmp_path):
     run = Run("sdof-stiffness", steps=600, batch=2, out=tmp_path)
-    run.advance(until=300 - 1, progress=False)
+    run.advance(until=288 - 1, progress=False)
     est = run.graph.role("estimator")
     P = est.P.clone()
     P[1] = -torch.eye(2, dtype=P.dtype)               # member 1's covariance loses definiteness (S stays > 0)
     est.set_state(P=P)
     run.advance(progress=False)
     summary = run.finish(figures=False)
-    assert summary["diverged"] == [{"member": 1, "step": 300, "reason": "not_positive_definite"}]
+    assert summary["diverged"] == [{"member": 1, "step": 288, "reason": "not_positive_definite"}]   # 24 x 12
 
 
 def test_covariance_windup_without_excitation_matches_the_closed_form(tmp_path):
     """lambda = 0.995 and no excitation: P = p0 lambda^-k I exactly grows, until trace(P) > 1e6 n p0 at
-    k > ln(1e6) / -ln(lambda) = 2756.3; the member is frozen at the first check after that, P finite."""
+    k > ln(1e6) / -ln(lambda) = 2756.3; the member is frozen at the first check after that (before the
+    convergence window, which starts at step 4000, checks are 2 * every = 200 steps apart), P finite."""
     lam, p0, steps = 0.995, 1e3, 5000
     run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"w_std": 0.0}, {"w_std": 1.0}],
               overrides={"lam": lam, "p0": p0})
     run.advance(progress=False)
     summary = run.finish(figures=False)
     every = check_every(steps)
-    k_windup = every * math.ceil(math.log(1e6) / -math.log(lam) / every)
+    k_windup = 2 * every * math.ceil(math.log(1e6) / -math.log(lam) / (2 * every))
+    assert k_windup == 2800 < run.health.window_start == 4000
     assert summary["diverged"] == [{"member": 0, "step": k_windup, "reason": "covariance_windup"}]
     P = run.graph.role("estimator").P[0]
     np.testing.assert_allclose(P.numpy(), p0 * lam ** -k_windup * np.eye(2), rtol=1e-9)
     assert summary["health"]["status"][1] in ("converged", "not_converged")
+
+
+@pytest.mark.parametrize("steps, every, start", [(2000, 40, 1600), (4000, 80, 3200), (202, 4, 164),
+                                                 (100_000, 1000, 80_000)])
+def test_checks_are_every_second_step_of_the_cadence_before_the_window_and_every_one_in_it(tmp_path, steps,
+                                                                                         every, start):
+    """The checks of a run: 2% of the run apart (at most 1000 steps) from the convergence window's start on
+    (the last fifth of the run, from a multiple of that), twice that apart before it; each one stops the engine
+    once, and the logs (here every 2 * every steps) fall on check steps."""
+    run = Run("sdof-stiffness", steps=steps, out=tmp_path, log_every=2 * every)
+    assert (check_every(steps), run.health.window_start) == (every, start)
+    expected = list(range(2 * every, start, 2 * every)) + list(range(start, steps + 1, every))
+    assert [k for k in range(1, steps + 1) if run.health.is_check(k)] == expected
+    if steps > 10_000:
+        return
+    checked, stops = [], []
+    check, advance = run.health.check, run.graph.advance
+    run.health.check = lambda *a: (checked.append(int(run.graph.k)), check(*a))[1]
+    run.graph.advance = lambda n, **kw: (advance(n, **kw), stops.append(int(run.graph.k)))[0]
+    run.advance(progress=False)
+    assert checked == expected and stops == sorted(set(expected) | set(range(0, steps + 1, 2 * every)[1:]) |
+                                                    {steps})
+    run.close()
 
 
 def test_no_excitation_with_lambda_one_is_not_converged(tmp_path):
@@ -209,7 +235,8 @@ def test_a_million_steps_with_forgetting_and_weak_excitation_end_classified_and_
     assert h["status"][0] == "converged"
     assert h["status"][3] == "diverged" and h["reason"][3] == "covariance_windup"
     assert h["status"][2] == "diverged" and h["reason"][2] == "covariance_windup"
-    assert float(est.P[3].diagonal().max()) < 1e6 * 1e3 * 2 * (1 / 0.995) ** check_every(1_000_000)
+    # frozen at the first check past the bound: checks are 2 * check_every apart before the convergence window
+    assert float(est.P[3].diagonal().max()) < 1e6 * 1e3 * 2 * (1 / 0.995) ** (2 * check_every(1_000_000))
 
 
 def test_the_bounds_kernel_gives_each_reason_as_the_pytorch_checks_do():

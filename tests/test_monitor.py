@@ -284,3 +284,26 @@ def test_run_figures_carry_units_and_legends(tmp_path):
     batch.advance(progress=False)
     labels = [t.get_text() for t in run_figures(batch)["estimates"].axes[0].get_legend().get_texts()]
     assert labels == ["member 0", "member 1", "member 2", "truth", "initial model"]
+
+
+def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(tmp_path):
+    import threading
+
+    from rcotorch.figures import draw_meanwhile, pngs, run_figures
+    run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
+    run.advance(progress=False)
+    threads = []
+
+    def make():
+        threads.append(threading.current_thread())
+        return run_figures(run)
+    drawn = draw_meanwhile(make)()
+    assert threads[0] is not threading.main_thread()
+    assert drawn == pngs(run_figures(run)) and set(drawn) == {"estimates", "model_error"}
+    assert all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in drawn.values())
+
+    def broken():
+        raise ValueError("no history to draw")
+    with pytest.raises(ValueError, match="no history to draw"):
+        draw_meanwhile(broken)()
+    run.close()
