@@ -291,7 +291,7 @@ class Column(nn.Module):
             return 1e-9 * u @ self.cooling_basis
         if rate is None:
             raise ConfigError("thermosphere column: interpolate='strength' needs the Kockarts rate profile")
-        at_nodes = torch.cat([self.at(rate, float(a)) for a in self.nodes], 1).clamp(min=torch.finfo(rate.dtype).tiny)
+        at_nodes = self.at_nodes(rate).clamp(min=torch.finfo(rate.dtype).tiny)
         return 1e-9 * rate * ((u / at_nodes) @ self.cooling_basis)
 
     def tendencies(self, x: torch.Tensor, w: torch.Tensor, u: torch.Tensor | None = None) -> dict:
@@ -344,6 +344,10 @@ class Column(nn.Module):
         v = (1 - a) * p[:, :1] + a * p[:, 1:]
         return torch.exp(v) if log else v
 
+    def at_nodes(self, profile: torch.Tensor) -> torch.Tensor:
+        """A profile (B, n) at the cooling nodes by linear interpolation: (B, nodes)."""
+        return torch.cat([self.at(profile, float(a)) for a in self.nodes], 1)
+
     def density_at(self, x: torch.Tensor, altitude: float) -> torch.Tensor:
         """Mass density at ``altitude`` in units of 1e-12 kg/m^3, (B, 1)."""
         return 1e12 * self.at(self.mass_density(x[:, : self.n]), altitude, log=True)
@@ -356,14 +360,12 @@ class Column(nn.Module):
     def no_cooling_at_nodes(self, x: torch.Tensor) -> torch.Tensor:
         """The Kockarts NO cooling of state x at the cooling nodes, (B, nodes) [nW/m^3]: the basis regressors of a
         structured identified subsystem u_j = theta_j y0_j."""
-        profile = self.no_cooling_profile(x)
-        return torch.cat([self.at(profile, float(a)) for a in self.nodes], 1)
+        return self.at_nodes(self.no_cooling_profile(x))
 
     def temperature_at_nodes(self, x: torch.Tensor) -> torch.Tensor:
         """The temperature of state x at the cooling nodes, (B, nodes) [K]: what a temperature-only identified
         subsystem sees (nothing of the composition, the NO density or the cooling law)."""
-        T = x[:, : self.n]
-        return torch.cat([self.at(T, float(a)) for a in self.nodes], 1)
+        return self.at_nodes(x[:, : self.n])
 
     def initial_state(self, batch: int = 1) -> torch.Tensor:
         """A start for a spin-up (batch, 2n + 1): a Bates profile (T_inf = 1000 K, shape 0.02 /km), no NO, t = 0."""
