@@ -437,16 +437,16 @@ class RCOEstimator(Block):
         changed it."""
         return memo.derived(self, "k", (self.k,), lambda: int(self.k))
 
-    def _beta_rev(self) -> torch.Tensor:
-        """beta_t reversed in time, (Bp, n_z * n_u, nu): entry j weighs delay d + nu - 1 - j."""
-        return memo.derived(self, "beta_rev", (self.beta_t,), lambda: self.beta_t.flip(-1).contiguous())
+    def _beta_padded(self) -> torch.Tensor:
+        """beta_t reversed in time with first_delay zeros after it, (Bp, n_z * n_u, W): entry j weighs delay
+        W - 1 - j."""
+        return memo.derived(self, "beta_padded", (self.beta_t,), lambda: torch.nn.functional.pad(
+            self.beta_t.flip(-1), (0, self.first_delay)))
 
     def _beta_ring(self, p: int) -> torch.Tensor:
         """The weights of the window's rows at a step with k mod W = p, (Bp, n_z * n_u, W): row r holds the
         sample of delay (p - r) mod W, weighed by beta at that delay, or by 0 below the first delay."""
-        padded = memo.derived(self, "beta_padded", (self.beta_t,), lambda: torch.nn.functional.pad(
-            self._beta_rev(), (0, self.first_delay)))                     # entry j weighs delay W - 1 - j
-        return padded.roll(p + 1, dims=-1)
+        return self._beta_padded().roll(p + 1, dims=-1)
 
     def _lam_arg(self):
         """lam for rls_update: the Python float 1.0 when every member has lam = 1 (no division by lambda)."""
@@ -559,17 +559,16 @@ class RCOEstimator(Block):
             torch.block_diag(self.r_inv, torch.eye(self.n_theta, dtype=self.r_inv.dtype))
         nl = r_inv.shape[0]
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
-                      W=W, NUM=W - self.first_delay, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
+                      W=W, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
                       SHARED=b.shared(self.beta_t),
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
-                      BETA=b.param(self._beta_rev()), LAM=b.param(self.lam.reshape(-1, 1)),
+                      BETA=b.param(self._beta_padded().repeat(1, 1, 2)), LAM=b.param(self.lam.reshape(-1, 1)),
                       RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
                       Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
                       UOUT=b.output("u"),
-                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl,
-                                                                        W)),
+                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl)),
                       RW=-1 if self.norm_inv_s2 is None else b.param(self.r_weight.reshape(1, -1)),
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})

@@ -100,9 +100,9 @@ def lanes(batch: int) -> int:
     return max([w for w in LANE_WIDTHS if w <= per_thread] or [1])
 
 
-def estimator_scratch(n_u: int, n_z: int, n_phi: int, n_theta: int, n_rows: int, window: int) -> int:
+def estimator_scratch(n_u: int, n_z: int, n_phi: int, n_theta: int, n_rows: int) -> int:
     """Scratch slots of one native estimator update with ``n_rows`` rows in its RLS step (the C code's count)."""
-    return _engine.rco_scratch(n_u, n_z, n_phi, n_theta, n_rows, window)
+    return _engine.rco_scratch(n_u, n_z, n_phi, n_theta, n_rows)
 
 
 def bump(*tensors: torch.Tensor) -> None:

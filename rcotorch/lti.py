@@ -166,15 +166,15 @@ class LTI(Block):
             ft = [p for p in self._feedthrough[port] if b.input(p) is not None]
             if ft and D is None:
                 D = b.param(self.D)
+            cols = [(c, b.input(p) + c - self._in_slices[p].start)   # each feedthrough column and its slot
+                    for p in ft for c in range(self._in_slices[p].start, self._in_slices[p].stop)]
             args = [n, rows.stop - rows.start, C + rows.start * n, x, b.output(port), mt,
-                    (0 if D is None else D) + rows.start * mt, shared, len(ft)]
-            for p in ft:
-                cs = self._in_slices[p]
-                args += [cs.start, cs.stop - cs.start, b.input(p)]
+                    (0 if D is None else D) + rows.start * mt, shared, len(cols)]
+            args += [v for col in cols for v in col]
             b.emit("LTI_OUT", args, port=port)
-        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), shared, len(self._in_slices)]
-        for p, cs in self._in_slices.items():
-            args += [b.input(p), cs.stop - cs.start]
+        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), shared]
+        for p, cs in self._in_slices.items():   # the input ports' columns in order: the slot of each
+            args += [b.input(p) + i for i in range(cs.stop - cs.start)]
         b.emit("LTI_UPD", args)
 
     # --- analysis -------------------------------------------------------------------------------------

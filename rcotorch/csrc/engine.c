@@ -149,8 +149,8 @@ static inline ALWAYS double clampd(double x, double lo, double hi) {
 static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
 
 /* Scratch slots of one estimator update (lanes.h, rco_upd). */
-static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nl, int64_t W) {
-    return n_z * n_u * (n_phi + n_u) + n * nl + n + 2 + nl + rls_scratch(n, nl) + W;
+static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nl) {
+    return n_z * n_u * (n_phi + n_u) + n * nl + n + 2 + nl + rls_scratch(n, nl);
 }
 
 typedef struct {
@@ -485,9 +485,9 @@ static PyObject *py_window_gram(PyObject *self, PyObject *args) {
 }
 
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
-    long long n_u, n_z, n_phi, n, nl, W;
-    if (!PyArg_ParseTuple(args, "LLLLLL", &n_u, &n_z, &n_phi, &n, &nl, &W)) return NULL;
-    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n, nl, W));
+    long long n_u, n_z, n_phi, n, nl;
+    if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
+    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n, nl));
 }
 
 static PyMethodDef METHODS[] = {
@@ -502,7 +502,7 @@ static PyMethodDef METHODS[] = {
      "the health checks' bounds"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
-    {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows, window): scratch slots"},
+    {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
     {NULL, NULL, 0, NULL},
 };
 

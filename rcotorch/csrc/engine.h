@@ -15,8 +15,8 @@
 #define RCO_OPS(X)                                                                                           \
     X(PLAYBACK)  /* ptr, member stride, time stride, offset, width, counter, out                          */ \
     X(NOISE)     /* width, counter, stream key, std, mean, out, buffer: mean + std N(seed, member, k, c)  */ \
-    X(LTI_OUT)   /* n, rows, C, x, out, total inputs, D, shared, nft, [column, width, in] * nft           */ \
-    X(LTI_UPD)   /* n, total inputs, A, B, x, scratch, shared, nin, [in, width] * nin                     */ \
+    X(LTI_OUT)   /* n, rows, C, x, out, total inputs, D, shared, nft, [column, in] * nft (feedthrough)      */ \
+    X(LTI_UPD)   /* n, total inputs mt, A, B, x, scratch, shared, in * mt (the slot of each input column)  */ \
     X(GAIN)      /* rows, cols, K, in, out, shared                                                         */ \
     X(SUM)       /* width, nin, out, [in, sign] * nin                                                      */ \
     X(COPY)      /* width, in, out                                                                         */ \
@@ -30,13 +30,14 @@
 
 /* The estimator's instruction: these fields, then phi_src[NPHI] (the slot of each entry of phi),
  * param_of[NENT] (the parameter of each entry of theta, -1: pinned) and rep[NTHETA] (an entry holding each
- * parameter). Slots: state (THETA .. PASTU), parameters (BETA, LAM, RINV, bounds), inputs (Z, VALID, CUR),
- * the output (UOUT) and scratch (SCRATCH, RCO_SCRATCH slots, see rco_scratch in lanes.h). The robustness
+ * parameter). Slots: state (THETA .. PASTU), parameters (BETA: the weights of the ring's rows, twice over;
+ * LAM, RINV, bounds), inputs (Z, VALID, CUR), the output (UOUT) and scratch (SCRATCH, RCO_SCRATCH slots, see
+ * rco_scratch in lanes.h). The robustness
  * options (estimator.py): NL rows in the update (n_z, plus n_theta with the penalty on the parameters' change),
  * parameter slots RDQ (sqrt(r_delta)), NORM (1 / s^2 of normalized regressors, with RW: the cost's weight R,
  * n_z x n_z) and PMAX (the trace bound on P), each -1 when off. */
 #define RCO_FIELDS(X)                                                                                        \
-    X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NUM) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
+    X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
     X(THETA) X(P) X(WIN) X(PHI) X(UNOW) X(ZR) X(ALIVE) X(DIV) X(PAST) X(PASTU)                             \
     X(BETA) X(LAM) X(RINV) X(TLO) X(THI) X(ULO) X(UHI) X(Z) X(VALID) X(CUR) X(UOUT) X(SCRATCH)                 \
     X(NL) X(RDQ) X(NORM) X(RW) X(PMAX)

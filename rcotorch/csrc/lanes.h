@@ -257,36 +257,30 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
     }
 }
 
-/* out = C[rows] x + sum_f D[rows, columns_f] u_f */
+/* out = C[rows] x + sum_f D[rows, column_f] u_f over the feedthrough columns f (a column and its input slot) */
 static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n) {
     int64_t w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
+    const int64_t *restrict ft = a + 9;
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
         for (int64_t j = 0; j < n; j++) PMAC(acc, SL(cs + r * n + j), SL(xs + j), sh);
-        for (int64_t f = 0; f < nft; f++) {
-            int64_t col = a[9 + 3 * f], wf = a[10 + 3 * f], us = a[11 + 3 * f];
-            for (int64_t c = 0; c < wf; c++) PMAC(acc, SL(ds + r * mt + col + c), SL(us + c), sh);
-        }
+        for (int64_t f = 0; f < nft; f++) PMAC(acc, SL(ds + r * mt + ft[2 * f]), SL(ft[2 * f + 1]), sh);
         double *o = SL(os + r);
         LANES o[l] = acc[l];
     }
 }
 
-/* x = A x + sum_q B[:, columns_q] u_q */
-static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n) {
-    int64_t mt = a[1], as = a[2], bs = a[3], xs = a[4], sh = a[6], nin = a[7];
+/* x = A x + B u, u the mt input columns (the slot of each) */
+static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
+    int64_t as = a[2], bs = a[3], xs = a[4], sh = a[6];
+    const int64_t *restrict in = a + 7;
     double *xn = SL(a[5]);
     for (int64_t r = 0; r < n; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
         for (int64_t j = 0; j < n; j++) PMAC(acc, SL(as + r * n + j), SL(xs + j), sh);
-        int64_t col = 0;
-        for (int64_t q = 0; q < nin; q++) {
-            int64_t us = a[8 + 2 * q], w = a[9 + 2 * q];
-            for (int64_t c = 0; c < w; c++) PMAC(acc, SL(bs + r * mt + col + c), SL(us + c), sh);
-            col += w;
-        }
+        for (int64_t c = 0; c < mt; c++) PMAC(acc, SL(bs + r * mt + c), SL(in[c]), sh);
         double *o = AT(xn, r);
         LANES o[l] = acc[l];
     }
@@ -305,10 +299,10 @@ static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
 }
 
 static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
-#define CALL(c) FN(lti_upd_n)(a, S, c)
+#define CALL(c) FN(lti_upd_n)(a, S, c, a[1])
     SMALL_SIZES(a[0], CALL);
 #undef CALL
-    FN(lti_upd_n)(a, S, a[0]);
+    FN(lti_upd_n)(a, S, a[0], a[1]);
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
@@ -470,11 +464,11 @@ static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, i
 static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                       int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
                                       int64_t nl) {
-    int64_t W = e[E_W], nu = e[E_NUM], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
+    int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
     double *scr = SL(e[E_SCRATCH]);
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
-    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl), *wr = AT(rls_scr, rls_scratch(n, nl));
+    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into row pr of the ring */
         const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
@@ -482,25 +476,13 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES r1[l] = v[l];
     }
     /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over every row of the ring: row r holds delay
-     * (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] (wr: beta_rev rolled to this step), by 0 below
-     * the first delay as on the PyTorch engine; rows in memory order, in four chains. */
+     * (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] and by 0 below the first delay as on the PyTorch
+     * engine. The weights hold that ring twice ([beta_rev, 0 * first_delay] twice, 2W entries), so this step's
+     * weights of rows 0 .. W - 1 are the W entries from W - pr - 1 on. Rows in memory order, in four chains. */
     const double *restrict win = SL(e[E_WIN]);
     const int64_t sh = e[E_SHARED];
     for (int64_t q = 0; q < n_z * n_u; q++) {
-        const double *restrict c = SL(e[E_BETA] + q * nu);
-        /* delay i in row pr + 1 + i up to the ring's end (split), then in row i - off: two runs of rows, no
-         * branch on the boundary, which moves every step */
-        const int64_t off = W - pr - 1, split = off < nu ? off : nu;
-        const int one = VL == 1 || sh;
-        for (int64_t r = 0; r < W; r++) {
-            double *w = AT(wr, r);
-            if (one) { w[0] = 0.0; } else { LANES w[l] = 0.0; }
-        }
-        for (int64_t i = 0; i < nu; i++) {
-            double *w = AT(wr, i < split ? pr + 1 + i : i - off);
-            const double *ci = AT(c, i);
-            if (one) { w[0] = ci[0]; } else { LANES w[l] = ci[l]; }
-        }
+        const double *restrict wr = SL(e[E_BETA] + q * 2 * W + W - pr - 1);
         if (VL == 1) { /* one member: the same four chains, with a row's m columns side by side */
             double acc[4 * m];
             for (int64_t j = 0; j < 4 * m; j++) acc[j] = 0.0;
