@@ -572,6 +572,7 @@ class RCOEstimator(Block):
                       RW=-1 if self.norm_inv_s2 is None else b.param(self.r_weight.reshape(1, -1)),
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
+        fields["IDENT"] = int(self.param_of.tolist() == list(range(self.n_u * self.n_phi)))  # entry i is parameter i
         args = [fields[key] for key in kernels.RCO_FIELD]
         args += [flat[j] for j in self._gather.tolist()] + self.param_of.tolist() + self.rep.tolist()
         b.emit("RCO_OUT", args, port="u")

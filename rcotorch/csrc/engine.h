@@ -35,12 +35,13 @@
  * rco_scratch in lanes.h). The robustness
  * options (estimator.py): NL rows in the update (n_z, plus n_theta with the penalty on the parameters' change),
  * parameter slots RDQ (sqrt(r_delta)), NORM (1 / s^2 of normalized regressors, with RW: the cost's weight R,
- * n_z x n_z) and PMAX (the trace bound on P), each -1 when off. */
+ * n_z x n_z) and PMAX (the trace bound on P), each -1 when off. IDENT: 1 when each entry of theta is its
+ * own parameter, in order (param_of[i] = i). */
 #define RCO_FIELDS(X)                                                                                        \
     X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
     X(THETA) X(P) X(WIN) X(PHI) X(UNOW) X(ZR) X(ALIVE) X(DIV) X(PAST) X(PASTU)                             \
     X(BETA) X(LAM) X(RINV) X(TLO) X(THI) X(ULO) X(UHI) X(Z) X(VALID) X(CUR) X(UOUT) X(SCRATCH)                 \
-    X(NL) X(RDQ) X(NORM) X(RW) X(PMAX)
+    X(NL) X(RDQ) X(NORM) X(RW) X(PMAX) X(IDENT)
 
 /* A tensor copied into slots before the steps (mode 1), back after them (mode 2), or both (3).
  * Element c of member b lives at ptr + (b * MSTRIDE + (c / INNER) * OSTRIDE + c % INNER) elements. */

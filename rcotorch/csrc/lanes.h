@@ -31,6 +31,18 @@
         }                                                                                                    \
     } while (0)
 
+/* The same for two sizes: call(c, d) with the constants c = v (1 .. SMALL) and d = w (1 .. 3). */
+#define SMALL_W(c, call) case 4 * c + 1: call(c, 1); return; case 4 * c + 2: call(c, 2); return; \
+                         case 4 * c + 3: call(c, 3); return;
+#define SMALL_SIZES2(v, w, call)                                                                             \
+    do {                                                                                                     \
+        if (VL == 1 && (w) >= 1 && (w) <= 3) switch (4 * (v) + (w)) {                                        \
+            SMALL_W(1, call) SMALL_W(2, call) SMALL_W(3, call) SMALL_W(4, call) SMALL_W(5, call)             \
+            SMALL_W(6, call)                                                                                 \
+            default: break;                                                                                  \
+        }                                                                                                    \
+    } while (0)
+
 #define LANES _Pragma("omp simd") for (int l = 0; l < VL; l++)
 #define SL(s) (S + (int64_t)(s) * VL)
 #define AT(p, i) ((p) + (int64_t)(i) * VL) /* element i of a lane array */
@@ -258,8 +270,8 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
 }
 
 /* out = C[rows] x + sum_f D[rows, column_f] u_f over the feedthrough columns f (a column and its input slot) */
-static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n) {
-    int64_t w = a[1], cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
+static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w) {
+    int64_t cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
     const int64_t *restrict ft = a + 9;
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
@@ -292,15 +304,15 @@ static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restr
 }
 
 static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
-#define CALL(c) FN(lti_out_n)(a, S, c)
-    SMALL_SIZES(a[0], CALL);
+#define CALL(c, d) FN(lti_out_n)(a, S, c, d)
+    SMALL_SIZES2(a[0], a[1], CALL);
 #undef CALL
-    FN(lti_out_n)(a, S, a[0]);
+    FN(lti_out_n)(a, S, a[0], a[1]);
 }
 
 static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
-#define CALL(c) FN(lti_upd_n)(a, S, c, a[1])
-    SMALL_SIZES(a[0], CALL);
+#define CALL(c, d) FN(lti_upd_n)(a, S, c, d)
+    SMALL_SIZES2(a[0], a[1], CALL);
 #undef CALL
     FN(lti_upd_n)(a, S, a[0], a[1]);
 }
@@ -468,6 +480,12 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
     double *scr = SL(e[E_SCRATCH]);
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
+    /* one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is theta, in place */
+    const int direct = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
+    if (direct) {
+        psi = prod;
+        eta = SL(e[E_THETA]);
+    }
     double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into row pr of the ring */
@@ -523,7 +541,8 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         }
         LANES o[l] = zi[l] - d[l];
     }
-    for (int64_t p = 0; p < n; p++) { /* eta and its regressor T^T Psi (entries of one parameter summed) */
+    /* eta and its regressor T^T Psi (entries of one parameter summed) */
+    if (!direct) for (int64_t p = 0; p < n; p++) {
         const double *th = SL(e[E_THETA] + rep[p]);
         double *et = AT(eta, p);
         LANES et[l] = th[l];
@@ -555,7 +574,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES act[l] = alive[l] != 0.0;
     }
     FN(rls)(n, nl, eta, SL(e[E_P]), psi, zrx, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
-    for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
+    if (!direct) for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
         if (param_of[en] < 0) continue;
         double *th = SL(e[E_THETA] + en);
         const double *et = AT(eta, param_of[en]);
