@@ -47,10 +47,16 @@ def _numba_call(variant: str, B: int):
 
 
 def _steps_for(fn, B: int, seconds: float) -> int:
-    t = time.perf_counter()
-    fn(20)
-    per = (time.perf_counter() - t) / 20
-    return max(20, int(seconds / max(per, 1e-9)))
+    """Steps for a call of about ``seconds``, from a trial call of at least 1/20 of it (so that a fixed cost per
+    call, such as rcotorch's binding of the graph's tensors, does not shorten the timed calls)."""
+    steps = 20
+    while True:
+        t = time.perf_counter()
+        fn(steps)
+        took = time.perf_counter() - t
+        if took >= seconds / 20:
+            return max(20, int(seconds * steps / took))
+        steps *= 4
 
 
 def measure(B: int, threads: int, seconds: float, rounds: int) -> dict:
