@@ -10,12 +10,13 @@ from rcotorch import kernels
 pytestmark = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built here")
 
 
-@pytest.mark.parametrize("l", [1, 2, 3])
-def test_native_kernel_agrees_with_pytorch_operations(l):
+@pytest.mark.parametrize("l,n", [(1, 6), (2, 6), (3, 6), (1, 5), (2, 3)])
+def test_native_kernel_agrees_with_pytorch_operations(l, n):
     """Per-member lambda, a full R, inactive members and one member whose S is not positive: the compiled
-    kernel and the PyTorch operations agree to rounding and in ok."""
-    g = torch.Generator().manual_seed(40 + l)
-    B, n = 37, 6
+    kernel and the PyTorch operations agree to rounding and in ok. 37 members: whole chunks and a last one of
+    5; P of 36, 25 or 9 entries: moved in 4 x 4 blocks and one by one."""
+    g = torch.Generator().manual_seed(40 + l + n)
+    B = 37
     theta = torch.randn(B, n, generator=g, dtype=torch.float64)
     M = torch.randn(B, n, n, generator=g, dtype=torch.float64)
     P = M @ M.mT + 0.1 * torch.eye(n, dtype=torch.float64)

@@ -145,6 +145,16 @@ static inline ALWAYS double clampd(double x, double lo, double hi) {
     return v > hi ? hi : v;
 }
 
+/* Four doubles as one value (GNU C vectors), for moving 4 x 4 blocks between members' rows and lane arrays;
+ * read and written in place of doubles at any 8-byte alignment. */
+typedef double v4d_t __attribute__((vector_size(32), aligned(8), may_alias));
+#if defined(__clang__)
+#define SHUF4(a, b, i, j, k, l) __builtin_shufflevector(a, b, i, j, k, l)
+#else
+typedef long long v4i_t __attribute__((vector_size(32)));
+#define SHUF4(a, b, i, j, k, l) __builtin_shuffle(a, b, (v4i_t){i, j, k, l})
+#endif
+
 /* Scratch slots of one RLS step with n parameters and nl channels (lanes.h, rls). */
 static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
 

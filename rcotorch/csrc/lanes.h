@@ -779,16 +779,65 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     }
 }
 
+/* Lane arrays from the members' own rows and back: dst[i * VL + l] = src[l][i] for i < cnt (to_lanes), and
+ * the reverse for the first nb members (from_lanes). Blocks of 4 members x 4 entries are transposed in
+ * registers, so that both sides are read and written 4 entries at a time. */
+static inline ALWAYS void FN(tr4)(v4d_t *a, v4d_t *b, v4d_t *c, v4d_t *d) {
+    v4d_t t0 = SHUF4(*a, *b, 0, 4, 2, 6), t1 = SHUF4(*a, *b, 1, 5, 3, 7);
+    v4d_t t2 = SHUF4(*c, *d, 0, 4, 2, 6), t3 = SHUF4(*c, *d, 1, 5, 3, 7);
+    *a = SHUF4(t0, t2, 0, 1, 4, 5);
+    *b = SHUF4(t1, t3, 0, 1, 4, 5);
+    *c = SHUF4(t0, t2, 2, 3, 6, 7);
+    *d = SHUF4(t1, t3, 2, 3, 6, 7);
+}
+
+static inline ALWAYS void FN(to_lanes)(double *restrict dst, const double *const *src, int64_t cnt) {
+    int64_t i = 0;
+    if (VL % 4 == 0)
+        for (; i + 3 < cnt; i += 4)
+            for (int64_t l = 0; l + 3 < VL; l += 4) {
+                v4d_t a = *(const v4d_t *)(src[l] + i), b = *(const v4d_t *)(src[l + 1] + i);
+                v4d_t c = *(const v4d_t *)(src[l + 2] + i), d = *(const v4d_t *)(src[l + 3] + i);
+                FN(tr4)(&a, &b, &c, &d);
+                *(v4d_t *)(dst + i * VL + l) = a;
+                *(v4d_t *)(dst + (i + 1) * VL + l) = b;
+                *(v4d_t *)(dst + (i + 2) * VL + l) = c;
+                *(v4d_t *)(dst + (i + 3) * VL + l) = d;
+            }
+    for (; i < cnt; i++)
+        for (int64_t l = 0; l < VL; l++) dst[i * VL + l] = src[l][i];
+}
+
+static inline ALWAYS void FN(from_lanes)(double *const *dst, const double *restrict src, int64_t cnt, int64_t nb) {
+    int64_t i = 0, full = VL % 4 == 0 ? nb / 4 * 4 : 0; /* members in whole blocks of 4 */
+    if (full)
+        for (; i + 3 < cnt; i += 4)
+            for (int64_t l = 0; l < full; l += 4) {
+                v4d_t a = *(const v4d_t *)(src + i * VL + l), b = *(const v4d_t *)(src + (i + 1) * VL + l);
+                v4d_t c = *(const v4d_t *)(src + (i + 2) * VL + l), d = *(const v4d_t *)(src + (i + 3) * VL + l);
+                FN(tr4)(&a, &b, &c, &d);
+                *(v4d_t *)(dst[l] + i) = a;
+                *(v4d_t *)(dst[l + 1] + i) = b;
+                *(v4d_t *)(dst[l + 2] + i) = c;
+                *(v4d_t *)(dst[l + 3] + i) = d;
+            }
+    for (int64_t l = 0; l < nb; l++) /* the entries after the blocks, and the members after the last block */
+        for (int64_t j = l < full ? i : 0; j < cnt; j++) dst[l][j] = src[j * VL + l];
+}
+
 /* rls_update on (B, n) theta, (B, n, n) P, (B, n, nl) psi, (B, nl) z_r: VL members at a time through the same
- * FN(rls) as the estimator, each chunk copied into lane arrays and back (one pass over P). */
+ * FN(rls) as the estimator, each chunk copied into lane arrays and back (one pass over P, in 4 x 4 blocks). */
 static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
     int64_t n = q->n, nl = q->nl;
     double *th = S, *P = AT(th, n), *psi = AT(P, n * n), *zr = AT(psi, n * nl), *lam = AT(zr, nl);
     double *rinv = AT(lam, 1), *act = AT(rinv, nl * nl), *ok = AT(act, 1), *scr = AT(ok, 1);
+    const double *src[VL];
+    double *dst[VL];
+    for (int64_t l = 0; l < VL; l++) src[l] = dst[l] = q->P + (b0 + (l < nb ? l : nb - 1)) * n * n;
+    FN(to_lanes)(P, src, n * n);
     LANES {
         int64_t b = b0 + (l < nb ? l : nb - 1);
         for (int64_t i = 0; i < n; i++) th[i * VL + l] = q->theta[b * n + i];
-        for (int64_t i = 0; i < n * n; i++) P[i * VL + l] = q->P[b * n * n + i];
         for (int64_t i = 0; i < n * nl; i++) psi[i * VL + l] = q->psi[b * n * nl + i];
         for (int64_t i = 0; i < nl; i++) zr[i * VL + l] = q->zr[b * nl + i];
         for (int64_t i = 0; i < nl * nl; i++) rinv[i * VL + l] = q->rinv[i];
@@ -796,10 +845,10 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
         act[l] = q->active ? q->active[b] != 0 : 1.0;
     }
     FN(rls)(n, nl, th, P, psi, zr, lam, q->lam_one, rinv, act, ok, scr);
+    FN(from_lanes)(dst, P, n * n, nb);
     for (int64_t l = 0; l < nb; l++) {
         int64_t b = b0 + l;
         for (int64_t i = 0; i < n; i++) q->theta[b * n + i] = th[i * VL + l];
-        for (int64_t i = 0; i < n * n; i++) q->P[b * n * n + i] = P[i * VL + l];
         q->ok[b] = ok[l] != 0.0;
     }
 }
