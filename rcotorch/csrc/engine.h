@@ -32,11 +32,10 @@
  * param_of[NENT] (the parameter of each entry of theta, -1: pinned) and rep[NTHETA] (an entry holding each
  * parameter). Slots: state (THETA .. PASTU), parameters (BETA: the weights of the ring's rows, twice over;
  * LAM, RINV, bounds), inputs (Z, VALID, CUR), the output (UOUT) and scratch (SCRATCH, RCO_SCRATCH slots, see
- * rco_scratch in lanes.h). The robustness
- * options (estimator.py): NL rows in the update (n_z, plus n_theta with the penalty on the parameters' change),
- * parameter slots RDQ (sqrt(r_delta)), NORM (1 / s^2 of normalized regressors, with RW: the cost's weight R,
- * n_z x n_z) and PMAX (the trace bound on P), each -1 when off. IDENT: 1 when each entry of theta is its
- * own parameter, in order (param_of[i] = i). */
+ * rco_scratch in lanes.h). The robustness options (estimator.py): NL rows in the update (n_z, plus n_theta
+ * with the penalty on the parameters' change), parameter slots RDQ (sqrt(r_delta)), NORM (1 / s^2 of
+ * normalized regressors, with RW: the cost's weight R, n_z x n_z) and PMAX (the trace bound on P), each -1
+ * when off. IDENT: 1 when each entry of theta is its own parameter, in order (param_of[i] = i). */
 #define RCO_FIELDS(X)                                                                                        \
     X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
     X(THETA) X(P) X(WIN) X(PHI) X(UNOW) X(ZR) X(ALIVE) X(DIV) X(PAST) X(PASTU)                             \
