@@ -259,9 +259,10 @@ def test_engines_take_turns_and_step_sees_native_state():
 
 @pytest.mark.parametrize("states,regressors", [(1, 1), (2, 3), (4, 5), (6, 6), (7, 7)])
 def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states, regressors):
-    """One member alone runs LTI blocks of up to 6 states and SISO estimators of up to 6 parameters compiled
-    with their sizes as constants (7: the general code). The arithmetic is the same: the member equals member 0
-    of a batch in 16 lanes bit for bit, and the PyTorch engine to rounding."""
+    """One member alone runs LTI operations of up to 4 states and 1-2 rows or input columns, and SISO
+    estimators of up to 6 parameters, compiled with their sizes as constants (the others: the general code).
+    The arithmetic is the same: the member equals member 0 of a batch in 16 lanes bit for bit, and the PyTorch
+    engine to rounding."""
     rng = np.random.default_rng(10 * states + regressors)
     A = -np.diag(np.linspace(1.0, 3.0, states)) + 0.3 * np.eye(states, k=1)
     Bk, Cy0 = rng.normal(size=(states, 2)), rng.normal(size=(regressors, states))

@@ -9,10 +9,12 @@
  * The equations follow the PyTorch blocks, the reference semantics: blocks.py (Gain, Sum), lti.py, sources.py
  * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
  *
- * One member alone (VL = 1) is bound by latency, not by arithmetic: loops over sizes known only at run time
- * cost more than their few multiply-adds. There the LTI blocks (n <= SMALL states) and the SISO estimator
- * (n <= SMALL parameters, one per regressor) run copies of the same functions compiled with their sizes as
- * constants (SMALL_SIZES), which the compiler unrolls; the arithmetic, and so every result, is the same.
+ * One member alone (VL = 1) is bound by the instructions it executes, not by arithmetic: loops over sizes
+ * known only at run time cost more than their few multiply-adds. There the LTI blocks (up to 4 states, 1-2
+ * output rows or input columns) and the SISO estimator (n <= SMALL parameters, one per regressor) run copies
+ * of the same functions compiled with their sizes as constants, which the compiler unrolls: the LTI copies
+ * are chosen once per call, when the program is decoded (each with its own jump; more copies made the step
+ * slower), the estimator's on each step (SMALL_SIZES). The arithmetic, and so every result, is the same.
  */
 
 #define SMALL 6
@@ -27,18 +29,6 @@
             case 4: call(4); return;                                                                         \
             case 5: call(5); return;                                                                         \
             case 6: call(6); return;                                                                         \
-            default: break;                                                                                  \
-        }                                                                                                    \
-    } while (0)
-
-/* The same for two sizes: call(c, d) with the constants c = v (1 .. SMALL) and d = w (1 .. 3). */
-#define SMALL_W(c, call) case 4 * c + 1: call(c, 1); return; case 4 * c + 2: call(c, 2); return; \
-                         case 4 * c + 3: call(c, 3); return;
-#define SMALL_SIZES2(v, w, call)                                                                             \
-    do {                                                                                                     \
-        if (VL == 1 && (w) >= 1 && (w) <= 3) switch (4 * (v) + (w)) {                                        \
-            SMALL_W(1, call) SMALL_W(2, call) SMALL_W(3, call) SMALL_W(4, call) SMALL_W(5, call)             \
-            SMALL_W(6, call)                                                                                 \
             default: break;                                                                                  \
         }                                                                                                    \
     } while (0)
@@ -301,20 +291,6 @@ static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restr
         const double *v = AT(xn, r);
         LANES x[l] = v[l];
     }
-}
-
-static inline void FN(lti_out)(const int64_t *restrict a, double *restrict S) {
-#define CALL(c, d) FN(lti_out_n)(a, S, c, d)
-    SMALL_SIZES2(a[0], a[1], CALL);
-#undef CALL
-    FN(lti_out_n)(a, S, a[0], a[1]);
-}
-
-static inline void FN(lti_upd)(const int64_t *restrict a, double *restrict S) {
-#define CALL(c, d) FN(lti_upd_n)(a, S, c, d)
-    SMALL_SIZES2(a[0], a[1], CALL);
-#undef CALL
-    FN(lti_upd_n)(a, S, a[0], a[1]);
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
@@ -737,34 +713,69 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     const double *restrict consts = r->consts;
     const int64_t ncode = r->ncode, T = r->T;
     /* Direct threading: each operation jumps to the next one's code (one indirect jump per instruction,
-     * at a site of its own, which the branch predictor learns per operation). */
+     * at a site of its own, which the branch predictor learns per operation). The program is decoded once
+     * per call into (code, arguments) pairs, the last one the end of a step; at one lane, a small LTI block's
+     * operations go to the copy compiled for its sizes. */
     static const void *const labels[OP_N] = {
         [OP_NONE] = &&next, [OP_PLAYBACK] = &&playback, [OP_NOISE] = &&noise, [OP_LTI_OUT] = &&lti_out,
         [OP_LTI_UPD] = &&lti_upd, [OP_GAIN] = &&gain, [OP_SUM] = &&sum, [OP_COPY] = &&copy,
         [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd};
+#if VL == 1 /* [op][n - 1][w - 1]: LTI_OUT, LTI_UPD of n <= 4 states and w <= 2 rows or input columns */
+#define SIZED2(op, c) {&&op##_##c##_1, &&op##_##c##_2}
+#define SIZED(op) {SIZED2(op, 1), SIZED2(op, 2), SIZED2(op, 3), SIZED2(op, 4)}
+    static const void *const sized[2][4][2] = {SIZED(lti_out), SIZED(lti_upd)};
+#undef SIZED
+#undef SIZED2
+#endif
+    int64_t nops = 0;
+    for (int64_t pc = 0; pc < ncode; pc += code[pc + 1]) nops++;
+    struct {
+        const void *to;
+        const int64_t *args;
+    } prog[nops + 1], *ip;
+    for (int64_t pc = 0, i = 0; pc < ncode; pc += code[pc + 1], i++) {
+        const int64_t op = code[pc], *x = code + pc + HDR;
+        prog[i].to = labels[op];
+        prog[i].args = x;
+#if VL == 1
+        if ((op == OP_LTI_OUT || op == OP_LTI_UPD) && x[0] >= 1 && x[0] <= 4 && x[1] >= 1 && x[1] <= 2)
+            prog[i].to = sized[op == OP_LTI_UPD][x[0] - 1][x[1] - 1];
+#endif
+    }
+    prog[nops].to = &&step_done;
+    prog[nops].args = code;
     const int64_t *a;
-    int64_t pc, t;
+    int64_t t;
 #define NEXT()                                                                                               \
     do {                                                                                                     \
-        if (pc >= ncode) goto step_done;                                                                     \
-        a = code + pc + HDR;                                                                                 \
-        const void *to_ = labels[code[pc]];                                                                  \
-        pc += code[pc + 1];                                                                                  \
+        const void *to_ = ip->to;                                                                            \
+        a = ip->args;                                                                                        \
+        ip++;                                                                                                \
         goto *to_;                                                                                           \
     } while (0)
     for (t = 0; t < T; t++) {
-        pc = 0;
+        ip = prog;
         NEXT();
     playback: FN(playback)(a, S, ptrs, ctr, t, b0, nb); NEXT();
     noise: FN(noise)(a, S, ctr, t, T); NEXT();
-    lti_out: FN(lti_out)(a, S); NEXT();
-    lti_upd: FN(lti_upd)(a, S); NEXT();
+    lti_out: FN(lti_out_n)(a, S, a[0], a[1]); NEXT();
+    lti_upd: FN(lti_upd_n)(a, S, a[0], a[1]); NEXT();
     gain: FN(gain)(a, S); NEXT();
     sum: FN(sum)(a, S); NEXT();
     copy: FN(copy)(a, S); NEXT();
     feature: FN(feature)(a, S, consts); NEXT();
     rco_out: FN(rco_out)(a, S); NEXT();
     rco_upd: FN(rco_upd)(a, S, ctr, t); NEXT();
+#if VL == 1
+#define SIZED1(op, c, d) op##_##c##_##d: FN(op##_n)(a, S, c, d); NEXT();
+#define SIZED2(op, c) SIZED1(op, c, 1) SIZED1(op, c, 2)
+#define SIZED(op) SIZED2(op, 1) SIZED2(op, 2) SIZED2(op, 3) SIZED2(op, 4)
+    SIZED(lti_out)
+    SIZED(lti_upd)
+#undef SIZED
+#undef SIZED2
+#undef SIZED1
+#endif
     next: NEXT();
     step_done:
         if (r->nobs) FN(observe)(r->obs, r->nobs, S, acc, t, b0, nb, r->B);
