@@ -802,7 +802,7 @@ static inline ALWAYS void FN(tr4)(v4d_t *a, v4d_t *b, v4d_t *c, v4d_t *d) {
     *d = SHUF4(t1, t3, 2, 3, 6, 7);
 }
 
-static inline ALWAYS void FN(to_lanes)(double *restrict dst, const double *const *src, int64_t cnt) {
+static inline ALWAYS void FN(to_lanes)(double *restrict dst, double *const *src, int64_t cnt) {
     int64_t i = 0;
     if (VL % 4 == 0)
         for (; i + 3 < cnt; i += 4)
@@ -842,10 +842,9 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
     int64_t n = q->n, nl = q->nl;
     double *th = S, *P = AT(th, n), *psi = AT(P, n * n), *zr = AT(psi, n * nl), *lam = AT(zr, nl);
     double *rinv = AT(lam, 1), *act = AT(rinv, nl * nl), *ok = AT(act, 1), *scr = AT(ok, 1);
-    const double *src[VL];
-    double *dst[VL];
-    for (int64_t l = 0; l < VL; l++) src[l] = dst[l] = q->P + (b0 + (l < nb ? l : nb - 1)) * n * n;
-    FN(to_lanes)(P, src, n * n);
+    double *rows[VL]; /* each lane's member's P (spare lanes: the last member's) */
+    for (int64_t l = 0; l < VL; l++) rows[l] = q->P + (b0 + (l < nb ? l : nb - 1)) * n * n;
+    FN(to_lanes)(P, rows, n * n);
     LANES {
         int64_t b = b0 + (l < nb ? l : nb - 1);
         for (int64_t i = 0; i < n; i++) th[i * VL + l] = q->theta[b * n + i];
@@ -856,7 +855,7 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
         act[l] = q->active ? q->active[b] != 0 : 1.0;
     }
     FN(rls)(n, nl, th, P, psi, zr, lam, q->lam_one, rinv, act, ok, scr);
-    FN(from_lanes)(dst, P, n * n, nb);
+    FN(from_lanes)(rows, P, n * n, nb);
     for (int64_t l = 0; l < nb; l++) {
         int64_t b = b0 + l;
         for (int64_t i = 0; i < n; i++) q->theta[b * n + i] = th[i * VL + l];
