@@ -257,18 +257,22 @@ def test_engines_take_turns_and_step_sees_native_state():
     assert int(b.k) == 200 and int(b.blocks["identified"].k) == 200 and int(b.blocks["excitation"].k) == 200
 
 
-@pytest.mark.parametrize("states,regressors", [(1, 1), (2, 3), (4, 5), (6, 6), (7, 7)])
-def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states, regressors):
-    """One member alone runs LTI operations of up to 4 states and 1-2 rows or input columns, and SISO
-    estimators of up to 6 parameters, compiled with their sizes as constants (the others: the general code).
-    The arithmetic is the same: the member equals member 0 of a batch in 16 lanes bit for bit, and the PyTorch
-    engine to rounding."""
+@pytest.mark.parametrize("states,regressors,feedthrough",
+                         [(1, 1, False), (2, 3, False), (2, 3, True), (4, 5, False), (6, 6, False), (7, 7, False)])
+def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states, regressors, feedthrough):
+    """One member alone runs LTI operations of up to 4 states and 1-2 rows (without feedthrough) or input
+    columns, SISO estimators of up to 6 parameters and the error's sum compiled with their sizes as constants
+    (the others: the general code), and sums the Markov filter of m = regressors + 1 columns four at a time in
+    vectors (m = 2, 4, 6, 7, 8: tail columns only, whole vectors, both). The arithmetic is the same: the member
+    equals member 0 of a batch in 16 lanes bit for bit, and the PyTorch engine to rounding."""
     rng = np.random.default_rng(10 * states + regressors)
     A = -np.diag(np.linspace(1.0, 3.0, states)) + 0.3 * np.eye(states, k=1)
     Bk, Cy0 = rng.normal(size=(states, 2)), rng.normal(size=(regressors, states))
     Cy = rng.normal(size=(1, states))
-    known_sys = control.ss(A, Bk, np.vstack([Cy, Cy0]), np.zeros((1 + regressors, 2)))
-    truth_sys = control.ss(A - 0.4 * np.outer(Bk[:, 1], Cy0[0]), Bk[:, :1], Cy, [[0.0]])
+    D = np.zeros((1 + regressors, 2))
+    D[0, 0] = 0.5 if feedthrough else 0.0             # w -> y: the general output code at one lane
+    known_sys = control.ss(A, Bk, np.vstack([Cy, Cy0]), D)
+    truth_sys = control.ss(A - 0.4 * np.outer(Bk[:, 1], Cy0[0]), Bk[:, :1], Cy, D[:1, :1])
 
     def build(B):
         known = rt.LTI.from_control(known_sys, inputs={"w": 1, "u": 1}, outputs={"y": 1, "y0": regressors},

@@ -10,11 +10,13 @@
  * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
  *
  * One member alone (VL = 1) is bound by the instructions it executes, not by arithmetic: loops over sizes
- * known only at run time cost more than their few multiply-adds. There the LTI blocks (up to 4 states, 1-2
- * output rows or input columns) and the SISO estimator (n <= SMALL parameters, one per regressor) run copies
- * of the same functions compiled with their sizes as constants, which the compiler unrolls: the LTI copies
- * are chosen once per call, when the program is decoded (each with its own jump; more copies made the step
- * slower), the estimator's on each step (SMALL_SIZES). The arithmetic, and so every result, is the same.
+ * known only at run time cost more than their few multiply-adds. There these operations run copies of the
+ * same functions compiled with their sizes as constants, which the compiler unrolls, chosen once per call
+ * when the program is decoded (each with its own jump): LTI blocks of up to 4 states and 1-2 output rows
+ * (without feedthrough) or input columns (more copies made the step slower), the estimator's output with one
+ * u and up to SMALL regressors, and a sum of two inputs of width 1. The SISO estimator's update (n <= SMALL
+ * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES), and sums its Markov filter four
+ * regressors at a time in vectors. The arithmetic, and so every result, is the same.
  */
 
 #define SMALL 6
@@ -260,8 +262,9 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
 }
 
 /* out = C[rows] x + sum_f D[rows, column_f] u_f over the feedthrough columns f (a column and its input slot) */
-static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w) {
-    int64_t cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7], nft = a[8];
+static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w,
+                                        int64_t nft) {
+    int64_t cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7];
     const int64_t *restrict ft = a + 9;
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
@@ -293,6 +296,14 @@ static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restr
     }
 }
 
+/* The copies compiled for their sizes, at one lane: an output without feedthrough, an update */
+static inline ALWAYS void FN(lti_out_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w) {
+    FN(lti_out_n)(a, S, n, w, 0);
+}
+static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
+    FN(lti_upd_n)(a, S, n, mt);
+}
+
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
     int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4], sh = a[5];
     for (int64_t r = 0; r < m; r++) {
@@ -304,8 +315,8 @@ static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
     }
 }
 
-static inline void FN(sum)(const int64_t *restrict a, double *restrict S) {
-    int64_t w = a[0], nin = a[1], os = a[2];
+static inline ALWAYS void FN(sum_n)(const int64_t *restrict a, double *restrict S, int64_t w, int64_t nin) {
+    int64_t os = a[2];
     for (int64_t c = 0; c < w; c++) {
         double acc[VL];
         LANES acc[l] = 0.0;
@@ -322,6 +333,8 @@ static inline void FN(sum)(const int64_t *restrict a, double *restrict S) {
         LANES o[l] = acc[l];
     }
 }
+
+static inline void FN(sum)(const int64_t *restrict a, double *restrict S) { FN(sum_n)(a, S, a[0], a[1]); }
 
 static inline void FN(copy)(const int64_t *restrict a, double *restrict S) {
     for (int64_t c = 0; c < a[0]; c++) {
@@ -374,8 +387,8 @@ static inline void FN(feature)(const int64_t *restrict a, double *restrict S, co
 /* ------------------------------------------------------------------------------------------------------ */
 
 /* output: phi = [s(k) | past s | past u] gathered, u = theta phi (0 for a frozen member), saturated. */
-static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
-    int64_t n_u = e[E_NU], n_phi = e[E_NPHI];
+static inline ALWAYS void FN(rco_out_n)(const int64_t *restrict e, double *restrict S, int64_t n_u,
+                                        int64_t n_phi) {
     const int64_t *phi_src = e + E_N;
     const double *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < n_phi; j++) {
@@ -398,6 +411,10 @@ static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
         double *u = SL(e[E_UNOW] + a), *uo = SL(e[E_UOUT] + a);
         LANES u[l] = uo[l] = acc[l];
     }
+}
+
+static inline void FN(rco_out)(const int64_t *restrict e, double *restrict S) {
+    FN(rco_out_n)(e, S, e[E_NU], e[E_NPHI]);
 }
 
 /* The rows of the RLS step (estimator.py, _rows): z_R into zrx, the rows of z divided by
@@ -464,11 +481,20 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
     }
     double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
-    for (int64_t j = 0; j < m; j++) { /* [phi(k), u(k)] into row pr of the ring */
-        const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
+    /* [phi(k), u(k)] into row pr of the ring. At one lane, four entries at a time with one store, as the sum
+     * below reads them (a load of a value just stored then gets it from that store, not from the cache). */
+#define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)
+    int64_t j0 = 0;
+    if (VL == 1)
+        for (double *row = SL(e[E_WIN] + pr * m); j0 + 3 < m; j0 += 4)
+            *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0], WIN_SRC(j0 + 2)[0],
+                                           WIN_SRC(j0 + 3)[0]};
+    for (int64_t j = j0; j < m; j++) {
+        const double *v = WIN_SRC(j);
         double *r1 = SL(e[E_WIN] + pr * m + j);
         LANES r1[l] = v[l];
     }
+#undef WIN_SRC
     /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over every row of the ring: row r holds delay
      * (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] and by 0 below the first delay as on the PyTorch
      * engine. The weights hold that ring twice ([beta_rev, 0 * first_delay] twice, 2W entries), so this step's
@@ -478,18 +504,33 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
     for (int64_t q = 0; q < n_z * n_u; q++) {
         const double *restrict wr = SL(e[E_BETA] + q * 2 * W + W - pr - 1);
         if (VL == 1) { /* one member: the same four chains, with a row's m columns side by side */
-            double acc[4 * m];
-            for (int64_t j = 0; j < 4 * m; j++) acc[j] = 0.0;
-            int64_t r = 0;
-            for (; r + 3 < W; r += 4)
-                for (int64_t h = 0; h < 4; h++) {
-                    const double wv = wr[r + h], *x = win + (r + h) * m;
-                    for (int64_t j = 0; j < m; j++) acc[h * m + j] += wv * x[j];
+            /* four columns at a time in vectors (the same operations per column); the rest one by one */
+            int64_t j = 0;
+            for (; j + 3 < m; j += 4) {
+                v4d_t a0 = {0.0, 0.0, 0.0, 0.0}, a1 = a0, a2 = a0, a3 = a0;
+                const double *x = win + j;
+                int64_t r = 0;
+                for (; r + 3 < W; r += 4, x += 4 * m) {
+                    a0 += wr[r] * *(const v4d_t *)x;
+                    a1 += wr[r + 1] * *(const v4d_t *)(x + m);
+                    a2 += wr[r + 2] * *(const v4d_t *)(x + 2 * m);
+                    a3 += wr[r + 3] * *(const v4d_t *)(x + 3 * m);
                 }
-            for (; r < W; r++)
-                for (int64_t j = 0; j < m; j++) acc[j] += wr[r] * win[r * m + j];
-            for (int64_t j = 0; j < m; j++)
-                prod[q * m + j] = (acc[j] + acc[m + j]) + (acc[2 * m + j] + acc[3 * m + j]);
+                for (; r < W; r++, x += m) a0 += wr[r] * *(const v4d_t *)x;
+                *(v4d_t *)(prod + q * m + j) = (a0 + a1) + (a2 + a3);
+            }
+            for (; j < m; j++) {
+                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
+                int64_t r = 0;
+                for (; r + 3 < W; r += 4) {
+                    a0 += wr[r] * win[r * m + j];
+                    a1 += wr[r + 1] * win[(r + 1) * m + j];
+                    a2 += wr[r + 2] * win[(r + 2) * m + j];
+                    a3 += wr[r + 3] * win[(r + 3) * m + j];
+                }
+                for (; r < W; r++) a0 += wr[r] * win[r * m + j];
+                prod[q * m + j] = (a0 + a1) + (a2 + a3);
+            }
             continue;
         }
         for (int64_t j = 0; j < m; j++) {
@@ -714,16 +755,19 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     const int64_t ncode = r->ncode, T = r->T;
     /* Direct threading: each operation jumps to the next one's code (one indirect jump per instruction,
      * at a site of its own, which the branch predictor learns per operation). The program is decoded once
-     * per call into (code, arguments) pairs, the last one the end of a step; at one lane, a small LTI block's
-     * operations go to the copy compiled for its sizes. */
+     * per call into (code, arguments) pairs, the last one the end of a step; at one lane, small LTI, sum and
+     * estimator output operations go to the copy compiled for their sizes. */
     static const void *const labels[OP_N] = {
         [OP_NONE] = &&next, [OP_PLAYBACK] = &&playback, [OP_NOISE] = &&noise, [OP_LTI_OUT] = &&lti_out,
         [OP_LTI_UPD] = &&lti_upd, [OP_GAIN] = &&gain, [OP_SUM] = &&sum, [OP_COPY] = &&copy,
         [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd};
-#if VL == 1 /* [op][n - 1][w - 1]: LTI_OUT, LTI_UPD of n <= 4 states and w <= 2 rows or input columns */
+#if VL == 1 /* [op][n - 1][w - 1]: LTI_OUT (no feedthrough), LTI_UPD of n <= 4 states and w <= 2 rows or input
+             * columns; RCO_OUT of one u and n_phi <= SMALL regressors */
 #define SIZED2(op, c) {&&op##_##c##_1, &&op##_##c##_2}
 #define SIZED(op) {SIZED2(op, 1), SIZED2(op, 2), SIZED2(op, 3), SIZED2(op, 4)}
     static const void *const sized[2][4][2] = {SIZED(lti_out), SIZED(lti_upd)};
+    static const void *const rco_out_sized[SMALL] = {&&rco_out_1, &&rco_out_2, &&rco_out_3, &&rco_out_4,
+                                                     &&rco_out_5, &&rco_out_6};
 #undef SIZED
 #undef SIZED2
 #endif
@@ -738,8 +782,12 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         prog[i].to = labels[op];
         prog[i].args = x;
 #if VL == 1
-        if ((op == OP_LTI_OUT || op == OP_LTI_UPD) && x[0] >= 1 && x[0] <= 4 && x[1] >= 1 && x[1] <= 2)
+        if ((op == OP_LTI_UPD || (op == OP_LTI_OUT && x[8] == 0)) && x[0] >= 1 && x[0] <= 4 && x[1] >= 1 &&
+            x[1] <= 2)
             prog[i].to = sized[op == OP_LTI_UPD][x[0] - 1][x[1] - 1];
+        if (op == OP_SUM && x[0] == 1 && x[1] == 2) prog[i].to = &&sum_1_2;
+        if (op == OP_RCO_OUT && x[E_NU] == 1 && x[E_NPHI] >= 1 && x[E_NPHI] <= SMALL)
+            prog[i].to = rco_out_sized[x[E_NPHI] - 1];
 #endif
     }
     prog[nops].to = &&step_done;
@@ -758,7 +806,7 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         NEXT();
     playback: FN(playback)(a, S, ptrs, ctr, t, b0, nb); NEXT();
     noise: FN(noise)(a, S, ctr, t, T); NEXT();
-    lti_out: FN(lti_out_n)(a, S, a[0], a[1]); NEXT();
+    lti_out: FN(lti_out_n)(a, S, a[0], a[1], a[8]); NEXT();
     lti_upd: FN(lti_upd_n)(a, S, a[0], a[1]); NEXT();
     gain: FN(gain)(a, S); NEXT();
     sum: FN(sum)(a, S); NEXT();
@@ -767,7 +815,7 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     rco_out: FN(rco_out)(a, S); NEXT();
     rco_upd: FN(rco_upd)(a, S, ctr, t); NEXT();
 #if VL == 1
-#define SIZED1(op, c, d) op##_##c##_##d: FN(op##_n)(a, S, c, d); NEXT();
+#define SIZED1(op, c, d) op##_##c##_##d: FN(op##_c)(a, S, c, d); NEXT();
 #define SIZED2(op, c) SIZED1(op, c, 1) SIZED1(op, c, 2)
 #define SIZED(op) SIZED2(op, 1) SIZED2(op, 2) SIZED2(op, 3) SIZED2(op, 4)
     SIZED(lti_out)
@@ -775,6 +823,10 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
 #undef SIZED
 #undef SIZED2
 #undef SIZED1
+    sum_1_2: FN(sum_n)(a, S, 1, 2); NEXT();
+#define RCO_OUT1(c) rco_out_##c: FN(rco_out_n)(a, S, 1, c); NEXT();
+    RCO_OUT1(1) RCO_OUT1(2) RCO_OUT1(3) RCO_OUT1(4) RCO_OUT1(5) RCO_OUT1(6)
+#undef RCO_OUT1
 #endif
     next: NEXT();
     step_done:
