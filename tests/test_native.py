@@ -258,12 +258,13 @@ def test_engines_take_turns_and_step_sees_native_state():
 
 
 @pytest.mark.parametrize("states,regressors,feedthrough",
-                         [(1, 1, False), (2, 3, False), (2, 3, True), (4, 5, False), (6, 6, False), (7, 7, False)])
+                         [(1, 1, False), (3, 2, False), (2, 3, False), (2, 3, True), (4, 5, False), (6, 6, False),
+                          (7, 7, False)])
 def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states, regressors, feedthrough):
     """One member alone runs LTI operations of up to 4 states and 1-2 rows (without feedthrough) or input
     columns, SISO estimators of up to 6 parameters and the error's sum compiled with their sizes as constants
-    (the others: the general code), and sums the Markov filter of m = regressors + 1 columns four at a time in
-    vectors (m = 2, 4, 6, 7, 8: tail columns only, whole vectors, both). The arithmetic is the same: the member
+    (the others: the general code), and sums the Markov filter of m = regressors + 1 columns 4, then 2 at a time
+    in vectors, then one by one (m = 2, 3, 4, 6, 7, 8). The arithmetic is the same: the member
     equals member 0 of a batch in 16 lanes bit for bit, and the PyTorch engine to rounding."""
     rng = np.random.default_rng(10 * states + regressors)
     A = -np.diag(np.linspace(1.0, 3.0, states)) + 0.3 * np.eye(states, k=1)

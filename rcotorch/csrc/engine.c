@@ -145,9 +145,10 @@ static inline ALWAYS double clampd(double x, double lo, double hi) {
     return v > hi ? hi : v;
 }
 
-/* Four doubles as one value (GNU C vectors), for moving 4 x 4 blocks between members' rows and lane arrays;
- * read and written in place of doubles at any 8-byte alignment. */
+/* Four and two doubles as one value (GNU C vectors), for moving 4 x 4 blocks between members' rows and lane
+ * arrays and for one member's Markov filter; read and written in place of doubles at any 8-byte alignment. */
 typedef double v4d_t __attribute__((vector_size(32), aligned(8), may_alias));
+typedef double v2d_t __attribute__((vector_size(16), aligned(8), may_alias));
 #if defined(__clang__)
 #define SHUF4(a, b, i, j, k, l) __builtin_shufflevector(a, b, i, j, k, l)
 #else

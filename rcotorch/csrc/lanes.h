@@ -15,8 +15,8 @@
  * when the program is decoded (each with its own jump): LTI blocks of up to 4 states and 1-2 output rows
  * (without feedthrough) or input columns (more copies made the step slower), the estimator's output with one
  * u and up to SMALL regressors, and a sum of two inputs of width 1. The SISO estimator's update (n <= SMALL
- * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES), and sums its Markov filter four
- * regressors at a time in vectors. The arithmetic, and so every result, is the same.
+ * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES), and any estimator sums its Markov
+ * filter 4, then 2 columns at a time in vectors. The arithmetic, and so every result, is the same.
  */
 
 #define SMALL 6
@@ -481,14 +481,17 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
     }
     double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
     double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
-    /* [phi(k), u(k)] into row pr of the ring. At one lane, four entries at a time with one store, as the sum
-     * below reads them (a load of a value just stored then gets it from that store, not from the cache). */
+    /* [phi(k), u(k)] into row pr of the ring. At one lane, 4 and 2 entries at a time with one store, as the
+     * sum below reads them (a load of values just stored then gets them from that store, not from the cache). */
 #define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)
     int64_t j0 = 0;
-    if (VL == 1)
-        for (double *row = SL(e[E_WIN] + pr * m); j0 + 3 < m; j0 += 4)
+    if (VL == 1) {
+        double *row = SL(e[E_WIN] + pr * m);
+        for (; j0 + 3 < m; j0 += 4)
             *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0], WIN_SRC(j0 + 2)[0],
                                            WIN_SRC(j0 + 3)[0]};
+        for (; j0 + 1 < m; j0 += 2) *(v2d_t *)(row + j0) = (v2d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0]};
+    }
     for (int64_t j = j0; j < m; j++) {
         const double *v = WIN_SRC(j);
         double *r1 = SL(e[E_WIN] + pr * m + j);
@@ -504,33 +507,26 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
     for (int64_t q = 0; q < n_z * n_u; q++) {
         const double *restrict wr = SL(e[E_BETA] + q * 2 * W + W - pr - 1);
         if (VL == 1) { /* one member: the same four chains, with a row's m columns side by side */
-            /* four columns at a time in vectors (the same operations per column); the rest one by one */
+            /* 4, then 2 columns at a time in vectors, then one (the same operations for each column) */
+#define COLUMNS(T, K)                                                                                        \
+    for (; j + K - 1 < m; j += K) {                                                                          \
+        T a0 = {0.0}, a1 = a0, a2 = a0, a3 = a0;                                                             \
+        const double *x = win + j;                                                                           \
+        int64_t r = 0;                                                                                       \
+        for (; r + 3 < W; r += 4, x += 4 * m) {                                                              \
+            a0 += wr[r] * *(const T *)x;                                                                     \
+            a1 += wr[r + 1] * *(const T *)(x + m);                                                           \
+            a2 += wr[r + 2] * *(const T *)(x + 2 * m);                                                       \
+            a3 += wr[r + 3] * *(const T *)(x + 3 * m);                                                       \
+        }                                                                                                    \
+        for (; r < W; r++, x += m) a0 += wr[r] * *(const T *)x;                                              \
+        *(T *)(prod + q * m + j) = (a0 + a1) + (a2 + a3);                                                    \
+    }
             int64_t j = 0;
-            for (; j + 3 < m; j += 4) {
-                v4d_t a0 = {0.0, 0.0, 0.0, 0.0}, a1 = a0, a2 = a0, a3 = a0;
-                const double *x = win + j;
-                int64_t r = 0;
-                for (; r + 3 < W; r += 4, x += 4 * m) {
-                    a0 += wr[r] * *(const v4d_t *)x;
-                    a1 += wr[r + 1] * *(const v4d_t *)(x + m);
-                    a2 += wr[r + 2] * *(const v4d_t *)(x + 2 * m);
-                    a3 += wr[r + 3] * *(const v4d_t *)(x + 3 * m);
-                }
-                for (; r < W; r++, x += m) a0 += wr[r] * *(const v4d_t *)x;
-                *(v4d_t *)(prod + q * m + j) = (a0 + a1) + (a2 + a3);
-            }
-            for (; j < m; j++) {
-                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
-                int64_t r = 0;
-                for (; r + 3 < W; r += 4) {
-                    a0 += wr[r] * win[r * m + j];
-                    a1 += wr[r + 1] * win[(r + 1) * m + j];
-                    a2 += wr[r + 2] * win[(r + 2) * m + j];
-                    a3 += wr[r + 3] * win[(r + 3) * m + j];
-                }
-                for (; r < W; r++) a0 += wr[r] * win[r * m + j];
-                prod[q * m + j] = (a0 + a1) + (a2 + a3);
-            }
+            COLUMNS(v4d_t, 4)
+            COLUMNS(v2d_t, 2)
+            COLUMNS(double, 1)
+#undef COLUMNS
             continue;
         }
         for (int64_t j = 0; j < m; j++) {
