@@ -15,11 +15,15 @@
  * when the program is decoded (each with its own jump): LTI blocks of up to 4 states and 1-2 output rows
  * (without feedthrough) or input columns (more copies made the step slower), the estimator's output with one
  * u and up to SMALL regressors, and a sum of two inputs of width 1. The SISO estimator's update (n <= SMALL
- * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES), and any estimator sums its Markov
- * filter 4, then 2 columns at a time in vectors. The arithmetic, and so every result, is the same.
+ * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES) and keeps its intermediates in
+ * registers (OWN), and any estimator sums its Markov filter 4, then 2 columns at a time in vectors. The
+ * arithmetic, and so every result, is the same.
  */
 
 #define SMALL 6
+/* The scratch of one member's estimator update held in an array of its own (rco_upd_n): room for the SISO
+ * estimator of SMALL parameters (rco_scratch(1, 1, SMALL, SMALL, 1) + 1 = 43). */
+#define OWN 48
 /* At VL = 1, call(c) with the constant c = v and return when 1 <= v <= SMALL; else go on (the caller then
  * calls with v itself). */
 #define SMALL_SIZES(v, call)                                                                                 \
@@ -471,7 +475,12 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
                                       int64_t nl) {
     int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
-    double *scr = SL(e[E_SCRATCH]);
+    /* One member keeps its scratch and z_R (stored to its slot once computed) in an array of its own when
+     * they fit: the compiler then holds them in registers where the sizes are constants, where slots in S put a
+     * store and a load between one stage of the update and the next. */
+    double own[VL == 1 ? OWN : 1];
+    const int mine = VL == 1 && rco_scratch(n_u, n_z, n_phi, n, nl) + n_z <= OWN;
+    double *scr = mine ? own : SL(e[E_SCRATCH]);
     double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
     /* one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is theta, in place */
     const int direct = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
@@ -480,7 +489,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         eta = SL(e[E_THETA]);
     }
     double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
-    double *zr = SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
+    double *zr = mine ? AT(rls_scr, rls_scratch(n, nl)) : SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
     /* [phi(k), u(k)] into row pr of the ring. At one lane, 4 and 2 entries at a time with one store, as the
      * sum below reads them (a load of values just stored then gets them from that store, not from the cache). */
 #define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)
@@ -580,6 +589,8 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES o[l] += d[l];
     }
     FN(rco_rows)(e, S, n, n_z, nl, psi, zr, zrx);
+    if (mine)
+        for (int64_t z = 0; z < n_z; z++) SL(e[E_ZR])[z] = zr[z];
     const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
     if (valid) { /* & and |, not && and ||, in lane loops: no conditional (masked) loads */
         LANES act[l] = (alive[l] != 0.0) & (valid[l] > 0.5);
