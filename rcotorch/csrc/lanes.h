@@ -400,11 +400,11 @@ static inline ALWAYS void FN(rco_out_n)(const int64_t *restrict e, double *restr
         double *phi = SL(e[E_PHI] + j);
         LANES phi[l] = v[l];
     }
-    for (int64_t a = 0; a < n_u; a++) {
+    for (int64_t a = 0; a < n_u; a++) { /* phi read from its sources: the same values, not waiting for the copy */
         double acc[VL];
         LANES acc[l] = 0.0;
         for (int64_t j = 0; j < n_phi; j++) {
-            const double *th = SL(e[E_THETA] + a * n_phi + j), *phi = SL(e[E_PHI] + j);
+            const double *th = SL(e[E_THETA] + a * n_phi + j), *phi = SL(phi_src[j]);
             LANES acc[l] += th[l] * phi[l];
         }
         LANES acc[l] = alive[l] != 0.0 ? acc[l] : 0.0;
