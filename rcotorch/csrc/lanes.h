@@ -21,6 +21,7 @@
  */
 
 #define SMALL 6
+_Static_assert(SMALL == 6, "SMALL_SIZES and the chunk's sized estimator outputs list the sizes 1 .. 6");
 /* The scratch of one member's estimator update held in an array of its own (rco_upd_n): room for the SISO
  * estimator of SMALL parameters (rco_scratch(1, 1, SMALL, SMALL, 1) + 1 = 43). */
 #define OWN 48
