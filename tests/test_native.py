@@ -296,6 +296,58 @@ def test_one_member_runs_the_size_compiled_operations_like_a_batch_member(states
     assert torch.equal(one.blocks["known"].x[0], batch.blocks["known"].x[0])
 
 
+def test_one_member_sums_the_markov_filter_before_storing_the_current_row_with_the_same_results():
+    """One member (the SISO estimator) sums its Markov filter before this step's row is stored, where that row
+    is weighed by 0 (first delay 1), and sums again with the row where a sum or the row is not finite. Three
+    members with infinite samples, each alone and in a batch of 16 lanes (the general order): phi infinite
+    while active (member 0 fails there); phi infinite while inactive, that row the oldest of the ring, where
+    the current row goes, when the member is active again (member 1 lives on); u infinite from a finite phi
+    (member 2 fails). Each member alone equals its batch member bit for bit; the batch equals the PyTorch
+    engine to rounding."""
+    T, k1, B = 120, 40, 16
+    rng = np.random.default_rng(5)
+    data = np.zeros((B, T, 3))
+    data[:, :, 0] = rng.normal(size=(B, T))                       # s
+    data[:, :, 1] = rng.normal(size=(B, T))                       # z
+    data[:, :, 2] = 1.0                                           # valid
+    data[0, k1, 0] = 1e308                                        # x 10: inf at k1, in phi(k1 + 1)
+    data[1, k1, 0] = 1e308
+    data[1, k1 - 2:k1 + 7, 2] = 0.0                               # inactive while that row has a weight
+    data[2, k1, 0] = 1e306                                        # finite; u = 1000 x 1e307 overflows
+    theta0 = np.full((B, 1, 1), -0.5)
+    theta0[2] = 1e3
+    p0 = np.ones(B)
+    p0[2] = 1e-30                                                 # member 2's theta stays near 1000
+
+    def build(members):
+        src = rt.Recorded(data[members], {"s": 0, "z": 1, "v": 2}, name="data")
+        est = rt.RCOEstimator({"s": 1}, nc=1, feed_u=False, markov=[[[1.0]], [[0.5]], [[0.25]], [[0.1]], [[0.05]]],
+                              theta0=theta0[members], p0=p0[members], name="identified")
+        return rt.Graph([src, rt.Gain(10.0, name="g"), est],
+                        ["data.s -> g.in", "g.out -> identified.s", "data.z -> identified.z",
+                         "data.v -> identified.valid"], batch_size=len(members))
+
+    a, b = _pair(lambda: build(list(range(B))))
+    a.advance(T)
+    b.advance(T)
+    ea, eb = a.blocks["identified"], b.blocks["identified"]
+    assert eb.alive[:3].tolist() == [False, True, False] and bool(eb.alive[3:].all())
+    assert eb.diverged_at[:3].tolist() == [k1 + 1, -1, k1 + 1] and torch.equal(ea.diverged_at, eb.diverged_at)
+    for key in ("theta", "P"):
+        np.testing.assert_allclose(getattr(eb, key).numpy(), getattr(ea, key).numpy(), rtol=1e-9, atol=1e-12)
+    for m in range(4):
+        one = build([m])
+        one.engine = "native"
+        one.advance(T)
+        e1 = one.blocks["identified"]
+        assert torch.equal(e1.diverged_at[0], eb.diverged_at[m]), m
+        for key in ("theta", "P", "z_r"):
+            x, y = getattr(e1, key)[0], getattr(eb, key)[m]
+            assert torch.equal(torch.isnan(x), torch.isnan(y)) and torch.equal(x.nan_to_num(), y.nan_to_num()), \
+                (m, key)
+        assert torch.equal(e1.win[:, 0].nan_to_num(), eb.win[:, m].nan_to_num()), m
+
+
 def test_diverging_member_is_frozen_natively():
     a_ = np.exp(-2.0 * DT)
     poles = [a_, 10.0, 0.9 * a_]

@@ -301,12 +301,22 @@ static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restr
     }
 }
 
-/* The copies compiled for their sizes, at one lane: an output without feedthrough, an update */
+/* The copies compiled for their sizes, used at one lane only: an output without feedthrough, an update */
 static inline ALWAYS void FN(lti_out_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w) {
     FN(lti_out_n)(a, S, n, w, 0);
 }
 static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
-    FN(lti_upd_n)(a, S, n, mt);
+    /* lti_upd_n's sums, the new state held in an array of its own (in registers) rather than in the slots */
+    int64_t as = a[2], bs = a[3], xs = a[4];
+    const int64_t *restrict in = a + 7;
+    double xn[4];
+    for (int64_t r = 0; r < n; r++) {
+        double acc = 0.0;
+        for (int64_t j = 0; j < n; j++) acc += SL(as + r * n + j)[0] * SL(xs + j)[0];
+        for (int64_t c = 0; c < mt; c++) acc += SL(bs + r * mt + c)[0] * SL(in[c])[0];
+        xn[r] = acc;
+    }
+    for (int64_t r = 0; r < n; r++) SL(xs + r)[0] = xn[r];
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
@@ -469,52 +479,37 @@ static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, i
     }
 }
 
-/* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
- * the theta box, the member's health and the regressor histories. */
-static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
-                                      int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
-                                      int64_t nl) {
-    int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
-    const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
-    /* One member keeps its scratch and z_R (stored to its slot once computed) in an array of its own when
-     * they fit: the compiler then holds them in registers where the sizes are constants, where slots in S put a
-     * store and a load between one stage of the update and the next. */
-    double own[VL == 1 ? OWN : 1];
-    const int mine = VL == 1 && rco_scratch(n_u, n_z, n_phi, n, nl) + n_z <= OWN;
-    double *scr = mine ? own : SL(e[E_SCRATCH]);
-    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
-    /* one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is theta, in place */
-    const int direct = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
-    if (direct) {
-        psi = prod;
-        eta = SL(e[E_THETA]);
-    }
-    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
-    double *zr = mine ? AT(rls_scr, rls_scratch(n, nl)) : SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
-    /* [phi(k), u(k)] into row pr of the ring. At one lane, 4 and 2 entries at a time with one store, as the
-     * sum below reads them (a load of values just stored then gets them from that store, not from the cache). */
-#define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)
+/* [phi(k), u(k)] into row pr of the window ring. At one lane, 4 and 2 entries at a time with one
+ * store, as the Markov filter reads them (a load of values just stored then gets them from that store, not
+ * from the cache). */
+static inline ALWAYS void FN(win_row)(const int64_t *restrict e, double *restrict S, int64_t pr, int64_t n_phi,
+                                      int64_t m) {
+#define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)[0]
     int64_t j0 = 0;
     if (VL == 1) {
         double *row = SL(e[E_WIN] + pr * m);
         for (; j0 + 3 < m; j0 += 4)
-            *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0], WIN_SRC(j0 + 2)[0],
-                                           WIN_SRC(j0 + 3)[0]};
-        for (; j0 + 1 < m; j0 += 2) *(v2d_t *)(row + j0) = (v2d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0]};
+            *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0), WIN_SRC(j0 + 1), WIN_SRC(j0 + 2), WIN_SRC(j0 + 3)};
+        for (; j0 + 1 < m; j0 += 2) *(v2d_t *)(row + j0) = (v2d_t){WIN_SRC(j0), WIN_SRC(j0 + 1)};
     }
+#undef WIN_SRC
     for (int64_t j = j0; j < m; j++) {
-        const double *v = WIN_SRC(j);
+        const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
         double *r1 = SL(e[E_WIN] + pr * m + j);
         LANES r1[l] = v[l];
     }
-#undef WIN_SRC
-    /* prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over every row of the ring: row r holds delay
-     * (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] and by 0 below the first delay as on the PyTorch
-     * engine. The weights hold that ring twice ([beta_rev, 0 * first_delay] twice, 2W entries), so this step's
-     * weights of rows 0 .. W - 1 are the W entries from W - pr - 1 on. Rows in memory order, in four chains. */
+}
+
+/* The Markov filter of the nq = n_z n_u weights: prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over
+ * every row of the ring: row r holds delay (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] and by 0
+ * below the first delay as on the PyTorch engine. The weights hold that ring twice ([beta_rev, 0 *
+ * first_delay] twice, 2W entries), so this step's weights of rows 0 .. W - 1 are the W entries from W - pr - 1
+ * on. Rows in memory order, in four chains. */
+static inline ALWAYS void FN(markov)(const int64_t *restrict e, double *restrict S, double *restrict prod,
+                                     int64_t nq, int64_t m, int64_t W, int64_t pr) {
     const double *restrict win = SL(e[E_WIN]);
     const int64_t sh = e[E_SHARED];
-    for (int64_t q = 0; q < n_z * n_u; q++) {
+    for (int64_t q = 0; q < nq; q++) {
         const double *restrict wr = SL(e[E_BETA] + q * 2 * W + W - pr - 1);
         if (VL == 1) { /* one member: the same four chains, with a row's m columns side by side */
             /* 4, then 2 columns at a time in vectors, then one (the same operations for each column) */
@@ -553,6 +548,48 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
             double *p = AT(prod, q * m + j);
             LANES p[l] = (a0[l] + a1[l]) + (a2[l] + a3[l]);
         }
+    }
+}
+
+/* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
+ * the theta box, the member's health and the regressor histories. */
+static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
+                                      int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
+                                      int64_t nl) {
+    int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
+    const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
+    /* One member keeps its scratch and z_R (stored to its slot once computed) in an array of its own when
+     * they fit: the compiler then holds them in registers where the sizes are constants, where slots in S put a
+     * store and a load between one stage of the update and the next. */
+    double own[VL == 1 ? OWN : 1];
+    const int mine = VL == 1 && rco_scratch(n_u, n_z, n_phi, n, nl) + n_z <= OWN;
+    double *scr = mine ? own : SL(e[E_SCRATCH]);
+    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
+    /* one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is theta, in place */
+    const int direct = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
+    if (direct) {
+        psi = prod;
+        eta = SL(e[E_THETA]);
+    }
+    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
+    double *zr = mine ? AT(rls_scr, rls_scratch(n, nl)) : SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
+    /* One member (own scratch) with one z, u and row whose current row (this step's phi and u, delay 0) is
+     * weighed by 0 (below the first delay): the row's products are 0 where its entries are finite and add
+     * nothing to the sums. The filter below then sums the ring before the row is stored, so that it does not
+     * wait for this step's u: row pr still holds the oldest sample, whose products are 0 as well where it is
+     * finite. Where a product is NaN or the current row is not finite, the sums are made again with the row
+     * stored, as in the general case. */
+    const int late = mine && direct && SL(e[E_BETA])[W - 1] == 0.0;
+    if (!late) FN(win_row)(e, S, pr, n_phi, m);
+    FN(markov)(e, S, prod, n_z * n_u, m, W, pr);
+    if (late) {
+        FN(win_row)(e, S, pr, n_phi, m);
+        /* t is finite where the m sums and the row are (or else overflows): then the sums are those of the
+         * general order; otherwise they are made again with the row stored (one z and u: m sums) */
+        const double *row = SL(e[E_WIN] + pr * m);
+        double t = 0.0;
+        for (int64_t j = 0; j < m; j++) t += prod[j] + row[j];
+        if (__builtin_expect(!(t - t == 0.0), 0)) FN(markov)(e, S, prod, 1, m, W, pr);
     }
     for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
         double *o = AT(zr, z), d[VL];
