@@ -14,10 +14,11 @@
  * same functions compiled with their sizes as constants, which the compiler unrolls, chosen once per call
  * when the program is decoded (each with its own jump): LTI blocks of up to 4 states and 1-2 output rows
  * (without feedthrough) or input columns (more copies made the step slower), the estimator's output with one
- * u and up to SMALL regressors, and a sum of two inputs of width 1. The SISO estimator's update (n <= SMALL
- * parameters, one per regressor) chooses its copy on each step (SMALL_SIZES) and keeps its intermediates in
- * registers (OWN), and any estimator sums its Markov filter 4, then 2 columns at a time in vectors. The
- * arithmetic, and so every result, is the same.
+ * u and up to SMALL regressors, and a sum of two inputs of width 1; the sized LTI updates hold the new state in
+ * registers. The SISO estimator's update (n <= SMALL parameters, one per regressor) chooses its copy on each
+ * step (SMALL_SIZES), keeps its intermediates in registers (OWN) and sums its Markov filter before storing the
+ * step's row where that row is weighed by 0 (rco_upd_n), and any estimator sums its Markov filter 4, then 2
+ * columns at a time in vectors. The arithmetic, and so every result, is the same.
  */
 
 #define SMALL 6
@@ -281,11 +282,12 @@ static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restr
     }
 }
 
-/* x = A x + B u, u the mt input columns (the slot of each) */
-static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
+/* x = A x + B u, u the mt input columns (the slot of each): the new state into the lane array xn, from which
+ * the caller then stores x */
+static inline ALWAYS void FN(lti_upd_to)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt,
+                                         double *restrict xn) {
     int64_t as = a[2], bs = a[3], xs = a[4], sh = a[6];
     const int64_t *restrict in = a + 7;
-    double *xn = SL(a[5]);
     for (int64_t r = 0; r < n; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
@@ -294,29 +296,26 @@ static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restr
         double *o = AT(xn, r);
         LANES o[l] = acc[l];
     }
+}
+static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
+    double *xn = SL(a[5]); /* through the scratch slots */
+    FN(lti_upd_to)(a, S, n, mt, xn);
     for (int64_t r = 0; r < n; r++) {
-        double *x = SL(xs + r);
+        double *x = SL(a[4] + r);
         const double *v = AT(xn, r);
         LANES x[l] = v[l];
     }
 }
 
-/* The copies compiled for their sizes, used at one lane only: an output without feedthrough, an update */
+/* The copies compiled for their sizes, used at one lane only: an output without feedthrough, and an update
+ * (n <= 4) that holds the new state in an array of its own, in registers, rather than in the scratch slots */
 static inline ALWAYS void FN(lti_out_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w) {
     FN(lti_out_n)(a, S, n, w, 0);
 }
 static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
-    /* lti_upd_n's sums, the new state held in an array of its own (in registers) rather than in the slots */
-    int64_t as = a[2], bs = a[3], xs = a[4];
-    const int64_t *restrict in = a + 7;
-    double xn[4];
-    for (int64_t r = 0; r < n; r++) {
-        double acc = 0.0;
-        for (int64_t j = 0; j < n; j++) acc += SL(as + r * n + j)[0] * SL(xs + j)[0];
-        for (int64_t c = 0; c < mt; c++) acc += SL(bs + r * mt + c)[0] * SL(in[c])[0];
-        xn[r] = acc;
-    }
-    for (int64_t r = 0; r < n; r++) SL(xs + r)[0] = xn[r];
+    double xn[4 * VL];
+    FN(lti_upd_to)(a, S, n, mt, xn);
+    for (int64_t r = 0; r < n; r++) SL(a[4] + r)[0] = xn[r];
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
