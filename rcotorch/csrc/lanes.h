@@ -483,20 +483,21 @@ static inline void FN(rco_rows)(const int64_t *restrict e, double *restrict S, i
  * from the cache). */
 static inline ALWAYS void FN(win_row)(const int64_t *restrict e, double *restrict S, int64_t pr, int64_t n_phi,
                                       int64_t m) {
-#define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)[0]
+#define WIN_SRC(j) SL((j) < n_phi ? e[E_PHI] + (j) : e[E_UNOW] + (j) - n_phi)
     int64_t j0 = 0;
     if (VL == 1) {
         double *row = SL(e[E_WIN] + pr * m);
         for (; j0 + 3 < m; j0 += 4)
-            *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0), WIN_SRC(j0 + 1), WIN_SRC(j0 + 2), WIN_SRC(j0 + 3)};
-        for (; j0 + 1 < m; j0 += 2) *(v2d_t *)(row + j0) = (v2d_t){WIN_SRC(j0), WIN_SRC(j0 + 1)};
+            *(v4d_t *)(row + j0) = (v4d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0], WIN_SRC(j0 + 2)[0],
+                                           WIN_SRC(j0 + 3)[0]};
+        for (; j0 + 1 < m; j0 += 2) *(v2d_t *)(row + j0) = (v2d_t){WIN_SRC(j0)[0], WIN_SRC(j0 + 1)[0]};
     }
-#undef WIN_SRC
     for (int64_t j = j0; j < m; j++) {
-        const double *v = SL(j < n_phi ? e[E_PHI] + j : e[E_UNOW] + j - n_phi);
+        const double *v = WIN_SRC(j);
         double *r1 = SL(e[E_WIN] + pr * m + j);
         LANES r1[l] = v[l];
     }
+#undef WIN_SRC
 }
 
 /* The Markov filter of the nq = n_z n_u weights: prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i) over
