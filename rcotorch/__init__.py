@@ -8,6 +8,7 @@ from .estimator import RCOEstimator
 from .graph import Graph
 from .lti import LTI, zoh
 from .nonlinear import MarkovRefresh, Nonlinear
+from .refine import RefinementResult, refine
 from .refinement import derive_markov, refinement
 from .rls import rls_update
 from .sources import Recorded, WhiteNoise
@@ -15,7 +16,7 @@ from .sources import Recorded, WhiteNoise
 __all__ = [
     "AlgebraicLoopError", "Block", "ConfigError", "DataError", "datasets", "derive_markov", "DimensionError",
     "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models", "Nonlinear", "PortError",
-    "RcoError", "RCOEstimator", "Recorded", "Recording", "refinement", "rls_update", "rng", "StaticMap",
+    "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult", "refinement", "rls_update", "rng", "StaticMap",
     "Sum", "WhiteNoise", "zoh",
 ]
 __version__ = "0.1.0"

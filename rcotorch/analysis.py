@@ -9,6 +9,20 @@ import torch
 from .estimator import RCOEstimator
 
 
+def white_noise_rms(system, std: float = 1.0) -> np.ndarray:
+    """Steady-state rms of each output of a stable discrete python-control system driven by white noise of
+    std ``std`` on every input (the discrete Lyapunov equation A X A^T - X + B B^T = 0): (outputs,)."""
+    import scipy.linalg
+
+    A, B, C, D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (system.A, system.B, system.C, system.D))
+    if A.size:
+        X = scipy.linalg.solve_discrete_lyapunov(A, B @ B.T)
+        var = np.diag(C @ X @ C.T) + np.diag(D @ D.T)
+    else:
+        var = np.diag(D @ D.T)
+    return std * np.sqrt(var)
+
+
 def log_grid(dt: float, low: float = 1e-2, n: int = 400) -> np.ndarray:
     """Log-spaced frequencies from ``low`` rad/s to the Nyquist frequency pi/dt."""
     return np.logspace(np.log10(low), np.log10(np.pi / dt), n)

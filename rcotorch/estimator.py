@@ -461,18 +461,12 @@ class RCOEstimator(Block):
                                   "with rcotorch.refinement, which derives them from the known model")
             raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
         B, n_phi, n_u, n_z = self.batch_size, self.n_phi, self.n_u, self.n_z
-        m = n_phi + n_u
         k = self._step_index()
         # Ring buffer of [phi(t), u(t)], time-major: row t mod W holds time t, so the W rows hold the delays
         # 0 .. W-1; every row is weighed (by 0 below the first delay), the same products on both engines.
         p = k % W
         self.win[p] = torch.cat([self.phi_now, self.u_now], dim=1)
-        beta = self._beta_ring(p)                                               # (Bp, n_z * n_u, W)
-        # One product gives sum_i beta_i[z, a] phi(k-i)[j] and sum_i beta_i[z, a] u(k-i)[c]: (B, z, a, j|c).
-        if beta.shape[0] == 1 and n_z * n_u == 1:
-            prod = (beta[0] @ self.win.view(W, B * m)).reshape(B, 1, 1, m)
-        else:
-            prod = torch.bmm(beta.expand(B, -1, -1), self.win.transpose(0, 1)).reshape(B, n_z, n_u, m)
+        prod = self._markov_sums(p)
         psi_t = prod[..., :n_phi].reshape(B, n_z, -1)                           # Psi^T, Theta row-major
         if n_u == 1:
             zeta = inputs["z"] - prod[:, :, 0, n_phi]                           # z - sum_i beta_i u(k-i)
@@ -517,6 +511,34 @@ class RCOEstimator(Block):
                                past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
         self.k += 1
         memo.remember(self, "k", (self.k,), k + 1)
+
+    def _markov_sums(self, p: int) -> torch.Tensor:
+        """The Markov filter over the ring at a step with k mod W = p: sum_i beta_i[z, a] phi(k-i)[j] and
+        sum_i beta_i[z, a] u(k-i)[c] in one product, (B, n_z, n_u, n_phi + n_u)."""
+        W, B, m = self.window, self.batch_size, self.n_phi + self.n_u
+        beta = self._beta_ring(p)                                               # (Bp, n_z * n_u, W)
+        if beta.shape[0] == 1 and self.n_z * self.n_u == 1:
+            return (beta[0] @ self.win.view(W, B * m)).reshape(B, 1, 1, m)
+        return torch.bmm(beta.expand(B, -1, -1), self.win.transpose(0, 1)).reshape(B, self.n_z, self.n_u, m)
+
+    def last_regressor(self) -> torch.Tensor:
+        """The regressor of the parameters in the last update, Psi^T (B, n_z, n_theta): z_hat(eta) =
+        zeta + Psi^T eta (before the division by m of normalized regressors)."""
+        if not int(self.k):
+            raise ConfigError(f"block '{self.name}': no update has run yet")
+        B = self.batch_size
+        psi_t = self._markov_sums((self._step_index() - 1) % self.window)[..., :self.n_phi].reshape(B, self.n_z, -1)
+        if self.tied:
+            psi_t = psi_t @ self.tie_T
+        elif not self.all_free:
+            psi_t = psi_t.index_select(2, self.free_idx)
+        return psi_t
+
+    def set_theta_free(self, eta: torch.Tensor) -> None:
+        """Set theta from the free parameters eta (B, n_theta): Theta = T eta (pinned entries stay 0)."""
+        flat = self.theta.reshape(self.theta.shape[0], -1).clone()
+        flat[:, self.free] = eta.to(flat.dtype)[:, self.param_of[self.free]]
+        self.set_state(theta=flat.reshape(self.theta.shape).contiguous())
 
     def _rows(self, psi_t: torch.Tensor, z_r: torch.Tensor):
         """The rows of the update (Psi^T (B, l, n), their residuals (B, l), R^-1 (l, l)): the rows of z, divided

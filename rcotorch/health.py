@@ -55,7 +55,7 @@ import torch
 from . import kernels
 from .errors import ConfigError
 
-STATUSES = ("converged", "not_converged", "diverged")
+STATUSES = ("converged", "not_converged", "diverged", "undetermined")
 REASON_STATE = "diverged_reason"   # the estimator buffer that carries Reason codes
 
 

@@ -25,7 +25,8 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                nu: int | None = None, batch_size: int = 1, dtype: torch.dtype = DEFAULT_DTYPE,
                device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
                measured: str = "y", feeds: Mapping[str, str] | None = None, blocks: Sequence[Block] = (),
-               connections: Iterable = (), input_holdoff: int | None = None) -> Graph:
+               connections: Iterable = (), input_holdoff: int | None = None,
+               noise: Block | None = None) -> Graph:
     """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
 
     The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
@@ -45,6 +46,10 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     (as in ``Graph``); ``feeds`` then names their outputs. Unless the estimator already has Markov
     parameters, ``nu`` of them are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its
     relative degree d on.
+
+    ``noise``: measurement noise of a simulated physical system, a source whose output ``out`` has the width
+    of ``y`` (e.g. ``WhiteNoise(1, std=0.01, seed=7)``); it is added to the physical system's output in a
+    block ``measurement`` (y = plant.y + noise), so the refinement sees noisy data as it would from a sensor.
 
     Recorded data with missing samples of the input ``w``: the known model runs on with the held input, so
     after a gap the update is held (``valid`` = 0) for ``input_holdoff`` samples, by default the samples until
@@ -97,6 +102,18 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
             conns.append((w_src, f"plant.{exogenous}"))
             y_src = f"plant.{measured}"
     width = known.outputs[measured]
+    if noise is not None:
+        if data is not None:
+            raise ConfigError("refinement: noise= is for a simulated physical system; recorded data carry "
+                              "their own noise")
+        if list(noise.inputs) or "out" not in noise.outputs or noise.outputs["out"] != width:
+            raise PortError(f"refinement: noise block '{noise.name}' must be a source with one output 'out' "
+                            f"of width {width} (the width of '{measured}'); it has inputs {list(noise.inputs)} "
+                            f"and outputs {dict(noise.outputs)}")
+        noise.name = "noise"
+        parts += [noise, Sum({"clean": 1, "noise": 1}, width, name="measurement")]
+        conns += [(y_src, "measurement.clean"), ("noise.out", "measurement.noise")]
+        y_src = "measurement.out"
     parts.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
     conns += [(y_src, "error.y"), (f"{kn}.{measured}", "error.y_hat"), (w_src, f"{kn}.{exogenous}"),
               (f"{en}.u", f"{kn}.{actuation}"), ("error.out", f"{en}.z")]

@@ -28,13 +28,14 @@ import torch
 
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError
+from . import intervals as ci
 from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = 3   # the layout of checkpoint.pt (3: the estimator's ring of regressors has W rows)
+CHECKPOINT_FORMAT = 4   # the layout of checkpoint.pt (4: the graph's state at the window's start, for intervals)
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
 HISTORY_MAX = 1000
@@ -110,6 +111,10 @@ class Run:
         trace: members logged individually in TensorBoard when the batch is larger than 8.
         health: thresholds of the member health checks (``rcotorch.health.Criteria``).
         overwrite: replace the run that ``out`` holds (only the files its manifest lists).
+        intervals: compute confidence intervals of the estimates at the end (``rcotorch.intervals``: a replay
+            of the convergence window, up to ``intervals.REPLAY_STEPS`` steps, once per parameter and once
+            more, on the PyTorch engine) and judge whether the data determined them.
+        level: the intervals' confidence level.
 
     ``hparams_session`` (default True): the run's TensorBoard run is also its HParams session (a sweep sets it
     False and writes one session per member instead).
@@ -119,8 +124,13 @@ class Run:
                  device: str = "cpu", dtype: str = "float64", out: str | Path | None = None,
                  overrides: Mapping[str, Any] | None = None, log_every: int | None = None,
                  members: list[Mapping[str, Any]] | None = None, trace: list[int] | None = None,
-                 health: Criteria | None = None, overwrite: bool = False):
-        self.scenario = scenarios.get(name)
+                 health: Criteria | None = None, overwrite: bool = False, intervals: bool = True,
+                 level: float = ci.LEVEL):
+        self.scenario = scenarios.get(name) if isinstance(name, str) else name
+        if not isinstance(self.scenario, scenarios.Scenario):
+            raise ConfigError(f"a run takes a scenario or its name, got {type(name).__name__}")
+        self.intervals_on, self.level = bool(intervals), float(level)
+        ci.quantile(self.level)                                    # checks the level
         self.trace = trace
         if members is not None:
             if not members:
@@ -155,6 +165,8 @@ class Run:
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
         self.history_members = list(range(min(self.batch, HISTORY_MEMBERS)))
+        self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
+        self._intervals: tuple[int, ci.Intervals | None] | None = None
         self.monitor: Monitor | None = None
         self.hparams_session = True
 
@@ -203,6 +215,7 @@ class Run:
         if self.y_sig is not None and self.y_sig != self.z_sig:
             acc[self.y_sig] = self.sums["y"]
         try:
+            self._take_snapshot()
             while self.k < until:
                 k = self.k
                 end = min(until, _next(k, self.log_every), self.health.next_check(k),
@@ -211,6 +224,7 @@ class Run:
                 self.counters["acc"] += end - k
                 if self.health.is_check(end):
                     self._check()
+                self._take_snapshot()
                 if end % self.log_every == 0:
                     self._log()
                 if checkpoint_every and end % checkpoint_every == 0:
@@ -222,6 +236,11 @@ class Run:
         finally:
             if bar is not None:
                 bar.close()
+
+    def _take_snapshot(self) -> None:
+        """Keep the graph's state at the convergence window's start (the intervals replay from it)."""
+        if self.intervals_on and self.snapshot is None and self.k == self.health.window_start:
+            self.snapshot = ci.snapshot(self.graph)
 
     def _start_monitor(self) -> None:
         self.open_output()
@@ -280,6 +299,8 @@ class Run:
             "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
             "history_members": self.history_members, "counters": dict(self.counters),
             "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
+            "snapshot": None if self.snapshot is None else {k: v.cpu() for k, v in self.snapshot.items()},
+            "intervals": self.intervals_on, "level": self.level,
         }
         save_checkpoint(path, state)
         self.folder.register()
@@ -288,11 +309,12 @@ class Run:
     @classmethod
     def resume(cls, directory: str | Path, steps: int | None = None, device: str | None = None,
                out: str | Path | None = None, overwrite: bool = False,
-               expect: Mapping[str, Any] | None = None) -> Run:
+               expect: Mapping[str, Any] | None = None, scenario: scenarios.Scenario | None = None) -> Run:
         """Rebuild a run from ``directory/checkpoint.pt``; ``steps`` may extend its target. ``expect``: what
         the caller asked for besides (``name``, ``batch``, ``seed``, ``dtype``, ``overrides``); anything
         that differs from the checkpoint is refused. ``out``: continue into another folder (new, or replaced
-        with ``overwrite``) instead of ``directory``."""
+        with ``overwrite``) instead of ``directory``. ``scenario``: the scenario object of a run that was not
+        made from a registered name (a graph run from Python, ``rcotorch.refine``)."""
         directory = Path(directory)
         if not directory.is_dir():
             raise CheckpointError(f"--resume {directory}: no such folder")
@@ -304,11 +326,15 @@ class Run:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"{path}: written by another version of rcotorch (format {state.get('format')})")
         _check_resume(path, state, expect or {})
-        run = cls(state["scenario"], steps=steps or state["steps"], batch=state["batch"],
+        if scenario is not None and scenario.name != state["scenario"]:
+            raise CheckpointError(f"--resume {directory}: the checkpoint is a run of {state['scenario']!r}, not "
+                                  f"{scenario.name!r}")
+        run = cls(scenario or state["scenario"], steps=steps or state["steps"], batch=state["batch"],
                   device=device or "cpu", dtype=state["dtype"], out=out or directory,
                   overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
                   members=_members(state["settings"], state["batch"]), log_every=state["log_every"],
-                  trace=state["trace"], health=Criteria(**state["health"]["criteria"]))
+                  trace=state["trace"], health=Criteria(**state["health"]["criteria"]),
+                  intervals=state["intervals"], level=state["level"])
         if out is None or Path(out).resolve() == directory.resolve():
             run._mode = "resume"
         elif overwrite:
@@ -323,6 +349,9 @@ class Run:
         if run.k > run.steps:
             raise ConfigError(f"--resume: the checkpoint is at step {run.k}, past the requested {run.steps}")
         run.health.set_target(run.steps)
+        snap = state["snapshot"]
+        run.snapshot = None if snap is None or run.k < run.health.window_start else \
+            {k: v.to(run.device) for k, v in snap.items()}
         return run
 
     # --- results -------------------------------------------------------------------------------------------
@@ -334,7 +363,15 @@ class Run:
         verdict = self.health.status(self.sums["z"], self.sums["y"] if self.y_sig is not None else None,
                                      self.counters["acc"])
         met.setdefault("z_rms_final", verdict["z_rms"].cpu())
+        found = self.intervals()
+        if found is not None:
+            undetermined = (verdict["status"] == STATUSES.index("converged")) & ~found.determined.to(
+                verdict["status"].device)
+            verdict["status"] = torch.where(undetermined, STATUSES.index("undetermined"), verdict["status"])
         health = self.health.report(verdict)
+        if found is not None:
+            health["determined"] = self._plain(found.determined.tolist())
+            health["undetermined"] = self._plain(found.undetermined_keys)
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
                      "reason": (health["reason"] if self.batch == 1 else health["reason"][b])} for b in members]
@@ -347,7 +384,29 @@ class Run:
             "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
+            "intervals": {} if found is None else {
+                k: {"level": found.level, "lower": self._values(found.lower(k)), "upper": self._values(found.upper(k))}
+                for k in found.estimate},
         }
+
+    def intervals(self) -> ci.Intervals | None:
+        """The estimates' confidence intervals at the current step (computed once per step), or None when
+        the run computes none or has not reached its convergence window."""
+        if not self.intervals_on or self.snapshot is None:
+            return None
+        if self._intervals is None or self._intervals[0] != self.k:
+            start = self.health.window_start
+            steps = min(self.k - start, ci.REPLAY_STEPS)
+            found = None
+            if steps >= 2:
+                pc = ci.parameter_covariance(self.graph, self.snapshot, steps)
+                found = ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings), pc,
+                                              level=self.level, scales=self.scenario.scales(self.settings))
+            self._intervals = (self.k, found)
+        return self._intervals[1]
+
+    def _plain(self, values: list):
+        return values[0] if self.batch == 1 else values
 
     def _values(self, t: torch.Tensor):
         vals = finite_list(t.reshape(self.batch))
@@ -365,7 +424,7 @@ class Run:
                               None if truth is None else torch.tensor(member_truth(truth, self.batch),
                                                                       dtype=torch.float64))
             checks[req.key] = {"requirement": req.describe(), "value": self._values(q),
-                               "pass": bool(ok.all())}
+                               "pass": bool(ok.all()), "member_pass": self._plain(ok.reshape(-1).tolist())}
         return checks
 
     def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
@@ -448,14 +507,17 @@ def _dumps(obj: Any) -> str:
 
 
 def health_line(summary: Mapping[str, Any]) -> str:
-    """One line on the members' health."""
+    """One line on the members' health (a member the data did not determine is never called converged)."""
     h = summary["health"]
     if summary["batch"] == 1:
         if h["status"] == "diverged":
             return f"health: diverged at step {h['diverged_at']} ({h['reason']})"
         detail = ", ".join(f"{k} {_fmt(h[k])}" for k in ("theta_change", "z_ratio"))
+        if h["status"] == "undetermined":
+            which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
+            return f"health: undetermined: settled, but the data did not determine {which} ({detail})"
         return f"health: {h['status']} ({detail})"
-    counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items())
+    counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items() if n or status != "undetermined")
     line = f"health: {counts}"
     if summary["diverged"]:
         first = summary["diverged"][:5]
@@ -471,20 +533,43 @@ def _fmt(v) -> str:
     return "nan" if v is None else f"{v:.6g}"
 
 
+def _fmt_interval(v, interval: Mapping[str, Any] | None) -> str:
+    """An estimate with its interval: 'value ± half-width' for one member, the values' range and the median
+    half-width for a batch."""
+    if interval is None:
+        return _fmt(v)
+    lo, hi = interval["lower"], interval["upper"]
+    if not isinstance(v, list):
+        return _fmt(v) + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.2g}")
+    half = sorted((b - a) / 2 for a, b in zip(lo, hi) if a is not None and b is not None)
+    return _fmt(v) + (f" (± {half[len(half) // 2]:.2g} median)" if half else "")
+
+
+def _check_text(chk: Mapping[str, Any]) -> str:
+    per = chk.get("member_pass")
+    if isinstance(per, list) and not chk["pass"]:
+        return f"FAIL ({len(per) - sum(per)} of {len(per)} members)"
+    return "PASS" if chk["pass"] else "FAIL"
+
+
 def result_table(summary: Mapping[str, Any]) -> str:
-    """A short text table of estimates, truth and requirements, and the members' health."""
-    rows = [("key", "estimate", "truth", "requirement", "check")]
+    """A short text table of estimates (with their confidence intervals), truth and requirements, and the
+    members' health."""
+    intervals = summary.get("intervals") or {}
+    level = next(iter(intervals.values()))["level"] if intervals else None
+    head = "estimate" + (f" ({level:.0%} interval)" if level else "")
+    rows = [("key", head, "truth", "requirement", "check")]
     checks = summary.get("requirements", {})
     for group in ("estimates", "metrics"):
         for key, v in summary[group].items():
             chk = checks.get(f"{group}.{key}")
             truth = summary["truth"].get(key) if group == "estimates" else None
-            rows.append((f"{group}.{key}", _fmt(v), "" if truth is None else _fmt(truth),
+            rows.append((f"{group}.{key}", _fmt_interval(v, intervals.get(key) if group == "estimates" else None),
+                         "" if truth is None else _fmt(truth),
                          chk["requirement"] + f" ({_fmt(chk['value'])})" if chk else "",
-                         ("PASS" if chk["pass"] else "FAIL") if chk else ""))
+                         _check_text(chk) if chk else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
     lines.append(health_line(summary))
     return "\n".join(lines)
-

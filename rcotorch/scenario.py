@@ -209,6 +209,12 @@ class Scenario:
         """Current estimates, each a (B,) tensor (physical units)."""
         raise NotImplementedError
 
+    def scales(self, settings: Mapping[str, Any]) -> dict[str, float]:
+        """A size for each estimate that may be near zero (e.g. the nominal value a change is relative to): an
+        estimate is determined when its interval's half-width is at most ``rcotorch.intervals.REL_TOL`` times
+        max(|estimate|, scale). Estimates without one are judged against their own size."""
+        return {}
+
     def metrics(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         """Final metrics, each a (B,) tensor."""
         return {}

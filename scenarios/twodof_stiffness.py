@@ -63,6 +63,8 @@ import rcotorch as rt
 from rcotorch.figures import frequency_figure
 from rcotorch.scenario import Requirement, Scenario
 
+from .sdof_stiffness import noise_block
+
 
 def _kc(a, b, c):
     """Chain matrix [[a + b, -b], [-b, b + c]] (stiffness or damping of wall-m1-m2-wall)."""
@@ -94,7 +96,7 @@ class TwoDofStiffness(Scenario):
     description = "2-DOF stiffness changes dk1=0.4, dk3=0.5 from one velocity (masked static gain)"
     steps = 20000
     settings = dict(Ts=0.02, k1=0.7, dk1=0.4, k2=0.5, k3=0.6, dk3=0.5, c1=0.8, c2=0.8, c3=0.8,
-                    sees="midpoint", truth="continuous", p0=1e3, lam=0.9995, nu=60, w_std=1.0, seed=1)
+                    sees="midpoint", truth="continuous", noise=0.0, p0=1e3, lam=0.9995, nu=60, w_std=1.0, seed=1)
     requirements = (Requirement("estimates.dk1", "rel_err", 0.10), Requirement("estimates.dk3", "rel_err", 0.10))
     units = {"y": "m/s"}
     per_member = frozenset({"seed"})        # one seed per member: member b draws the stream (seed[b], 0)
@@ -113,6 +115,7 @@ class TwoDofStiffness(Scenario):
         truth=("", "continuous structure ZOH-discretized, or the discrete interconnection (exact for the gain)",
                ("continuous", "discrete")),
         w_std=("N", "standard deviation of the white-noise force w (on both masses)"),
+        noise=("", "measurement noise on y: its std as a fraction of the rms of y (0: none)"),
         seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
     )
 
@@ -122,7 +125,8 @@ class TwoDofStiffness(Scenario):
         ident = rt.RCOEstimator.static_gain({"y0": 2}, n_u=2, mask=[[True, False], [False, True]],
                                             p0=s["p0"], lam=s["lam"])
         excitation = rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"])
-        common = dict(excitation=excitation, nu=s["nu"], batch_size=batch, dtype=dtype, device=device)
+        common = dict(excitation=excitation, nu=s["nu"], noise=noise_block(s, self.truth_system), batch_size=batch,
+                      dtype=dtype, device=device)
         if s["truth"] == "continuous":
             T = known_model(s, s["dk1"], s["dk3"], actuation=False)
             physical = rt.LTI.from_control(T, inputs=["w"], outputs=["y"], dt=s["Ts"], name="plant")
@@ -131,6 +135,15 @@ class TwoDofStiffness(Scenario):
             unknown = rt.Gain(-np.diag([s["dk1"], s["dk3"]]), name="unknown")
             return rt.refinement(known, ident, truth=unknown, **common)
         raise rt.ConfigError(f"twodof-stiffness: truth must be 'continuous' or 'discrete', got {s['truth']!r}")
+
+    @staticmethod
+    def truth_system(s) -> control.StateSpace:
+        """The true system w -> y as a discrete python-control system (for the noise level)."""
+        if s["truth"] == "discrete":
+            G = control.sample_system(known_model(s), s["Ts"])
+            A = G.A + G.B[:, 1:3] @ -np.diag([s["dk1"], s["dk3"]]) @ G.C[1:3]
+            return control.ss(A, G.B[:, :1], G.C[:1], [[0.0]], s["Ts"])
+        return control.sample_system(known_model(s, s["dk1"], s["dk3"], actuation=False), s["Ts"])
 
     def truth(self, s):
         return {"dk1": s["dk1"], "dk3": s["dk3"]}

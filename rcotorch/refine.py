@@ -1,0 +1,218 @@
+"""Run any refinement graph built in Python through the same machinery as ``rcotorch run``.
+
+``refine(graph, steps, estimates=..., truth=...)`` steps the graph with member health checks, TensorBoard
+logs, checkpoints, figures and ``summary.json`` in an output folder, and returns a ``RefinementResult``: the
+estimates with their confidence intervals, whether the data determined them, each member's status and the
+requirements' pass/fail. A scenario is a declaration of the same thing (``rcotorch.scenario.Scenario``): a
+named graph with default settings; ``GraphScenario`` is the declaration of one graph that is already built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from . import intervals as ci
+from .errors import ConfigError
+from .graph import Graph
+from .health import Criteria
+from .runner import DTYPES, Run, result_table
+from .scenario import Requirement, Scenario
+
+Estimate = Callable[[Graph], torch.Tensor]
+
+
+def parameter_estimates(graph: Graph) -> dict[str, torch.Tensor]:
+    """The estimator's free parameters, each a (B,) tensor named after the entries of theta it sets
+    (``theta[y0(k)]``): the default estimates of a graph."""
+    est = graph.role("estimator")
+    eta = est.theta_free()
+    return {f"theta[{name}]": eta[:, j] for j, name in enumerate(est.theta_names)}
+
+
+class GraphScenario(Scenario):
+    """A scenario made of one graph that is already built: its estimates (functions of the graph, each
+    returning a (B,) tensor), truth, requirements, scales and units. It has no settings of its own; its
+    batch, dtype and device are the graph's."""
+
+    def __init__(self, graph: Graph, estimates: Mapping[str, Estimate] | None = None,
+                 truth: Mapping[str, float | Sequence[float]] | None = None,
+                 requirements: Sequence[Requirement] = (), scales: Mapping[str, float] | None = None,
+                 units: Mapping[str, str] | None = None, name: str = "refinement", metrics=None,
+                 steps: int = 10000):
+        if not isinstance(graph, Graph):
+            raise ConfigError(f"refine: expected an rcotorch Graph, got {type(graph).__name__}")
+        if "estimator" not in graph.roles or "error" not in graph.roles:
+            raise ConfigError("refine: the graph needs the roles 'estimator' and 'error' (rcotorch.refinement "
+                              f"declares them; Graph(..., roles=...) otherwise); it has {sorted(graph.roles)}")
+        self.graph, self.name, self.steps = graph, name, steps
+        self.description = f"a graph built in Python ({len(graph.blocks)} blocks)"
+        self._estimates = dict(estimates) if estimates is not None else None
+        self._truth = dict(truth or {})
+        self._metrics = metrics
+        self.requirements = tuple(requirements)
+        self._scales = dict(scales or {})
+        self.units = dict(units or {})
+        known = set(self.estimates(graph, {}))
+        for key in list(self._truth) + list(self._scales):
+            if key not in known:
+                raise ConfigError(f"refine: truth or scale given for {key!r}, which is not an estimate; the "
+                                  f"estimates are {sorted(known)}")
+        for req in self.requirements:
+            group, _, key = req.key.partition(".")
+            if group == "estimates" and key not in known:
+                raise ConfigError(f"refine: requirement on {req.key!r}, which is not an estimate; the estimates "
+                                  f"are {sorted(known)}")
+
+    def build(self, settings, batch, dtype, device) -> Graph:
+        g = self.graph
+        if batch != g.batch_size:
+            raise ConfigError(f"refine: the graph has {g.batch_size} members, not {batch}")
+        return g
+
+    def truth(self, settings) -> dict[str, Any]:
+        return dict(self._truth)
+
+    def estimates(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
+        if self._estimates is None:
+            return parameter_estimates(graph)
+        out = {}
+        for key, fn in self._estimates.items():
+            value = torch.as_tensor(fn(graph))
+            if value.numel() != graph.batch_size:
+                raise ConfigError(f"refine: estimate {key!r} gives {tuple(value.shape)}, expected one value per "
+                                  f"member ({graph.batch_size},)")
+            out[key] = value.reshape(graph.batch_size)
+        return out
+
+    def metrics(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
+        return {k: torch.as_tensor(fn(graph)).reshape(graph.batch_size) for k, fn in (self._metrics or {}).items()}
+
+    def scales(self, settings) -> dict[str, float]:
+        return dict(self._scales)
+
+
+class RefinementResult:
+    """What a refinement found, like a scipy or python-control result object.
+
+    Attributes:
+        estimates: {key: (B,) float64 tensor} the final estimates.
+        lower, upper: {key: (B,) tensor} the confidence interval of each estimate (NaN where none).
+        level: the intervals' confidence level.
+        status: one word per member: ``converged``, ``undetermined`` (settled, but the data did not determine
+            an estimate), ``not_converged`` or ``diverged``.
+        determined: (B,) bool, whether the data determined every estimate of the member.
+        passed: {requirement key: (B,) bool} each member's pass or fail.
+        summary: the run's ``summary.json`` as a dict; ``out`` the folder it was written to.
+        run: the ``rcotorch.runner.Run``, for its graph and history.
+    """
+
+    def __init__(self, run: Run, summary: Mapping[str, Any]):
+        self.run, self.summary, self.out = run, dict(summary), run.out
+        B = run.batch
+
+        def tensor(values) -> torch.Tensor:
+            values = values if isinstance(values, list) else [values]
+            return torch.tensor([float("nan") if v is None else v for v in values], dtype=torch.float64)
+        self.estimates = {k: tensor(v) for k, v in summary["estimates"].items()}
+        ivs = summary.get("intervals") or {}
+        nan = torch.full((B,), float("nan"), dtype=torch.float64)
+        self.lower = {k: tensor(ivs[k]["lower"]) if k in ivs else nan.clone() for k in self.estimates}
+        self.upper = {k: tensor(ivs[k]["upper"]) if k in ivs else nan.clone() for k in self.estimates}
+        self.level = next(iter(ivs.values()))["level"] if ivs else None
+        status = summary["health"]["status"]
+        self.status = status if isinstance(status, list) else [status]
+        det = summary["health"].get("determined")
+        self.determined = torch.tensor(det if isinstance(det, list) else [bool(det)] * B, dtype=torch.bool) \
+            if det is not None else torch.zeros(B, dtype=torch.bool)
+        self.passed = {}
+        for key, chk in summary.get("requirements", {}).items():
+            per = chk.get("member_pass", chk["pass"])
+            self.passed[key] = torch.tensor(per if isinstance(per, list) else [per], dtype=torch.bool)
+
+    @property
+    def half_width(self) -> dict[str, torch.Tensor]:
+        return {k: (self.upper[k] - self.lower[k]) / 2 for k in self.estimates}
+
+    @property
+    def success(self) -> bool:
+        """Every member converged with determined estimates and every requirement passed."""
+        return all(s == "converged" for s in self.status) and all(bool(p.all()) for p in self.passed.values())
+
+    def __str__(self) -> str:
+        return result_table(self.summary)
+
+    def __repr__(self) -> str:
+        return f"<RefinementResult {self.summary['scenario']}: batch {self.run.batch}, {self.out}>\n{self}"
+
+
+def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = None, *,
+           truth: Mapping[str, float | Sequence[float]] | None = None, requirements: Sequence[Requirement] = (),
+           scales: Mapping[str, float] | None = None, units: Mapping[str, str] | None = None,
+           metrics: Mapping[str, Estimate] | None = None, name: str = "refinement",
+           out: str | Path | None = None, overwrite: bool = False, level: float = ci.LEVEL,
+           intervals: bool = True, figures: bool = True, progress: bool | None = None,
+           checkpoint_every: int | None = None, health: Criteria | None = None) -> RefinementResult:
+    """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
+    for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
+
+    Parameters
+    ----------
+    graph : Graph
+        A fresh graph (step 0); its batch, dtype and device are the run's.
+    steps : int
+        Steps to run.
+    estimates : {name: function(graph) -> (B,) tensor}, optional
+        What the refinement estimates, as functions of the graph, e.g.
+        ``{'dK': lambda g: -g.role('estimator').dc_gain()[:, 0, 0]}``. Default: the estimator's free
+        parameters (``theta[...]``).
+    truth : {name: value or one value per member}, optional
+        The true values where they are known (a simulated truth); they appear beside the estimates.
+    requirements : sequence of ``rcotorch.scenario.Requirement``
+        Acceptance bounds, e.g. ``Requirement('estimates.dK', 'abs_err', 0.01)``, checked per member.
+    scales : {name: size}, optional
+        A size for an estimate that may be near zero, against which its interval is judged (an estimate is
+        determined when its interval's half-width is at most half of max(|estimate|, scale)).
+    units, metrics : optional
+        Units of estimates; further final metrics as functions of the graph.
+    name, out, overwrite : optional
+        The run's name and output folder (default ``runs/NAME``, or ``runs/NAME-2``, ...).
+    level : float
+        Confidence level of the intervals (0.95).
+    intervals, figures, progress, checkpoint_every, health : optional
+        As for ``rcotorch run``: whether to compute intervals and draw figures, a progress bar, periodic
+        checkpoints, and the health criteria.
+
+    Returns
+    -------
+    RefinementResult
+        Estimates, intervals, status and requirement checks per member; printing it prints the table.
+    """
+    if int(graph.k) != 0:
+        raise ConfigError(f"refine: the graph has already run {int(graph.k)} steps; pass a fresh graph (or call "
+                          "graph.reset())")
+    sc = GraphScenario(graph, estimates, truth=truth, requirements=requirements, scales=scales, units=units,
+                       name=name, metrics=metrics, steps=steps)
+    dtype = _dtype_name(graph)
+    device = str(graph.k.device)
+    run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,
+              health=health, intervals=intervals, level=level)
+    try:
+        run.advance(progress=progress, checkpoint_every=checkpoint_every)
+        summary = run.finish(figures=figures)
+    finally:
+        run.close()
+    return RefinementResult(run, summary)
+
+
+def _dtype_name(graph: Graph) -> str:
+    for t in graph.buffers():
+        if t.is_floating_point():
+            for key, value in DTYPES.items():
+                if value == t.dtype:
+                    return key
+            raise ConfigError(f"refine: the graph's dtype {t.dtype} is not one of {sorted(DTYPES)}")
+    return "float64"
