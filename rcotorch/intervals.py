@@ -138,6 +138,12 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
     V = zz / measured
     info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
     noise_info = torch.einsum("bzy,bzyij->bij", weight @ V @ weight, grams)       # sum Psi W V W Psi^T
+    finite = torch.isfinite(info).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
+        torch.isfinite(noise_info).flatten(1).all(1)
+    eye = torch.eye(n, dtype=f64, device=info.device)
+    info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
+    cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
+    noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
     info_inv = torch.linalg.pinv(info)
     A = info_inv @ cross
     P = est.P.detach().to(f64)
@@ -148,6 +154,7 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
     M = A - c * torch.eye(n, dtype=f64, device=A.device)
     X, settles = _lyapunov(M, rhs)
     alive = est.alive.to(settles.device)
+    settles = settles & finite.to(settles.device)
     ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
     X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
     return ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)

@@ -365,12 +365,13 @@ class Run:
         met.setdefault("z_rms_final", verdict["z_rms"].cpu())
         found = self.intervals()
         if found is not None:
-            undetermined = (verdict["status"] == STATUSES.index("converged")) & ~found.determined.to(
-                verdict["status"].device)
-            verdict["status"] = torch.where(undetermined, STATUSES.index("undetermined"), verdict["status"])
+            converged = verdict["status"] == STATUSES.index("converged")
+            determined = found.determined.to(converged.device) & converged   # a member still moving is not
+            verdict["status"] = torch.where(converged & ~determined, STATUSES.index("undetermined"),
+                                            verdict["status"])
         health = self.health.report(verdict)
         if found is not None:
-            health["determined"] = self._plain(found.determined.tolist())
+            health["determined"] = self._plain(determined.tolist())
             health["undetermined"] = self._plain(found.undetermined_keys)
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
@@ -445,7 +446,8 @@ class Run:
         if figures:
             self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
         for status, count in summary["health"]["counts"].items():
-            self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
+            if count or status != "undetermined":
+                self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
         self.monitor.close(summary)
         self.folder.register()
         if close:
