@@ -16,7 +16,7 @@ from .sources import Recorded, WhiteNoise
 __all__ = [
     "AlgebraicLoopError", "Block", "ConfigError", "DataError", "datasets", "derive_markov", "DimensionError",
     "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models", "Nonlinear", "PortError",
-    "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult", "refinement", "rls_update", "rng", "StaticMap",
-    "Sum", "WhiteNoise", "zoh",
+    "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult", "refinement", "rls_update",
+    "rng", "StaticMap", "Sum", "WhiteNoise", "zoh",
 ]
 __version__ = "0.1.0"

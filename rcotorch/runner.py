@@ -26,9 +26,9 @@ from typing import Any
 import orjson
 import torch
 
+from . import intervals as ci
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError
-from . import intervals as ci
 from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text

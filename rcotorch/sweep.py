@@ -271,7 +271,10 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
     metrics, health."""
     from .runner import member_truth
     B = summary["batch"]
-    health = {k: member_truth(summary["health"][k], B) for k in ("status", "reason", "diverged_at")}
+    health = {k: member_truth(summary["health"][k], B) for k in ("status", "reason", "diverged_at", "theta_change",
+                                                                  "z_ratio", "determined") if k in summary["health"]}
+    intervals = summary.get("intervals") or {}
+    checks = summary.get("requirements") or {}
     rows = []
     for b, member in enumerate(shard["members"]):
         row: dict[str, Any] = {"member": member, "shard": shard["index"]}
@@ -285,9 +288,17 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
                 tv = member_truth(truth, B)[b]
                 row[f"truth_{key}"] = tv
                 row[f"err_{key}"] = None if est is None else est - tv
+            if key in intervals:
+                row[f"lower_{key}"] = member_truth(intervals[key]["lower"], B)[b]
+                row[f"upper_{key}"] = member_truth(intervals[key]["upper"], B)[b]
         for key, v in summary["metrics"].items():
             row[key] = member_truth(v, B)[b]
         row["status"] = health["status"][b]
+        for key, chk in checks.items():
+            row[f"pass_{key.split('.', 1)[1]}"] = member_truth(chk.get("member_pass", chk["pass"]), B)[b]
+        for key in ("determined", "theta_change", "z_ratio"):
+            if key in health:
+                row[key] = health[key][b]
         row["reason"] = health["reason"][b]
         row["diverged"] = health["status"][b] == "diverged"
         row["diverged_at"] = health["diverged_at"][b]

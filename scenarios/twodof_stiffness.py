@@ -58,12 +58,11 @@ Defaults: Ts = 0.02 s, nu = 60 (1.2 s of impulse response), lam = 0.9995, p0 = 1
 import control
 import numpy as np
 import torch
+from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
 from rcotorch.figures import frequency_figure
 from rcotorch.scenario import Requirement, Scenario
-
-from .sdof_stiffness import noise_block
 
 
 def _kc(a, b, c):
