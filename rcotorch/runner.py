@@ -129,7 +129,7 @@ class Run:
         self.scenario = scenarios.get(name) if isinstance(name, str) else name
         if not isinstance(self.scenario, scenarios.Scenario):
             raise ConfigError(f"a run takes a scenario or its name, got {type(name).__name__}")
-        self.intervals_on, self.level = bool(intervals), float(level)
+        self.intervals_on, self.level = bool(intervals) and self.scenario.intervals, float(level)
         ci.quantile(self.level)                                    # checks the level
         self.trace = trace
         if members is not None:

@@ -124,6 +124,9 @@ class Scenario:
     per_member: frozenset[str] = frozenset()
     # The estimator options that the base class offers as settings and applies after ``build`` (see above).
     estimator_options: tuple[str, ...] = tuple(ESTIMATOR_OPTIONS)
+    # Whether runs compute confidence intervals (``rcotorch.intervals``): False for estimates that are not
+    # functions of the estimator's parameters alone (e.g. instantaneous values of u, which depend on the state).
+    intervals: bool = True
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

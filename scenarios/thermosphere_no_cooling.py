@@ -141,6 +141,9 @@ class ThermosphereNoCooling(Scenario):
     description = ("reduced thermosphere column: NO cooling at three altitudes refined from the mass density at "
                    "407 km or more altitudes (truth with NO cooling, initial model without)")
     steps = 480                       # 5 days at Ts = 900 s
+    # The estimates are the cooling rates of the last step (u, a function of the column's state as well as
+    # of theta): the intervals' delta method in theta does not describe them.
+    intervals = False
     settings = dict(Ts=900.0, substeps=2, dz_km=5.0, f107=150.0, storm_peak=4.0, storm_start_h=48.0,
                     storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, measured_km="407",
                     node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts", strengths="one",
