@@ -62,7 +62,7 @@ class RCOEstimator(Block):
 
     Args:
         signals: input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``.
-            Which signals feed phi decides identifiability (see DESIGN.md).
+            Which signals feed phi decides identifiability (see docs/method.md).
         features: optional basis functions of the input ports that become phi's regressor signals instead
             of the ports themselves: terms of ``rcotorch.features`` (one, or a list), e.g.
             ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable

@@ -3,7 +3,7 @@
 Known: m x'' + c x' + k x = w + u, m=1, k=30, c=5, velocity measured and seen by the unknown subsystem.
 Truth: the known model and G_Delta = 10/(s+2), each ZOH-discretized at Ts, in discrete positive feedback
 (closed loop G/(1 - G G_Delta)). Identified: order nc = 5, phi = [y0(k-1..k-5), u(k-1..k-5)] (w left out:
-with w in phi, G_Delta's y0 and w parts are not jointly identifiable, see DESIGN.md).
+with w in phi, G_Delta's y0 and w parts are not jointly identifiable, see docs/method.md).
 Pass: the identified frequency response within 1% of ZOH(10/(s+2)) from 0.01 rad/s to Nyquist.
 """
 

@@ -32,7 +32,7 @@ Markov parameters of u -> z: by linearizing the known model (``markov_method``: 
 trajectory with w and u held, nu of them (2 days, the thermal memory of the lower thermosphere), refreshed every
 ``refresh_every`` steps from the model's present state and inputs.
 
-Metrics (SCENARIOS.md): ``density_err_ratio`` = rms(refined - truth) / rms(initial - truth) of the density at
+Metrics (docs/scenarios.md): ``density_err_ratio`` = rms(refined - truth) / rms(initial - truth) of the density at
 407 km over the last day, whether or not 407 km is measured (the initial model is the known model run with u = 0
 on the same driver), and ``density_err_ratio_<alt>km`` at every other measured altitude; ``cooling_corr_152km``
 and ``cooling_rel_rms_152km`` = rms(est - true)/rms(true) of the estimated and true NO cooling at 152 km, over the

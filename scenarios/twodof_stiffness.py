@@ -8,7 +8,7 @@ u = -diag(dk1, dk3) q: u1 depends on q1 only, u2 on q2 only.
 Identified subsystem: an exactly proper static gain u(k) = theta y0(k), theta (2 x 2), with a mask that pins
 the cross terms theta[0, 1] = theta[1, 0] = 0. So there are two free parameters, dk1 = -theta[0, 0] and
 dk3 = -theta[1, 1] (an unstructured 2 x 2 gain, or a dynamic one, has more parameters than one measured
-velocity can fix; see DESIGN.md).
+velocity can fix; see docs/method.md).
 
 What the unknown subsystem sees (setting ``sees``):
 
@@ -46,12 +46,12 @@ factor and the estimates drift off by 100% or more.
     0.005    nu = 240, lam = 0.9999, 80 000 steps:  -0.1 / +0.0 [0.2]
 
 With the sampled model the error falls roughly linearly with Ts (dk1: -30%, -14%, -7%, -5% at Ts = 0.05, 0.02,
-0.01, 0.005 s; dk3 about a third of that, with the opposite sign: DESIGN.md's "5-10% off at Ts = 0.01"), and
+0.01, 0.005 s; dk3 about a third of that, with the opposite sign), and
 more Markov parameters help only until nu Ts covers about a second of the impulse response (the slowest mode's
 time constant is 2.5 s). With the midpoint model the error is 0.1-0.4% once nu Ts >= 0.6 s (1.2 s at Ts = 0.01 with
 this forgetting factor); the remaining error is the O(Ts^2) part and the seed-to-seed spread.
 The discrete-interconnection truth (sees = 'sampled', Ts = 0.05, nu = 30, lam = 0.999) gives dk1 = 0.3995 /
-0.4002, dk3 = 0.5002 / 0.4998 (two seeds) after 8 000 steps (DESIGN.md: 0.3997, 0.5001 in 20 000 steps).
+0.4002, dk3 = 0.5002 / 0.4998 (two seeds) after 8 000 steps (0.3997, 0.5001 in 20 000 steps at lam = 1).
 Defaults: Ts = 0.02 s, nu = 60 (1.2 s of impulse response), lam = 0.9995, p0 = 1e3, 20 000 steps.
 """
 

@@ -1,12 +1,12 @@
 """MIMO-correct RCO estimator: a hand-built NumPy reference of the update (Kronecker Psi, RLS), masks.
 
-The reference follows DESIGN.md section 1 literally and independently of the library's layout: theta is
+The reference follows docs/method.md literally and independently of the library's layout: theta is
 vectorized *column-major* (vec), so that vec(beta theta phi) = (phi^T (x) beta) vec(theta) and
 
     Psi(k) = sum_{i=d..d+nu-1} phi(k-i) (x) beta_i^T                      (n_u n_phi x n_z)
     z_R(k) = z(k) + sum_i beta_i [theta(k) - theta(k-i)] phi(k-i)          (from the stored past thetas)
 
-then the RLS equations of DESIGN.md. P(0) = p0 I, so the ordering of the free entries inside P does not
+then the RLS equations of docs/method.md. P(0) = p0 I, so the ordering of the free entries inside P does not
 matter. phi(k) is built from the documented order (signal by signal, lag by lag, then past u).
 """
 

@@ -1,4 +1,4 @@
-"""The seed paper's single-DOF examples reach the accuracy of SCENARIOS.md with their default settings."""
+"""The seed paper's single-DOF examples reach the accuracy of docs/scenarios.md with their default settings."""
 
 import numpy as np
 import pytest

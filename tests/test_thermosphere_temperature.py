@@ -183,7 +183,7 @@ def test_replay_of_a_zero_function_is_the_initial_model(tmp_path):
 
 @pytest.mark.slow
 def test_temperature_structure_meets_the_goals_with_densities_at_407_and_150_km(tmp_path):
-    """structure='temperature' with the smallest measurement set found (407 and 150 km): the goals of SCENARIOS.md,
+    """structure='temperature' with the smallest measurement set found (407 and 150 km): the goals of docs/scenarios.md,
     the estimate never heats, and the frozen function's replay is reported."""
     run = Run(NAME, overrides={"structure": "temperature", "measured_km": "407,150", "p0": 50.0}, out=tmp_path)
     run.advance(progress=False)
@@ -200,7 +200,7 @@ def test_temperature_structure_meets_the_goals_with_densities_at_407_and_150_km(
 
 def test_results_table_script_runs_a_configuration():
     """benchmarks/thermosphere_table.py on a tiny column: every table column present, the goals judged by the
-    bounds of SCENARIOS.md (density ratio < 0.25, correlation >= 0.8, relative rms <= 0.3)."""
+    bounds of docs/scenarios.md (density ratio < 0.25, correlation >= 0.8, relative rms <= 0.3)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import thermosphere_table
 
