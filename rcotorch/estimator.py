@@ -540,12 +540,19 @@ class RCOEstimator(Block):
         flat[:, self.free] = eta.to(flat.dtype)[:, self.param_of[self.free]]
         self.set_state(theta=flat.reshape(self.theta.shape).contiguous())
 
+    def row_scale(self, psi_t: torch.Tensor) -> torch.Tensor | None:
+        """m = sqrt(1 + |Psi|_R^2 / s^2) (B,) that normalized regressors divide the rows of z by, or None when
+        they are not normalized."""
+        if self.norm_inv_s2 is None:
+            return None
+        return torch.sqrt(1.0 + (psi_t * (self.r_weight @ psi_t)).sum((1, 2)) * self.norm_inv_s2)
+
     def _rows(self, psi_t: torch.Tensor, z_r: torch.Tensor):
         """The rows of the update (Psi^T (B, l, n), their residuals (B, l), R^-1 (l, l)): the rows of z, divided
         by m = sqrt(1 + |Psi|_R^2 / s^2) when normalized, then sqrt(r_delta) I with residual 0 for the penalty."""
         r_inv = self.r_inv
-        if self.norm_inv_s2 is not None:
-            m = torch.sqrt(1.0 + (psi_t * (self.r_weight @ psi_t)).sum((1, 2)) * self.norm_inv_s2)
+        m = self.row_scale(psi_t)
+        if m is not None:
             psi_t, z_r = psi_t / m.reshape(-1, 1, 1), z_r / m.reshape(-1, 1)
         if self.rd_sqrt is not None:
             B, n = psi_t.shape[0], psi_t.shape[2]

@@ -127,8 +127,9 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
             if k < settle:
                 continue
             psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
-            if base_est.norm_inv_s2 is not None:                                  # the rows as weighed
-                m = torch.sqrt(1.0 + (psi * (weight @ psi)).sum((1, 2)) * base_est.norm_inv_s2)
+            m = base_est.row_scale(psi)
+            if m is not None:                                                     # the rows as weighed
+                m = m.to(f64)
                 z, dz = z / m.reshape(-1, 1), dz / m.reshape(-1, 1, 1)
                 psi = psi / m.reshape(-1, 1, 1)
             grams += torch.einsum("bzi,byj->bzyij", psi, psi)

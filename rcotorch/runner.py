@@ -410,8 +410,7 @@ class Run:
         return values[0] if self.batch == 1 else values
 
     def _values(self, t: torch.Tensor):
-        vals = finite_list(t.reshape(self.batch))
-        return vals[0] if self.batch == 1 else vals
+        return self._plain(finite_list(t.reshape(self.batch)))
 
     def _requirements(self, est: dict[str, torch.Tensor], met: dict[str, torch.Tensor]) -> dict[str, Any]:
         checks = {}

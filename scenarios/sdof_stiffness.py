@@ -23,15 +23,14 @@ NOISE_SEED = 7919       # the measurement noise of member b draws the stream (se
 
 
 def noise_std(s, truth_system) -> list[float] | float:
-    """Std of the measurement noise: s['noise'] times the rms of y (w of std w_std), per member where the
-    truth (``truth_system(member settings)``, a discrete python-control system w -> y) differs."""
+    """Std of the measurement noise: s['noise'] times the rms of y (w of std w_std), per member where a setting
+    differs between members (``truth_system(member settings)``: the discrete python-control system w -> y)."""
+    def std(member) -> float:
+        return member["noise"] * float(white_noise_rms(truth_system(member), member["w_std"])[0])
     keys = [k for k, v in s.items() if isinstance(v, list)]
     if not keys:
-        return s["noise"] * float(white_noise_rms(truth_system(s), s["w_std"])[0])
-    B = len(s[keys[0]])
-    return [s["noise"] * float(white_noise_rms(truth_system({**s, **{k: s[k][b] for k in keys}}),
-                                               {**s, **{k: s[k][b] for k in keys}}["w_std"])[0])
-            for b in range(B)]
+        return std(s)
+    return [std({**s, **{k: s[k][b] for k in keys}}) for b in range(len(s[keys[0]]))]
 
 
 def noise_block(s, truth_system):
@@ -80,7 +79,7 @@ class SdofStiffness(Scenario):
                       noise=noise_block(s, self.truth_system), batch_size=batch, dtype=dtype, device=device)
         if s["truth"] == "discrete":
             gains = torch.stack([-dK.expand(batch), -dC.expand(batch)], dim=1).reshape(batch, 1, 2)
-            return rt.refinement(known, ident, truth=rt.Gain(gains if gains.shape[0] > 1 else gains[0]), **common)
+            return rt.refinement(known, ident, truth=rt.Gain(gains), **common)
         physical = rt.LTI.continuous(*rt.models.sdof_matrices(m, C + dC, K + dK, sees=[], actuation=False),
                                      inputs=["w"], outputs=["y"], dt=s["Ts"], name="plant")
         return rt.refinement(known, ident, physical=physical, **common)
