@@ -51,6 +51,61 @@ def run_figures(run) -> dict:
         if z.shape[1] > 1:
             ax.legend(fontsize=8, ncol=2)
         figs["model_error"] = fig
+    res = run.residuals() if hasattr(run, "residuals") else None
+    if res is not None:
+        figs.update(residual_figures(run, res, dt))
+    return figs
+
+
+def residual_figures(run, res, dt: float | None) -> dict:
+    """The refined model checked on the replayed window (member 0): z's autocorrelation and its
+    cross-correlation with w against the 95% band of white, independent signals; the measured output against
+    the refined and the initial model's outputs, with their fit in percent."""
+    figs = {}
+    lags = np.arange(res.autocorr.shape[1])
+    n_panels = 2 if res.xcorr is not None else 1
+    fig = Figure(figsize=(7.5, 2.6 * n_panels + 0.6), layout="tight")
+    axes = fig.subplots(n_panels, 1, squeeze=False)[:, 0]
+    ax = axes[0]
+    auto = res.autocorr[0].numpy()                               # (L + 1, n_z)
+    for c in range(auto.shape[1]):
+        ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=f"z[{c}]" if auto.shape[1] > 1 else "z")
+    ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
+    ax.set_xlabel("lag [samples]")
+    ax.set_ylabel("autocorrelation")
+    _title(ax, f"{run.scenario.name}: residual z of the refined model, member 0 "
+               f"(Ljung-Box p = {float(res.whiteness_p[0]):.2g})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if res.xcorr is not None:
+        ax = axes[1]
+        x = res.xcorr[0].numpy()                                  # (L + 1, n_z, n_w)
+        for c in range(x.shape[1]):
+            for d in range(x.shape[2]):
+                ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z[{c}], w[{d}]" if x.shape[1] * x.shape[2] > 1
+                        else "z(k), w(k - lag)")
+        ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
+        ax.set_xlabel("lag [samples]")
+        ax.set_ylabel("cross-correlation")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    figs["residuals"] = fig
+    y = res.series["measured"][:, 0].numpy()
+    n = min(len(y), 600)                                          # the last samples of the window
+    t = (np.arange(len(y)) - len(y) + n) * (dt or 1.0)
+    fig = Figure(figsize=(7.5, 3.2), layout="tight")
+    ax = fig.subplots()
+    ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].numpy(), color="tab:gray", ls=":", lw=1.2,
+            label=f"initial model (fit {float(res.fit_initial[0]):.1f}%)")
+    ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].numpy(), color="tab:orange", lw=1.2,
+            label=f"refined model (fit {float(res.fit[0]):.1f}%)")
+    ax.plot(t[-n:], y[-n:, 0], color="k", lw=0.8, label="measured", zorder=3)
+    ax.set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
+    ax.set_ylabel(_with_unit("y", run.scenario.unit("y")))
+    _title(ax, f"{run.scenario.name}: measured and model outputs, member 0 (theta frozen)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    figs["output_fit"] = fig
     return figs
 
 
@@ -59,6 +114,12 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
     lines = v[:, :MAX_LINES]
     labels = ["estimate"] if lines.shape[1] == 1 else _member_labels(lines.shape[1], run.batch)
     ax.plot(t, lines, lw=1.2, label=labels)
+    found = run.intervals() if hasattr(run, "intervals") else None
+    if found is not None and key in found.estimate and len(t):
+        half = found.half_width[key].numpy()[:lines.shape[1]]
+        est = found.estimate[key].numpy()[:lines.shape[1]]
+        ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
+                    zorder=4, label=f"{found.level:.0%} interval at the end")
     truth = run.truth.get(key)
     if truth is not None:
         for i, tv in enumerate(np.atleast_1d(truth)[:MAX_LINES]):

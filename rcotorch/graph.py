@@ -32,7 +32,7 @@ logger = logging.getLogger("rcotorch")
 # Roles a refinement declares: a block name (``estimator``, ``known``, ``physical``, ``excitation``) or a
 # signal 'block.port' (``error``: z = y - y_hat, ``measured``: y, ``prediction``: y_hat).
 BLOCK_ROLES = ("estimator", "known", "physical", "excitation")
-SIGNAL_ROLES = ("error", "measured", "prediction")
+SIGNAL_ROLES = ("error", "measured", "prediction", "exogenous")
 
 
 def _split(ref: str) -> Signal:

@@ -44,6 +44,8 @@ LEVEL = 0.95             # the default confidence level
 REL_TOL = 0.5            # determined: each interval's half-width at most this fraction of max(|estimate|, scale)
 REPLAY_STEPS = 4000      # at most this many steps replayed (the convergence window's length, up to this)
 SETTLE = 0.25            # the first fraction of the replay lets the perturbed copies settle
+LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
+KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 
 
 @dataclass
@@ -86,13 +88,55 @@ def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor):
     return g, est
 
 
+@dataclass
+class Residuals:
+    """Checks of the refined model on the replayed window (theta frozen at its final value), per member.
+
+    Attributes:
+        steps: samples the statistics hold (N).
+        autocorr: (B, L + 1, n_z) normalized autocorrelation of each channel of z at lags 0..L (1 at lag 0).
+        xcorr: (B, L + 1, n_z, n_w) normalized cross-correlation of z(k) with w(k - lag), lags 0..L, or None
+            when the graph declares no exogenous signal (role 'exogenous').
+        bound: the 95% band of a correlation of white, independent signals, 1.96 / sqrt(N).
+        whiteness_p: (B,) the Ljung-Box test's p-value that z is white (the smallest over z's channels).
+        fit, fit_initial: (B,) the fit in percent, 100 (1 - |y - y_hat| / |y - mean y|), of the refined model
+            and of the initial one (theta as the run started) on the same data.
+        series: the first members' measured, refined and initial outputs {name: (N, M, n_y)} for figures.
+    """
+
+    steps: int
+    autocorr: torch.Tensor
+    xcorr: torch.Tensor | None
+    bound: float
+    whiteness_p: torch.Tensor
+    fit: torch.Tensor
+    fit_initial: torch.Tensor
+    series: dict[str, torch.Tensor]
+
+
+@dataclass
+class Replay:
+    """What ``replay`` measures: the parameters' covariance and the residual checks."""
+
+    covariance: ParameterCovariance
+    residuals: Residuals
+
+
 def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
                          rel_step: float | None = None) -> ParameterCovariance:
-    """The covariance of the parameters of ``graph``'s estimator (role 'estimator') as it is now, measured by
-    replaying ``steps`` steps from ``state`` (a ``snapshot`` taken earlier in the same run) with theta frozen
-    at its current value; the first ``settle`` steps (default: a quarter) only let the perturbed copies settle.
+    """The covariance of the parameters of ``graph``'s estimator (``replay(...).covariance``)."""
+    return replay(graph, state, steps, settle, rel_step).covariance
+
+
+def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
+           rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS) -> Replay:
+    """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
+    estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
+    and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
+    the initial theta. The first ``settle`` steps (default: a quarter) only let the copies settle.
     ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
-    float32). The graph itself is not changed."""
+    float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
+    figures. The graph itself is not changed."""
     steps = int(steps)
     if steps < 2:
         raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
@@ -101,9 +145,11 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
         raise ConfigError(f"intervals: settle must lie in [0, {steps}), got {settle}")
     est = graph.role("estimator")
     z_sig = graph.role_signal("error")
+    y_sig = graph.role_signal("measured") if "measured" in graph.roles else z_sig
+    w_sig = graph.role_signal("exogenous") if "exogenous" in graph.roles else None
     eta = est.theta_free().detach()
     B, n, n_z = eta.shape[0], eta.shape[1], est.n_z
-    f64 = torch.float64
+    f64, dev = torch.float64, eta.device
     if rel_step is None:
         rel_step = 1e-7 if eta.dtype == torch.float64 else 1e-3
     size = eta.abs().amax(1, keepdim=True).expand(B, n)
@@ -115,17 +161,24 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
         e = eta.clone()
         e[:, j] += eps[:, j]
         copies.append(_frozen_copy(graph, state, e)[0])
+    theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
+    initial = _frozen_copy(graph, state, theta0.index_select(1, est.free_idx.to(theta0.device)))[0]
     weight = est.r_weight.to(f64)
-    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=eta.device)   # sum Psi[z, i] Psi[y, j]
-    cross = torch.zeros(B, n, n, dtype=f64, device=eta.device)             # sum Psi W Psi_true^T
-    zz = torch.zeros(B, n_z, n_z, dtype=f64, device=eta.device)
+    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
+    cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
+    zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
+    res = _ResidualSums(B, lags, keep, dev)
     measured = 0
     with torch.no_grad():
         for k in range(steps):
-            z = base.step()[z_sig].to(f64)
+            out = base.step()
+            z = out[z_sig].to(f64)
             dz = torch.stack([(c.step()[z_sig].to(f64) - z) for c in copies], dim=2)   # (B, n_z, n)
+            z_init = initial.step()[z_sig].to(f64)
             if k < settle:
                 continue
+            y = out[y_sig].to(f64)
+            res.add(z, None if w_sig is None else out[w_sig].to(f64), y, z_init)
             psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
             m = base_est.row_scale(psi)
             if m is not None:                                                     # the rows as weighed
@@ -137,11 +190,12 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
             zz += torch.einsum("bz,by->bzy", z, z)
             measured += 1
     V = zz / measured
+    finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
+        torch.isfinite(V).flatten(1).all(1)
+    eye = torch.eye(n, dtype=f64, device=dev)
     info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
-    noise_info = torch.einsum("bzy,bzyij->bij", weight @ V @ weight, grams)       # sum Psi W V W Psi^T
-    finite = torch.isfinite(info).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
-        torch.isfinite(noise_info).flatten(1).all(1)
-    eye = torch.eye(n, dtype=f64, device=info.device)
+    noise_info = torch.einsum("bzy,bzyij->bij", weight @ torch.nan_to_num(V) @ weight,
+                              torch.nan_to_num(grams))                             # sum Psi W V W Psi^T
     info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
     cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
     noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
@@ -158,7 +212,81 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
     settles = settles & finite.to(settles.device)
     ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
     X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
-    return ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)
+    pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)
+    return Replay(covariance=pc, residuals=res.result())
+
+
+class _ResidualSums:
+    """Running sums of the residual checks over the replay: lagged products of z and w (a ring of the last
+    ``lags`` samples), the fit's sums, and the first members' outputs."""
+
+    def __init__(self, B: int, lags: int, keep: int, device):
+        self.B, self.L, self.keep, self.dev = B, lags, keep, device
+        self.n = 0
+        self.series: dict[str, list[torch.Tensor]] = {"measured": [], "refined": [], "initial": []}
+
+    def add(self, z: torch.Tensor, w: torch.Tensor | None, y: torch.Tensor, z_init: torch.Tensor) -> None:
+        L, f64 = self.L, torch.float64
+        if self.n == 0:
+            B = self.B
+            self.z_ring = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
+            self.zz = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
+            self.z_sum = torch.zeros(B, z.shape[1], dtype=f64, device=self.dev)
+            if w is not None:
+                self.w_ring = torch.zeros(L + 1, B, w.shape[1], dtype=f64, device=self.dev)
+                self.zw = torch.zeros(L + 1, B, z.shape[1], w.shape[1], dtype=f64, device=self.dev)
+                self.w_sq = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
+                self.w_sum = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
+            self.w_on = w is not None
+            self.fit = {key: torch.zeros(B, dtype=f64, device=self.dev) for key in ("zz", "zi", "yy")}
+            self.fit["y"] = torch.zeros(B, y.shape[1], dtype=f64, device=self.dev)
+        pos = self.n % (L + 1)
+        self.z_ring[pos] = z
+        lags = torch.arange(min(self.n, L) + 1, device=self.dev)
+        rows = (pos - lags) % (L + 1)
+        self.zz[: len(lags)] += z.unsqueeze(0) * self.z_ring[rows]            # z(k) z(k - lag)
+        self.z_sum += z
+        if self.w_on:
+            self.w_ring[pos] = w
+            self.zw[: len(lags)] += z.unsqueeze(0).unsqueeze(-1) * self.w_ring[rows].unsqueeze(2)
+            self.w_sq += w * w
+            self.w_sum += w
+        f = self.fit
+        f["zz"] += (z * z).sum(1)
+        f["zi"] += (z_init * z_init).sum(1)
+        f["y"] += y
+        f["yy"] += (y * y).sum(1)
+        kept = slice(0, self.keep)
+        self.series["measured"].append(y[kept].cpu())
+        self.series["refined"].append((y - z)[kept].cpu())
+        self.series["initial"].append((y - z_init)[kept].cpu())
+        self.n += 1
+
+    def result(self) -> Residuals:
+        N, L = self.n, self.L
+        counts = (N - torch.arange(L + 1, dtype=torch.float64, device=self.dev)).clamp_min(1).reshape(-1, 1, 1)
+        mean_z = self.z_sum / N
+        cov_z = self.zz / counts - mean_z.unsqueeze(0) ** 2                     # (L + 1, B, n_z)
+        auto = (cov_z / cov_z[:1]).permute(1, 0, 2)                              # (B, L + 1, n_z)
+        xcorr = None
+        if self.w_on:
+            mean_w = self.w_sum / N
+            cov_zw = self.zw / counts.unsqueeze(-1) - (mean_z.unsqueeze(-1) * mean_w.unsqueeze(1)).unsqueeze(0)
+            var_w = self.w_sq / N - mean_w ** 2
+            scale = torch.sqrt(cov_z[0].unsqueeze(-1) * var_w.unsqueeze(1))         # (B, n_z, n_w)
+            xcorr = (cov_zw / scale.unsqueeze(0)).permute(1, 0, 2, 3)
+        r = auto[:, 1:]                                                          # lags 1..L
+        lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
+        q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
+        from scipy.stats import chi2
+        p = torch.as_tensor(chi2.sf(torch.nan_to_num(q, nan=math.inf).cpu().numpy(), L), dtype=torch.float64)
+        f = self.fit
+        spread = torch.sqrt(f["yy"] - (f["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
+        return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
+                         bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
+                         fit=(100 * (1 - torch.sqrt(f["zz"]) / spread)).cpu(),
+                         fit_initial=(100 * (1 - torch.sqrt(f["zi"]) / spread)).cpu(),
+                         series={k: torch.stack(v) for k, v in self.series.items()})
 
 
 def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> tuple[torch.Tensor, torch.Tensor]:

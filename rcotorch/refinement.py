@@ -141,7 +141,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     if identified.dt is None:
         identified.dt = known.dt
     roles = {"estimator": en, "known": kn, "physical": "data" if data is not None else "plant",
-             "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}"}
+             "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}", "exogenous": w_src}
     if data is None:
         roles["excitation"] = "excitation"
     return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)

@@ -166,7 +166,7 @@ class Run:
         self.history: dict[str, list] = {"step": [], "z_rms": []}
         self.history_members = list(range(min(self.batch, HISTORY_MEMBERS)))
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
-        self._intervals: tuple[int, ci.Intervals | None] | None = None
+        self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
         self.monitor: Monitor | None = None
         self.hparams_session = True
 
@@ -363,7 +363,9 @@ class Run:
         verdict = self.health.status(self.sums["z"], self.sums["y"] if self.y_sig is not None else None,
                                      self.counters["acc"])
         met.setdefault("z_rms_final", verdict["z_rms"].cpu())
-        found = self.intervals()
+        found, res = self._replayed()
+        if res is not None:
+            met.update(residual_metrics(res))
         if found is not None:
             converged = verdict["status"] == STATUSES.index("converged")
             determined = found.determined.to(converged.device) & converged   # a member still moving is not
@@ -391,20 +393,28 @@ class Run:
         }
 
     def intervals(self) -> ci.Intervals | None:
-        """The estimates' confidence intervals at the current step (computed once per step), or None when
-        the run computes none or has not reached its convergence window."""
+        """The estimates' confidence intervals at the current step, or None when the run computes none or has
+        not reached its convergence window (``_replayed``)."""
+        return self._replayed()[0]
+
+    def residuals(self) -> ci.Residuals | None:
+        """The refined model's residual checks and fit on the replayed window (None as for ``intervals``)."""
+        return self._replayed()[1]
+
+    def _replayed(self) -> tuple[ci.Intervals | None, ci.Residuals | None]:
+        """The replay of the convergence window (``rcotorch.intervals.replay``), done once per step."""
         if not self.intervals_on or self.snapshot is None:
-            return None
+            return None, None
         if self._intervals is None or self._intervals[0] != self.k:
-            start = self.health.window_start
-            steps = min(self.k - start, ci.REPLAY_STEPS)
-            found = None
+            steps = min(self.k - self.health.window_start, ci.REPLAY_STEPS)
+            found = (None, None)
             if steps >= 2:
-                pc = ci.parameter_covariance(self.graph, self.snapshot, steps)
-                found = ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings), pc,
-                                              level=self.level, scales=self.scenario.scales(self.settings))
-            self._intervals = (self.k, found)
-        return self._intervals[1]
+                rep = ci.replay(self.graph, self.snapshot, steps)
+                found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
+                                               rep.covariance, level=self.level,
+                                               scales=self.scenario.scales(self.settings)), rep.residuals)
+            self._intervals = (self.k, *found)
+        return self._intervals[1:]
 
     def _plain(self, values: list):
         return values[0] if self.batch == 1 else values
@@ -452,6 +462,20 @@ class Run:
         if close:
             self.close()
         return summary
+
+
+def residual_metrics(res: ci.Residuals) -> dict[str, torch.Tensor]:
+    """The residual checks as per-member metrics: the fit in percent of the refined and the initial model, the
+    largest |autocorrelation| of z over lags 1..L and |cross-correlation| of z with w over lags 0..L (to be read
+    against ``residual_bound``, 1.96 / sqrt(N)), and the Ljung-Box p-value that z is white."""
+    B = res.fit.shape[0]
+    out = {"fit_percent": res.fit, "fit_percent_initial": res.fit_initial,
+           "z_autocorr_max": res.autocorr[:, 1:].abs().flatten(1).amax(1),
+           "z_whiteness_p": res.whiteness_p}
+    if res.xcorr is not None:
+        out["z_w_xcorr_max"] = res.xcorr.abs().flatten(1).amax(1)
+    out["residual_bound"] = torch.full((B,), res.bound, dtype=torch.float64)
+    return out
 
 
 def _next(k: int, every: int) -> int:

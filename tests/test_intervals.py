@@ -48,6 +48,25 @@ def test_intervals_of_a_static_regression_are_the_least_squares_intervals(tmp_pa
     np.testing.assert_allclose(got_est, beta, rtol=0, atol=1e-6)
     # sigma^2 comes from the last part of the run (the replay), s^2 from every residual: a few % apart
     np.testing.assert_allclose(got_half, half, rtol=0.08)
+    # the residual checks on the replayed window (theta frozen), from the same streams: z(t) = y(t) - theta w(t-1)
+    start = res.summary["health"]["criteria"]["window_start"]
+    replayed = min(steps - start, 4000)
+    first = start + replayed // 4
+    t = np.arange(first, start + replayed)
+    z = w[t - 1] @ (np.array(theta_true) - got_est) + v[t]
+    yy = w[t - 1] @ np.array(theta_true) + v[t]
+    r = res.run.residuals()
+    assert r.steps == len(t)
+    fit = 100 * (1 - np.linalg.norm(z) / np.linalg.norm(yy - yy.mean()))
+    fit0 = 100 * (1 - np.linalg.norm(yy) / np.linalg.norm(yy - yy.mean()))          # theta0 = 0: y_hat = 0
+    assert res.summary["metrics"]["fit_percent"] == pytest.approx(fit, abs=1e-6)
+    assert res.summary["metrics"]["fit_percent_initial"] == pytest.approx(fit0, abs=1e-6)
+    N, m = len(z), z.mean()
+    auto = [(np.dot(z[lag:], z[:N - lag]) / (N - lag) - m * m) / (np.dot(z, z) / N - m * m) for lag in range(26)]
+    np.testing.assert_allclose(r.autocorr[0, :, 0].numpy(), auto, atol=1e-9)
+    q = N * (N + 2) * sum(auto[lag] ** 2 / (N - lag) for lag in range(1, 26))
+    assert float(r.whiteness_p[0]) == pytest.approx(scipy.stats.chi2.sf(q, 25), rel=1e-6)
+    assert float(r.whiteness_p[0]) > 0.01 and r.bound == pytest.approx(1.959964 / np.sqrt(N))
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["intervals"][names[0]]["level"] == 0.95
     assert summary["intervals"][names[0]]["lower"] < beta[0] < summary["intervals"][names[0]]["upper"]

@@ -117,7 +117,9 @@ def test_the_status_is_among_the_hparams_columns_shown_by_default(tmp_path):
 def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     _, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
     tags = _tags(mux, "sdof-stiffness")
-    assert len(tags) <= 40, sorted(tags)
+    checks = {f"final/{k}" for k in ("fit_percent", "fit_percent_initial", "z_autocorr_max", "z_whiteness_p",
+                                     "z_w_xcorr_max", "residual_bound")}
+    assert len(tags - checks) <= 40, sorted(tags)          # the residual checks' final values come on top
     members = sorted(t for t in tags if t.startswith("members/"))
     assert members == sorted(f"members/{k} m{b}" for k in ("dK", "dC", "z rms") for b in range(3))
     assert {"Estimates/dK mean", "Estimates/dK truth", "quantiles/dK q10", "quantiles/dK q50", "quantiles/dK q90",
@@ -276,14 +278,16 @@ def test_run_figures_carry_units_and_legends(tmp_path):
     figs = run_figures(run)
     axes = figs["estimates"].axes
     assert [a.get_ylabel() for a in axes] == ["dK [N/m]", "dC [N s/m]"] and axes[-1].get_xlabel() == "time [s]"
-    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["estimate", "truth", "initial model"]
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["estimate", "truth", "initial model",
+                                                                       "95% interval at the end"]
     initial = [ln for ln in axes[0].get_lines() if ln.get_label() == "initial model"][0]
     assert initial.get_ydata()[0] == 0.0                                     # theta starts at zero: dK = 0
     assert figs["model_error"].axes[0].get_ylabel() == "rms of z = y - y_hat [m/s]"
     batch = Run("sdof-stiffness", steps=100, batch=3, out=tmp_path / "b", log_every=20)
     batch.advance(progress=False)
     labels = [t.get_text() for t in run_figures(batch)["estimates"].axes[0].get_legend().get_texts()]
-    assert labels == ["member 0", "member 1", "member 2", "truth", "initial model"]
+    assert labels == ["member 0", "member 1", "member 2", "truth", "initial model",
+                      "95% interval at the end"]
 
 
 def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(tmp_path):
@@ -299,7 +303,8 @@ def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(
         return run_figures(run)
     drawn = draw_meanwhile(make)()
     assert threads[0] is not threading.main_thread()
-    assert drawn == pngs(run_figures(run)) and set(drawn) == {"estimates", "model_error"}
+    assert drawn == pngs(run_figures(run)) and set(drawn) == {"estimates", "model_error", "residuals",
+                                                                            "output_fit"}
     assert all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in drawn.values())
 
     def broken():
