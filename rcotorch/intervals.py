@@ -46,6 +46,7 @@ REPLAY_STEPS = 4000      # at most this many steps replayed (the convergence win
 SETTLE = 0.25            # the first fraction of the replay lets the perturbed copies settle
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
+SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
 
 
 @dataclass
@@ -129,14 +130,16 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, s
 
 
 def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
-           rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS) -> Replay:
+           rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS,
+           score_lags: int = SCORE_LAGS) -> Replay:
     """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
     estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
     and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
     the initial theta. The first ``settle`` steps (default: a quarter) only let the copies settle.
     ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
     float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
-    figures. The graph itself is not changed."""
+    figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). The graph itself is not
+    changed."""
     steps = int(steps)
     if steps < 2:
         raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
@@ -167,6 +170,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
+    scores = _ScoreSums(B, n, score_lags, dev)
     res = _ResidualSums(B, lags, keep, dev)
     measured = 0
     with torch.no_grad():
@@ -188,14 +192,15 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
             grams += torch.einsum("bzi,byj->bzyij", psi, psi)
             cross += torch.einsum("bzi,zy,byj->bij", psi, weight, dz / eps.to(f64).unsqueeze(1))
             zz += torch.einsum("bz,by->bzy", z, z)
+            scores.add(torch.einsum("bzi,zy,by->bi", psi, weight, z))
             measured += 1
     V = zz / measured
     finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
         torch.isfinite(V).flatten(1).all(1)
     eye = torch.eye(n, dtype=f64, device=dev)
     info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
-    noise_info = torch.einsum("bzy,bzyij->bij", weight @ torch.nan_to_num(V) @ weight,
-                              torch.nan_to_num(grams))                             # sum Psi W V W Psi^T
+    noise_info = scores.long_run()                    # sum Psi W z z^T W Psi^T, with its lagged terms
+    finite = finite & torch.isfinite(noise_info).flatten(1).all(1)
     info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
     cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
     noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
@@ -214,6 +219,33 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)
     return Replay(covariance=pc, residuals=res.result())
+
+
+class _ScoreSums:
+    """The long-run covariance of the scores s(k) = Psi(k) W z(k): sum_k s(k) s(k)^T plus, for lags 1..L,
+    (1 - lag / (L + 1)) (G_lag + G_lag^T) with G_lag = sum_k s(k) s(k - lag)^T (Bartlett weights, as the
+    Newey-West estimator). For white z this is sum Psi W V W Psi^T; where z is correlated (dynamics the refined
+    model does not explain, a discontinuous map) the lagged terms widen the intervals accordingly."""
+
+    def __init__(self, B: int, n: int, lags: int, device):
+        self.L, self.n = lags, 0
+        self.ring = torch.zeros(lags + 1, B, n, dtype=torch.float64, device=device)
+        self.gram = torch.zeros(lags + 1, B, n, n, dtype=torch.float64, device=device)
+
+    def add(self, s: torch.Tensor) -> None:
+        L = self.L
+        pos = self.n % (L + 1)
+        self.ring[pos] = s
+        lags = torch.arange(min(self.n, L) + 1, device=s.device)
+        self.gram[: len(lags)] += torch.einsum("bi,lbj->lbij", s, self.ring[(pos - lags) % (L + 1)])
+        self.n += 1
+
+    def long_run(self) -> torch.Tensor:
+        g = self.gram
+        out = g[0].clone()
+        for lag in range(1, self.L + 1):
+            out += (1 - lag / (self.L + 1)) * (g[lag] + g[lag].mT)
+        return out
 
 
 class _ResidualSums:
