@@ -47,6 +47,7 @@ SETTLE = 0.25            # the first fraction of the replay lets the perturbed c
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
+WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 
 
 @dataclass
@@ -199,7 +200,9 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
         torch.isfinite(V).flatten(1).all(1)
     eye = torch.eye(n, dtype=f64, device=dev)
     info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
-    noise_info = scores.long_run()                    # sum Psi W z z^T W Psi^T, with its lagged terms
+    residuals = res.result()
+    correlated = (residuals.whiteness_p < WHITE_P).to(dev)
+    noise_info = scores.long_run(correlated)          # sum Psi W z z^T W Psi^T, lagged terms where z is not white
     finite = finite & torch.isfinite(noise_info).flatten(1).all(1)
     info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
     cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
@@ -218,14 +221,14 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
     X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)
-    return Replay(covariance=pc, residuals=res.result())
+    return Replay(covariance=pc, residuals=residuals)
 
 
 class _ScoreSums:
     """The long-run covariance of the scores s(k) = Psi(k) W z(k): sum_k s(k) s(k)^T plus, for lags 1..L,
     (1 - lag / (L + 1)) (G_lag + G_lag^T) with G_lag = sum_k s(k) s(k - lag)^T (Bartlett weights, as the
     Newey-West estimator). For white z this is sum Psi W V W Psi^T; where z is correlated (dynamics the refined
-    model does not explain, a discontinuous map) the lagged terms widen the intervals accordingly."""
+    model does not explain; its whiteness test's p-value below WHITE_P) the lagged terms widen the intervals."""
 
     def __init__(self, B: int, n: int, lags: int, device):
         self.L, self.n = lags, 0
@@ -240,12 +243,14 @@ class _ScoreSums:
         self.gram[: len(lags)] += torch.einsum("bi,lbj->lbij", s, self.ring[(pos - lags) % (L + 1)])
         self.n += 1
 
-    def long_run(self) -> torch.Tensor:
+    def long_run(self, members: torch.Tensor) -> torch.Tensor:
+        """sum s s^T for every member, with the lagged terms for ``members`` ((B,) bool) only: where z is
+        white they have expectation zero and would only add their sampling noise."""
         g = self.gram
-        out = g[0].clone()
+        lagged = torch.zeros_like(g[0])
         for lag in range(1, self.L + 1):
-            out += (1 - lag / (self.L + 1)) * (g[lag] + g[lag].mT)
-        return out
+            lagged += (1 - lag / (self.L + 1)) * (g[lag] + g[lag].mT)
+        return g[0] + torch.where(members.reshape(-1, 1, 1), lagged, 0.0)
 
 
 class _ResidualSums:

@@ -189,7 +189,8 @@ def _finite(v: torch.Tensor) -> torch.Tensor:
 
 def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
     """The numbers of an HParams row, batch means where there are several members: ``final/<key>`` for each
-    estimate and metric, ``final/|error| <key>`` for each estimate with a truth, ``final/diverged`` (members)."""
+    estimate and metric, ``final/|error| <key>`` for each estimate with a truth, ``final/<key> lower`` and
+    ``upper`` (its confidence interval), ``final/diverged`` and ``final/requirements passed`` (members)."""
     out: dict[str, float] = {}
     batch = int(summary.get("batch", 1))
 
@@ -204,7 +205,13 @@ def final_values(summary: Mapping[str, Any]) -> dict[str, float]:
             out[f"final/|error| {key}"] = _mean(np.abs(est - per_member(truth)))
     for key, v in summary["metrics"].items():
         out[f"final/{key}"] = _mean(per_member(v))
+    for key, iv in (summary.get("intervals") or {}).items():
+        out[f"final/{key} lower"] = _mean(per_member(iv["lower"]))
+        out[f"final/{key} upper"] = _mean(per_member(iv["upper"]))
     out["final/diverged"] = float(member_status(summary).count("diverged"))
+    passed = requirements_passed(summary)
+    if passed is not None:
+        out["final/requirements passed"] = float(sum(passed))
     return {k: v for k, v in out.items() if v is not None}
 
 
@@ -237,12 +244,31 @@ def member_status(summary: Mapping[str, Any]) -> list[str]:
     return ["diverged" if b in diverged else "finished" for b in range(batch)]
 
 
+def requirements_passed(summary: Mapping[str, Any]) -> list[bool] | None:
+    """Whether each member passes every requirement of the run (None when it has none)."""
+    checks = summary.get("requirements") or {}
+    if not checks:
+        return None
+    batch = int(summary.get("batch", 1))
+    out = [True] * batch
+    for chk in checks.values():
+        per = chk.get("member_pass", chk["pass"])
+        per = per if isinstance(per, list) else [per] * batch
+        out = [a and bool(b) for a, b in zip(out, per)]
+    return out
+
+
 def status_text(summary: Mapping[str, Any]) -> str:
-    """One member's status, or the count of each status in a batch ('converged 6, diverged 2')."""
+    """One member's status, or the count of each status in a batch ('converged 6, diverged 2'), with the
+    requirements' pass or fail beside it ('converged, requirements pass'; '..., requirements pass 7 of 8')."""
     status = member_status(summary)
-    if len(status) == 1:
-        return status[0]
-    return ", ".join(f"{s} {n}" for s, n in sorted(Counter(status).items()))
+    text = status[0] if len(status) == 1 else ", ".join(f"{s} {n}" for s, n in sorted(Counter(status).items()))
+    passed = requirements_passed(summary)
+    if passed is None:
+        return text
+    if len(passed) == 1:
+        return text + (", requirements pass" if passed[0] else ", requirements FAIL")
+    return text + f"; requirements pass {sum(passed)} of {len(passed)}"
 
 
 def session_status(summary: Mapping[str, Any]) -> str:

@@ -502,7 +502,12 @@ def _member_summary(row: Mapping[str, Any], settings: set[str]) -> dict[str, Any
     est = {k[4:]: v for k, v in row.items() if k.startswith("est_")}
     truth = {k[6:]: v for k, v in row.items() if k.startswith("truth_")}
     skip = settings | {"member", "shard", "diverged", "diverged_at", "status"}
-    metrics = {k: v for k, v in row.items() if k not in skip and not k.startswith(("est_", "truth_", "err_"))
+    metrics = {k: v for k, v in row.items() if k not in skip and not k.startswith(("est_", "truth_", "err_", "lower_",
+                                                                                   "upper_"))
                and isinstance(v, (int, float)) and not isinstance(v, bool)}
+    intervals = {k[6:]: {"lower": v, "upper": row.get(f"upper_{k[6:]}")} for k, v in row.items()
+                 if k.startswith("lower_")}
+    requirements = {k[5:]: {"pass": bool(v)} for k, v in row.items() if k.startswith("pass_")}
     return {"batch": 1, "estimates": est, "truth": truth, "metrics": metrics, "status": row.get("status"),
+            "intervals": intervals, "requirements": requirements,
             "diverged": [{"member": 0, "step": row["diverged_at"]}] if row["diverged"] else []}

@@ -94,7 +94,10 @@ def test_a_single_run_is_one_run_with_estimates_beside_truth(tmp_path):
     assert "figures/estimates" in _tags(mux, "sdof-stiffness", "images")
     hp = _sessions(mux)["sdof-stiffness"]
     assert hp["scenario"] == "sdof-stiffness" and hp["p0"] == 1000.0
-    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"] in ("converged", "not_converged")
+    assert summary["health"]["status"] in ("converged", "not_converged")
+    passed = all(c["pass"] for c in summary["requirements"].values())
+    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"] + (", requirements pass" if passed else
+                                                                       ", requirements FAIL")
     charts = {c.title: list(c.multiline.tag) for c in _layout(mux, "sdof-stiffness").category[0].chart}
     assert charts["dK"] == ["Estimates/dK", "Estimates/dK truth"]
 
@@ -118,8 +121,9 @@ def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     _, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
     tags = _tags(mux, "sdof-stiffness")
     checks = {f"final/{k}" for k in ("fit_percent", "fit_percent_initial", "z_autocorr_max", "z_whiteness_p",
-                                     "z_w_xcorr_max", "residual_bound")}
-    assert len(tags - checks) <= 40, sorted(tags)          # the residual checks' final values come on top
+                                     "z_w_xcorr_max", "residual_bound", "dK lower", "dK upper", "dC lower",
+                                     "dC upper", "requirements passed")}
+    assert len(tags - checks) <= 40, sorted(tags)   # the residual checks' and intervals' final values on top
     members = sorted(t for t in tags if t.startswith("members/"))
     assert members == sorted(f"members/{k} m{b}" for k in ("dK", "dC", "z rms") for b in range(3))
     assert {"Estimates/dK mean", "Estimates/dK truth", "quantiles/dK q10", "quantiles/dK q50", "quantiles/dK q90",
@@ -137,6 +141,8 @@ def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     assert (band.value, band.lower, band.upper) == ("Estimates/dK mean", "quantiles/dK q10", "quantiles/dK q90")
     counts = summary["health"]["counts"]
     expected = ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if n)
+    per = [all(m) for m in zip(*(c["member_pass"] for c in summary["requirements"].values()))]
+    expected += f"; requirements pass {sum(per)} of {len(per)}"
     assert _sessions(mux)["sdof-stiffness"][monitor.STATUS_HPARAM] == expected
 
 
@@ -173,6 +179,11 @@ def test_member_status_from_the_summary():
     assert monitor.member_status({"batch": 1, "status": [{"status": "converged", "step": 3}]}) == ["converged"]
     assert monitor.status_text({"batch": 3, "status": ["converged", "diverged", "converged"]}) == \
         "converged 2, diverged 1"
+    with_checks = {"batch": 2, "status": ["converged", "undetermined"],
+                   "requirements": {"estimates.dK": {"pass": False, "member_pass": [True, False]}}}
+    assert monitor.status_text(with_checks) == "converged 1, undetermined 1; requirements pass 1 of 2"
+    assert monitor.status_text({"batch": 1, "status": "converged", "requirements": {"a": {"pass": True}}}) == \
+        "converged, requirements pass"
     assert monitor.session_status({"batch": 2, "status": ["converged", "converged"]}) == "STATUS_SUCCESS"
     assert monitor.session_status({"batch": 2, "status": ["converged", "diverged"]}) == "STATUS_FAILURE"
     assert monitor.session_status({"batch": 1, "status": "not_converged"}) == "STATUS_UNKNOWN"
@@ -191,7 +202,10 @@ def test_a_sweep_writes_one_session_per_member(tmp_path):
     for r in rows:
         run = f"members/member_{r['member']:06d}"
         assert sessions[run]["dK"] == r["dK"] and sessions[run]["seed"] == r["seed"]
-        assert sessions[run][monitor.STATUS_HPARAM] == r["status"] in ("converged", "not_converged")
+        passed = all(v for k, v in r.items() if k.startswith("pass_"))
+        assert r["status"] in ("converged", "not_converged")
+        assert sessions[run][monitor.STATUS_HPARAM] == r["status"] + (", requirements pass" if passed else
+                                                                      ", requirements FAIL")
         assert _last(mux, run, "final/dK") == pytest.approx(r["est_dK"])
         assert _last(mux, run, "final/|error| dK") == pytest.approx(abs(r["err_dK"]))
         assert _last(mux, run, "final/z_rms_final") == pytest.approx(r["z_rms_final"])
@@ -206,7 +220,9 @@ def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkey
     sessions = _sessions(mux)
     last = [r["status"] for r in rows if r["shard"] == 1]
     assert sessions["shard_0000"]["members"] == "0..3" and len(last) == 2
-    assert sessions["shard_0001"][monitor.STATUS_HPARAM] == ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last)))
+    passed = sum(all(v for k, v in r.items() if k.startswith("pass_")) for r in rows if r["shard"] == 1)
+    assert sessions["shard_0001"][monitor.STATUS_HPARAM] == \
+        ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last))) + f"; requirements pass {passed} of 2"
     assert sessions["shard_0000"]["Ts"] == 0.01 and sessions["shard_0000"]["nu"] == 10
     assert sessions["shard_0000"]["dK"] == "[0.3, 0.3, 0.5, 0.5]"             # per member, short: as it is
     assert "final/dK" in _tags(mux, "shard_0000")
