@@ -150,16 +150,24 @@ def _with_unit(label: str, unit: str) -> str:
     return f"{label} [{unit}]" if unit else label
 
 
-def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = ""):
+def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = "",
+                     bands: dict | None = None):
     """Bode magnitude (in ``unit``, the unit of output per unit of input) and phase of named complex responses
-    {label: (F,) array}; the Nyquist frequency dotted."""
+    {label: (F,) array}; the Nyquist frequency dotted. ``bands``: {label: (lower, upper)} magnitude bands, e.g.
+    a confidence region of an identified response, shaded. A curve whose label says 'true' is drawn dashed and
+    on top, so that it stays visible where another curve covers it."""
     fig = Figure(figsize=(7, 5), layout="tight")
     am, ap = fig.subplots(2, 1, sharex=True)
+    for label, (lo, hi) in (bands or {}).items():
+        am.fill_between(omega, np.maximum(np.asarray(lo), 1e-300), np.asarray(hi), color="tab:orange", alpha=0.25,
+                        lw=0, label=label)
     for label, resp in curves.items():
         resp = np.asarray(resp)
-        style = "--" if "true" in label.lower() else "-"
-        am.loglog(omega, np.abs(resp), style, label=label, lw=1.3)
-        ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), style, label=label, lw=1.3)
+        true = "true" in label.lower()
+        style, z = ("--", 3) if true else ("-", 2)
+        am.loglog(omega, np.abs(resp), style, label=label, lw=1.3, zorder=z, color="k" if true else None)
+        ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), style, label=label, lw=1.3, zorder=z,
+                    color="k" if true else None)
     for ax in (am, ap):
         if nyquist:
             ax.axvline(nyquist, color="gray", lw=0.8, ls=":", label="Nyquist frequency" if ax is am else None)

@@ -377,6 +377,18 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
     return {k: torch.stack(v, dim=1) for k, v in grads.items()}
 
 
+def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, level: float = LEVEL
+         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The value of ``fn(graph)`` ((B, F) float, e.g. a frequency response's magnitude on a grid) and the
+    half-width of its confidence band (delta method, as ``estimate_intervals``), each (B, F)."""
+    value = fn(graph).detach().to(torch.float64).cpu()
+    F = value.shape[1]
+    grads = estimate_gradients(graph, lambda g: {str(i): c for i, c in enumerate(fn(g).unbind(1))}, pc.std)
+    g = torch.stack([grads[str(i)] for i in range(F)], dim=1).cpu()                    # (B, F, n)
+    var = torch.einsum("bfi,bij,bfj->bf", g, pc.cov.cpu(), g)
+    return value, quantile(level) * var.clamp_min(0).sqrt()
+
+
 def quantile(level: float) -> float:
     """The two-sided normal quantile of a confidence level (1.96 for 0.95)."""
     if not 0 < level < 1:

@@ -9,14 +9,16 @@ first, and expands the first two):
 * ``Model error/z rms`` (rms of z over the batch and the log interval);
 * ``errors/<key>`` (|estimate - truth|, batch mean), ``quantiles/<key> q10|q50|q90`` and ``quantiles/z rms ...``
   (batches), ``members/<key> m<b>`` and ``members/z rms m<b>`` (the traced members of a batch),
+  ``intervals/<key> lower|upper`` (the final confidence interval, written at every logged step at the end),
   ``theta/<entry>`` (batch mean), ``health/diverged`` (members), ``final/<key>`` (the final values that HParams
   shows, batch means), histograms ``spread/<key>`` (batches from 16 members), images ``figures/<name>``, the
   settings as text.
 
 Custom Scalars: per estimate one chart of estimate (or mean and quantiles), truth and traced members as
 separately named series; a margin chart of the estimate (batch mean) inside the band truth ± tolerance (the
-scenario's requirement, else 1% of the truth; tags ``bands/<key> low|high``); for batches a margin chart of the
-mean inside its 10-90% band; the model error likewise. HParams: the run itself is the session (its settings,
+scenario's requirement, else 1% of the truth; tags ``bands/<key> low|high``); a margin chart of the estimate
+inside its final confidence interval; for batches a margin chart of the mean inside its 10-90% band; the model
+error likewise. HParams: the run itself is the session (its settings,
 final estimates and errors, status). TensorBoard's HParams table shows five hyperparameter columns until others
 are ticked: the first five of its list, which holds those that differ between sessions first, each part in
 name order (capitals before lower case). The status is named ``*status`` (``STATUS_HPARAM``) so that it leads
@@ -63,7 +65,8 @@ class Monitor:
         if run.k == 0:
             settings = "\n".join(f"| {k} | {setting_text(v)} |" for k, v in run.settings.items())
             self.writer.add_text("settings", f"| setting | value |\n|---|---|\n{settings}", 0)
-            self.writer.add_custom_scalars(self.layout(list(run.truth)))
+            keys = list(dict.fromkeys([*run.truth, *(self.initial or {})]))
+            self.writer.add_custom_scalars(self.layout(keys))
 
     # --- tags ------------------------------------------------------------------------------------------------
     def estimate_tag(self, key: str) -> str:
@@ -81,6 +84,10 @@ class Monitor:
         for key in keys:
             truth = [f"{ESTIMATES}/{key} truth"] if key in self.shared_truth else []
             charts[key] = ["Multiline", series(self.estimate_tag(key), key, key, truth)]
+            if getattr(self.run, "intervals_on", False):
+                what = "estimate" if self.batch == 1 else "mean"
+                charts[f"{key}: {what} within its final {self.run.level:.0%} interval"] = [
+                    "Margin", [self.estimate_tag(key), f"intervals/{key} lower", f"intervals/{key} upper"]]
             tol = self.tolerance(key)
             if tol:
                 what = "estimate" if self.batch == 1 else "mean"
@@ -151,6 +158,18 @@ class Monitor:
         if ok.numel():      # numpy's quantiles: the same linear interpolation as torch.quantile, several times faster
             for q, value in zip(QUANTILES, np.quantile(ok.numpy(), QUANTILES)):
                 self.writer.add_scalar(f"quantiles/{name} {_q(q)}", float(value), step)
+
+    def intervals(self, found, steps: list[int]) -> None:
+        """The final confidence intervals (``rcotorch.intervals.Intervals``; batch means of their bounds) as
+        ``intervals/<key> lower|upper`` at each of ``steps`` (the logged steps), so that the Custom Scalars
+        chart draws the estimate's path into its final band."""
+        for key in found.estimate:
+            lo, hi = _finite(found.lower(key)), _finite(found.upper(key))
+            if not lo.numel() or not hi.numel():
+                continue
+            for step in steps:
+                self.writer.add_scalar(f"intervals/{key} lower", float(lo.mean()), step)
+                self.writer.add_scalar(f"intervals/{key} upper", float(hi.mean()), step)
 
     def figures(self, pngs: dict[str, bytes], out: Path) -> None:
         """Save the figures (PNG bytes, ``rcotorch.figures.png``) in ``out`` and as images under ``figures/``

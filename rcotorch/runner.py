@@ -410,6 +410,7 @@ class Run:
             found = (None, None)
             if steps >= 2:
                 rep = ci.replay(self.graph, self.snapshot, steps)
+                self.graph.role("estimator").covariance = rep.covariance   # for the scenario's figures
                 found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
                                                rep.covariance, level=self.level,
                                                scales=self.scenario.scales(self.settings)), rep.residuals)
@@ -454,6 +455,9 @@ class Run:
         self.save()
         if figures:
             self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
+        found = self.intervals()
+        if found is not None:
+            self.monitor.intervals(found, sorted({*self.history["step"], self.k}))
         for status, count in summary["health"]["counts"].items():
             if count or status != "undetermined":
                 self.monitor.writer.add_scalar(f"health/{status}", count, self.k)

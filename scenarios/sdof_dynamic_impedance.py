@@ -13,11 +13,13 @@ so. Setting ``noise``: white measurement noise on y, its std a fraction of the r
 
 import control
 import numpy as np
+import torch
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
 from rcotorch.analysis import frequency_error, log_grid
 from rcotorch.figures import frequency_figure
+from rcotorch.intervals import band
 from rcotorch.scenario import Requirement, Scenario
 
 FREQUENCIES = {"gain_0.5rad_s": 0.5, "gain_5rad_s": 5.0}    # rad/s; and gain_nyquist90 at 0.9 pi / Ts
@@ -90,10 +92,17 @@ class SdofDynamicImpedance(Scenario):
 
     def figures(self, g, s):
         w = self.omega(s)
-        ident = g.role("estimator").frequency_response(w)[0, :, 0, 0].cpu().numpy()
+        est = g.role("estimator")
+        ident = est.frequency_response(w)[0, :, 0, 0].cpu().numpy()
+        bands = None
+        cov = getattr(est, "covariance", None)                   # set by the run's intervals
+        if cov is not None and bool(torch.isfinite(cov.cov[0]).all()):
+            mag, half = band(g, lambda g: g.role("estimator").frequency_response(w)[:, :, 0, 0].abs(), cov)
+            bands = {"95% confidence band (member 0)": ((mag[0] - half[0]).numpy(), (mag[0] + half[0]).numpy())}
         return {"frequency_response": frequency_figure(
             w, {"identified (member 0)": ident, "true ZOH(10/(s+2))": self.truth_tf(s)(np.exp(1j * w * s["Ts"]))},
-            "Identified vs true unknown subsystem (velocity -> force)", nyquist=np.pi / s["Ts"], unit="N s/m")}
+            "Identified vs true unknown subsystem (velocity -> force)", nyquist=np.pi / s["Ts"], unit="N s/m",
+            bands=bands)}
 
 
 SCENARIO = SdofDynamicImpedance()

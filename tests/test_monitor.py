@@ -84,6 +84,15 @@ def test_a_single_run_is_one_run_with_estimates_beside_truth(tmp_path):
             "errors/dK", "theta/y0[0](k)", "theta/y0[1](k)", "health/diverged", "final/z_rms_final", "final/dK",
             "final/|error| dK", "final/diverged"} <= tags
     assert not any(t.startswith(("members/", "quantiles/")) for t in tags)
+    # the final interval as a band over the logged steps, and its margin chart
+    lower = _values(mux, "sdof-stiffness", "intervals/dK lower")
+    assert [st for st, _ in lower] == list(range(50, 601, 50))
+    assert all(v == pytest.approx(summary["intervals"]["dK"]["lower"]) for _, v in lower)
+    assert _last(mux, "sdof-stiffness", "intervals/dK upper") == pytest.approx(summary["intervals"]["dK"]["upper"])
+    margins = {c.title: c.margin.series[0] for c in _layout(mux, "sdof-stiffness").category[0].chart
+               if c.HasField("margin")}
+    band = margins["dK: estimate within its final 95% interval"]
+    assert (band.value, band.lower, band.upper) == ("Estimates/dK", "intervals/dK lower", "intervals/dK upper")
     # the first two groups in TensorBoard's order (capitals first) are the estimates and the model error
     assert sorted({t.split("/")[0] for t in tags})[:2] == ["Estimates", "Model error"]
     truth = _values(mux, "sdof-stiffness", "Estimates/dK truth")
@@ -123,7 +132,8 @@ def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     checks = {f"final/{k}" for k in ("fit_percent", "fit_percent_initial", "z_autocorr_max", "z_whiteness_p",
                                      "z_w_xcorr_max", "residual_bound", "dK lower", "dK upper", "dC lower",
                                      "dC upper", "requirements passed")}
-    assert len(tags - checks) <= 40, sorted(tags)   # the residual checks' and intervals' final values on top
+    bands = {f"intervals/{k} {side}" for k in ("dK", "dC") for side in ("lower", "upper")}
+    assert len(tags - checks - bands) <= 40, sorted(tags)   # the residual checks and the intervals on top
     members = sorted(t for t in tags if t.startswith("members/"))
     assert members == sorted(f"members/{k} m{b}" for k in ("dK", "dC", "z rms") for b in range(3))
     assert {"Estimates/dK mean", "Estimates/dK truth", "quantiles/dK q10", "quantiles/dK q50", "quantiles/dK q90",
