@@ -36,7 +36,9 @@ def parameter_estimates(graph: Graph) -> dict[str, torch.Tensor]:
 class GraphScenario(Scenario):
     """A scenario made of one graph that is already built: its estimates (functions of the graph, each
     returning a (B,) tensor), truth, requirements, scales and units. It has no settings of its own; its
-    batch, dtype and device are the graph's."""
+    batch, dtype and device are the graph's. The estimator's options are the graph's own (no settings)."""
+
+    estimator_options = ()
 
     def __init__(self, graph: Graph, estimates: Mapping[str, Estimate] | None = None,
                  truth: Mapping[str, float | Sequence[float]] | None = None,
