@@ -221,13 +221,15 @@ class RCOEstimator(Block):
         param_of, first = [], {}
         for free, label in zip(mask.flatten().tolist(), labels.flatten().tolist()):
             param_of.append(first.setdefault(label, len(first)) if free else -1)
-        self.mask = mask
-        self.param_of = torch.tensor(param_of, dtype=torch.int64)
-        self.free = torch.nonzero(self.param_of >= 0).flatten()          # every entry that is not pinned
+        # Buffers (not in state_dict: they follow from mask and tie), so that they move with the block.
+        self.register_buffer("mask", mask, persistent=False)
+        self.register_buffer("param_of", torch.tensor(param_of, dtype=torch.int64), persistent=False)
+        self.register_buffer("free", torch.nonzero(self.param_of >= 0).flatten(), persistent=False)  # not pinned
         self.n_theta = len(first)
         if self.n_theta == 0:
             raise ConfigError(f"block '{name}': the mask leaves no free entry of theta")
-        self.rep = torch.tensor([param_of.index(p) for p in range(self.n_theta)], dtype=torch.int64)
+        self.register_buffer("rep", torch.tensor([param_of.index(p) for p in range(self.n_theta)],
+                                                 dtype=torch.int64), persistent=False)
         self.tied = self.n_theta < self.free.numel()
         self.all_free = bool(mask.all()) and not self.tied
         entry = [f"{i}:{self.phi_names[j]}" if self.n_u > 1 else self.phi_names[j]
