@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -193,16 +194,21 @@ class Sum(Block):
 
 
 class StaticMap(Block):
-    """Memoryless map ``out = fn(in)`` for a user function of a (B, n) tensor returning (B, m), e.g. a cubic
-    spring ``lambda q: -k3 * q**3`` or a saturation ``lambda x: x.clamp(-1, 1)``. The function is probed with
-    batches of 1 and 2 when the block is built, so a wrong shape fails here, not in the middle of a run."""
+    """Memoryless map ``out = fn(in)`` for a user function of a (B, n) array returning (B, m), e.g. a cubic
+    spring ``lambda q: -k3 * q**3``, a friction law ``lambda v: -(2 * np.sign(v) + 0.5 * v)`` or a saturation
+    ``lambda x: x.clamp(-1, 1)``. The function is probed with batches of 1 and 2 when the block is built, so a
+    wrong shape fails here, not in the middle of a run.
+
+    Written with NumPy or ``math`` operations, ``fn`` runs compiled in the native engine (``rcotorch.compiled``:
+    numba); the PyTorch engine calls it with tensors (a NumPy result is taken back as a tensor, on the CPU).
+    Written with torch operations, it runs on the PyTorch engine, on the CPU or a GPU."""
 
     def __init__(self, fn, in_width: int, name: str = "map", dtype=DEFAULT_DTYPE):
         if not callable(fn):
             raise ConfigError(f"block '{name}': fn must be callable")
         widths = []
         for B in (1, 2):
-            out = fn(torch.randn(B, in_width, dtype=dtype))
+            out = _as_tensor(fn(torch.randn(B, in_width, dtype=dtype)), dtype)
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise DimensionError(f"block '{name}': fn must map a (batch, {in_width}) tensor to (batch, m); "
@@ -214,4 +220,22 @@ class StaticMap(Block):
         self.fn = fn
 
     def output(self, port, inputs):
-        return self.fn(inputs["in"])
+        x = inputs["in"]
+        return _as_tensor(self.fn(x), x.dtype, x.device)
+
+    def lower(self, b) -> None:
+        """The native form: ``fn`` compiled by numba (``rcotorch.compiled``) and called once per member and
+        step; a function that does not compile keeps the graph on PyTorch, and the reason says why."""
+        from .compiled import compile_map, describe
+        n_in, n_out = self.inputs["in"], self.outputs["out"]
+        c = compile_map(self.fn, n_in, n_out)
+        if isinstance(c, str):
+            b.refuse(f"function {describe(self.fn)} is not compiled: {c}")
+        b.emit("CALL", [n_in, b.input("in"), n_out, b.output("out"), b.function(c.address, c)], port="out")
+
+
+def _as_tensor(out, dtype, device=None):
+    """A function's result as a tensor: a NumPy array (a function written with NumPy) is taken as is."""
+    if isinstance(out, np.ndarray):
+        return torch.as_tensor(out, dtype=dtype, device=device)
+    return out

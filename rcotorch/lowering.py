@@ -41,6 +41,18 @@ class _Bind:
         self.get, self.mode, self.rows, self.slot, self.count, self.what = get, mode, rows, slot, count, what
 
 
+class _Address:
+    """An entry of the pointer table that is an address (a compiled function), with what keeps it valid."""
+
+    __slots__ = ("address", "owner")
+
+    def __init__(self, address: int, owner):
+        self.address, self.owner = address, owner
+
+    def data_ptr(self) -> int:
+        return self.address
+
+
 class Builder:
     """What a block's ``lower`` uses to describe itself to the native engine.
 
@@ -59,7 +71,7 @@ class Builder:
         self.upds: list[list[int]] = []
         self.consts: list[float] = []
         self.binds: list[_Bind] = []
-        self.pointers: list[torch.Tensor] = []
+        self.pointers: list[torch.Tensor | _Address] = []
         self.counted: list = []                       # blocks whose step counter k the engine advances
         self.state_names: dict[str, set[str]] = {}    # block -> buffers the engine writes
         self.limits: list = []                        # (block, steps_left()) of recordings
@@ -153,6 +165,12 @@ class Builder:
         if t.dtype != torch.float64 or not t.is_contiguous():
             self.refuse("a table that is not contiguous float64")
         self.pointers.append(t)
+        return len(self.pointers) - 1
+
+    def function(self, address: int, owner) -> int:
+        """A compiled function ``void f(const double *in, double *out)`` the instruction calls (``CALL``): its
+        table index. ``owner`` keeps its code alive while the program lives."""
+        self.pointers.append(_Address(int(address), owner))
         return len(self.pointers) - 1
 
     def const(self, *values: float) -> int:

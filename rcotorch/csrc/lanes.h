@@ -318,6 +318,20 @@ static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restr
     for (int64_t r = 0; r < n; r++) SL(a[4] + r)[0] = xn[r];
 }
 
+/* A compiled user function, called once per lane: its inputs gathered from their slots, its outputs scattered
+ * back (spare lanes compute on their copy of the last member's values, as everywhere). */
+typedef void (*rco_fn_t)(const double *, double *);
+static inline void FN(call)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ptrs) {
+    const int64_t nin = a[0], in = a[1], nout = a[2], out = a[3];
+    const rco_fn_t f = (rco_fn_t)(intptr_t)ptrs[a[4]];
+    double x[nin > 0 ? nin : 1], y[nout > 0 ? nout : 1];
+    for (int64_t l = 0; l < VL; l++) {
+        for (int64_t i = 0; i < nin; i++) x[i] = SL(in + i)[l];
+        f(x, y);
+        for (int64_t j = 0; j < nout; j++) SL(out + j)[l] = y[j];
+    }
+}
+
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
     int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4], sh = a[5];
     for (int64_t r = 0; r < m; r++) {
@@ -805,7 +819,7 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     static const void *const labels[OP_N] = {
         [OP_NONE] = &&next, [OP_PLAYBACK] = &&playback, [OP_NOISE] = &&noise, [OP_LTI_OUT] = &&lti_out,
         [OP_LTI_UPD] = &&lti_upd, [OP_GAIN] = &&gain, [OP_SUM] = &&sum, [OP_COPY] = &&copy,
-        [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd};
+        [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd, [OP_CALL] = &&call};
 #if VL == 1 /* [op][n - 1][w - 1]: LTI_OUT (no feedthrough), LTI_UPD of n <= 4 states and w <= 2 rows or input
              * columns; RCO_OUT of one u and n_phi <= SMALL regressors */
 #define SIZED2(op, c) {&&op##_##c##_1, &&op##_##c##_2}
@@ -859,6 +873,7 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     feature: FN(feature)(a, S, consts); NEXT();
     rco_out: FN(rco_out)(a, S); NEXT();
     rco_upd: FN(rco_upd)(a, S, ctr, t); NEXT();
+    call: FN(call)(a, S, ptrs); NEXT();
 #if VL == 1
 #define SIZED1(op, c, d) op##_##c##_##d: FN(op##_c)(a, S, c, d); NEXT();
 #define SIZED2(op, c) SIZED1(op, c, 1) SIZED1(op, c, 2)

@@ -1,0 +1,140 @@
+"""A user's own function compiled for the native engine.
+
+A ``StaticMap``'s function, written with NumPy or ``math`` operations, is compiled by numba (``njit``) into a
+C function ``void f(const double *in, double *out)`` (a numba ``cfunc``) whose address the native engine calls
+once per member and step (the ``CALL`` instruction): no Python runs per step. numba is the usual choice of
+the field for this (an LLVM compiler of NumPy code that can hand out C function pointers); the engine's own C
+code needs nothing from it but the address.
+
+Two forms are tried, the faster first: with one input and one output, the function applied to a float (a
+scalar map such as ``lambda v: -(2 * np.sign(v) + 0.5 * v)``); otherwise, or when that fails, applied to a
+(1, n) array and returning (1, m), as the PyTorch engine calls it with a batch of one. The compiled function
+is checked against the function itself on test inputs before it is used: a function that compiles but
+computes something else (an operation that treats a float and a tensor differently) stays on PyTorch.
+
+What cannot be compiled (torch operations, Python objects, an unsupported NumPy function) runs on the PyTorch
+engine, and the reason names the block, the function and numba's word on the operation. Compilations are
+kept for the process: copies of a graph (a sweep's shards in one process, the intervals' replay) reuse them.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+PROBES = 64                 # test inputs the compiled function must reproduce
+RTOL = 1e-12
+
+
+@dataclass
+class Compiled:
+    """A compiled function: its C address, the numba object that owns the code, and its form."""
+
+    address: int
+    owner: Any
+    form: str               # 'scalar' or 'array'
+
+
+_cache: dict[tuple, tuple[Any, Compiled | str]] = {}
+_lock = threading.Lock()
+
+
+def describe(fn) -> str:
+    """A function's name for messages: its qualified name and where it is defined."""
+    code = getattr(fn, "__code__", None)
+    name = getattr(fn, "__qualname__", None) or type(fn).__name__
+    return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
+
+
+def compile_map(fn, n_in: int, n_out: int) -> Compiled | str:
+    """``fn`` (a (B, n_in) -> (B, n_out) map) as a compiled C function, or why it cannot be compiled."""
+    key = (id(fn), n_in, n_out)
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is fn:
+            return hit[1]
+        result = _compile(fn, n_in, n_out)
+        _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
+        return result
+
+
+def _compile(fn, n_in: int, n_out: int) -> Compiled | str:
+    try:
+        import numba
+        from numba import types
+    except ImportError:
+        return "numba is not installed (pip install numba)"
+    sig = types.void(types.CPointer(types.float64), types.CPointer(types.float64))
+    try:
+        jfn = numba.njit(fn)
+    except Exception as e:                    # not a Python function numba can take
+        return f"numba cannot take it: {_first_line(e)}"
+    reasons = []
+    forms = (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]
+    for form in forms:
+        if form == "scalar":
+            def body(x, y):
+                y[0] = jfn(x[0])
+        else:
+            def body(x, y):
+                r = jfn(numba.carray(x, (1, n_in)))
+                for j in range(n_out):
+                    y[j] = r[0, j]
+        try:
+            cf = numba.cfunc(sig, nopython=True)(body)
+        except Exception as e:
+            reasons.append(_first_line(e))
+            continue
+        mismatch = _check(fn, cf, n_in, n_out)
+        if mismatch:
+            reasons.append(mismatch)
+            continue
+        return Compiled(address=cf.address, owner=cf, form=form)
+    return reasons[-1] if reasons else "no form compiled"
+
+
+def _check(fn, cf, n_in: int, n_out: int) -> str | None:
+    """None when the compiled function gives the function's own values on test inputs, else what differs."""
+    import ctypes
+
+    rng = np.random.default_rng(12345)
+    x = np.concatenate([rng.standard_normal((PROBES - 8, n_in)) * 10.0 ** rng.integers(-3, 4, (PROBES - 8, 1)),
+                        np.zeros((1, n_in)), np.full((1, n_in), 1.5), np.full((1, n_in), -1.5),
+                        rng.uniform(-1, 1, (5, n_in))])
+    with torch.no_grad():
+        want = fn(torch.from_numpy(x))
+    want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
+    if want.shape != (len(x), n_out):
+        return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"
+    got = np.empty((len(x), n_out))
+    pd = ctypes.POINTER(ctypes.c_double)
+    for i in range(len(x)):
+        xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
+        cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd))
+        got[i] = yi
+    same = np.isclose(got, want, rtol=RTOL, atol=RTOL * max(1.0, float(np.nanmax(np.abs(want), initial=0.0))),
+                      equal_nan=True)
+    if same.all():
+        return None
+    i = int(np.argwhere(~same)[0][0])
+    return (f"the compiled function differs from the function itself at input {x[i].tolist()}: "
+            f"{got[i].tolist()} against {want[i].tolist()}")
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def _first_line(e: BaseException) -> str:
+    """numba's reason in one line: the line that names the operation where it says so."""
+    lines = [ln.strip() for ln in _ANSI.sub("", str(e)).splitlines() if ln.strip()]
+    for pattern in ("Unknown attribute", "Untyped global name", "No implementation of function",
+                    "Use of unsupported", "Cannot determine Numba type", "unsupported", "Invalid use"):
+        for ln in lines:
+            if pattern in ln:
+                return ln
+    return lines[0] if lines else type(e).__name__
