@@ -16,6 +16,7 @@ from rcotorch.sources import _normal_grid
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import rls_kernel  # noqa: E402
 import throughput  # noqa: E402
+import user_function  # noqa: E402
 
 
 @pytest.mark.parametrize("start,length,width", [(0, 512, 1), (517, 3, 2), (2**33 + 5, 4, 3)])
@@ -86,6 +87,14 @@ def test_throughput_script_quick(tmp_path):
 def test_peak_memory_in_a_subprocess():
     m = throughput.memory("sdof-stiffness-damping", 16, "cpu", 3, 1)
     assert m["B"] == 16 and m["n_theta"] == 3 and m["peak_bytes"] >= 0 and m["state_bytes"] > 0
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_user_function_script_quick(tmp_path):
+    out = tmp_path / "uf.json"
+    result = user_function.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
+    row = json.loads(out.read_text())["results"][0]
+    assert row["batch"] == 1 and row["compiled_ns"] > 0 and row["gain_ns"] > 0 and result["results"]
 
 
 def test_rls_kernel_script_quick(tmp_path):

@@ -4,10 +4,10 @@ Each case is one batched run of a scenario in which every member has its own exc
 streams (seed = 1 .. B); an estimate's coverage is the fraction of members whose interval contains the
 truth. Calibrated intervals cover about their level (95%); intervals that are too narrow cover less.
 
-    python benchmarks/coverage.py                 # every case, 200 members each (several minutes)
-    python benchmarks/coverage.py --members 50 --case sdof-discrete
+    python benchmarks/interval_coverage.py                 # every case, 200 members each (several minutes)
+    python benchmarks/interval_coverage.py --members 50 --case sdof-discrete
 
-Writes benchmarks/results/coverage.json.
+Writes benchmarks/results/interval_coverage.json.
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def main() -> None:
         for key, row in r["estimates"].items():
             print(f"{name:16s} {key:4s} coverage {row['coverage']:.3f}  spread {row['spread']:.3g}  "
                   f"predicted sd {row['predicted_sd']:.3g}  mean error {row['mean_error']:+.3g}  ({r['seconds']} s)")
-    path = Path(__file__).parent / "results" / "coverage.json"
+    path = Path(__file__).parent / "results" / "interval_coverage.json"
     path.parent.mkdir(exist_ok=True)
     kept = json.loads(path.read_text()) if path.is_file() else {}      # the cases not run this time stay
     path.write_text(json.dumps({**kept, **results}, indent=1) + "\n")

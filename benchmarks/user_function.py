@@ -1,0 +1,83 @@
+"""A user's own function in the native engine: the friction graph with its truth as a compiled StaticMap
+against the same graph with a built-in Gain truth (the per-step cost a compiled function adds), and against the
+PyTorch engine that ran it before (measured on a short run).
+
+    python benchmarks/user_function.py                    # B = 1 and 4096, about a minute
+    python benchmarks/user_function.py --batches 1,64,4096 --threads 1
+
+Goal: the compiled StaticMap within 3x the per-step cost of the Gain truth at B = 1 and B = 4096.
+Writes benchmarks/results/user_function.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from common import add_common_args, machine, setup, table, write_json
+
+import rcotorch as rt
+
+
+def friction(v):
+    return -(2.0 * np.sign(v) + 0.5 * v)
+
+
+def graph(truth, batch: int):
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.2, 4.0, measured=["velocity"], sees=["velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.01, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.sign("y0"), rt.features.port("y0")],
+                                        p0=1e3)
+    return rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, std=20.0, seed=1), nu=50,
+                         batch_size=batch)
+
+
+def per_member_step(make, batch: int, seconds: float, engine: str = "auto") -> float:
+    """ns per member-step: the graph advanced in calls of a fixed number of steps until ``seconds`` passed."""
+    g = make(batch)
+    g.engine = engine
+    g.advance(10)                                    # lowering and compilation outside the timing
+    steps = max(1, int(2e5 / batch)) if engine != "torch" else 20
+    best = float("inf")
+    for _ in range(3):
+        t0, done = time.perf_counter(), 0
+        while time.perf_counter() - t0 < seconds / 3:
+            g.advance(steps)
+            done += steps
+        best = min(best, (time.perf_counter() - t0) / (done * batch))
+    return best * 1e9
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_args(ap)
+    ap.add_argument("--batches", default="1,4096")
+    ap.add_argument("--seconds", type=float, default=3.0)
+    args = ap.parse_args(argv)
+    dev = setup(args)
+    if dev is None or dev.type != "cpu":
+        print("the native engine runs on the CPU; nothing to measure on", args.device)
+        return {}
+    seconds = 0.3 if args.quick else args.seconds
+    batches = [int(b) for b in args.batches.split(",")]
+    rows, results = [], []
+    for B in batches:
+        compiled = per_member_step(lambda b: graph(rt.StaticMap(friction, 1, name="unknown"), b), B, seconds)
+        gain = per_member_step(lambda b: graph(rt.Gain([[-0.5]], name="unknown"), b), B, seconds)
+        torch_ = per_member_step(lambda b: graph(rt.StaticMap(friction, 1, name="unknown"), b), B,
+                                 min(seconds, 1.0), engine="torch")
+        r = {"batch": B, "compiled_ns": compiled, "gain_ns": gain, "torch_ns": torch_,
+             "compiled_over_gain": compiled / gain, "torch_over_compiled": torch_ / compiled}
+        results.append(r)
+        rows.append([B, f"{compiled:.1f}", f"{gain:.1f}", f"{compiled / gain:.2f}x", f"{torch_:.0f}",
+                     f"{torch_ / compiled:.0f}x"])
+    print(table(rows, ["B", "compiled StaticMap ns", "Gain ns", "ratio (goal <= 3)", "PyTorch engine ns",
+                       "speed-up"]))
+    out = {"benchmark": "user_function", "machine": machine(dev), "results": results}
+    print("->", write_json(out, "user_function", args.out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
