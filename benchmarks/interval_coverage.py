@@ -48,6 +48,7 @@ CASES = {
     "sdof-discrete": ("sdof-stiffness", {"truth": "discrete", "noise": 0.05}, 20000),
     "sdof-continuous": ("sdof-stiffness", {"truth": "continuous", "noise": 0.05}, 20000),
     "twodof-discrete": ("twodof-stiffness", {"truth": "discrete", "noise": 0.05, "lam": 1.0}, 20000),
+    "twodof-discrete-default": ("twodof-stiffness", {"truth": "discrete", "noise": 0.05}, 20000),
     "rlc-circuit": ("rlc-circuit", {}, 20000),
     "impedance-noise": ("sdof-dynamic-impedance", {"noise": 0.05}, 20000),
     "friction-strong": (friction, {}, 20000),

@@ -377,6 +377,32 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
     return {k: torch.stack(v, dim=1) for k, v in grads.items()}
 
 
+def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: ParameterCovariance,
+                     p: float = 0.999) -> torch.Tensor:
+    """(B,) True where the parameters' change over the convergence window, eta(N) - eta(k0), is what their
+    own random error explains: d^T V^-1 d within the chi-square quantile ``p``, V = X (1 + n_N / n_k0) the
+    variance of the difference when the errors at k0 and N are taken as independent (X at k0 is X n_N / n_k0,
+    n_k = sum_{j<k} lam^j the RLS memory), so larger than the covariance it ignores. With forgetting the
+    estimate keeps moving by about its interval; the window's change then says nothing about convergence."""
+    from scipy.stats import chi2
+
+    B, n = pc.cov.shape[0], pc.cov.shape[1]
+    eta = est.theta_free().detach().to(torch.float64).cpu()
+    start = theta_start.reshape(B, -1).to(torch.float64).cpu().index_select(1, est.free_idx.cpu())
+    d = (eta - start).unsqueeze(-1)
+    lam = est.lam.to(torch.float64).cpu().reshape(-1).expand(B)
+    N = int(est.k)
+
+    def memory(k: int) -> torch.Tensor:
+        return torch.where(lam < 1, (1 - lam ** k) / (1 - lam).clamp_min(1e-300), torch.full_like(lam, float(k)))
+    ratio = memory(N) / memory(max(k_start, 1)).clamp_min(1e-300)
+    V = pc.cov.cpu() * (1 + ratio).reshape(-1, 1, 1)
+    ok = torch.isfinite(V).flatten(1).all(1)
+    Vs = torch.where(ok.reshape(-1, 1, 1), V, torch.eye(n, dtype=V.dtype))
+    stat = (d.mT @ torch.linalg.pinv(Vs) @ d).reshape(B)
+    return ok & (stat <= float(chi2.ppf(p, n)))
+
+
 def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, level: float = LEVEL
          ) -> tuple[torch.Tensor, torch.Tensor]:
     """The value of ``fn(graph)`` ((B, F) float, e.g. a frequency response's magnitude on a grid) and the

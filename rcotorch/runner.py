@@ -367,6 +367,12 @@ class Run:
         if res is not None:
             met.update(residual_metrics(res))
         if found is not None:
+            ident = self.graph.role("estimator")
+            explained = ci.change_explained(ident, self.health.state["theta_ref"], self.health.state["k_ref"],
+                                            ident.covariance).to(verdict["status"].device)
+            settled = (verdict["status"] == STATUSES.index("not_converged")) & explained & \
+                (verdict["z_ratio"] <= self.health.criteria.z_tol)
+            verdict["status"] = torch.where(settled, STATUSES.index("converged"), verdict["status"])
             converged = verdict["status"] == STATUSES.index("converged")
             determined = found.determined.to(converged.device) & converged   # a member still moving is not
             verdict["status"] = torch.where(converged & ~determined, STATUSES.index("undetermined"),
@@ -374,6 +380,7 @@ class Run:
         health = self.health.report(verdict)
         if found is not None:
             health["determined"] = self._plain(determined.tolist())
+            health["change_explained"] = self._plain(explained.tolist())
             health["undetermined"] = self._plain(found.undetermined_keys)
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
