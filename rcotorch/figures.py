@@ -32,12 +32,22 @@ def run_figures(run) -> dict:
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
     if keys and len(t):
-        fig = Figure(figsize=(7.5, 2.4 * len(keys) + 0.8), layout="tight")
-        axes = fig.subplots(len(keys), 1, sharex=True, squeeze=False)
-        for ax, key in zip(axes[:, 0], keys):
-            _estimate_panel(ax, run, key, t, torch.stack(h[key]).numpy())
+        found = run.intervals() if hasattr(run, "intervals") else None
+        start = run.health.window_start * (dt or 1.0) if found is not None else None
+        zoom = found is not None and bool((t >= start).sum() >= 2)
+        fig = Figure(figsize=(10.5 if zoom else 7.5, 2.4 * len(keys) + 0.8), layout="tight")
+        axes = fig.subplots(len(keys), 2 if zoom else 1, sharex="col", squeeze=False,
+                            gridspec_kw={"width_ratios": [2.4, 1]} if zoom else None)
+        for row, key in zip(axes, keys):
+            v = torch.stack(h[key]).numpy()
+            _estimate_panel(row[0], run, key, t, v)
+            if zoom:
+                _window_panel(row[1], run, key, t[t >= start], v[t >= start], found)
         axes[-1, 0].set_xlabel(xlabel)
         _title(axes[0, 0], f"{run.scenario.name}: estimates")
+        if zoom:
+            axes[-1, 1].set_xlabel(xlabel)
+            _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
         figs["estimates"] = fig
     if len(t):
         fig = Figure(figsize=(7.5, 3.0), layout="tight")
@@ -92,7 +102,7 @@ def residual_figures(run, res, dt: float | None) -> dict:
     figs["residuals"] = fig
     y = res.series["measured"][:, 0].numpy()
     n = min(len(y), 600)                                          # the last samples of the window
-    t = (np.arange(len(y)) - len(y) + n) * (dt or 1.0)
+    t = (np.arange(len(y)) - len(y) + 1) * (dt or 1.0)            # 0 at the window's end
     fig = Figure(figsize=(7.5, 3.2), layout="tight")
     ax = fig.subplots()
     ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].numpy(), color="tab:gray", ls=":", lw=1.2,
@@ -131,6 +141,23 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
     ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best", ncol=2 if lines.shape[1] > 2 else 1)
+
+
+def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> None:
+    """The convergence window of one estimate, zoomed: each drawn member's path and its final interval shaded
+    in its colour, the truth on top."""
+    lines = ax.plot(t, v[:, :MAX_LINES], lw=1.2)
+    if key in found.estimate:
+        lo, hi = found.lower(key).numpy(), found.upper(key).numpy()
+        for b, line in enumerate(lines):
+            if np.isfinite(lo[b]) and np.isfinite(hi[b]):
+                ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0)
+    truth = run.truth.get(key)
+    if truth is not None:
+        for tv in np.atleast_1d(truth)[:MAX_LINES]:
+            ax.axhline(tv, color="k", ls="--", lw=1, zorder=3)
+    ax.grid(alpha=0.3)
+    ax.ticklabel_format(axis="y", useOffset=False)
 
 
 def _title(ax, text: str) -> None:

@@ -213,7 +213,7 @@ def test_a_sweep_writes_one_session_per_member(tmp_path):
         run = f"members/member_{r['member']:06d}"
         assert sessions[run]["dK"] == r["dK"] and sessions[run]["seed"] == r["seed"]
         passed = all(v for k, v in r.items() if k.startswith("pass_"))
-        assert r["status"] in ("converged", "not_converged")
+        assert r["status"] in ("converged", "undetermined", "not_converged")   # never diverged
         assert sessions[run][monitor.STATUS_HPARAM] == r["status"] + (", requirements pass" if passed else
                                                                       ", requirements FAIL")
         assert _last(mux, run, "final/dK") == pytest.approx(r["est_dK"])
@@ -302,8 +302,9 @@ def test_run_figures_carry_units_and_legends(tmp_path):
     run = Run("sdof-stiffness", steps=200, out=tmp_path / "r", log_every=20)
     run.advance(progress=False)
     figs = run_figures(run)
-    axes = figs["estimates"].axes
+    axes = figs["estimates"].axes[::2]                  # the left column: the whole run (right: the window)
     assert [a.get_ylabel() for a in axes] == ["dK [N/m]", "dC [N s/m]"] and axes[-1].get_xlabel() == "time [s]"
+    assert figs["estimates"].axes[-1].get_xlabel() == "time [s]" and len(figs["estimates"].axes) == 4
     assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["estimate", "truth", "initial model",
                                                                        "95% interval at the end"]
     initial = [ln for ln in axes[0].get_lines() if ln.get_label() == "initial model"][0]
