@@ -381,6 +381,8 @@ class Run:
         if found is not None:
             health["determined"] = self._plain(determined.tolist())
             health["change_explained"] = self._plain(explained.tolist())
+        if res is not None:
+            health["residuals_white"] = self._plain((res.whiteness_p >= ci.WHITE_P).tolist())
             health["undetermined"] = self._plain(found.undetermined_keys)
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
@@ -549,12 +551,19 @@ def health_line(summary: Mapping[str, Any]) -> str:
         if h["status"] == "diverged":
             return f"health: diverged at step {h['diverged_at']} ({h['reason']})"
         detail = ", ".join(f"{k} {_fmt(h[k])}" for k in ("theta_change", "z_ratio"))
+        white = h.get("residuals_white", True)
+        note = "" if white else "; residuals not white: dynamics the model leaves unexplained may bias the " \
+            "estimates beyond their intervals"
         if h["status"] == "undetermined":
             which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
-            return f"health: undetermined: settled, but the data did not determine {which} ({detail})"
-        return f"health: {h['status']} ({detail})"
+            return f"health: undetermined: settled, but the data did not determine {which} ({detail}){note}"
+        return f"health: {h['status']} ({detail}){note}"
     counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items() if n or status != "undetermined")
     line = f"health: {counts}"
+    white = h.get("residuals_white")
+    if isinstance(white, list) and not all(white):
+        line += (f"; residuals not white in {len(white) - sum(white)} members (dynamics the model leaves "
+                 "unexplained may bias their estimates beyond their intervals)")
     if summary["diverged"]:
         first = summary["diverged"][:5]
         line += "; diverged: " + ", ".join(f"member {d['member']} at step {d['step']} ({d['reason']})"

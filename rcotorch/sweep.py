@@ -272,7 +272,8 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
     from .runner import member_truth
     B = summary["batch"]
     health = {k: member_truth(summary["health"][k], B) for k in ("status", "reason", "diverged_at", "theta_change",
-                                                                  "z_ratio", "determined") if k in summary["health"]}
+                                                                  "z_ratio", "determined", "residuals_white")
+              if k in summary["health"]}
     intervals = summary.get("intervals") or {}
     checks = summary.get("requirements") or {}
     rows = []
@@ -296,7 +297,7 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
         row["status"] = health["status"][b]
         for key, chk in checks.items():
             row[f"pass_{key.split('.', 1)[1]}"] = member_truth(chk.get("member_pass", chk["pass"]), B)[b]
-        for key in ("determined", "theta_change", "z_ratio"):
+        for key in ("determined", "residuals_white", "theta_change", "z_ratio"):
             if key in health:
                 row[key] = health[key][b]
         row["reason"] = health["reason"][b]

@@ -176,3 +176,19 @@ def test_a_graph_run_resumed_inside_its_window_gives_the_same_intervals_and_chec
     resumed.advance(progress=False)
     a, b = full.summary(), resumed.summary()
     assert a["intervals"] == b["intervals"] and a["metrics"] == b["metrics"] and a["health"] == b["health"]
+
+
+def test_residuals_that_are_not_white_are_said_beside_the_verdict(tmp_path):
+    """A continuous truth without noise leaves z = the discretization's mismatch, a colored signal: the
+    whiteness test fails and the verdict line says so; a discrete truth with white noise passes."""
+    from rcotorch.runner import result_table
+
+    colored = Run("sdof-stiffness", steps=3000, out=tmp_path / "c")
+    colored.advance(progress=False)
+    sc = colored.finish(figures=False)
+    assert sc["health"]["residuals_white"] is False and sc["metrics"]["z_whiteness_p"] < 1e-6
+    assert "residuals not white" in result_table(sc).splitlines()[-1]
+    white = Run("sdof-stiffness", steps=3000, overrides={"truth": "discrete", "noise": 0.05}, out=tmp_path / "w")
+    white.advance(progress=False)
+    sw = white.finish(figures=False)
+    assert sw["health"]["residuals_white"] is True and "residuals not white" not in result_table(sw)
