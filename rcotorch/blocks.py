@@ -208,7 +208,7 @@ class StaticMap(Block):
             raise ConfigError(f"block '{name}': fn must be callable")
         widths = []
         for B in (1, 2):
-            out = _as_tensor(fn(torch.randn(B, in_width, dtype=dtype)), dtype)
+            out = tensor_result(fn(torch.randn(B, in_width, dtype=dtype)), dtype)
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise DimensionError(f"block '{name}': fn must map a (batch, {in_width}) tensor to (batch, m); "
@@ -221,7 +221,7 @@ class StaticMap(Block):
 
     def output(self, port, inputs):
         x = inputs["in"]
-        return _as_tensor(self.fn(x), x.dtype, x.device)
+        return tensor_result(self.fn(x), x.dtype, x.device)
 
     def lower(self, b) -> None:
         """The native form: ``fn`` compiled by numba (``rcotorch.compiled``) and called once per member and
@@ -234,8 +234,9 @@ class StaticMap(Block):
         b.emit("CALL", [n_in, b.input("in"), n_out, b.output("out"), b.function(c.address, c)], port="out")
 
 
-def _as_tensor(out, dtype, device=None):
-    """A function's result as a tensor: a NumPy array (a function written with NumPy) is taken as is."""
+def tensor_result(out, dtype, device=None):
+    """A user function's result as a tensor: a NumPy array (a function written with NumPy, called by the
+    PyTorch engine with CPU tensors) becomes one; a tensor is returned as it is."""
     if isinstance(out, np.ndarray):
         return torch.as_tensor(out, dtype=dtype, device=device)
     return out

@@ -51,19 +51,91 @@ def describe(fn) -> str:
     return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
 
 
-def compile_map(fn, n_in: int, n_out: int) -> Compiled | str:
-    """``fn`` (a (B, n_in) -> (B, n_out) map) as a compiled C function, or why it cannot be compiled."""
+def compile_map(fn, n_in: int, n_out: int, reference=None) -> Compiled | str:
+    """``fn`` (a (B, n_in) -> (B, n_out) map) as a compiled C function, or why it cannot be compiled; it must
+    reproduce ``reference`` (default ``fn``) called with tensors."""
     key = (id(fn), n_in, n_out)
     with _lock:
         hit = _cache.get(key)
         if hit is not None and hit[0] is fn:
             return hit[1]
-        result = _compile(fn, n_in, n_out)
+        result = _compile(fn, n_in, n_out, reference or fn)
         _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
         return result
 
 
-def _compile(fn, n_in: int, n_out: int) -> Compiled | str:
+def step_function(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int):
+    """The discrete map of a ``Nonlinear`` block, x(k+1) from [x(k), inputs(k)] stacked in one (B, n + m)
+    array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held, as
+    ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
+    builds the inputs' dict as the PyTorch engine passes it. Kept per (f, sizes, ports, dt, form)."""
+    key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is f:
+            return hit[1]
+    cols, start = [], n
+    for port, width in inputs.items():
+        cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
+        start += width
+    ins = "{" + ", ".join(cols) + "}"
+    if continuous:
+        h = float(dt) / int(substeps)
+        body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
+                f"        k1 = f(x, ins)\n        k2 = f(x + {0.5 * h!r} * k1, ins)\n"
+                f"        k3 = f(x + {0.5 * h!r} * k2, ins)\n        k4 = f(x + {h!r} * k3, ins)\n"
+                f"        x = x + {h / 6.0!r} * (k1 + 2.0 * k2 + 2.0 * k3 + k4)\n    return x\n")
+    else:
+        body = f"    return f(xu[:, :{n}], {ins})\n"
+    source = compile("def step(xu):\n" + body, f"<rcotorch step of {describe(f)}>", "exec")
+    plain: dict = {"f": f}                     # the reference the compiled form is checked against
+    exec(source, plain)
+    jitted: dict = {"f": _jit(f)}              # the same source calling f compiled
+    exec(source, jitted)
+    pair = (jitted["step"], plain["step"])
+    with _lock:
+        _cache[key] = (f, pair)
+    return pair
+
+
+def _jit(f):
+    """``f`` as numba calls it from compiled code (a dispatcher), or ``f`` when numba cannot take it (the
+    compilation then fails with numba's reason)."""
+    try:
+        import numba
+        return numba.njit(_with_helpers_jitted(f))
+    except Exception:
+        return f
+
+
+def _with_helpers_jitted(fn, depth: int = 4):
+    """A copy of ``fn`` whose plain Python helpers (functions it names as globals or closes over) are numba
+    dispatchers, compiled the same way, so that a user's function may call functions of its own."""
+    import types
+
+    import numba
+    if not isinstance(fn, types.FunctionType) or depth == 0:
+        return fn
+
+    def ready(v):
+        if isinstance(v, types.FunctionType) and v is not fn and v.__module__ != "numpy" and \
+                not v.__module__.startswith(("numpy.", "math")):
+            return numba.njit(_with_helpers_jitted(v, depth - 1))
+        return v
+    names = set(fn.__code__.co_names)
+    glob = {**fn.__globals__, **{k: ready(v) for k, v in fn.__globals__.items() if k in names}}
+    def cell(c):
+        try:
+            return types.CellType(ready(c.cell_contents))
+        except ValueError:                     # an empty cell (a name not yet bound)
+            return c
+    cells = tuple(cell(c) for c in fn.__closure__ or ())
+    out = types.FunctionType(fn.__code__, glob, fn.__name__, fn.__defaults__, cells or None)
+    out.__kwdefaults__, out.__qualname__ = fn.__kwdefaults__, fn.__qualname__
+    return out
+
+
+def _compile(fn, n_in: int, n_out: int, reference) -> Compiled | str:
     try:
         import numba
         from numba import types
@@ -71,7 +143,7 @@ def _compile(fn, n_in: int, n_out: int) -> Compiled | str:
         return "numba is not installed (pip install numba)"
     sig = types.void(types.CPointer(types.float64), types.CPointer(types.float64))
     try:
-        jfn = numba.njit(fn)
+        jfn = numba.njit(_with_helpers_jitted(fn))
     except Exception as e:                    # not a Python function numba can take
         return f"numba cannot take it: {_first_line(e)}"
     reasons = []
@@ -90,7 +162,7 @@ def _compile(fn, n_in: int, n_out: int) -> Compiled | str:
         except Exception as e:
             reasons.append(_first_line(e))
             continue
-        mismatch = _check(fn, cf, n_in, n_out)
+        mismatch = _check(reference, cf, n_in, n_out)
         if mismatch:
             reasons.append(mismatch)
             continue
@@ -106,7 +178,7 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
     x = np.concatenate([rng.standard_normal((PROBES - 8, n_in)) * 10.0 ** rng.integers(-3, 4, (PROBES - 8, 1)),
                         np.zeros((1, n_in)), np.full((1, n_in), 1.5), np.full((1, n_in), -1.5),
                         rng.uniform(-1, 1, (5, n_in))])
-    with torch.no_grad():
+    with torch.no_grad(), np.errstate(all="ignore"):
         want = fn(torch.from_numpy(x))
     want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
     if want.shape != (len(x), n_out):
@@ -117,6 +189,11 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
         xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
         cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd))
         got[i] = yi
+    with np.errstate(all="ignore"):
+        return _compare(x, got, want)
+
+
+def _compare(x: np.ndarray, got: np.ndarray, want: np.ndarray) -> str | None:
     same = np.isclose(got, want, rtol=RTOL, atol=RTOL * max(1.0, float(np.nanmax(np.abs(want), initial=0.0))),
                       equal_nan=True)
     if same.all():

@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping
 import torch
 from torch.autograd.functional import jvp
 
-from .blocks import DEFAULT_DTYPE, Block
+from .blocks import DEFAULT_DTYPE, Block, tensor_result
 from .errors import ConfigError, DimensionError
 
 
@@ -65,7 +65,7 @@ class Nonlinear(Block):
             x = self.x0[:1].expand(B, -1).clone().to(dtype)
             ins = {p: torch.zeros(B, w, dtype=dtype) for p, w in self.inputs.items()}
             try:
-                fx, hx = self.f(x, ins), self.h(x)
+                fx, hx = self._f(x, ins), self._h(x)
             except Exception as e:
                 raise ConfigError(f"block '{self.name}': f or h failed on a state ({B}, {self.n_states}) and inputs "
                                   f"{ {p: (B, w) for p, w in self.inputs.items()} }: {e!r}") from e
@@ -84,24 +84,61 @@ class Nonlinear(Block):
         self.check_batch(self.x0, "x0")
         self.x = self.x0.expand(batch_size, -1).clone()
 
+    def _f(self, x: torch.Tensor, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return tensor_result(self.f(x, inputs), x.dtype, x.device)
+
+    def _h(self, x: torch.Tensor) -> torch.Tensor:
+        return tensor_result(self.h(x), x.dtype, x.device)
+
     def output(self, port, inputs):
-        return self.h(self.x)[:, self._out_slices[port]]
+        return self._h(self.x)[:, self._out_slices[port]]
 
     def step_map(self, x: torch.Tensor, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """The discrete map x(k) -> x(k+1) for given inputs (RK4 substeps for a continuous block)."""
         if not self.continuous:
-            return self.f(x, inputs)
+            return self._f(x, inputs)
         h = self.dt / self.substeps
         for _ in range(self.substeps):
-            k1 = self.f(x, inputs)
-            k2 = self.f(x + 0.5 * h * k1, inputs)
-            k3 = self.f(x + 0.5 * h * k2, inputs)
-            k4 = self.f(x + h * k3, inputs)
+            k1 = self._f(x, inputs)
+            k2 = self._f(x + 0.5 * h * k1, inputs)
+            k3 = self._f(x + 0.5 * h * k2, inputs)
+            k4 = self._f(x + h * k3, inputs)
             x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         return x
 
     def update(self, inputs):
         self.set_state(x=self.step_map(self.x, inputs))
+
+    def lower(self, b) -> None:
+        """The native form: ``h`` and the step map (``f``, or its RK4 substeps) compiled by numba
+        (``rcotorch.compiled``), each called once per member and step; a function that does not compile keeps
+        the graph on PyTorch, and the reason names it."""
+        from .compiled import compile_map, describe, step_function
+        n, n_out = self.n_states, sum(self.outputs.values())
+        x = b.state("x")
+        h = compile_map(self.h, n, n_out)
+        if isinstance(h, str):
+            b.refuse(f"output function h {describe(self.h)} is not compiled: {h}")
+        m = sum(self.inputs.values())
+        step, reference = step_function(self.f, n, self.inputs, self.dt, self.continuous, self.substeps)
+        c = compile_map(step, n + m, n, reference=reference)
+        if isinstance(c, str):
+            b.refuse(f"state function f {describe(self.f)} is not compiled: {c}")
+        for port, sl in self._out_slices.items():
+            y = b.scratch(n_out)
+            b.emit("CALL", [n, x, n_out, y, b.function(h.address, h)], port=port)
+            b.emit("COPY", [sl.stop - sl.start, y + sl.start, b.output(port)], port=port)
+        xu, nxt = b.scratch(n + m), b.scratch(n)
+        b.emit("COPY", [n, x, xu])
+        at = xu + n
+        for port, width in self.inputs.items():
+            src = b.input(port)
+            if src is None:
+                b.refuse(f"input '{port}' is not connected")
+            b.emit("COPY", [width, src, at])
+            at += width
+        b.emit("CALL", [n + m, xu, n, nxt, b.function(c.address, c)])
+        b.emit("COPY", [n, nxt, x])
 
     # --- linearization ------------------------------------------------------------------------------------
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
@@ -144,7 +181,7 @@ class Nonlinear(Block):
         xi, dx = tangent(lambda uu: self.step_map(xs, {**stacked, input: uu}), stacked[input], direction)
         for i in range(1, n):
             base = xi if along == "trajectory" else xs
-            H[:, i] = tangent(lambda xx: self.h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
+            H[:, i] = tangent(lambda xx: self._h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
             if i + 1 < n:
                 xn, dx = tangent(lambda xx: self.step_map(xx, stacked), base, dx)
                 if along == "trajectory":

@@ -69,3 +69,50 @@ def test_a_compiled_function_is_kept_for_the_process():
     first = compiled.compile_map(friction, 1, 1)
     assert compiled.compile_map(friction, 1, 1) is first and first.form == "scalar"
     assert compiled.compile_map(friction, 1, 1).address == first.address
+
+
+K, C, A = 4.0, 0.3, 2.0
+
+
+def duffing(x, ins):
+    q, v = x[:, 0:1], x[:, 1:2]
+    return np.concatenate((v, -K * q - C * v - A * q ** 3 + ins["w"]), axis=1)
+
+
+def velocity(x):
+    return x[:, 1:2]
+
+
+def _duffing_graph(continuous: bool, engine: str = "auto", f=duffing):
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, C, K, measured=["velocity"], sees=["position"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.01, name="known")
+    if continuous:
+        plant = rt.Nonlinear(f, velocity, 2, inputs=["w"], outputs=["y"], dt=0.01, continuous=True, substeps=4)
+    else:                                   # an explicit Euler map of the same equations, as a discrete block
+        plant = rt.Nonlinear(lambda x, ins: x + 0.01 * f(x, ins), velocity, 2, inputs=["w"], outputs=["y"], dt=0.01)
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.power("y0", 3)], p0=10.0)
+    g = refinement(known, ident, physical=plant, excitation=rt.WhiteNoise(1, std=3.0, seed=[1, 2, 3]), nu=30,
+                   batch_size=3)
+    g.engine = engine
+    return g
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@pytest.mark.parametrize("continuous", [True, False])
+def test_a_numpy_nonlinear_block_runs_natively_and_equals_the_pytorch_engine(continuous):
+    native, torch_ = _duffing_graph(continuous), _duffing_graph(continuous, "torch")
+    assert native.native_status() is None
+    rec_n = native.run(1500, record={"y": "plant.y"})["y"]
+    rec_t = torch_.run(1500, record={"y": "plant.y"})["y"]
+    assert native.ran_engine == "native" and torch_.ran_engine == "torch"
+    assert torch.allclose(rec_n, rec_t, rtol=1e-11, atol=1e-12), (rec_n - rec_t).abs().max()
+    assert torch.allclose(native.blocks["plant"].x, torch_.blocks["plant"].x, rtol=1e-11, atol=1e-12)
+    a, b = native.role("estimator").theta, torch_.role("estimator").theta
+    assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_a_torch_nonlinear_block_stays_on_pytorch_and_says_which_function():
+    def f(x, ins):
+        return torch.cat((x[:, 1:2], -K * x[:, 0:1] - C * x[:, 1:2] + ins["w"]), dim=1)
+    why = _duffing_graph(True, f=f).native_status()
+    assert "(Nonlinear)" in why and "state function f" in why and "test_compiled.py" in why, why
