@@ -224,8 +224,9 @@ class StaticMap(Block):
         return tensor_result(self.fn(x), x.dtype, x.device)
 
     def lower(self, b) -> None:
-        """The native form: ``fn`` compiled by numba (``rcotorch.compiled``) and called once per member and
-        step; a function that does not compile keeps the graph on PyTorch, and the reason says why."""
+        """The native form: ``fn`` compiled by numba (``rcotorch.compiled``) and called once per chunk of
+        members and step; a function that does not compile keeps the graph on PyTorch, and the reason says
+        why."""
         from .compiled import compile_map, describe
         n_in, n_out = self.inputs["in"], self.outputs["out"]
         c = compile_map(self.fn, n_in, n_out)

@@ -1,14 +1,17 @@
 """A user's own function compiled for the native engine.
 
 A ``StaticMap``'s function, written with NumPy or ``math`` operations, is compiled by numba (``njit``) into a
-C function ``void f(const double *in, double *out)`` (a numba ``cfunc``) whose address the native engine calls
-once per member and step (the ``CALL`` instruction): no Python runs per step. numba is the usual choice of
+C function ``void f(const double *in, double *out, int64 lanes)`` (a numba ``cfunc``) whose address the native
+engine calls once per chunk of members and step (the ``CALL`` instruction: the chunk's inputs slot by slot,
+``(n_in, lanes)``, outputs likewise): no Python runs per step, and an array-form function's arrays are made
+once for the chunk's lanes, not once per member. numba is the usual choice of
 the field for this (an LLVM compiler of NumPy code that can hand out C function pointers); the engine's own C
 code needs nothing from it but the address.
 
 Two forms are tried, the faster first: with one input and one output, the function applied to a float (a
-scalar map such as ``lambda v: -(2 * np.sign(v) + 0.5 * v)``); otherwise, or when that fails, applied to a
-(1, n) array and returning (1, m), as the PyTorch engine calls it with a batch of one. The compiled function
+scalar map such as ``lambda v: -(2 * np.sign(v) + 0.5 * v)``, in a loop over the lanes); otherwise, or when
+that fails, applied to the chunk's (lanes, n) array and returning (lanes, m), as the PyTorch engine calls it
+with a batch. The compiled function
 is checked against the function itself on test inputs before it is used: a function that compiles but
 computes something else (an operation that treats a float and a tensor differently) stays on PyTorch.
 
@@ -78,7 +81,8 @@ def step_function(f, n: int, inputs: dict[str, int], dt: float, continuous: bool
     for port, width in inputs.items():
         cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
         start += width
-    ins = "{" + ", ".join(cols) + "}"
+    # An entry of another type makes numba keep the dict a compile-time literal (no dict made per call).
+    ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
     if continuous:
         h = float(dt) / int(substeps)
         body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
@@ -141,7 +145,7 @@ def _compile(fn, n_in: int, n_out: int, reference) -> Compiled | str:
         from numba import types
     except ImportError:
         return "numba is not installed (pip install numba)"
-    sig = types.void(types.CPointer(types.float64), types.CPointer(types.float64))
+    sig = types.void(types.CPointer(types.float64), types.CPointer(types.float64), types.int64)
     try:
         jfn = numba.njit(_with_helpers_jitted(fn))
     except Exception as e:                    # not a Python function numba can take
@@ -149,14 +153,18 @@ def _compile(fn, n_in: int, n_out: int, reference) -> Compiled | str:
     reasons = []
     forms = (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]
     for form in forms:
+        # x and y hold the chunk's lanes slot by slot: (n_in, vl) and (n_out, vl), row-major
         if form == "scalar":
-            def body(x, y):
-                y[0] = jfn(x[0])
+            def body(x, y, vl):
+                for lane in range(vl):
+                    y[lane] = jfn(x[lane])
         else:
-            def body(x, y):
-                r = jfn(numba.carray(x, (1, n_in)))
+            def body(x, y, vl):
+                r = jfn(numba.carray(x, (n_in, vl)).T)
+                out = numba.carray(y, (n_out, vl))
                 for j in range(n_out):
-                    y[j] = r[0, j]
+                    for lane in range(vl):
+                        out[j, lane] = r[lane, j]
         try:
             cf = numba.cfunc(sig, nopython=True)(body)
         except Exception as e:
@@ -171,7 +179,8 @@ def _compile(fn, n_in: int, n_out: int, reference) -> Compiled | str:
 
 
 def _check(fn, cf, n_in: int, n_out: int) -> str | None:
-    """None when the compiled function gives the function's own values on test inputs, else what differs."""
+    """None when the compiled function gives the function's own values on test inputs (called for one member
+    and for all of them at once), else what differs."""
     import ctypes
 
     rng = np.random.default_rng(12345)
@@ -183,14 +192,16 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
     want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
     if want.shape != (len(x), n_out):
         return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"
-    got = np.empty((len(x), n_out))
     pd = ctypes.POINTER(ctypes.c_double)
+    one = np.empty((len(x), n_out))
     for i in range(len(x)):
         xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
-        cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd))
-        got[i] = yi
+        cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd), 1)
+        one[i] = yi
+    xs, ys = np.ascontiguousarray(x.T), np.empty((n_out, len(x)))
+    cf.ctypes(xs.ctypes.data_as(pd), ys.ctypes.data_as(pd), len(x))
     with np.errstate(all="ignore"):
-        return _compare(x, got, want)
+        return _compare(x, one, want) or _compare(x, ys.T, want)
 
 
 def _compare(x: np.ndarray, got: np.ndarray, want: np.ndarray) -> str | None:

@@ -168,8 +168,8 @@ class Builder:
         return len(self.pointers) - 1
 
     def function(self, address: int, owner) -> int:
-        """A compiled function ``void f(const double *in, double *out)`` the instruction calls (``CALL``): its
-        table index. ``owner`` keeps its code alive while the program lives."""
+        """A compiled function ``void f(const double *in, double *out, int64_t lanes)`` the instruction calls
+        (``CALL``): its table index. ``owner`` keeps its code alive while the program lives."""
         self.pointers.append(_Address(int(address), owner))
         return len(self.pointers) - 1
 

@@ -111,8 +111,8 @@ class Nonlinear(Block):
 
     def lower(self, b) -> None:
         """The native form: ``h`` and the step map (``f``, or its RK4 substeps) compiled by numba
-        (``rcotorch.compiled``), each called once per member and step; a function that does not compile keeps
-        the graph on PyTorch, and the reason names it."""
+        (``rcotorch.compiled``), each called once per chunk of members and step; a function that does not
+        compile keeps the graph on PyTorch, and the reason names it."""
         from .compiled import compile_map, describe, step_function
         n, n_out = self.n_states, sum(self.outputs.values())
         x = b.state("x")

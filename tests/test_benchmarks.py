@@ -14,6 +14,7 @@ from rcotorch import scenario as scenarios
 from rcotorch.sources import _normal_grid
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import duffing  # noqa: E402
 import rls_kernel  # noqa: E402
 import throughput  # noqa: E402
 import user_function  # noqa: E402
@@ -95,6 +96,14 @@ def test_user_function_script_quick(tmp_path):
     result = user_function.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
     row = json.loads(out.read_text())["results"][0]
     assert row["batch"] == 1 and row["compiled_ns"] > 0 and row["gain_ns"] > 0 and result["results"]
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_duffing_script_quick(tmp_path):
+    out = tmp_path / "duffing.json"
+    duffing.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
+    row = json.loads(out.read_text())["results"][0]
+    assert row["batch"] == 1 and row["engine_ns"] > 0 and row["numba_loop_ns"] > 0
 
 
 def test_rls_kernel_script_quick(tmp_path):

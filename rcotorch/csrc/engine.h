@@ -23,8 +23,9 @@
     X(FEATURE)   /* out, nterms, then per term: width, coefficient, nfactors, [FACTOR_FIELDS] * nfactors   */ \
     X(RCO_OUT)   /* RCO_FIELDS, then the variable tables (see below)                                       */ \
     X(RCO_UPD)                                                                                               \
-    X(CALL)      /* nin, in, nout, out, fn: out = fn(in) per member, fn a compiled function's address in the \
-                  * pointer table, void fn(const double *in, double *out) (a user function, compiled.py) */
+    X(CALL)      /* nin, in, nout, out, fn: out = fn(in) for the chunk's lanes, fn a compiled function's     \
+                  * address in the pointer table, void fn(const double *in, double *out, int64_t lanes)    \
+                  * with in (nin, lanes) and out (nout, lanes) (a user function, compiled.py)             */
 
 /* One factor of a basis feature: f(x), x = slot src + stride * channel. */
 #define RCO_FACTOR_FIELDS(X) X(KIND) X(SRC) X(STRIDE) X(POWER) X(PARAM)

@@ -318,18 +318,12 @@ static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restr
     for (int64_t r = 0; r < n; r++) SL(a[4] + r)[0] = xn[r];
 }
 
-/* A compiled user function, called once per lane: its inputs gathered from their slots, its outputs scattered
- * back (spare lanes compute on their copy of the last member's values, as everywhere). */
-typedef void (*rco_fn_t)(const double *, double *);
+/* A compiled user function, called once per chunk: its inputs are consecutive slots (n_in x VL lane values,
+ * slot by slot) and so are its outputs; spare lanes compute on their copy of the last member's values, as
+ * everywhere. */
+typedef void (*rco_fn_t)(const double *, double *, int64_t);
 static inline void FN(call)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ptrs) {
-    const int64_t nin = a[0], in = a[1], nout = a[2], out = a[3];
-    const rco_fn_t f = (rco_fn_t)(intptr_t)ptrs[a[4]];
-    double x[nin > 0 ? nin : 1], y[nout > 0 ? nout : 1];
-    for (int64_t l = 0; l < VL; l++) {
-        for (int64_t i = 0; i < nin; i++) x[i] = SL(in + i)[l];
-        f(x, y);
-        for (int64_t j = 0; j < nout; j++) SL(out + j)[l] = y[j];
-    }
+    ((rco_fn_t)(intptr_t)ptrs[a[4]])(SL(a[1]), SL(a[3]), VL);
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
