@@ -10,14 +10,17 @@ open-loop filter) and Psi_true(k) = dz(k)/d eta the true sensitivity of the mode
 the same phi filtered by the whole closed loop of the simulated system (the known model with the identified
 subsystem in feedback), v(k) the part of z no parameter explains (measurement noise), W the cost's weight R.
 With A = E[Psi W Psi^T]^-1 E[Psi W Psi_true^T] and the gain P(k) ~ (n_k E[Psi W Psi^T])^-1,
-n_k = sum_j lam^j, the covariance X of eta~ at step N solves the Lyapunov equation
+n_k = sum_j lam^j, the covariance X of eta~ at step N is the variance the recursion gathers over its time
+T = sum_{k<=N} 1 / n_k (ln N + 0.58 for lam = 1):
 
-    (A - c I) X + X (A - c I)^T = sym(E[Psi W Psi^T]^-1 E[Psi W V W Psi^T] P(N)),     c = lam^N / 2,
+    X = X_inf - exp(-M T) X_inf exp(-M T)^T,   M X_inf + X_inf M^T = Q,   M = A - c I,   c = lam^N / 2,
+    Q = sym(E[Psi W Psi^T]^-1 Omega P(N)),
 
-(V = E[v v^T]). For A = I and lam = 1 this is the ordinary least-squares covariance sigma^2 P; the open-loop
-filter usually makes A larger than I (the closed loop responds to a parameter error for longer than nu
-steps), so sigma^2 P alone is too wide. Where A - c I has an eigenvalue with a real part <= 0 the recursion
-does not settle in that direction within the run: the data did not determine it.
+Omega the long-run covariance of the scores Psi W z (E[Psi W V W Psi^T], V = E[v v^T], for white residuals).
+For A = I and lam = 1 this is the ordinary least-squares covariance sigma^2 P; the open-loop filter usually
+makes A larger than I (the closed loop responds to a parameter error for longer than nu steps), so sigma^2 P
+alone is too wide. A direction with an eigenvalue of A near 0 was not excited by the data (``EXCITED``): the
+data did not determine it.
 
 ``parameter_covariance`` measures A, V and the right-hand side by replaying a stretch of the run (from a
 snapshot of the graph's state) with theta frozen at its final value: once as it is, and once per parameter
@@ -36,6 +39,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from statistics import NormalDist
 
+import numpy as np
 import torch
 
 from .errors import ConfigError
@@ -48,6 +52,7 @@ LAGS = 25                # lags of the residual checks (z's autocorrelation, its
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
+EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 
 
 @dataclass
@@ -58,7 +63,8 @@ class ParameterCovariance:
         cov: (B, n, n) float64 covariance X of eta (NaN for members that were frozen or did not settle).
         gain: (B, n, n) the matrix A of the recursion (I when the open-loop filter is exact).
         noise: (B, n_z, n_z) V, the mean z z^T of the frozen replay (the residual's covariance).
-        settles: (B,) bool, whether A - c I has eigenvalues with positive real parts only.
+        settles: (B,) bool, whether every eigenvalue of A has a real part above ``EXCITED`` (every direction of
+            the parameters was excited by the data).
         replayed: steps replayed; ``measured`` of them entered the statistics.
     """
 
@@ -213,9 +219,18 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     rhs = info_inv @ noise_info @ P
     rhs = 0.5 * (rhs + rhs.mT)
     lam = est.lam.to(f64).reshape(-1, 1, 1).expand(B, 1, 1)
-    c = 0.5 * lam ** int(est.k)
+    N = int(est.k)
+    c = 0.5 * lam ** N
     M = A - c * torch.eye(n, dtype=f64, device=A.device)
-    X, settles = _lyapunov(M, rhs)
+    X, _ = _lyapunov(M, rhs)
+    # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
+    # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
+    # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
+    E = torch.linalg.matrix_exp(-M * _gain_time(est.lam.to(f64).cpu().reshape(-1).expand(B), N
+                                                 ).to(M.device).reshape(-1, 1, 1))
+    X = X - E @ X @ E.mT
+    X = 0.5 * (X + X.mT)
+    settles = torch.linalg.eigvals(torch.where(finite.reshape(-1, 1, 1), A, eye)).real.amin(1) > EXCITED
     alive = est.alive.to(settles.device)
     settles = settles & finite.to(settles.device)
     ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
@@ -326,6 +341,16 @@ class _ResidualSums:
                          series={k: torch.stack(v) for k, v in self.series.items()})
 
 
+def _gain_time(lam: torch.Tensor, N: int) -> torch.Tensor:
+    """sum_{k=1..N} 1 / n_k with n_k = sum_{j<k} lam^j (the RLS gain's time), per member."""
+    k = torch.arange(1, N + 1, dtype=torch.float64)
+    out = torch.empty_like(lam)
+    for value in torch.unique(lam):
+        n_k = k if value == 1 else (1 - value ** k) / (1 - value)
+        out[lam == value] = (1.0 / n_k).sum()
+    return out
+
+
 def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> tuple[torch.Tensor, torch.Tensor]:
     """X with M X + X M^T = Q for each member (B, n, n), and whether M's eigenvalues all have positive real
     parts (only then is X the covariance of a settling recursion)."""
@@ -413,6 +438,36 @@ def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, l
     g = torch.stack([grads[str(i)] for i in range(F)], dim=1).cpu()                    # (B, F, n)
     var = torch.einsum("bfi,bij,bfj->bf", g, pc.cov.cpu(), g)
     return value, quantile(level) * var.clamp_min(0).sqrt()
+
+
+def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, member: int = 0,
+                level: float = LEVEL) -> tuple[np.ndarray, np.ndarray] | None:
+    """``fn(graph)`` for one member ((F,) values computed from that member's parameters, e.g. a magnitude
+    response on a grid; any code) and the half-width of its confidence band (delta method, central differences
+    in that member's parameters), or None where its covariance is not finite."""
+    X = pc.cov[member].to(torch.float64).cpu()
+    if not bool(torch.isfinite(X).all()):
+        return None
+    est = graph.role("estimator")
+    eta, theta = est.theta_free().detach().clone(), est.theta.clone()
+    sd = pc.std[member].cpu()
+    h = torch.where(sd > 0, 1e-3 * sd, 1e-6 * eta[member].abs().clamp_min(1e-12).cpu())
+    value = np.asarray(fn(graph), dtype=float)
+    grads = []
+    try:
+        for j in range(eta.shape[1]):
+            sides = []
+            for sign in (1.0, -1.0):
+                e = eta.clone()
+                e[member, j] += sign * float(h[j])
+                est.set_theta_free(e)
+                sides.append(np.asarray(fn(graph), dtype=float))
+            grads.append((sides[0] - sides[1]) / (2 * float(h[j])))
+    finally:
+        est.set_state(theta=theta)
+    G = np.stack(grads, axis=-1)                                                    # (F, n)
+    var = np.einsum("fi,ij,fj->f", G, X.numpy(), G)
+    return value, quantile(level) * np.sqrt(np.clip(var, 0, None))
 
 
 def quantile(level: float) -> float:

@@ -69,6 +69,7 @@ import torch
 import rcotorch as rt
 from rcotorch.blocks import Block
 from rcotorch.figures import frequency_figure
+from rcotorch.intervals import member_band
 from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
 
@@ -255,8 +256,15 @@ class RlcCircuit(Scenario):
         zs = np.exp(1j * omega * s["Ts"])
         curves["true circuit, sampled"] = np.asarray(truth_discrete(s)(zs)).reshape(-1)
         curves["refined, sampled (known model + gain)"] = np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)
+        bands = None
+        cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals
+        if cov is not None:
+            found = member_band(g, lambda g: np.abs(np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)), cov)
+            if found is not None:
+                mag, half = found
+                bands = {"95% confidence band of the refined model (member 0)": (mag - half, mag + half)}
         fig = frequency_figure(omega, curves, "series RLC: source voltage w -> voltage across R",
-                               nyquist=np.pi / s["Ts"], unit="V/V")
+                               nyquist=np.pi / s["Ts"], unit="V/V", bands=bands)
         return {"frequency_response": fig}
 
 

@@ -62,6 +62,7 @@ from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
 from rcotorch.figures import frequency_figure
+from rcotorch.intervals import member_band
 from rcotorch.scenario import Requirement, Scenario
 
 
@@ -173,8 +174,15 @@ class TwoDofStiffness(Scenario):
 
     def figures(self, g, s):
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
-        fig = frequency_figure(omega, self._responses(g, s, omega),
-                               "2-DOF: force w -> velocity of mass 2", nyquist=np.pi / s["Ts"], unit="m/(N s)")
+        bands = None
+        cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals
+        if cov is not None:
+            found = member_band(g, lambda g: np.abs(self._responses(g, s, omega)["refined model"]), cov)
+            if found is not None:
+                mag, half = found
+                bands = {"95% confidence band (member 0)": (mag - half, mag + half)}
+        fig = frequency_figure(omega, self._responses(g, s, omega), "2-DOF: force w -> velocity of mass 2",
+                               nyquist=np.pi / s["Ts"], unit="m/(N s)", bands=bands)
         return {"frequency_response": fig}
 
 
