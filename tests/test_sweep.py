@@ -151,5 +151,5 @@ def test_a_sweep_never_deletes_what_it_did_not_write_and_never_merges_old_shards
     assert (out / "shard_0001" / "mine.txt").read_text() == "mine too"
     assert not (out / "shard_0001" / "summary.json").exists()
     rows = list(csv.DictReader(open(out / "sweep.csv")))
-    assert len(rows) == 1 and rows[0]["status"] in ("converged", "not_converged")
+    assert len(rows) == 1 and rows[0]["status"] in ("converged", "undetermined", "not_converged")
     assert sorted(p.name for p in (out / "members").iterdir()) == ["member_000000"]
