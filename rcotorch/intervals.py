@@ -222,7 +222,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     N = int(est.k)
     c = 0.5 * lam ** N
     M = A - c * torch.eye(n, dtype=f64, device=A.device)
-    X, _ = _lyapunov(M, rhs)
+    X = _lyapunov(M, rhs)
     # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
     # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
     # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
@@ -351,14 +351,13 @@ def _gain_time(lam: torch.Tensor, N: int) -> torch.Tensor:
     return out
 
 
-def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> tuple[torch.Tensor, torch.Tensor]:
-    """X with M X + X M^T = Q for each member (B, n, n), and whether M's eigenvalues all have positive real
-    parts (only then is X the covariance of a settling recursion)."""
+def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> torch.Tensor:
+    """X with M X + X M^T = Q for each member (B, n, n) (NaN-free members only; the others get a solution
+    for M = I, Q = 0)."""
     B, n, _ = M.shape
     eye = torch.eye(n, dtype=M.dtype, device=M.device)
     finite = torch.isfinite(M).flatten(1).all(1) & torch.isfinite(Q).flatten(1).all(1)
     Ms = torch.where(finite.reshape(-1, 1, 1), M, eye)
-    settles = finite & (torch.linalg.eigvals(Ms).real.amin(1) > 0)
     X = torch.empty_like(M)
     per = max(1, chunk_bytes // (8 * n ** 4))
     for a in range(0, B, per):
@@ -369,8 +368,7 @@ def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> t
         q = torch.where(finite[a:a + per].reshape(-1, 1, 1), Q[a:a + per], 0.0).reshape(-1, n * n, 1)
         sol = torch.linalg.solve_ex(K, q)
         X[a:a + per] = sol.result.reshape(-1, n, n)
-    X = 0.5 * (X + X.mT)
-    return X, settles
+    return 0.5 * (X + X.mT)
 
 
 def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]],
