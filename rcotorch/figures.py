@@ -192,9 +192,8 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
         resp = np.asarray(resp)
         true = "true" in label.lower()
         style, z = ("--", 3) if true else ("-", 2)
-        am.loglog(omega, np.abs(resp), style, label=label, lw=1.3, zorder=z, color="k" if true else None)
-        ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), style, label=label, lw=1.3, zorder=z,
-                    color="k" if true else None)
+        am.loglog(omega, np.abs(resp), style, label=label, lw=1.3, zorder=z)
+        ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), style, label=label, lw=1.3, zorder=z)
     for ax in (am, ap):
         if nyquist:
             ax.axvline(nyquist, color="gray", lw=0.8, ls=":", label="Nyquist frequency" if ax is am else None)
