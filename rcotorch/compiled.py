@@ -42,6 +42,9 @@ class Compiled:
     owner: Any
     form: str               # 'scalar' or 'array'
 
+    def __deepcopy__(self, memo) -> Compiled:
+        return self         # compiled code is immutable: copies of a graph (and of its program) share it
+
 
 _cache: dict[tuple, tuple[Any, Compiled | str]] = {}
 _lock = threading.Lock()

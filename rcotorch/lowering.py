@@ -52,6 +52,9 @@ class _Address:
     def data_ptr(self) -> int:
         return self.address
 
+    def __deepcopy__(self, memo) -> _Address:
+        return self
+
 
 class Builder:
     """What a block's ``lower`` uses to describe itself to the native engine.

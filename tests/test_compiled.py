@@ -42,6 +42,16 @@ def test_a_numpy_static_map_runs_natively_and_equals_the_pytorch_engine():
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_a_graph_that_ran_compiled_functions_can_be_copied_for_its_intervals(tmp_path):
+    """The intervals replay copies of the graph, program and compiled functions included."""
+    g = _graph(rt.StaticMap(friction, 1), batch=2)
+    res = rt.refine(g, 2000, out=tmp_path / "run", figures=False)
+    assert res.summary["engine"] == "native" and res.summary["intervals"]
+    assert all(v is not None for v in res.summary["intervals"]["theta[sign(y0)(k)]"]["lower"])
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_several_inputs_compile_in_the_array_form_and_equal_pytorch():
     def coupled(x):
         return np.stack((x[:, 0] * x[:, 1], np.tanh(x[:, 0]) - x[:, 1] ** 3), axis=1)
