@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .compiled import call_user
 from .errors import ConfigError, DimensionError, PortError
 
 DEFAULT_DTYPE = torch.float64
@@ -208,7 +209,7 @@ class StaticMap(Block):
             raise ConfigError(f"block '{name}': fn must be callable")
         widths = []
         for B in (1, 2):
-            out = tensor_result(fn(torch.randn(B, in_width, dtype=dtype)), dtype)
+            out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise DimensionError(f"block '{name}': fn must map a (batch, {in_width}) tensor to (batch, m); "
@@ -221,7 +222,7 @@ class StaticMap(Block):
 
     def output(self, port, inputs):
         x = inputs["in"]
-        return tensor_result(self.fn(x), x.dtype, x.device)
+        return tensor_result(call_user(self.fn, x), x.dtype, x.device)
 
     def lower(self, b) -> None:
         """The native form: ``fn`` compiled by numba (``rcotorch.compiled``) and called once per chunk of

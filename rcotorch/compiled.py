@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import re
 import threading
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,6 +49,14 @@ class Compiled:
 
 _cache: dict[tuple, tuple[Any, Compiled | str]] = {}
 _lock = threading.Lock()
+
+
+def call_user(fn, *args):
+    """A user function called with tensors. NumPy's functions applied to a tensor go through its
+    ``__array_wrap__``, whose old signature NumPy 2 warns about at each call; that says nothing to the user."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*__array_wrap__.*", category=DeprecationWarning)
+        return fn(*args)
 
 
 def describe(fn) -> str:
@@ -191,7 +200,7 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
                         np.zeros((1, n_in)), np.full((1, n_in), 1.5), np.full((1, n_in), -1.5),
                         rng.uniform(-1, 1, (5, n_in))])
     with torch.no_grad(), np.errstate(all="ignore"):
-        want = fn(torch.from_numpy(x))
+        want = call_user(fn, torch.from_numpy(x))
     want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
     if want.shape != (len(x), n_out):
         return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"

@@ -23,6 +23,7 @@ import torch
 from torch.autograd.functional import jvp
 
 from .blocks import DEFAULT_DTYPE, Block, tensor_result
+from .compiled import call_user
 from .errors import ConfigError, DimensionError
 
 
@@ -85,10 +86,10 @@ class Nonlinear(Block):
         self.x = self.x0.expand(batch_size, -1).clone()
 
     def _f(self, x: torch.Tensor, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return tensor_result(self.f(x, inputs), x.dtype, x.device)
+        return tensor_result(call_user(self.f, x, inputs), x.dtype, x.device)
 
     def _h(self, x: torch.Tensor) -> torch.Tensor:
-        return tensor_result(self.h(x), x.dtype, x.device)
+        return tensor_result(call_user(self.h, x), x.dtype, x.device)
 
     def output(self, port, inputs):
         return self._h(self.x)[:, self._out_slices[port]]
