@@ -286,7 +286,7 @@ class Program:
 
 def _structure(graph) -> tuple:
     return (graph.batch_size, tuple(graph.order), tuple(graph.sources.items()),
-            tuple((n, id(b)) for n, b in graph.blocks.items()), bool(graph.hooks))
+            tuple((n, id(b)) for n, b in graph.blocks.items()), tuple(map(id, graph.hooks)))
 
 
 def _params(graph, state_names: Mapping[str, set[str]]) -> list[torch.Tensor]:
@@ -299,8 +299,10 @@ def _lower(graph) -> Program | str:
     """The program of ``graph``, or why it has none."""
     if not kernels.available():
         return f"the native engine is unavailable ({kernels.why_unavailable()})"
-    if graph.hooks:
-        return "the graph has step hooks (they run after every step)"
+    for hook in graph.hooks:
+        if not periodic(hook):
+            return (f"the graph has a step hook ({describe_hook(hook)}) that runs after every step; a hook "
+                    "with an integer attribute 'every' runs natively between its calls")
     for blk in graph.blocks.values():
         why = _lowerable(blk)
         if why:
@@ -350,17 +352,31 @@ def _observers(prog: Program, accumulate, record, done: int, every: int) -> tupl
     return torch.tensor(rows, dtype=torch.int64), list((accumulate or {}).values())
 
 
+def periodic(hook) -> int | None:
+    """The period of a hook that acts only at steps k with k % every == 0, or None."""
+    every = getattr(hook, "every", None)
+    return every if isinstance(every, int) and not isinstance(every, bool) and every >= 1 else None
+
+
+def describe_hook(hook) -> str:
+    return getattr(hook, "__qualname__", None) or type(hook).__name__
+
+
 def advance(graph, prog: Program, steps: int, accumulate: Mapping[Signal, torch.Tensor] | None = None,
             record: Mapping[Signal, torch.Tensor] | None = None, every: int = 1) -> None:
     """Run ``steps`` steps of ``graph`` with its program. ``accumulate``: {signal: (B,) float64} gets
     sum_c signal^2 of every step added; ``record``: {signal: (steps // every, B, width) float64} receives the
-    signal after every ``every``-th step."""
+    signal after every ``every``-th step. The graph's periodic hooks run at their steps (the engine stops
+    there, and its program is renewed when a hook changed a parameter)."""
     for buf in (record or {}).values():
         if buf.dtype != torch.float64 or not buf.is_contiguous() or buf.shape[0] < steps // every:
             raise NotLowerable("record buffers must be contiguous float64 (steps // every, B, width)")
+    periods = [periodic(h) for h in graph.hooks]
     done = 0
     while done < steps:
         T = prog.steps_left(steps - done)
+        if periods:
+            T = min(T, *(p - int(graph.k) % p for p in periods))
         binds, written = prog.bindings()
         counters = torch.tensor([int(blk.k) for blk in prog.counted] or [0], dtype=torch.int64)
         ptrs = torch.tensor([t.data_ptr() for t in prog.pointers] or [0], dtype=torch.int64)
@@ -371,4 +387,11 @@ def advance(graph, prog: Program, steps: int, accumulate: Mapping[Signal, torch.
             blk.k += T
         graph.k += T
         done += T
+        if periods and any(int(graph.k) % p == 0 for p in periods):
+            graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}
+            for hook in graph.hooks:
+                hook(graph)
+            prog = program(graph)
+            if isinstance(prog, str):
+                raise NotLowerable(f"after a step hook, {prog}")
     graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}

@@ -12,7 +12,8 @@ batches of 1 and 2 when the block is built.
 A ``Nonlinear`` block can stand wherever an ``LTI`` known model does: ``markov`` linearizes it (forward-mode
 autograd, Jacobian-vector products through the step, or central finite differences) at its current state or
 along the trajectory from it, so ``refinement`` derives the estimator's Markov parameters from it, and
-``MarkovRefresh`` recomputes them during a run.
+``MarkovRefresh`` recomputes them during a run. Functions written with NumPy (which autograd cannot follow) are
+linearized by central differences.
 """
 
 from __future__ import annotations
@@ -142,23 +143,37 @@ class Nonlinear(Block):
         b.emit("COPY", [n, nxt, x])
 
     # --- linearization ------------------------------------------------------------------------------------
+    def differentiable(self) -> bool:
+        """Whether autograd follows f and h (torch operations); NumPy functions are not followed."""
+        if getattr(self, "_differentiable", None) is None:
+            x = self.x0[:1].detach().clone().requires_grad_(True)
+            ins = {p: torch.zeros(1, w, dtype=x.dtype) for p, w in self.inputs.items()}
+            try:
+                with torch.enable_grad():
+                    self._differentiable = all(v.requires_grad for v in (self._f(x, ins), self._h(x)))
+            except Exception:              # NumPy refuses a tensor that requires grad
+                self._differentiable = False
+        return self._differentiable
+
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
-               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "autograd",
+               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "auto",
                along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
         """Markov parameters H_0..H_(n-1) of ``input -> output`` linearized at state ``x`` (default: the current
         state, or x0 before a reset) with the other inputs held at ``inputs`` (default zero): (B, n, out, in).
 
         ``along='trajectory'`` linearizes along the free motion from x (H_i = C_i A_(i-1) .. A_1 B_0);
         ``along='point'`` at the fixed point x (H_i = C A^(i-1) B). ``method`` is 'autograd' (forward-mode
-        Jacobian-vector products through ``step_map`` and ``h``) or 'fd' (central differences, step eps
-        relative to the size of x and u)."""
+        Jacobian-vector products through ``step_map`` and ``h``), 'fd' (central differences, step eps
+        relative to the size of x and u) or 'auto' (autograd where f and h are torch functions, else 'fd')."""
         if input not in self.inputs or output not in self.outputs:
             raise ConfigError(f"block '{self.name}': no input '{input}' or output '{output}'; inputs are "
                               f"{list(self.inputs)}, outputs {list(self.outputs)}")
-        if method not in ("autograd", "fd") or along not in ("trajectory", "point"):
-            raise ConfigError(f"block '{self.name}': method must be 'autograd' or 'fd' and along 'trajectory' or "
-                              f"'point', got {method!r}, {along!r}")
+        if method not in ("auto", "autograd", "fd") or along not in ("trajectory", "point"):
+            raise ConfigError(f"block '{self.name}': method must be 'auto', 'autograd' or 'fd' and along "
+                              f"'trajectory' or 'point', got {method!r}, {along!r}")
         x = ((self.x if self.x.shape[0] else self.x0) if x is None else x).detach()
+        if method == "auto":
+            method = "autograd" if self.differentiable() else "fd"
         B, W = x.shape[0], self.inputs[input]
         ins = {p: x.new_zeros(B, w) for p, w in self.inputs.items()}
         ins.update({p: v.detach().to(x).expand(B, -1) for p, v in dict(inputs or {}).items()})
@@ -197,8 +212,10 @@ class MarkovRefresh:
     so it runs after every step (also inside ``Run``), or call it after ``graph.step()`` yourself."""
 
     def __init__(self, graph, every: int, known: str | None = None, identified: str | None = None,
-                 actuation: str = "u", measured: str = "y", method: str = "autograd"):
-        """``known``, ``identified``: block names; by default the graph's ``known`` and ``estimator`` roles."""
+                 actuation: str = "u", measured: str = "y", method: str = "auto"):
+        """``known``, ``identified``: block names; by default the graph's ``known`` and ``estimator`` roles.
+        ``method``: how ``Nonlinear.markov`` linearizes the known model. The hook acts only at steps that are
+        multiples of ``every``, so the native engine runs the steps in between without Python."""
         if every < 1:
             raise ConfigError(f"MarkovRefresh: every must be at least 1, got {every}")
         self.graph, self.every, self.method = graph, every, method

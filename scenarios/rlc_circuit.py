@@ -67,46 +67,12 @@ import scipy.linalg
 import torch
 
 import rcotorch as rt
-from rcotorch.blocks import Block
 from rcotorch.figures import frequency_figure
 from rcotorch.intervals import member_band
 from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
 
 PAPER_L0, PAPER_C0 = 2e-6, 1.0
-
-
-class NoisyMeasurement(Block):
-    """Physical system with measurement noise: ``system`` (input w, output y, no direct feedthrough) plus
-    Gaussian white noise of std ``std`` on y (its own counter-based stream, seed ``seed``)."""
-
-    def __init__(self, system: Block, std: float, seed: int, name: str = "plant"):
-        super().__init__(name, {"w": system.inputs["w"]}, {"y": system.outputs["y"]})
-        self.system = system
-        self.noise = rt.WhiteNoise(system.outputs["y"], std=std, seed=seed, name="noise")
-
-    def feedthrough(self):
-        return {"y": tuple(self.system.feedthrough()["y"])}
-
-    def reset(self, batch_size: int) -> None:
-        super().reset(batch_size)
-        self.system.reset(batch_size)
-        self.noise.reset(batch_size)
-
-    def output(self, port, inputs):
-        return self.system.output("y", inputs) + self.noise.output("out", {})
-
-    def update(self, inputs):
-        self.system.update({"w": inputs["w"]})
-        self.noise.update({})
-
-    def lower(self, b) -> None:
-        """The native form: the system and the noise lowered inside this block, their outputs summed."""
-        w = self.outputs["y"]
-        y, n = b.scratch(w), b.scratch(w)
-        b.inline(self.system, {"w": b.input("w")}, {"y": y}, port="y")
-        b.inline(self.noise, {}, {"out": n}, port="y")
-        b.emit("SUM", [w, 2, b.output("y"), y, 1, n, 1], port="y")
 
 
 def initial_values(s) -> tuple[float, float, float]:
@@ -193,9 +159,9 @@ class RlcCircuit(Scenario):
         truth = rt.LTI.from_control(truth_discrete(s), inputs=["w"], outputs=["y"], name="circuit")
         seed = s["seed"]
         noise_seed = [x + 7919 for x in seed] if isinstance(seed, list) else seed + 7919
-        physical = NoisyMeasurement(truth, std=s["noise"] * output_rms(s), seed=noise_seed)
         ident = rt.RCOEstimator.static_gain({"y0": 2, "w": 1}, p0=s["p0"], lam=s["lam"])
-        return rt.refinement(known, ident, physical=physical,
+        return rt.refinement(known, ident, physical=truth,
+                             noise=rt.WhiteNoise(1, std=s["noise"] * output_rms(s), seed=noise_seed),
                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"]), nu=s["nu"],
                              batch_size=batch, dtype=dtype, device=device)
 

@@ -394,7 +394,7 @@ def test_engine_choice_and_unsupported_graphs(sdof_known):
                        truth=rt.Gain([[0.1]], name="unknown"), excitation=rt.WhiteNoise(1), nu=4)
     assert "features" in g2.native_status()
     g2.add_hook(lambda graph: None)
-    assert "hooks" in g2.native_status()
+    assert "step hook" in g2.native_status()
     g3 = rt.refinement(sdof_known(DT), rt.RCOEstimator({"y0": 1}, nc=1), truth=rt.Gain([[0.1]], name="unknown"),
                        excitation=rt.WhiteNoise(1), nu=4, dtype=torch.float32)
     assert "float32" in g3.native_status()
