@@ -83,17 +83,16 @@ def test_rlc_measurement_noise_is_one_percent_of_the_output_rms():
     y = scipy.signal.lfilter(num[0], den, w)[1000:]
     rms = mod.output_rms(s)
     assert abs(np.sqrt(np.mean(y ** 2)) / rms - 1) < 0.01       # Lyapunov rms vs a long simulation
-    truth = rt.LTI.from_control(Td, inputs=["w"], outputs=["y"], name="circuit")
-    block = mod.NoisyMeasurement(truth, std=0.01 * rms, seed=5)
-    block.reset(2)
-    rest = torch.zeros(2, 1, dtype=torch.float64)                # the circuit stays at rest: y is the noise
-    noise = torch.stack([block.step(w=rest)["y"] for _ in range(20000)])
+    g = mod.SCENARIO.build(s, 2, torch.float64, "cpu")
+    noise = g.run(20000, record={"n": "noise.out"})["n"]         # the measurement noise added to y
+    y = g.run(1, record={"y": "plant.y", "m": "measurement.out", "n": "noise.out"})
+    assert torch.equal(y["m"], y["y"] + y["n"])
     assert abs(float(noise.std()) / (0.01 * rms) - 1) < 0.02
     assert abs(float(noise.mean())) < 0.05 * 0.01 * rms
 
 
 def test_rlc_noisy_physical_block_checkpoints_and_resumes_bitwise(tmp_path):
-    """The measurement-noise block's state (circuit state, noise counter) is in the graph's state_dict."""
+    """The measurement noise's state (its counter) is in the graph's state_dict."""
     with one_thread():
         straight = Run("rlc-circuit", steps=400, batch=2, out=tmp_path / "a")
         straight.advance(progress=False)
@@ -104,7 +103,7 @@ def test_rlc_noisy_physical_block_checkpoints_and_resumes_bitwise(tmp_path):
         resumed = Run.resume(tmp_path / "b", steps=400)
         resumed.advance(progress=False)
     assert torch.equal(straight.graph.blocks["identified"].theta, resumed.graph.blocks["identified"].theta)
-    assert "blocks.plant.noise.k" in straight.graph.state_dict()
+    assert "blocks.noise.k" in straight.graph.state_dict()
 
 
 # --- 2-DOF structure ---------------------------------------------------------------------------------------
