@@ -596,3 +596,49 @@ def test_large_recording_buffers_are_backed_by_huge_pages():
     assert buf.shape == (64, 1024, 128) and float(buf.sum()) == 1.5 * buf.numel()
     small = kernels.empty((3, 2), torch.float64)               # below one huge page: a plain tensor
     assert small.shape == (3, 2) and small.dtype == torch.float64
+
+
+class _NoisySystem(rt.blocks.Block):
+    """A composite block of a user's: a system (input w, output y) plus white noise on y, lowered by inlining
+    both inside it."""
+
+    def __init__(self, system, std, seed):
+        super().__init__("plant", {"w": system.inputs["w"]}, {"y": system.outputs["y"]})
+        self.system, self.noise = system, rt.WhiteNoise(system.outputs["y"], std=std, seed=seed, name="noise")
+
+    def feedthrough(self):
+        return {"y": tuple(self.system.feedthrough()["y"])}
+
+    def reset(self, batch_size):
+        super().reset(batch_size)
+        self.system.reset(batch_size)
+        self.noise.reset(batch_size)
+
+    def output(self, port, inputs):
+        return self.system.output("y", inputs) + self.noise.output("out", {})
+
+    def update(self, inputs):
+        self.system.update({"w": inputs["w"]})
+        self.noise.update({})
+
+    def lower(self, b):
+        w = self.outputs["y"]
+        y, n = b.scratch(w), b.scratch(w)
+        b.inline(self.system, {"w": b.input("w")}, {"y": y}, port="y")
+        b.inline(self.noise, {}, {"out": n}, port="y")
+        b.emit("SUM", [w, 2, b.output("y"), y, 1, n, 1], port="y")
+
+
+def test_a_composite_block_lowers_the_blocks_it_holds_and_equals_pytorch():
+    def build(engine):
+        sysd = control.c2d(control.ss([[0, 1], [-4, -0.4]], [[0], [1]], [[0, 1]], 0), 0.01)
+        plant = _NoisySystem(rt.LTI.from_control(sysd, inputs=["w"], outputs=["y"]), std=0.05, seed=[3, 4])
+        g = rt.Graph([rt.WhiteNoise(1, seed=[1, 2], name="w"), plant], [("w.out", "plant.w")], batch_size=2)
+        g.engine = engine
+        return g
+    native, torch_ = build("native"), build("torch")
+    a = native.run(500, record={"y": "plant.y"})["y"]
+    b = torch_.run(500, record={"y": "plant.y"})["y"]
+    assert native.ran_engine == "native"
+    assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert "blocks.plant.noise.k" in native.state_dict() and int(native.blocks["plant"].noise.k) == 500
