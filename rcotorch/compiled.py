@@ -17,15 +17,26 @@ computes something else (an operation that treats a float and a tensor different
 
 What cannot be compiled (torch operations, Python objects, an unsupported NumPy function) runs on the PyTorch
 engine, and the reason names the block, the function and numba's word on the operation. Compilations are
-kept for the process: copies of a graph (a sweep's shards in one process, the intervals' replay) reuse them.
+kept for the process (copies of a graph, a sweep's shards in one process, the intervals' replay reuse them)
+and on disk for later processes (``cache_folder``): each function's wrappers are a small module file named by
+a hash of everything its code depends on, which numba caches beside it; a function whose globals have no
+stable description (an arbitrary object) is compiled in every process. What is loaded from the disk is
+checked like a fresh compilation, and compiled afresh if it does not reproduce the function.
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
+import os
 import re
+import stat
+import sys
 import threading
+import types
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -66,52 +77,58 @@ def describe(fn) -> str:
     return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
 
 
-def compile_map(fn, n_in: int, n_out: int, reference=None) -> Compiled | str:
+def compile_map(fn, n_in: int, n_out: int) -> Compiled | str:
     """``fn`` (a (B, n_in) -> (B, n_out) map) as a compiled C function, or why it cannot be compiled; it must
-    reproduce ``reference`` (default ``fn``) called with tensors."""
+    reproduce ``fn`` called with tensors."""
     key = (id(fn), n_in, n_out)
     with _lock:
         hit = _cache.get(key)
         if hit is not None and hit[0] is fn:
             return hit[1]
-        result = _compile(fn, n_in, n_out, reference or fn)
+        fp = _fingerprint(fn)
+        result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
+                          None if fp is None else f"map {n_in} {n_out} {fp}")
         _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
         return result
 
 
-def step_function(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int):
-    """The discrete map of a ``Nonlinear`` block, x(k+1) from [x(k), inputs(k)] stacked in one (B, n + m)
-    array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held, as
-    ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
-    builds the inputs' dict as the PyTorch engine passes it. Kept per (f, sizes, ports, dt, form)."""
+def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int) -> Compiled | str:
+    """The discrete map of a ``Nonlinear`` block compiled, x(k+1) from [x(k), inputs(k)] stacked in one
+    (B, n + m) array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held,
+    as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
+    builds the inputs' dict as the PyTorch engine passes it."""
     key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
     with _lock:
         hit = _cache.get(key)
         if hit is not None and hit[0] is f:
             return hit[1]
-    cols, start = [], n
-    for port, width in inputs.items():
-        cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
-        start += width
-    # An entry of another type makes numba keep the dict a compile-time literal (no dict made per call).
-    ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
-    if continuous:
-        h = float(dt) / int(substeps)
-        body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
-                f"        k1 = f(x, ins)\n        k2 = f(x + {0.5 * h!r} * k1, ins)\n"
-                f"        k3 = f(x + {0.5 * h!r} * k2, ins)\n        k4 = f(x + {h!r} * k3, ins)\n"
-                f"        x = x + {h / 6.0!r} * (k1 + 2.0 * k2 + 2.0 * k3 + k4)\n    return x\n")
-    else:
-        body = f"    return f(xu[:, :{n}], {ins})\n"
-    source = compile("def step(xu):\n" + body, f"<rcotorch step of {describe(f)}>", "exec")
-    plain: dict = {"f": f}                     # the reference the compiled form is checked against
-    exec(source, plain)
-    jitted: dict = {"f": _jit(f)}              # the same source calling f compiled
-    exec(source, jitted)
-    pair = (jitted["step"], plain["step"])
-    with _lock:
-        _cache[key] = (f, pair)
-    return pair
+        cols, start = [], n
+        for port, width in inputs.items():
+            cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
+            start += width
+        # An entry of another type makes numba keep the dict a compile-time literal (no dict made per call).
+        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        if continuous:
+            h = float(dt) / int(substeps)
+            body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
+                    f"        k1 = f(x, ins)\n        k2 = f(x + {0.5 * h!r} * k1, ins)\n"
+                    f"        k3 = f(x + {0.5 * h!r} * k2, ins)\n        k4 = f(x + {h!r} * k3, ins)\n"
+                    f"        x = x + {h / 6.0!r} * (k1 + 2.0 * k2 + 2.0 * k3 + k4)\n    return x\n")
+        else:
+            body = f"    return f(xu[:, :{n}], {ins})\n"
+        source = "def step(xu):\n" + body
+        reference: dict = {"f": f}                 # the same source calling f itself: what is checked against
+        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
+        fp = _fingerprint(f)
+        result = _compile(lambda module: _numba().njit(module.step), reference["step"], n + sum(inputs.values()), n,
+                          source, {"f": _jit(f)}, None if fp is None else f"step {fp}")
+        _cache[key] = (f, result)
+        return result
+
+
+def _numba():
+    import numba
+    return numba
 
 
 def _jit(f):
@@ -127,7 +144,6 @@ def _jit(f):
 def _with_helpers_jitted(fn, depth: int = 4):
     """A copy of ``fn`` whose plain Python helpers (functions it names as globals or closes over) are numba
     dispatchers, compiled the same way, so that a user's function may call functions of its own."""
-    import types
 
     import numba
     if not isinstance(fn, types.FunctionType) or depth == 0:
@@ -151,43 +167,150 @@ def _with_helpers_jitted(fn, depth: int = 4):
     return out
 
 
-def _compile(fn, n_in: int, n_out: int, reference) -> Compiled | str:
+# The C wrappers: x and y hold the chunk's lanes slot by slot, (n_in, vl) and (n_out, vl), row-major; ``jfn`` is
+# the function (or step) compiled by numba, bound in the module before the wrappers are compiled.
+_WRAPPERS = """
+SIG = types.void(types.CPointer(types.float64), types.CPointer(types.float64), types.int64)
+
+
+def scalar(x, y, vl):
+    for lane in range(vl):
+        y[lane] = jfn(x[lane])
+
+
+def array(x, y, vl):
+    r = jfn(numba.carray(x, (N_IN, vl)).T)
+    out = numba.carray(y, (N_OUT, vl))
+    for j in range(N_OUT):
+        for lane in range(vl):
+            out[j, lane] = r[lane, j]
+"""
+
+
+def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None) -> Compiled | str:
+    """Compile the wrappers of a module holding ``source`` with ``bind`` as globals and ``jfn = entry(module)``;
+    the result must reproduce ``reference``. ``key`` names everything the code depends on (None: not known, so
+    nothing is kept on disk); a module loaded from the disk cache that does not reproduce ``reference`` is
+    compiled again without it."""
     try:
-        import numba
-        from numba import types
+        numba = _numba()
     except ImportError:
         return "numba is not installed (pip install numba)"
-    sig = types.void(types.CPointer(types.float64), types.CPointer(types.float64), types.int64)
-    try:
-        jfn = numba.njit(_with_helpers_jitted(fn))
-    except Exception as e:                    # not a Python function numba can take
-        return f"numba cannot take it: {_first_line(e)}"
-    reasons = []
-    forms = (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]
-    for form in forms:
-        # x and y hold the chunk's lanes slot by slot: (n_in, vl) and (n_out, vl), row-major
-        if form == "scalar":
-            def body(x, y, vl):
-                for lane in range(vl):
-                    y[lane] = jfn(x[lane])
-        else:
-            def body(x, y, vl):
-                r = jfn(numba.carray(x, (n_in, vl)).T)
-                out = numba.carray(y, (n_out, vl))
-                for j in range(n_out):
-                    for lane in range(vl):
-                        out[j, lane] = r[lane, j]
+    reasons: list[str] = []
+    for cached in ((True, False) if key is not None and cache_folder() is not None else (False,)):
+        module = _module(source, n_in, n_out, key if cached else None)
         try:
-            cf = numba.cfunc(sig, nopython=True)(body)
-        except Exception as e:
-            reasons.append(_first_line(e))
-            continue
-        mismatch = _check(reference, cf, n_in, n_out)
-        if mismatch:
-            reasons.append(mismatch)
-            continue
-        return Compiled(address=cf.address, owner=cf, form=form)
+            module.__dict__.update(bind)
+            module.jfn = entry(module)
+        except Exception as e:                # not a Python function numba can take
+            return f"numba cannot take it: {_first_line(e)}"
+        for form in (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]:
+            try:
+                cf = numba.cfunc(module.SIG, nopython=True, cache=cached)(getattr(module, form))
+            except Exception as e:
+                reasons.append(_first_line(e))
+                continue
+            mismatch = _check(reference, cf, n_in, n_out)
+            if mismatch:
+                reasons.append(mismatch)
+                continue
+            return Compiled(address=cf.address, owner=cf, form=form)
     return reasons[-1] if reasons else "no form compiled"
+
+
+def cache_folder() -> Path | None:
+    """Where compiled functions are kept between processes: ``$RCOTORCH_CACHE`` (``off``: nowhere), else
+    ``$XDG_CACHE_HOME/rcotorch`` or ``~/.cache/rcotorch``; its ``compiled/`` folder, private to the user. A
+    folder that others may write to is not used (its code would be loaded unchecked by numba before
+    rcotorch's own check)."""
+    root = os.environ.get("RCOTORCH_CACHE")
+    if root == "off":
+        return None
+    if not root:
+        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rcotorch"
+    folder = Path(root) / "compiled"
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        st = folder.stat()
+    except OSError:
+        return None
+    if st.st_uid != os.getuid() or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return None
+    return folder
+
+
+def _module(source: str, n_in: int, n_out: int, key: str | None) -> types.ModuleType:
+    """A module of ``source`` and the wrappers: a file in the cache folder named by a hash of ``key`` and its
+    text when ``key`` is given (numba keeps what it compiles from it beside it), else in memory only."""
+    text = f"import numba\nfrom numba import types\n\nN_IN, N_OUT = {n_in}, {n_out}\n\n\n{source}{_WRAPPERS}"
+    if key is None:
+        module = types.ModuleType("rcotorch_compiled")
+        exec(compile(text, "<rcotorch compiled>", "exec"), module.__dict__)
+        return module
+    import numba
+    digest = hashlib.sha256("\n".join([key, text, numba.__version__, np.__version__, sys.version]).encode())
+    name = f"rcotorch_compiled_{digest.hexdigest()[:32]}"
+    if name in sys.modules:
+        return sys.modules[name]
+    path = cache_folder() / f"{name}.py"
+    if not path.exists() or path.read_text() != text:
+        tmp = path.with_name(f".{name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module              # numba finds the module by name when it loads its cached code
+    spec.loader.exec_module(module)
+    return module
+
+
+def _fingerprint(fn, depth: int = 4) -> str | None:
+    """A text naming everything ``fn``'s compiled code depends on (its code, constants, defaults, closure and
+    the globals it reads, helper functions included), or None when a value has no stable description."""
+    if not isinstance(fn, types.FunctionType) or depth == 0:
+        return None
+    parts = [fn.__module__ or "", fn.__qualname__, _code_text(fn.__code__), repr(fn.__defaults__)]
+    values = [c.cell_contents for c in fn.__closure__ or () if _filled(c)]
+    values += [fn.__globals__[k] for k in sorted(_names(fn.__code__)) if k in fn.__globals__]
+    for v in values:
+        if isinstance(v, types.FunctionType):
+            inner = _fingerprint(v, depth - 1)
+            if inner is None:
+                return None
+            parts.append(inner)
+        elif isinstance(v, types.ModuleType):
+            parts.append(f"module {v.__name__}")
+        elif isinstance(v, np.ndarray):
+            parts.append(f"array {v.dtype} {v.shape} {hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()}")
+        elif isinstance(v, (int, float, complex, str, bytes, bool, type(None))) or \
+                (isinstance(v, tuple) and all(isinstance(t, (int, float, str, bool)) for t in v)):
+            parts.append(f"{type(v).__name__} {v!r}")
+        elif callable(v) and getattr(v, "__module__", "") and str(v.__module__).startswith(("numpy", "math")):
+            parts.append(f"{v.__module__}.{getattr(v, '__qualname__', '')}")
+        else:
+            return None
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _code_text(code) -> str:
+    consts = [(_code_text(c) if isinstance(c, types.CodeType) else repr(c)) for c in code.co_consts]
+    return f"{code.co_code.hex()} {consts} {code.co_names} {code.co_varnames}"
+
+
+def _names(code) -> set[str]:
+    """The global names a code object (and the code objects nested in it) reads."""
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= _names(c)
+    return names
+
+
+def _filled(cell) -> bool:
+    try:
+        return cell.cell_contents is not _filled       # reading an empty cell raises
+    except ValueError:
+        return False
 
 
 def _check(fn, cf, n_in: int, n_out: int) -> str | None:

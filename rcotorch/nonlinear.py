@@ -115,15 +115,14 @@ class Nonlinear(Block):
         """The native form: ``h`` and the step map (``f``, or its RK4 substeps) compiled by numba
         (``rcotorch.compiled``), each called once per chunk of members and step; a function that does not
         compile keeps the graph on PyTorch, and the reason names it."""
-        from .compiled import compile_map, describe, step_function
+        from .compiled import compile_map, compile_step, describe
         n, n_out = self.n_states, sum(self.outputs.values())
         x = b.state("x")
         h = compile_map(self.h, n, n_out)
         if isinstance(h, str):
             b.refuse(f"output function h {describe(self.h)} is not compiled: {h}")
         m = sum(self.inputs.values())
-        step, reference = step_function(self.f, n, self.inputs, self.dt, self.continuous, self.substeps)
-        c = compile_map(step, n + m, n, reference=reference)
+        c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps)
         if isinstance(c, str):
             b.refuse(f"state function f {describe(self.f)} is not compiled: {c}")
         for port, sl in self._out_slices.items():

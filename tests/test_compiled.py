@@ -1,5 +1,10 @@
 """A user's own function in the native engine: StaticMap compiled by numba against the PyTorch engine, the
-reason when it cannot be compiled, the array form for several inputs, and the compilation kept per process."""
+reason when it cannot be compiled, the array form for several inputs, Nonlinear blocks and their Markov
+refreshes, and the compilation kept per process and on disk."""
+
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -197,3 +202,51 @@ def test_a_markov_refresh_of_a_numpy_known_model_runs_natively_between_refreshes
     a, b = ident.theta, torch_.role("estimator").theta
     assert torch.allclose(a, b, rtol=1e-3, atol=1e-6), (a - b).abs().max()
     assert torch.allclose(ident.beta, torch_.role("estimator").beta, rtol=1e-6, atol=1e-9)
+
+
+_CACHED_RUN = """
+import numpy as np
+import rcotorch as rt
+from rcotorch import compiled
+K = {k}
+def spring(x, ins):
+    return np.concatenate((x[:, 1:2], -K * x[:, 0:1] + ins["w"]), axis=1)
+blk = rt.Nonlinear(spring, lambda x: x[:, 1:2], 2, inputs=["w"], outputs=["y"], dt=0.01, continuous=True,
+                   substeps=2)
+c = compiled.compile_step(blk.f, 2, blk.inputs, blk.dt, True, 2)
+g = rt.Graph([rt.WhiteNoise(1, seed=3, name="w"), blk], [("w.out", "nonlinear.w")])
+y = g.run(300, record={{"y": "nonlinear.y"}})["y"]
+print(c.owner._cache_hits, g.ran_engine, repr(float(y.abs().sum())))
+"""
+
+
+def test_compiled_functions_are_kept_on_disk_for_later_processes_and_keyed_by_what_they_depend_on(tmp_path):
+    env = {**os.environ, "RCOTORCH_CACHE": str(tmp_path)}
+
+    def run(k):
+        out = subprocess.run([sys.executable, "-c", _CACHED_RUN.format(k=k)], env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        hits, engine, total = out.stdout.split()
+        return int(hits), engine, float(total)
+    first, second, other = run(4.0), run(4.0), run(9.0)
+    assert first[0] == 0 and second[0] > 0            # the second process loads what the first compiled
+    assert first[1:] == second[1:] and first[1] == "native"
+    assert other[0] == 0 and other[2] != first[2]     # another constant: another key, compiled afresh
+    assert (tmp_path / "compiled").stat().st_mode & 0o077 == 0
+
+
+def test_a_function_whose_globals_have_no_stable_description_is_not_kept_on_disk():
+    class Spring:
+        k = 4.0
+    spring = Spring()
+
+    def f(x):
+        return -spring.k * x
+    assert compiled._fingerprint(f) is None
+    K2 = 3.0
+
+    def g(x):
+        return -K2 * x
+    assert compiled._fingerprint(g) is not None
+    assert compiled._fingerprint(friction) != compiled._fingerprint(g)
