@@ -5,14 +5,35 @@ from __future__ import annotations
 
 import csv
 import math
+import numbers
+import zipfile
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .errors import DataError
+
+SAMPLE_TIME_RTOL = 1e-9     # sample times closer than this (relative) are the same rate
+CSV_CHUNK_ROWS = 8192       # CSV rows parsed per batch: the strings held at once
+
+
+def check_sample_time(dt, where: str) -> float | None:
+    """``dt`` as a float (None stays None); a ``DataError`` naming ``where`` unless it is a finite number > 0."""
+    if dt is None:
+        return None
+    if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not (math.isfinite(dt) and dt > 0):
+        raise DataError(f"{where}: the sample time dt must be a finite number of seconds > 0, got {dt!r}")
+    return float(dt)
+
+
+def same_sample_time(a: float, b: float) -> bool:
+    """Whether two sample times agree to rounding (``SAMPLE_TIME_RTOL``)."""
+    return abs(a - b) <= SAMPLE_TIME_RTOL * max(abs(a), abs(b))
 
 
 @dataclass
@@ -35,6 +56,9 @@ class Recording:
     units: dict[str, str] = field(default_factory=dict)
     metadata: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self):
+        self.dt = check_sample_time(self.dt, self.path or "recording")
+
     def unit(self, name: str | int) -> str | None:
         """The unit of a column (from ``units=`` or a CSV header such as ``force [N]``), or None."""
         return self.units.get(self.columns[self.index(name)])
@@ -43,14 +67,7 @@ class Recording:
         return self.values[:, self.index(name)]
 
     def index(self, name: str | int) -> int:
-        if isinstance(name, int):
-            if not 0 <= name < len(self.columns):
-                raise DataError(f"{self.path or 'recording'}: column index {name} out of range "
-                                f"(it has {len(self.columns)} columns: {self.columns})")
-            return name
-        if name not in self.columns:
-            raise DataError(f"{self.path or 'recording'}: no column {name!r}; columns are {self.columns}")
-        return self.columns.index(name)
+        return _column_index(self.path or "recording", self.columns, name)
 
     def rows(self, start: int, stop: int) -> Recording:
         """The file rows [start, stop) (0-based data rows), as a new recording."""
@@ -209,17 +226,25 @@ def _check_finite(values: np.ndarray, columns: list[str], path: str, first_row: 
 
 def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | str | None = None,
          on_nonfinite: str = "error", units: dict[str, str] | None = None) -> Recording:
-    """Load measured signals from a ``.csv`` (header row of names; trailing commas and empty fields
+    """Load measured signals from a ``.csv`` (UTF-8, header row of names; trailing commas and empty fields
     allowed), ``.npz`` (one array per name, or a 2-D array) or MATLAB ``.mat`` file (v4 to v7; its numeric
     vectors and matrices become columns, see ``_read_mat``).
 
     Args:
-        columns: names (or indices) to keep, in this order; all by default.
+        columns: names (or indices) to keep, in this order, each once; all by default. Of a CSV file only
+            these columns are parsed and stored.
         rows: 0-based data rows [start, stop) to keep.
-        dt: sample time in seconds, or the name of a scalar stored in the file (``dt="Ts"``).
+        dt: sample time in seconds (finite, > 0), or the name of a scalar stored in the file (``dt="Ts"``).
         on_nonfinite: 'error' raises naming file, row and column; 'skip' keeps the sample, marked invalid.
         units: column name -> unit (e.g. ``{'V1': 'V'}``), kept in ``Recording.units``. A CSV header
             ``name [unit]`` gives column ``name`` with that unit; ``units=`` overrides it.
+
+    Files are read strictly: a CSV that is not UTF-8 (a leading byte-order mark is dropped), two header
+    names that give the same column (``x`` twice, or ``x`` and ``x [m]``), a field that is not a decimal
+    number (``1e-3``, ``-0.5``, ``+2`` and ``.5`` are; ``1_000`` is not; ``nan`` and ``inf`` are non-finite
+    samples, see ``on_nonfinite``), an ``.npz`` file that is not a zip of ``.npy`` arrays or holds complex,
+    object or empty arrays, and a file without samples are each a ``DataError`` naming the file and, where
+    they apply, row and column.
 
     The scalars and strings of a ``.mat`` file and the scalars of an ``.npz`` file are kept in
     ``Recording.metadata``.
@@ -227,118 +252,239 @@ def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | st
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such file")
+    if not isinstance(dt, str):
+        dt = check_sample_time(dt, str(path))
     suffix = path.suffix.lower()
     file_units: dict[str, str] = {}
-    skipped: list[str] = []
     metadata: dict[str, Any] = {}
     if suffix == ".csv":
-        names, values = _read_csv(path)
-        names, file_units = _split_units(names)
-    elif suffix == ".npz":
-        names, values, metadata = _read_npz(path)
-    elif suffix == ".mat":
-        names, values, metadata, skipped = _read_mat(path)
+        names, file_units, idx, values = _read_csv(path, columns)
+    elif suffix in (".npz", ".mat"):
+        names, values, metadata, skipped = _read_npz(path) if suffix == ".npz" else _read_mat(path)
+        idx = None if columns is None else _column_indices(path, names, columns, skipped)
+        if idx is not None:
+            values = values[:, idx]
     else:
         raise DataError(f"{path}: unsupported file type {suffix!r} (expected .csv, .npz or .mat)")
     unknown = [k for k in (units or {}) if k not in names]
     if unknown:
         raise DataError(f"{path}: units given for unknown column(s) {unknown}; columns are {names}")
     all_units = {**file_units, **{k: str(v) for k, v in (units or {}).items()}}
-    dt = _stored_sample_time(path, dt, metadata)
-    rec = Recording(values, names, dt, str(path), 0, units=all_units, metadata=metadata)
-    if columns is not None:
-        try:
-            idx = [rec.index(c) for c in columns]
-        except DataError as e:
-            if skipped:
-                raise DataError(f"{e} (variables that are not signals were left out: {'; '.join(skipped)})") from None
-            raise
-        kept = [names[i] for i in idx]
-        rec = Recording(values[:, idx], kept, dt, str(path), 0,
-                        units={k: v for k, v in all_units.items() if k in kept}, metadata=metadata)
+    if isinstance(dt, str):
+        dt = _stored_sample_time(path, dt, metadata)
+    kept = names if idx is None else [names[i] for i in idx]
+    rec = Recording(values, kept, dt, str(path), 0, units={k: v for k, v in all_units.items() if k in kept},
+                    metadata=metadata)
     if rows is not None:
         rec = rec.rows(*rows)
     rec.valid = _check_finite(rec.values, rec.columns, rec.path, rec.first_row, on_nonfinite)
     return rec
 
 
-def _stored_sample_time(path: Path, dt: float | str | None, metadata: Mapping[str, Any]) -> float | None:
-    """``dt`` itself, or the file's scalar named by it."""
-    if not isinstance(dt, str):
-        return dt
-    scalars = {k: v for k, v in metadata.items() if isinstance(v, (int, float))}
+def _stored_sample_time(path: Path, dt: str, metadata: Mapping[str, Any]) -> float:
+    """The file's scalar named ``dt``, which must be a finite number of seconds > 0."""
+    scalars = {k: v for k, v in metadata.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
     if dt not in scalars:
         raise DataError(f"{path}: dt={dt!r} names no scalar stored in the file; its scalars are {sorted(scalars)}")
-    if not scalars[dt] > 0:
-        raise DataError(f"{path}: the sample time {dt} = {scalars[dt]} is not positive")
-    return float(scalars[dt])
+    v = scalars[dt]
+    if not (math.isfinite(v) and v > 0):
+        raise DataError(f"{path}: the sample time {dt} = {v} is not {'positive' if math.isfinite(v) else 'finite'}")
+    return float(v)
 
 
-def _split_units(names: list[str]) -> tuple[list[str], dict[str, str]]:
+def _column_index(where: str, columns: list[str], name: str | int) -> int:
+    if isinstance(name, int):
+        if not 0 <= name < len(columns):
+            raise DataError(f"{where}: column index {name} out of range (it has {len(columns)} columns: {columns})")
+        return name
+    if name not in columns:
+        raise DataError(f"{where}: no column {name!r}; columns are {columns}")
+    return columns.index(name)
+
+
+def _column_indices(path: Path, names: list[str], columns, skipped: Sequence[str] = ()) -> list[int]:
+    """The indices of the columns asked for (names or indices), each asked for once."""
+    try:
+        idx = [_column_index(str(path), names, c) for c in columns]
+    except DataError as e:
+        if skipped:
+            raise DataError(f"{e} (variables that are not signals were left out: {'; '.join(skipped)})") from None
+        raise
+    if not idx:
+        raise DataError(f"{path}: columns= names no column; columns are {names}")
+    twice = sorted({names[i] for i in idx if idx.count(i) > 1})
+    if twice:
+        raise DataError(f"{path}: columns= asks for the column(s) {twice} more than once")
+    return idx
+
+
+def _split_units(path: Path, names: list[str]) -> tuple[list[str], dict[str, str]]:
     """Header names ``'force [N]'`` -> column ``'force'`` with unit ``'N'``; other names are kept as they are
-    (and all of them when splitting would make two names equal)."""
+    (and all of them when splitting would make two names equal: ``'x [m]'`` next to ``'x [mm]'``). The same
+    name twice, or a name next to the same name with a unit (``'x'`` and ``'x [m]'``), is a ``DataError``."""
+    first: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if name in first:
+            raise DataError(f"{path}: the header names the column {name!r} twice (columns {first[name]} and {i}, "
+                            "0-based); rename one of them")
+        first[name] = i
     out, units = [], {}
-    for n in names:
-        if n.endswith("]") and "[" in n and not n.startswith("["):
-            base, unit = n[:-1].rsplit("[", 1)
-            base, unit = base.strip(), unit.strip()
+    for i, name in enumerate(names):
+        if name.endswith("]") and "[" in name and not name.startswith("["):
+            base, unit = (part.strip() for part in name[:-1].rsplit("[", 1))
             if base and unit:
+                if base in first:
+                    raise DataError(f"{path}: header columns {first[base]} and {i} (0-based), {base!r} and {name!r}, "
+                                    f"both name the column {base!r}; rename one of them")
                 out.append(base)
                 units[base] = unit
                 continue
-        out.append(n)
-    if len(set(out)) < len(set(names)):  # 'x [m]' next to 'x [mm]': keep the headers as they are
+        out.append(name)
+    if len(set(out)) < len(out):
         return list(names), {}
     return out, units
 
 
-def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        try:
-            header = next(reader)
-        except StopIteration:
-            raise DataError(f"{path}: the file is empty") from None
-        while header and header[-1].strip() == "":  # trailing comma
-            header = header[:-1]
-        names = [h.strip() for h in header]
-        if not names or any(n == "" for n in names):
-            raise DataError(f"{path}: header row has empty column names: {header}")
-        n = len(names)
-        rows = []
-        for line in reader:
+def _read_csv(path: Path, columns) -> tuple[list[str], dict[str, str], list[int] | None, np.ndarray]:
+    """The header's column names and units, the indices of the columns asked for (None: all) and their values
+    (rows, columns asked for). Rows are parsed ``CSV_CHUNK_ROWS`` at a time into an array sized from the
+    file's line ends, so that memory holds the asked-for columns as float64 and one batch of their fields."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            try:
+                return _parse_csv(path, reader, columns, _record_bound(path))
+            except csv.Error as e:
+                raise DataError(f"{path}: line {reader.line_num} (1-based, header included) is not valid CSV: "
+                                f"{e}") from None
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not UTF-8 text ({_undecodable(path)}); save the file as UTF-8 CSV") from None
+
+
+def _parse_csv(path: Path, reader, columns, capacity: int):
+    """``_read_csv`` on an open ``csv.reader``; ``capacity`` is at least the number of data rows."""
+    header = next(reader, None)
+    if header is None:
+        raise DataError(f"{path}: the file is empty")
+    while header and header[-1].strip() == "":  # trailing comma
+        header = header[:-1]
+    if not header or any(h.strip() == "" for h in header):
+        raise DataError(f"{path}: header row has empty column names: {header}")
+    names, units = _split_units(path, [h.strip() for h in header])
+    n = len(names)
+    idx = None if columns is None else _column_indices(path, names, columns)
+    picked = list(range(n)) if idx is None else idx
+    kept = [names[i] for i in picked]
+    get = itemgetter(*picked)                   # the asked-for fields of a row (one field: a string)
+    values = np.empty((capacity, len(picked)))
+    batch: list = []
+    done = 0
+    for line in reader:
+        if len(line) != n:
             if len(line) > n and all(s.strip() == "" for s in line[n:]):
                 line = line[:n]
-            if not line:
+            elif not line:
                 continue
-            r = len(rows)  # 0-based data row, blank lines not counted
-            if len(line) != n:
-                raise DataError(f"{path}: row {r} (0-based data row) has {len(line)} fields, the header has {n}")
-            vals = []
-            for c, s in enumerate(line):
-                s = s.strip()
-                if s == "":
-                    vals.append(math.nan)
-                    continue
-                try:
-                    vals.append(float(s))
-                except ValueError:
-                    raise DataError(f"{path}: row {r} (0-based data row), column {names[c]!r}: "
-                                    f"{s!r} is not a number") from None
-            rows.append(vals)
-    if not rows:
+            else:  # 0-based data row, blank lines not counted
+                raise DataError(f"{path}: row {done + len(batch)} (0-based data row) has {len(line)} fields, the "
+                                f"header has {n}")
+        batch.append(get(line))
+        if len(batch) == CSV_CHUNK_ROWS:
+            done = _parse_rows(path, kept, batch, values, done)
+            batch.clear()
+    done = _parse_rows(path, kept, batch, values, done)
+    if done == 0:
         raise DataError(f"{path}: no data rows")
-    return names, np.asarray(rows, dtype=np.float64)
+    return names, units, idx, values[:done]
 
 
-def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any]]:
-    with np.load(path) as z:
-        arrays = {k: np.asarray(z[k]) for k in z.keys()}
+def _record_bound(path: Path) -> int:
+    """At least the number of CSV records in the file: its line ends ('\\n', '\\r\\n' or '\\r') plus one."""
+    bound = 1
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            cr = block.count(b"\r")
+            bound += block.count(b"\n") + (cr and cr - block.count(b"\r\n"))
+    return bound
+
+
+def _parse_rows(path: Path, names: list[str], batch: list, out: np.ndarray, row0: int) -> int:
+    """Parse a batch of rows (the asked-for fields of each) into ``out[row0:]``; returns the rows filled."""
+    m = len(batch)
+    for j, col in enumerate(zip(*batch) if len(names) > 1 else (batch,)):
+        text = "".join(col)
+        try:
+            if "_" in text or not text.isascii():
+                raise ValueError(text)
+            out[row0:row0 + m, j] = np.fromiter(map(float, col), np.float64, m)
+        except ValueError:  # empty fields, or a field to name in the error
+            out[row0:row0 + m, j] = [_number(path, s, row0 + i, names[j]) for i, s in enumerate(col)]
+    return row0 + m
+
+
+def _number(path: Path, field: str, row: int, column: str) -> float:
+    """One CSV field: a decimal number, nan or inf (any case), or empty (a missing sample, NaN)."""
+    s = field.strip()
+    if s == "":
+        return math.nan
+    if "_" not in s and s.isascii():
+        try:
+            return float(s)
+        except ValueError:
+            pass
+    raise DataError(f"{path}: row {row} (0-based data row), column {column!r}: {s!r} is not a number (decimal "
+                    "digits with an optional sign, point and exponent, or nan / inf)")
+
+
+def _undecodable(path: Path) -> str:
+    """Where a file first fails to decode as UTF-8: the header or a data row (blank lines not counted)."""
+    row = -1
+    with open(path, "rb") as f:
+        for line in f:
+            try:
+                text = line.decode("utf-8")
+            except UnicodeDecodeError as e:
+                where = "the header" if row < 0 else f"row {row} (0-based data row)"
+                return f"{where}: byte {line[e.start:e.start + 1]!r} at position {e.start} of the line"
+            if row < 0 or text.strip("\r\n"):
+                row += 1
+    return "it ends inside a character"
+
+
+def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[str]]:
+    """Columns from an ``.npz`` file: one 1-D array per signal, or a single 2-D array (samples along its rows);
+    its 0-d numbers and strings become metadata. Arrays are read without unpickling, so object arrays are
+    refused, as are complex, non-numeric and empty ones."""
+    if not zipfile.is_zipfile(path):
+        raise DataError(f"{path}: not an .npz file (a zip archive of .npy arrays, as numpy.savez writes it)")
+    arrays = {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            for k in z.files:
+                try:
+                    arrays[k] = np.asarray(z[k])
+                except ValueError as e:
+                    why = "holds Python objects (dtype object), which are never unpickled" if "pickle" in str(e) \
+                        else f"cannot be read ({e})"
+                    raise DataError(f"{path}: array {k!r} {why}; store numeric arrays") from None
+    except DataError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise DataError(f"{path}: not a readable .npz file ({e})") from None
     metadata = {k: a.item() for k, a in arrays.items() if a.ndim == 0 and a.dtype.kind in "biufU"}
     keys = [k for k in arrays if k not in metadata]
+    for k in keys:
+        a = arrays[k]
+        if a.dtype.kind == "c":
+            raise DataError(f"{path}: array {k!r} is complex ({a.dtype}); store its real and imaginary parts as two "
+                            "real arrays")
+        if a.dtype.kind not in "biuf":
+            raise DataError(f"{path}: array {k!r} has dtype {a.dtype}, not numbers")
+        if a.size == 0:
+            raise DataError(f"{path}: array {k!r} is empty (shape {a.shape}): no samples")
     if len(keys) == 1 and arrays[keys[0]].ndim == 2:
         arr = np.asarray(arrays[keys[0]], dtype=np.float64)
-        return [f"{keys[0]}[{i}]" for i in range(arr.shape[1])], arr, metadata
+        return [f"{keys[0]}[{i}]" for i in range(arr.shape[1])], arr, metadata, []
     cols = []
     for k in keys:
         a = np.asarray(arrays[k], dtype=np.float64)
@@ -350,7 +496,7 @@ def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any]]:
         raise DataError(f"{path}: no arrays to use as signals (only the scalars {sorted(metadata)})")
     if len({len(a) for a in cols}) > 1:
         raise DataError(f"{path}: arrays have different lengths: {dict(zip(keys, map(len, cols)))}")
-    return keys, np.stack(cols, axis=1), metadata
+    return keys, np.stack(cols, axis=1), metadata, []
 
 
 def _read_mat(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[str]]:

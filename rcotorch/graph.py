@@ -1,9 +1,10 @@
 """Graphs of blocks wired by port name.
 
 A ``Graph`` is checked when it is built: every name resolves (with a suggestion when it does not), every
-required input is driven exactly once, widths agree, and direct-feedthrough paths have no cycle (an
-algebraic loop). Each step evaluates the output ports in an order that respects feedthrough, then advances
-every block. ``print(graph)`` shows the blocks and the connection table.
+required input is driven exactly once, widths agree, direct-feedthrough paths have no cycle (an
+algebraic loop), and recorded data is played at the sample time of every block that has one. Each step
+evaluates the output ports in an order that respects feedthrough, then advances every block. ``print(graph)``
+shows the blocks and the connection table.
 
 A graph may declare *roles*: which block is the estimator, which the known model, which signal the model
 error z, and so on. Tools that work on any refinement (the runner, the monitor, figures) find these parts
@@ -16,6 +17,8 @@ from __future__ import annotations
 import copy
 import difflib
 import logging
+import math
+import numbers
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
@@ -24,7 +27,9 @@ from torch import nn
 
 from . import kernels, lowering, memo
 from .blocks import DEFAULT_DTYPE, Block
-from .errors import AlgebraicLoopError, ConfigError, DimensionError, PortError
+from .data import same_sample_time
+from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError
+from .sources import Recorded
 
 Signal = tuple[str, str]
 ENGINES = ("auto", "native", "torch")
@@ -40,6 +45,12 @@ def _split(ref: str) -> Signal:
         raise PortError(f"signal reference {ref!r} must read 'block.port'")
     b, p = ref.split(".")
     return b.strip(), p.strip()
+
+
+def _has_sample_time(blk: Block) -> bool:
+    """Whether a block has a sample time: an attribute ``dt`` holding a finite number > 0."""
+    dt = getattr(blk, "dt", None)
+    return isinstance(dt, numbers.Real) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0
 
 
 def _suggest(name: str, choices: Iterable[str]) -> str:
@@ -88,6 +99,7 @@ class Graph(nn.Module):
             for port in blk.inputs:
                 if (name, port) not in self.sources and port not in blk.optional_inputs:
                     raise PortError(f"graph: input '{name}.{port}' is not connected")
+        self._check_sample_times()
         self.order = self._schedule()
         self.roles = self._check_roles(dict(roles or {}))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
@@ -133,6 +145,20 @@ class Graph(nn.Module):
             raise DimensionError(f"graph: '{src[0]}.{src[1]}' has width {w_out} but '{dst[0]}.{dst[1]}' "
                                  f"expects width {w_in}")
         self.sources[dst] = src
+
+    def _check_sample_times(self) -> None:
+        """Recorded data must be played at the sample time of every block that has one (to rounding)."""
+        timed = {name: float(blk.dt) for name, blk in self.blocks.items() if _has_sample_time(blk)}
+        for name, blk in self.blocks.items():
+            if not isinstance(blk, Recorded) or name not in timed:
+                continue
+            for other, dt in timed.items():
+                if other != name and not same_sample_time(timed[name], dt):
+                    origin = f" from {blk.source}" if blk.source else ""
+                    raise DataError(f"graph: block '{name}' plays recorded data{origin} sampled every {timed[name]} s, "
+                                    f"but block '{other}' has the sample time {dt} s; "
+                                    f"give the recording its true dt, or pass resample={dt} to the Recorded block to "
+                                    "interpolate it onto that grid")
 
     def _check_roles(self, roles: dict[str, str]) -> dict[str, str]:
         for role, ref in roles.items():
@@ -301,7 +327,9 @@ class Graph(nn.Module):
                 logger.warning("graph: running on the PyTorch engine: %s", reason)
 
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
-        """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook."""
+        """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook. A hook with an
+        integer attribute ``every`` promises to act only after steps k with k % every == 0: it is called
+        only there on the native engine, which runs the steps in between."""
         self.hooks.append(hook)
         return hook
 

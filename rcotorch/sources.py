@@ -11,7 +11,7 @@ import torch
 
 from . import kernels, memo, rng
 from .blocks import DEFAULT_DTYPE, Block
-from .data import Derivation, Recording
+from .data import Derivation, Recording, check_sample_time, same_sample_time
 from .errors import ConfigError, DataError
 
 
@@ -125,9 +125,15 @@ class Recorded(Block):
     Args:
         data: a ``Recording`` or an array (T, columns), or one per member (B, T, columns).
         outputs: port name -> column name(s) or index(es), e.g. ``{'w': 'V1', 'y': 'V2'}``.
+        dt: the sample time of ``data`` in seconds where it carries none (an array, or a recording loaded
+            without ``dt``); a recording's own sample time must agree with it.
         derive: derived signals, name -> ``rcotorch.data.difference / derivative / function``, computed once
             from the whole recording when the block is built (playback stays a plain table); ``outputs`` may
             name them, e.g. ``derive={"v": derivative("x", tau=0.01)}, outputs={"y": "v", ...}``.
+        resample: play the recording back at this sample time [s] instead of its own: each output is
+            interpolated linearly onto t = k * resample (k = 0, 1, ... while t lies within the recording),
+            without an anti-aliasing filter. A graph refuses recorded data whose sample time differs from
+            that of another block (e.g. the known model), so another rate needs this option.
 
     Where the recording marks samples invalid (non-finite, loaded with ``on_nonfinite='skip'``), the block
     holds the last valid value and emits ``valid = 0`` on the extra output port ``valid``, so an estimator
@@ -142,8 +148,8 @@ class Recorded(Block):
 
     def __init__(self, data, outputs: Mapping[str, str | int | Sequence[str | int]], name: str = "data",
                  dt: float | None = None, derive: Mapping[str, Derivation] | None = None,
-                 holdoff: Mapping[str, int] | None = None, dtype=DEFAULT_DTYPE):
-        rec = _recording(data, name, dt)
+                 holdoff: Mapping[str, int] | None = None, resample: float | None = None, dtype=DEFAULT_DTYPE):
+        rec = _recording(data, name, check_sample_time(dt, f"block '{name}'"))
         if derive:
             try:
                 rec = rec.derive(**derive)
@@ -165,10 +171,17 @@ class Recorded(Block):
             b, r, c = np.argwhere(~valid)[0]
             raise DataError(f"block '{name}': data row {rec.first_row + r}, column {cols[c]} is non-finite "
                             "(load the file with on_nonfinite='skip' to skip such samples)")
+        sample_time = rec.dt
+        if resample is not None:
+            sample_time = check_sample_time(resample, f"block '{name}': resample")
+            if rec.dt is None:
+                raise DataError(f"block '{name}': resample={resample!r} needs the recording's sample time; load it "
+                                "with dt=... or pass dt= to the block")
+            values, valid = _resample(values, valid, rec.dt, sample_time)
         held = _forward_fill(values, valid)
         self.has_gaps = not valid.all()
         super().__init__(name, {}, {**ports, **({"valid": 1} if self.has_gaps else {})})
-        self.dt = rec.dt if dt is None else dt
+        self.dt = sample_time
         self.source = rec.path
         self.first_row = rec.first_row
         self.length = values.shape[1]
@@ -241,13 +254,37 @@ class Recorded(Block):
 
 
 def _recording(data, name: str, dt: float | None) -> Recording:
-    """``data`` as a Recording: itself, or an array (T, columns) or (B, T, columns) with columns '0', '1', ..."""
+    """``data`` as a Recording: itself (with ``dt`` where it has no sample time of its own), or an array
+    (T, columns) or (B, T, columns) with columns '0', '1', ..."""
     if isinstance(data, Recording):
-        return data if dt is None or data.dt is not None else dataclasses.replace(data, dt=dt)
+        if dt is None:
+            return data
+        if data.dt is None:
+            return dataclasses.replace(data, dt=dt)
+        if not same_sample_time(dt, data.dt):
+            raise DataError(f"block '{name}': dt={dt} differs from the sample time {data.dt} of the recording"
+                            f"{' ' + data.path if data.path else ''}; pass resample={dt} to play it back at {dt} s")
+        return data
     arr = np.asarray(data, dtype=np.float64)
-    if arr.ndim not in (2, 3):
-        raise DataError(f"block '{name}': data must be (T, columns) or (B, T, columns), got shape {arr.shape}")
+    if arr.ndim not in (2, 3) or 0 in arr.shape:
+        raise DataError(f"block '{name}': data must be (T, columns) or (B, T, columns) with samples, got shape "
+                        f"{arr.shape}")
     return Recording(arr, [str(i) for i in range(arr.shape[-1])], dt)
+
+
+def _resample(values: np.ndarray, valid: np.ndarray, dt: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Samples (B, T, C) taken every ``dt`` interpolated linearly onto t = k * step (while t <= (T - 1) dt, to
+    rounding); a new sample is valid where the samples it is interpolated from are."""
+    T = values.shape[1]
+    pos = np.arange(int(np.floor((T - 1) * dt / step * (1 + 1e-12))) + 1) * (step / dt)   # in samples of dt
+    near = np.round(pos)
+    pos = np.where(np.abs(pos - near) <= 1e-9 * np.maximum(near, 1), near, pos)  # grid points that coincide
+    i = np.minimum(pos.astype(np.int64), T - 1)
+    j = np.minimum(i + 1, T - 1)
+    w = (pos - i)[None, :, None]
+    known = np.where(valid, values, 0.0)
+    a, b = known[:, i], known[:, j]
+    return a + w * (b - a), valid[:, i] & (valid[:, j] | (w == 0))
 
 
 def _forward_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -14,6 +14,7 @@ from rcotorch import scenario as scenarios
 from rcotorch.sources import _normal_grid
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import csv_memory  # noqa: E402
 import duffing  # noqa: E402
 import rls_kernel  # noqa: E402
 import throughput  # noqa: E402
@@ -113,6 +114,14 @@ def test_rls_kernel_script_quick(tmp_path):
     v = res["results"][0]["variants"]
     assert set(v) == {"inplace", "inplace_torch", "functional", "before"}
     assert res["memcpy_bytes_per_s"] > 0 and v["inplace"]["effective_P_bytes_per_s"] > 0
+
+
+def test_csv_memory_script_quick(tmp_path):
+    out = tmp_path / "c.json"
+    csv_memory.main(["--quick", "--out", str(out)])
+    res = json.loads(out.read_text())
+    assert res["values_equal"] and res["file"]["rows"] == 20000 and res["asked_bytes"] == 8 * 20000 * 2
+    assert res["rcotorch"]["seconds"] > 0 and res["loadtxt"]["seconds"] > 0
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-CUDA path")
