@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import control
 import numpy as np
 import torch
 
@@ -31,6 +30,7 @@ def log_grid(dt: float, low: float = 1e-2, n: int = 400) -> np.ndarray:
 def reference_response(reference, omega, dt: float) -> np.ndarray:
     """Frequency response of a python-control system (discrete at z = exp(j w dt), or continuous at s = j w)
     as an array (F,) for SISO or (F, outputs, inputs)."""
+    import control
     if isinstance(reference, (control.StateSpace, control.TransferFunction)):
         x = np.exp(1j * omega * dt) if reference.isdtime(strict=True) else 1j * omega
         resp = np.asarray(reference(x))

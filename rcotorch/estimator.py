@@ -42,8 +42,8 @@ Robustness options (each off by default, each a scalar or one value per member):
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 import torch
 
@@ -52,6 +52,9 @@ from .blocks import DEFAULT_DTYPE, Block
 from .errors import ConfigError, DimensionError
 from .features import Term, as_terms
 from .rls import rls_update
+
+if TYPE_CHECKING:
+    import control
 
 # The buffer that holds each robustness option (see ``RCOEstimator._options``).
 _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
@@ -677,6 +680,7 @@ class RCOEstimator(Block):
         ``control.interconnect([known, identified.to_control()], inputs='w', outputs='y')`` with a known model
         whose ports carry the same names (``rt.models``, ``rt.models.label_ports``) builds the refined model.
         """
+        import control
         names = self._control_names()
         if self.n_u != 1 and self.feed_u:
             # A MIMO controller with shared poles: build it in state space and convert.
@@ -708,6 +712,7 @@ class RCOEstimator(Block):
 
     def _to_ss(self, member: int) -> control.StateSpace:
         """State space of u(k) = sum N_l s(k-l) + sum M_l u(k-l), state = past s and past u."""
+        import control
         N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
         nc, m, p = self.nc, self.n_sig, self.n_u
         n = nc * (m + p)

@@ -10,14 +10,17 @@ given per member (leading batch dimension), so a sweep over physical parameters 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 import torch
 
 from . import memo
 from .blocks import DEFAULT_DTYPE, Block, as_batched_matrix, matvec
 from .errors import ConfigError, DimensionError
+
+if TYPE_CHECKING:
+    import control
 
 
 def _ports(spec, total: int, what: str, name: str) -> dict[str, int]:
@@ -105,6 +108,7 @@ class LTI(Block):
                      dtype=DEFAULT_DTYPE) -> LTI:
         """From a python-control ``StateSpace`` or ``TransferFunction``. A continuous system is discretized
         by zero-order hold at ``dt``; a discrete one keeps its own sample time (``dt`` must agree)."""
+        import control
         if isinstance(sys, control.TransferFunction):
             sys = control.tf2ss(sys)
         if not isinstance(sys, control.StateSpace):
@@ -196,6 +200,7 @@ class LTI(Block):
 
     def to_control(self, member: int = 0) -> control.StateSpace:
         """The discrete system of one batch member as a python-control ``StateSpace`` with its dt."""
+        import control
         A, B, C, D = (M[member if M.shape[0] > 1 else 0].detach().cpu().numpy()
                       for M in (self.A, self.B, self.C, self.D))
         return control.ss(A, B, C, D, self.dt,

@@ -12,7 +12,6 @@ import scipy.linalg
 import scipy.signal
 import torch
 
-import rcotorch as rt
 from rcotorch.models.circuits import series_rlc
 from rcotorch.runner import Run
 

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 
 from .structures import vector
+
+if TYPE_CHECKING:
+    import control
 
 SIGNALS = ("charge", "current", "v_C", "v_R")
 
@@ -24,6 +27,7 @@ def series_rlc(R: float, L: float, C: float, measured: Sequence[str] = ("v_R",),
     ``u``; outputs ``y`` (``measured``) and ``y0`` (``sees``), ``[i]`` appended where there are several;
     states ``q`` (charge) and ``i`` (current).
     """
+    import control
     R, L, C = float(R), float(L), float(C)
     if min(R, L, C) <= 0:
         raise ValueError(f"series_rlc: R, L, C must be positive, got R={R}, L={L}, C={C}")

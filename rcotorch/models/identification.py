@@ -36,9 +36,6 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import scipy.linalg
-import scipy.optimize
-import scipy.signal
 
 from ..blocks import DEFAULT_DTYPE
 from ..errors import ConfigError, DataError
@@ -102,6 +99,7 @@ class DiscreteModel:
 
 def _lsim(A, B, C, D, u, x0) -> np.ndarray:
     """Linear response (T, p) of x(k+1) = A x + B u, y = C x + D u from x0, one IIR filter per input."""
+    import scipy.signal
     T = u.shape[0]
     y = np.zeros((T, C.shape[0]))
     for j in range(B.shape[1]):
@@ -119,6 +117,7 @@ def _lsim(A, B, C, D, u, x0) -> np.ndarray:
 
 def _expm_input(A, b, h, foh=False):
     """exp of the augmented matrix: (Phi, Gamma) of a ZOH over h, and with ``foh`` also the ramp term."""
+    import scipy.linalg
     n = A.shape[0]
     if not foh:
         M = np.zeros((n + 1, n + 1))
@@ -224,6 +223,7 @@ class MassSpringDamper:
     def initial_state(self, w, y, feedback: Callable[[float], float] | None = None) -> np.ndarray:
         """The discrete state at the first sample whose free run best fits ``y`` (least squares over the
         given samples, e.g. the first 50 of a validation record); the constant state stays 1."""
+        import scipy.optimize
         w, y = _as_signals(w, y, "initial_state", minimum=2)
         base = self.state(0.0, 0.0, w[0])
         e_y, e_v = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
@@ -251,6 +251,7 @@ class MassSpringDamper:
         ``fit_rmse`` is that error. Raises ``DataError`` when the data do not look like a stable,
         second-order system.
         """
+        import scipy.optimize
         w, y = _as_signals(w, y, "fit", minimum=20)
         if not dt or dt <= 0:
             raise ConfigError(f"fit: dt must be a positive sample time, got {dt!r}")

@@ -10,14 +10,17 @@ returns the plant with its signals renamed (``w``, ``w[i]``, ...), ready for ``c
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 
 from ..blocks import DEFAULT_DTYPE
 from ..errors import ConfigError
 from ..lti import LTI
 from .structures import vector
+
+if TYPE_CHECKING:
+    import control
 
 Signals = str | int | Sequence[str | int]
 
@@ -34,6 +37,7 @@ def label_ports(plant, w: Signals, u: Signals, y: Signals, y0: Signals, name: st
 
     Each of w, u, y, y0 is a signal name, the base name of a vector signal, an index, or a list of them.
     """
+    import control
     if isinstance(plant, control.TransferFunction):
         plant = control.tf2ss(plant)
     if not isinstance(plant, control.StateSpace):

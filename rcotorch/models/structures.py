@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    import control
 
 SIGNALS = ("position", "velocity")
 
@@ -23,6 +26,7 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
     ``y`` (the measured ones) and ``y0`` (the seen ones), with ``[i]`` appended where there are several;
     states ``q[i]`` and ``qdot[i]`` (``q``, ``qdot`` for one degree of freedom).
     """
+    import control
     M, C, K = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (M, C, K))
     n = M.shape[0]
     Minv = np.linalg.inv(M)
