@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
@@ -217,6 +218,19 @@ class Recorded(Block):
             ok &= steps - last > n                                              # and the n samples after it
         dtype = self.values.dtype
         self.valid_mask = torch.as_tensor(ok[:, :, None], dtype=dtype, device=self.values.device)
+
+    def window(self, start: int, stop: int) -> Recorded:
+        """A copy that plays samples [start, stop) of this block's recording, from its first step."""
+        if not 0 <= start < stop <= self.length:
+            raise ConfigError(f"block '{self.name}': window ({start}, {stop}) must lie within the recording's "
+                              f"{self.length} samples")
+        out = copy.deepcopy(self)
+        out.values = self.values[:, start:stop].clone()
+        out._valid = self._valid[:, start:stop]
+        out.length, out.first_row = stop - start, self.first_row + start
+        out.set_holdoff({})                    # the hold-off mask of the window's own samples
+        out.k = torch.zeros_like(self.k)
+        return out
 
     @property
     def max_steps(self) -> int:

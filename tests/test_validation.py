@@ -1,0 +1,83 @@
+"""Held-out validation (rcotorch.validation) against independent simulations (python-control)."""
+
+import control
+import numpy as np
+import pytest
+import torch
+
+import rcotorch as rt
+from rcotorch.errors import ConfigError
+from rcotorch.validation import validate
+
+TS, K_MODEL, K_TRUE, DAMP, NOISE = 0.01, 4.0, 5.0, 0.4, 0.01
+
+
+def _sdof(k, inputs):
+    B = [[0, 0], [1, 1]] if len(inputs) == 2 else [[0], [1]]
+    C = [[0, 1], [1, 0]] if len(inputs) == 2 else [[0, 1]]
+    outputs = {"y": 1, "y0": 1} if len(inputs) == 2 else ["y"]
+    return rt.LTI.continuous([[0, 1], [-k, -DAMP]], B, C, np.zeros((len(C), len(inputs))), inputs=inputs,
+                             outputs=outputs, dt=TS, name="known" if len(inputs) == 2 else "truth")
+
+
+def _refined(steps=4000, batch=2):
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=100.0)
+    g = rt.refinement(_sdof(K_MODEL, ["w", "u"]), ident, physical=_sdof(K_TRUE, ["w"]),
+                      excitation=rt.WhiteNoise(1, seed=[1, 2][:batch]),
+                      noise=rt.WhiteNoise(1, std=NOISE, seed=[8, 9][:batch]), nu=200, batch_size=batch)
+    g.run(steps)
+    return g
+
+
+def _excitation(seed: int, start: int, steps: int) -> np.ndarray:
+    src = rt.WhiteNoise(1, seed=[seed])
+    src.reset(1)
+    src.k.fill_(start)
+    return torch.cat([src.step()["out"] for _ in range(steps)]).numpy()[:, 0]
+
+
+def test_fresh_excitation_validation_equals_a_python_control_simulation_of_the_refined_and_initial_models():
+    g = _refined()
+    theta = g.role("estimator").theta.detach().clone()
+    v = validate(g, 2000)
+    assert v.state_fitted and v.refined.shape == (2000, 2, 1)
+    for b, seed in enumerate([1, 2]):
+        w = _excitation(seed, int(g.k), 2000)
+        for model, gain in (("refined", float(theta[b].flatten()[0])), ("initial", 0.0)):
+            # the sampled known model with u(k) = gain * position(k) in feedback, on the sources' later samples
+            sys = control.c2d(control.ss([[0, 1], [-K_MODEL, -DAMP]], [[0], [1]], [[0, 1]], 0), TS)
+            sys = control.ss(sys.A + gain * sys.B @ [[1.0, 0.0]], sys.B, sys.C, 0, TS)
+            x0 = getattr(v, "x0" if model == "refined" else "x0_initial")[b].numpy()
+            want = control.forced_response(sys, U=w, X0=x0).outputs
+            got = getattr(v, model)[:, b, 0].numpy()
+            assert np.allclose(got, want, rtol=1e-9, atol=1e-9), np.abs(got - want).max()
+        truth = control.c2d(control.ss([[0, 1], [-K_TRUE, -DAMP]], [[0], [1]], [[0, 1]], 0), TS)
+        clean = control.forced_response(truth, U=w).outputs
+        noise = v.measured[:, b, 0].numpy() - clean
+        assert abs(noise.std() / NOISE - 1) < 0.1                  # the measurement noise continues as well
+    # the refined model's error is the measurement noise; the initial model's is far larger
+    assert torch.all((v.rmse / NOISE - 1).abs() < 0.1), v.rmse
+    assert torch.all(v.rmse_initial > 5 * v.rmse) and torch.all(v.fit_percent > v.fit_percent_initial + 40)
+    s = v.summary()
+    assert s["steps"] == 2000 and len(s["rmse"]) == 2 and "fresh excitation" in s["source"]
+
+
+def test_the_initial_state_is_fitted_to_the_first_samples():
+    """Recorded data start mid-motion: the fitted state makes the refined model's error the noise alone."""
+    g = _refined(batch=1)
+    sim = _refined(steps=1, batch=1)                 # a recording of the truth: 3000 samples of w and y
+    tr = sim.run(3000, record={"w": "excitation.out", "y": "measurement.out"})
+    rec = np.concatenate([tr["w"][:, 0], tr["y"][:, 0]], 1)
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=100.0)
+    data = rt.Recorded(rec, {"w": 0, "y": 1}, dt=TS)
+    gd = rt.refinement(_sdof(K_MODEL, ["w", "u"]), ident, data=data, nu=200)
+    gd.run(2000)
+    v = validate(gd, rows=(2000, 3000))
+    assert float(v.rmse[0]) < 1.3 * NOISE, v.rmse            # mid-motion: without the fit the start is off
+    assert v.state_fitted and v.steps == 1000
+    with pytest.raises(ConfigError, match="overlap"):
+        validate(gd, rows=(1500, 3000))
+    with pytest.raises(ConfigError, match="rows=.*or data="):
+        validate(gd)
+    with pytest.raises(ConfigError, match="fresh excitation"):
+        validate(g, rows=(0, 100))
