@@ -6,14 +6,16 @@ docs/data.md); setting ``data`` names another file. Input w = V1 (volts), output
 fs = 1e7 / 2^14 Hz.
 
 1. Known model (fitted here, not given): the linear part y'' = -a y' - b y + g (w + u) + d0, fitted by output
-   error on the nearly linear, low-amplitude start of the "arrow" section, rows [fit_start, fit_stop)
-   (``rcotorch.models.identification.MassSpringDamper.fit``). w is interpolated linearly between samples (FOH).
-2. Unknown subsystem: the cubic hardening spring. The identified subsystem is the static basis regressor
-   u(k) = theta y0(k)^3 (``RCOEstimator.static_gain`` with the feature ``rt.features.power('y0', 3)``), where
+   error to the benchmark's estimation rows, [fit_start, fit_stop) (``rcotorch.models.identification.
+   MassSpringDamper.fit``): the best linear model of data that hold the nonlinearity. w is interpolated
+   linearly between samples (FOH).
+2. Unknown subsystem: the cubic hardening spring, and (``basis=linear+cubic``, the default) the linear
+   stiffness the linear fit got wrong while it absorbed part of the cubic one. The identified subsystem is the
+   static basis regressor u(k) = theta_1 y0(k) + theta_3 y0(k)^3 (``basis=cubic``: theta_3 y0^3 alone), where
    y0 is the position the known model predicts half a sample after t_k (setting ``lead``; u is held over the
    sample, so this is the midpoint rule of the continuous spring force). u enters as g u, like the input, so
 
-       k3_over_m = c = -g theta      (c of y'' = -a y' - b y - c y^3 + g w + d0, in 1/(V^2 s^2)).
+       k3_over_m = c = -g theta_3,   k1_over_m = b - g theta_1     (of y'' = -a y' - k1 y - c y^3 + g w + d0).
 
 3. Refinement: the recorded estimation multisine, rows [est_start, est_stop), is played back through
    ``rt.refinement(known, identified, data=rt.Recorded(...))``; the known model starts from the state fitted
@@ -23,9 +25,12 @@ fs = 1e7 / 2^14 Hz.
    [val_start, val_stop), of the initial linear model (theta = 0) and of the refined model (theta frozen at
    its final value), each from the initial state that best fits the first ``n_init`` validation outputs;
    RMS error in volts over the rest of the validation rows.
-
-Reference (the data README, an independent fit of the full model): c ~ 7.5e5, free-run RMS ~1 mV with the
-cubic term and ~15 mV without it.
+5. The benchmark's own test sets (with the Silverbox data): the multisine (rows 105712-127400), the arrow
+   (rows 100-40575) and the arrow without extrapolation (its first 32000 samples); the first 50 outputs of
+   each fix the initial state, and the RMS error in mV is over the rest. Beside the refined model, in the same
+   run, two baselines: the linear model alone, and an offline output-error fit of the same linear + cubic
+   structure (a, b, g, d0, the cubic coefficient and the initial state by ``scipy.optimize.least_squares`` on
+   the free-run error over the estimation rows, ``MassSpringDamper.fit_with_spring``).
 """
 
 from __future__ import annotations
@@ -40,10 +45,13 @@ import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError, DataError
-from rcotorch.models.identification import MassSpringDamper, rmse
+from rcotorch.models.identification import MassSpringDamper, Polynomial, rmse
 from rcotorch.scenario import Requirement, Scenario
 
 SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's SNLS80mV.csv from rt.datasets
+BASES = {"cubic": (3,), "linear+cubic": (1, 3)}      # the powers of y0 the identified subsystem sees
+# The benchmark's test sets (rows of SNLS80mV.csv): the first 50 outputs of each fix the initial state.
+TEST_SETS = {"multisine": (105712, 127400), "arrow": (100, 40575), "arrow_noextrap": (100, 32100)}
 
 
 @lru_cache(maxsize=4)
@@ -86,12 +94,14 @@ def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
                     (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
 
 
-@lru_cache(maxsize=16)
-def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_init, theta):
+@lru_cache(maxsize=64)
+def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_init, spring, offline=None):
     rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
+    if offline is not None:                  # the offline fit's model and spring, by its estimation rows
+        model, spring = _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, offline)
     val = rec.rows(*val_rows)
     w, y = val.column(w_col), val.column(y_col)
-    fb = None if theta == 0.0 else (lambda q: theta * q ** 3)
+    fb = None if spring is None or not any(spring.coefficients) else spring
     with np.errstate(over="ignore", invalid="ignore"):
         try:
             x0 = model.initial_state(w[:n_init], y[:n_init], fb)
@@ -102,14 +112,39 @@ def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_in
     return err, y_sim
 
 
-def validate(s, theta: float) -> tuple[float, np.ndarray]:
-    """Free-run RMS error [V] on the validation rows (after the first n_init) and the simulated output, for
-    the linear model with the identified subsystem u = theta y0^3 (theta = 0: the initial linear model)."""
-    prepare(s)
+@lru_cache(maxsize=4)
+def _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, est_rows) -> tuple[MassSpringDamper, Polynomial]:
+    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
+    est = rec.rows(*est_rows)
+    return model.fit_with_spring(est.column(w_col), est.column(y_col), powers=(3,))
+
+
+def _key(s) -> tuple:
     path = data_path(s)
-    return _validate(str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
-                     (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]),
-                     (int(s["val_start"]), int(s["val_stop"])), int(s["n_init"]), float(theta))
+    return (str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
+            (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
+
+
+def spring(s, theta) -> Polynomial:
+    """The identified subsystem u = sum_i theta_i y0^p_i for settings ``s`` and one member's theta."""
+    return Polynomial(tuple(float(t) for t in np.atleast_1d(np.asarray(theta, dtype=float))),
+                      BASES[s["basis"]])
+
+
+def validate(s, theta, rows: tuple[int, int] | None = None, offline: bool = False) -> tuple[float, np.ndarray]:
+    """Free-run RMS error [V] on the validation rows (or ``rows``; after the first n_init) and the simulated
+    output: of the linear model with the identified subsystem of ``theta`` (zeros: the initial linear model),
+    or with ``offline`` of the offline output-error fit of the linear + cubic structure."""
+    prepare(s)
+    rows = (int(s["val_start"]), int(s["val_stop"])) if rows is None else tuple(int(r) for r in rows)
+    fit = (int(s["est_start"]), int(s["est_stop"])) if offline else None
+    return _validate(*_key(s), rows, int(s["n_init"]), None if offline else spring(s, theta), fit)
+
+
+def offline_fit(s) -> tuple[MassSpringDamper, Polynomial]:
+    """The offline output-error fit of the linear model and the cubic spring on the estimation rows."""
+    prepare(s)
+    return _offline(*_key(s), (int(s["est_start"]), int(s["est_stop"])))
 
 
 class SilverboxCubicStiffness(Scenario):
@@ -118,12 +153,15 @@ class SilverboxCubicStiffness(Scenario):
     description = "Silverbox measurements: cubic spring k3/m refined on a linear m-d-k1 model fitted to the data"
     steps = 105712 - 40650          # the whole estimation multisine
     settings = dict(data=SILVERBOX, w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
-                    fit_start=100, fit_stop=4100, est_start=40650, est_stop=105712, val_start=105712,
-                    val_stop=127400, n_init=50, foh=True, lead=0.5, p0=1e4, lam=1.0, nu=100)
+                    fit_start=40650, fit_stop=105712, est_start=40650, est_stop=105712, val_start=105712,
+                    val_stop=127400, n_init=50, foh=True, lead=0.5, basis="linear+cubic", p0=1e4, lam=1.0,
+                    nu=100, test_sets=True)
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
-    units = {"k3_over_m": "1/(V^2 s^2)", "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V"}
+    units = {"k3_over_m": "1/(V^2 s^2)", "k1_over_m": "1/s^2", "y": "V", "val_rmse_initial": "V",
+             "val_rmse_refined": "V", **{f"test_{t}_rmse_mv{x}": "mV" for t in TEST_SETS
+                                         for x in ("", "_linear", "_offline")}}
     about = dict(
         data=("", "'silverbox' (the benchmark, downloaded once or from $RCOTORCH_SILVERBOX) or a CSV/NPZ/.mat file"),
         w_column=("", "column of the input w (volts for the Silverbox)"),
@@ -138,6 +176,10 @@ class SilverboxCubicStiffness(Scenario):
         n_init=("samples", "samples used to fit the initial state before refinement and validation"),
         foh=("", "interpolate the input linearly between samples (first-order hold) in the model"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
+        basis=("", "what the identified subsystem is: theta_1 y0 + theta_3 y0^3 (the linear stiffness refined "
+                   "too), or theta_3 y0^3 alone", tuple(BASES)),
+        test_sets=("", "score the benchmark's test sets (multisine, arrow, arrow without extrapolation) against "
+                       "the linear model and an offline output-error fit of the same structure (Silverbox data)"),
     )
 
     def build(self, s, batch, dtype, device):
@@ -145,8 +187,9 @@ class SilverboxCubicStiffness(Scenario):
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
         w, y, n = est.column(s["w_column"]), est.column(s["y_column"]), int(s["n_init"])
         known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype)
-        ident = rt.RCOEstimator.static_gain({"y0": 1}, features=rt.features.power("y0", 3), p0=s["p0"],
-                                            lam=s["lam"], dtype=dtype)
+        ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.power("y0", p) for p in
+                                                                 BASES[s["basis"]]], p0=s["p0"], lam=s["lam"],
+                                            dtype=dtype)
         data = rt.Recorded(est, {"w": s["w_column"], "y": s["y_column"]}, name="data", dtype=dtype)
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
                              device=device)
@@ -158,25 +201,39 @@ class SilverboxCubicStiffness(Scenario):
 
     @staticmethod
     def theta(graph) -> torch.Tensor:
-        return graph.role("estimator").theta[:, 0, 0]
+        """theta per member, (B, number of basis terms)."""
+        return graph.role("estimator").theta[:, 0, :]
 
     def estimates(self, g, s):
-        return {"k3_over_m": prepare(s)[1].cubic_coefficient(self.theta(g))}
+        model, theta = prepare(s)[1], self.theta(g)
+        out = {"k3_over_m": model.cubic_coefficient(theta[:, -1])}
+        if BASES[s["basis"]][0] == 1:
+            out["k1_over_m"] = model.b - model.g * theta[:, 0]
+        return out
 
     def metrics(self, g, s):
         _, model = prepare(s)
-        thetas = self.theta(g).detach().to(torch.float64).cpu()
-        initial = validate(s, 0.0)[0]
-        refined = torch.tensor([validate(s, float(t))[0] for t in thetas], dtype=torch.float64)
+        thetas = self.theta(g).detach().to(torch.float64).cpu().numpy()
+        initial = validate(s, np.zeros(thetas.shape[1]))[0]
+        refined = torch.tensor([validate(s, t)[0] for t in thetas], dtype=torch.float64)
         B = len(thetas)
 
         def full(v):
             return torch.full((B,), float(v), dtype=torch.float64)
 
-        return {"val_rmse_initial": full(initial), "val_rmse_refined": refined,
-                "val_rmse_ratio": refined / initial, "linear_a": full(model.a), "linear_b": full(model.b),
-                "linear_g": full(model.g), "linear_d0": full(model.d0), "linear_f0_hz": full(model.f0),
-                "linear_fit_rmse": full(model.fit_rmse)}
+        out = {"val_rmse_initial": full(initial), "val_rmse_refined": refined,
+               "val_rmse_ratio": refined / initial, "linear_a": full(model.a), "linear_b": full(model.b),
+               "linear_g": full(model.g), "linear_d0": full(model.d0), "linear_f0_hz": full(model.f0),
+               "linear_fit_rmse": full(model.fit_rmse)}
+        if s["test_sets"] and s["data"] == SILVERBOX:
+            for name, rows in TEST_SETS.items():
+                out[f"test_{name}_rmse_mv"] = torch.tensor([1e3 * validate(s, t, rows)[0] for t in thetas],
+                                                           dtype=torch.float64)
+                out[f"test_{name}_rmse_mv_linear"] = full(1e3 * validate(s, np.zeros(thetas.shape[1]), rows)[0])
+                out[f"test_{name}_rmse_mv_offline"] = full(1e3 * validate(s, None, rows, offline=True)[0])
+            off, spring_off = offline_fit(s)
+            out["offline_k3_over_m"] = full(off.cubic_coefficient(spring_off.coefficients[0]))
+        return out
 
     def figures(self, g, s):
         import matplotlib.pyplot as plt
@@ -184,8 +241,8 @@ class SilverboxCubicStiffness(Scenario):
         rec, _ = prepare(s)
         val = rec.rows(int(s["val_start"]), int(s["val_stop"]))
         y = val.column(s["y_column"])
-        theta = float(self.theta(g)[0])
-        e0, y0 = validate(s, 0.0)
+        theta = self.theta(g)[0].detach().cpu().numpy()
+        e0, y0 = validate(s, np.zeros_like(theta))
         e1, y1 = validate(s, theta)
         n = int(s["n_init"])
         centre = n + int(np.argmax(np.abs(y[n:])))           # the largest swing: where the cubic term matters
@@ -195,7 +252,7 @@ class SilverboxCubicStiffness(Scenario):
         fig, (ax, ae) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
         ax.plot(t, y[lo:hi], "k", lw=1.6, label="measured")
         ax.plot(t, y0[lo:hi], color="tab:orange", lw=1, label=f"initial linear model (rms err {e0 * 1e3:.2f} mV)")
-        ax.plot(t, y1[lo:hi], "--", color="tab:blue", lw=1, label=f"refined, cubic term (rms err {e1 * 1e3:.2f} mV)")
+        ax.plot(t, y1[lo:hi], "--", color="tab:blue", lw=1, label=f"refined (rms err {e1 * 1e3:.2f} mV)")
         ax.set_ylabel("output V2 [V]")
         ax.legend(loc="upper right", fontsize=8)
         ax.set_title(f"Silverbox validation multisine (rows {s['val_start']}..{s['val_stop']}), free run")

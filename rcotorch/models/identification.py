@@ -30,6 +30,7 @@ term of w(k+1) (zero for a ZOH), so the model is causal: x(k+1) = A xi(k) + B [w
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -69,10 +70,11 @@ class DiscreteModel:
         if np.any(self.D[:, 1] != 0):
             raise ConfigError("DiscreteModel: u must not act on y or y0 at once (D[:, 1] must be zero)")
 
-    def simulate(self, w, x0, feedback: Callable[[float], float] | None = None
+    def simulate(self, w, x0, feedback: Callable[[float], float] | Polynomial | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Free run from state ``x0`` driven by ``w`` (T,): no measurement is fed back. With ``feedback``,
-        u(k) = feedback(y0(k)) (e.g. ``lambda q: theta * q**3``); without it u = 0. Returns y, y0, u (T,)."""
+        u(k) = feedback(y0(k)) (e.g. ``lambda q: theta * q**3``, or a ``Polynomial``, which runs compiled);
+        without it u = 0. Returns y, y0, u (T,)."""
         w = np.asarray(w, dtype=np.float64).reshape(-1)
         x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
         if x0.shape != (self.A.shape[0],):
@@ -80,6 +82,13 @@ class DiscreteModel:
         if feedback is None:
             out = _lsim(self.A, self.B[:, :1], self.C, self.D[:, :1], w[:, None], x0)
             return out[:, 0], out[:, 1], np.zeros_like(w)
+        if isinstance(feedback, Polynomial):
+            out = np.empty((3, len(w)))
+            _polynomial_loop()(self.A, self.B[:, 0].copy(), self.B[:, 1].copy(), self.C[0].copy(),
+                               self.C[1].copy(), float(self.D[0, 0]), float(self.D[1, 0]), w, x0.copy(),
+                               np.asarray(feedback.coefficients, dtype=np.float64),
+                               np.asarray(feedback.powers, dtype=np.float64), out)
+            return out[0], out[1], out[2]
         A, bw, bu = self.A, self.B[:, 0].copy(), self.B[:, 1].copy()
         cy, c0 = self.C[0].copy(), self.C[1].copy()
         dy, d0 = float(self.D[0, 0]), float(self.D[1, 0])
@@ -95,6 +104,54 @@ class DiscreteModel:
             u[k] = uk
             x = A @ x + bw * wk + bu * uk
         return y, y0, u
+
+
+@dataclass(frozen=True)
+class Polynomial:
+    """The feedback u = sum_i coefficients[i] q^powers[i] of the position q the unknown subsystem sees."""
+
+    coefficients: tuple[float, ...]
+    powers: tuple[int, ...]
+
+    def __call__(self, q):
+        return sum(c * q ** p for c, p in zip(self.coefficients, self.powers))
+
+
+def _polynomial_step(A, bw, bu, cy, c0, dy, d0, w, x, coef, powers, out):
+    """``DiscreteModel.simulate`` with u = sum_i coef[i] q^powers[i]: rows y, y0, u of ``out``."""
+    n = x.shape[0]
+    nxt = np.empty(n)
+    for k in range(w.shape[0]):
+        wk = w[k]
+        y, q = dy * wk, d0 * wk
+        for i in range(n):
+            y += cy[i] * x[i]
+            q += c0[i] * x[i]
+        u = 0.0
+        for j in range(coef.shape[0]):
+            u += coef[j] * q ** powers[j]
+        out[0, k], out[1, k], out[2, k] = y, q, u
+        for i in range(n):
+            acc = bw[i] * wk + bu[i] * u
+            for m in range(n):
+                acc += A[i, m] * x[m]
+            nxt[i] = acc
+        x[:] = nxt
+
+
+_compiled_loop = None
+
+
+def _polynomial_loop():
+    """``_polynomial_step`` compiled by numba (kept on disk between processes), or as it is without numba."""
+    global _compiled_loop
+    if _compiled_loop is None:
+        try:
+            import numba
+            _compiled_loop = numba.njit(cache=True)(_polynomial_step)
+        except ImportError:
+            _compiled_loop = _polynomial_step
+    return _compiled_loop
 
 
 def _lsim(A, B, C, D, u, x0) -> np.ndarray:
@@ -285,6 +342,38 @@ class MassSpringDamper:
         if not np.all(np.isfinite(q)) or q[1] <= 0:
             raise DataError(f"fit: output-error fit failed (parameters {q[:4].tolist()})")
         return cls(*(float(v) for v in q[:4]), float(dt), bool(foh), float(lead), fit_rmse=rmse(sol.fun, 0.0))
+
+
+    def fit_with_spring(self, w, y, powers: tuple[int, ...] = (3,)) -> tuple[MassSpringDamper, Polynomial]:
+        """Offline output-error fit of this linear model and a polynomial spring together: a, b, g, d0, the
+        spring's coefficients (u = sum_i theta_i y0^powers[i], starting from zero) and the initial state,
+        by ``scipy.optimize.least_squares`` on the free-run simulation error over all of ``w``, ``y``,
+        starting from this model. ``fit_rmse`` of the result is that error."""
+        import scipy.optimize
+        w, y = _as_signals(w, y, "fit_with_spring", minimum=20)
+        npw = len(powers)
+        ys = max(float(np.abs(y).max()), 1e-12)
+
+        def split(q):
+            m = MassSpringDamper(q[0], q[1], q[2], q[3], self.dt, self.foh, self.lead)
+            return m, Polynomial(tuple(float(v) for v in q[4:4 + npw]), tuple(powers))
+
+        def res(q):
+            m, spring = split(q)
+            with np.errstate(over="ignore", invalid="ignore"):
+                r = m.simulate(w, m.state(q[-2], q[-1], w[0]), spring) - y
+            return np.where(np.isfinite(r), r, 1e3 * ys)
+
+        x0 = self.initial_state(w[:50], y[:50])
+        q0 = np.r_[self.a, self.b, self.g, self.d0, np.zeros(npw), x0[0] + self.hold_offset[0] * w[0],
+                   x0[1] + self.hold_offset[1] * w[0]]
+        scale = np.r_[max(abs(self.a), 1.0), abs(self.b), max(abs(self.g), 1e-12),
+                      max(abs(self.d0), abs(self.b) * ys * 1e-3),
+                      [abs(self.b) / max(self.g, 1e-12) * 0.01 * ys ** (1 - p) for p in powers],
+                      ys, ys * math.sqrt(abs(self.b))]
+        sol = scipy.optimize.least_squares(res, q0, x_scale=scale)
+        m, spring = split(sol.x)
+        return dataclasses.replace(m, fit_rmse=rmse(sol.fun, 0.0)), spring
 
 
 def _as_signals(w, y, what: str, minimum: int) -> tuple[np.ndarray, np.ndarray]:
