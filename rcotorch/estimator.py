@@ -671,6 +671,14 @@ class RCOEstimator(Block):
         eye = torch.eye(self.n_u, dtype=N.dtype, device=N.device)
         return torch.linalg.solve(eye - M.sum(1), N.sum(1))
 
+    def _check_member(self, member: int) -> None:
+        B = self.theta.shape[0]
+        if B == 0:
+            raise ConfigError(f"block '{self.name}': it has no members yet; build the graph (rt.refinement or "
+                              "rt.Graph) before asking for its identified subsystem")
+        if not -B <= member < B:
+            raise ConfigError(f"block '{self.name}': member {member} out of range; the batch has {B} members")
+
     def to_control(self, member: int = 0) -> control.TransferFunction:
         """The identified subsystem of one member as a discrete python-control ``TransferFunction`` (dt),
         from the regressor signals to u, with named signals and the block's name as the system's name.
@@ -681,6 +689,7 @@ class RCOEstimator(Block):
         whose ports carry the same names (``rt.models``, ``rt.models.label_ports``) builds the refined model.
         """
         import control
+        self._check_member(member)
         names = self._control_names()
         if self.n_u != 1 and self.feed_u:
             # A MIMO controller with shared poles: build it in state space and convert.

@@ -84,6 +84,10 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         parts.append(excitation)
         w_src = "excitation.out"
         if truth is not None:
+            if len(truth.inputs) != 1 or len(truth.outputs) != 1:
+                raise PortError(f"refinement: truth= must be a block with one input and one output port (the "
+                                f"unknown subsystem: what it sees -> the force it adds); block '{truth.name}' has "
+                                f"inputs {list(truth.inputs)} and outputs {list(truth.outputs)}")
             plant = copy.deepcopy(known)
             plant.name = "plant"
             truth.name = "unknown"

@@ -47,3 +47,19 @@ def test_no_reader_facing_text_points_outside_the_repository():
     for path in FILES + sorted((ROOT / "scenarios").glob("*.py")) + sorted((ROOT / "rcotorch").rglob("*.py")):
         text = path.read_text()
         assert "../shared" not in text and "shared/data" not in text and "shared/docs" not in text, path
+
+
+def test_every_file_the_docs_and_code_name_is_in_the_repository():
+    """Markdown links resolve, and a Markdown file named in code, tests or docs exists in the repository."""
+    names = {p.name for p in ROOT.rglob("*.md") if ".venv" not in p.parts and "build" not in p.parts}
+    texts = FILES + sorted((ROOT / "scenarios").glob("*.py")) + sorted((ROOT / "rcotorch").rglob("*.py")) + \
+        sorted((ROOT / "tests").glob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
+    for path in texts:
+        text = path.read_text()
+        if path.suffix == ".md":
+            for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+                if "://" in target or target.startswith("mailto:"):
+                    continue
+                assert (path.parent / target).exists(), f"{path.name} links to {target}, which does not exist"
+        for name in re.findall(r"\b([A-Za-z][\w-]*\.md)\b", text):
+            assert name in names, f"{path.relative_to(ROOT)} names {name}, which is not in the repository"

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from ..errors import ConfigError
+
 if TYPE_CHECKING:
     import control
 
@@ -39,9 +41,15 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
 
     def row(sig: str) -> np.ndarray:
         kind, _, idx = sig.partition("[")
-        i = int(idx.rstrip("]")) if idx else 0
-        if kind not in SIGNALS or i >= n:
-            raise ValueError(f"unknown structure signal {sig!r}: use position[i] or velocity[i], i < {n}")
+        try:
+            i = int(idx.rstrip("]")) if idx else 0
+        except ValueError:
+            i = -1
+        if kind not in SIGNALS or not 0 <= i < n:
+            names = list(SIGNALS) if n == 1 else [f"{k}[i]" for k in SIGNALS]
+            raise ConfigError(f"structure: unknown signal {sig!r} in measured= or sees=; the accepted names are "
+                              f"{', '.join(map(repr, names))}" + (f" with 0 <= i < {n}" if n > 1 else "")
+                              + (" (or 'position[0]', 'velocity[0]')" if n == 1 else ""))
         r = np.zeros(2 * n)
         r[i if kind == "position" else n + i] = 1.0
         return r
