@@ -127,6 +127,8 @@ class Scenario:
     # Whether runs compute confidence intervals (``rcotorch.intervals``): False for estimates that are not
     # functions of the estimator's parameters alone (e.g. instantaneous values of u, which depend on the state).
     intervals: bool = True
+    # Samples of held-out validation at the end of a run (``validation``; 0: none).
+    validation_steps: int = 2000
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -222,6 +224,15 @@ class Scenario:
         """Final metrics, each a (B,) tensor."""
         return {}
 
+    def validation(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, Any] | None:
+        """How a run's refined model is validated on held-out data: the keyword arguments of
+        ``rcotorch.validate`` (``steps``, ``rows`` or ``data``), or None for no validation. By default
+        ``validation_steps`` samples of a fresh excitation where the graph simulates its physical system, and
+        none for recorded data (a scenario of recorded data names its held-out rows)."""
+        if not self.validation_steps or "excitation" not in graph.roles:
+            return None
+        return {"steps": self.validation_steps}
+
     def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
         """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
         return {}
@@ -311,9 +322,13 @@ def _coerce(scenario: str, key: str, value, default):
 
 
 def scenario_dirs() -> list[Path]:
-    """The folders named in ``RCOTORCH_SCENARIOS`` that exist."""
+    """The folders named in ``RCOTORCH_SCENARIOS``; one that is not a folder is an error."""
     dirs = [Path(p).expanduser() for p in os.environ.get("RCOTORCH_SCENARIOS", "").split(os.pathsep) if p]
-    return [d for d in dirs if d.is_dir()]
+    for d in dirs:
+        if not d.is_dir():
+            raise ConfigError(f"RCOTORCH_SCENARIOS names {d}, which is not a folder; set it to folders of scenario "
+                              f"files (separated by '{os.pathsep}') or unset it")
+    return dirs
 
 
 def _shipped_modules():

@@ -194,6 +194,15 @@ class SilverboxCubicStiffness(Scenario):
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
                              device=device)
 
+    def validation(self, g, s):
+        """Held-out data: the validation rows (by default the benchmark's multisine test set; to tune without
+        looking at a test set, hold out the end of the estimation rows: est_stop = val_start < val_stop <=
+        105712)."""
+        rec, _ = prepare(s)
+        val = rec.rows(int(s["val_start"]), int(s["val_stop"]))
+        return {"data": rt.Recorded(val, {"w": s["w_column"], "y": s["y_column"]}, name="held_out",
+                                    dtype=g.role("estimator").theta.dtype)}
+
     @staticmethod
     def model(s) -> MassSpringDamper:
         """The linear initial model fitted for settings ``s``."""
