@@ -1,10 +1,12 @@
 """Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep
 CONFIG [options]``.
 
-Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input (a
-setting, file, folder or checkpoint; the message names it), 3 an internal error (out of memory included: one
-line on stderr, the traceback in the output folder's ``rcotorch.log``), 130 stopped by Ctrl-C after saving a
-checkpoint (the message says how to resume). See docs/cli.md.
+Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input or
+environment (a setting, file, folder or checkpoint, a full disk, an output folder deleted during the run; one
+line on stderr names it and says what to do), 3 an internal error (out of memory included: one line on stderr,
+the traceback in the output folder's ``rcotorch.log``), 128 + the signal's number when stopped by a signal after
+saving a checkpoint: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (the message says how to resume). See
+docs/cli.md.
 """
 
 from __future__ import annotations
@@ -21,9 +23,13 @@ import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from .errors import ConfigError, RcoError
+from .errors import ConfigError, OutputError, RcoError
 
-EXIT_PASS, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_PASS, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+# The signals that stop a run or sweep at the next step boundary, with a checkpoint (exit code 128 + the
+# signal's number: 130, 143, 129), by the names the messages use.
+STOP_SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM",
+                **({signal.SIGHUP: "SIGHUP"} if hasattr(signal, "SIGHUP") else {})}
 
 
 def _settings(pairs: list[str]) -> dict[str, str]:
@@ -121,64 +127,167 @@ def build_parser() -> argparse.ArgumentParser:
 ADD_COMMANDS: list[Callable] = [_add_list, _add_show, _add_run, _add_sweep]
 
 
+def _say(text: str) -> None:
+    """A message on stderr (lost, not raised, when stderr is gone: a closed terminal after SIGHUP)."""
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=sys.stderr, flush=True)
+
+
 # --- running a command --------------------------------------------------------------------------------------
 class Session:
-    """What a command has open (the output folder, for the error log) and the Ctrl-C request."""
+    """What a command has open (its run and output folder, for the log and to release them), the stop request
+    (a signal) and the command that resumes the work."""
 
     def __init__(self, argv: list[str]):
-        self.argv, self.folder = argv, None
+        self.argv, self.folder, self.run = argv, None, None
+        self.resume: str | None = None          # the command that continues the work, once it has one
         self.stop = threading.Event()
+        self.stop_signal = signal.SIGINT        # the last stop signal received
 
     def command(self) -> str:
         return "rcotorch " + " ".join(shlex.quote(a) for a in self.argv)
 
+    @property
+    def stopped_by(self) -> str:
+        return STOP_SIGNALS[self.stop_signal]
+
+    def exit_stopped(self) -> int:
+        """The exit code of work stopped by a signal: 128 + its number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
+        return 128 + int(self.stop_signal)
+
     @contextlib.contextmanager
     def interruptible(self) -> Iterator[threading.Event]:
-        """The first Ctrl-C asks the work to stop at the next step boundary (it then saves a checkpoint);
-        a second one stops at once."""
+        """The first Ctrl-C, SIGTERM or SIGHUP asks the work to stop at the next step boundary (it then saves a
+        checkpoint); a second one stops at once. A signal the process ignores stays ignored (SIGHUP under
+        ``nohup``)."""
         if threading.current_thread() is not threading.main_thread():
             yield self.stop
             return
 
         def handler(signum, frame):
+            self.stop_signal = signal.Signals(signum)
             if self.stop.is_set():
                 raise KeyboardInterrupt
             self.stop.set()
-            print("\nrcotorch: stopping after the current steps to save a checkpoint (Ctrl-C again to quit at "
-                  "once)", file=sys.stderr, flush=True)
-        previous = signal.signal(signal.SIGINT, handler)
+            start, again = ("\nrcotorch:", "Ctrl-C again") if signum == signal.SIGINT else \
+                (f"rcotorch: {self.stopped_by} received:", "the signal again")
+            _say(f"{start} stopping after the current steps to save a checkpoint ({again} to quit at once)")
+        previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN}
         try:
             yield self.stop
         finally:
-            signal.signal(signal.SIGINT, previous)
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+    @contextlib.contextmanager
+    def thread_errors_logged(self) -> Iterator[None]:
+        """While the command runs, the traceback of an exception in a background thread (TensorBoard's writer,
+        whose error the main thread meets again at its next write) goes to the output folder's log instead of
+        stderr. One that cannot be logged goes to stderr as usual, unless it is an OSError (a full disk, say,
+        which the main thread reports)."""
+        previous = threading.excepthook
+
+        def hook(args) -> None:
+            text = "".join(traceback.format_exception(args.exc_type, args.exc_value, args.exc_traceback))
+            with contextlib.suppress(OSError):
+                if self.folder is not None and self.folder.is_open:
+                    self.folder.log(f"exception in thread {args.thread.name if args.thread else '?'}:\n{text}")
+                    return
+            if not issubclass(args.exc_type, OSError):
+                previous(args)
+        threading.excepthook = hook
+        try:
+            yield
+        finally:
+            threading.excepthook = previous
 
     def log(self, line: str) -> None:
         if self.folder is not None:
-            self.folder.log(line)
+            with contextlib.suppress(OSError):
+                self.folder.log(line)
 
     def close(self) -> None:
+        """Release the run (its TensorBoard writer is flushed) and the output folder."""
+        if self.run is not None:
+            with contextlib.suppress(OSError):
+                self.run.close()
         if self.folder is not None:
             self.folder.close()
 
-    def internal_error(self, e: BaseException) -> int:
-        """One line on stderr; the traceback in the output folder's log (or a temporary file)."""
+    def keep_traceback(self, e: BaseException, headline: str) -> str | None:
+        """Write ``headline`` and ``e``'s traceback to the output folder's log, or else to a temporary file;
+        returns where (None when neither could be written)."""
         text = "".join(traceback.format_exception(e))
-        where = None
         if self.folder is not None and self.folder.is_open:
             with contextlib.suppress(OSError):
-                self.folder.log(f"internal error in `{self.command()}`:\n{text}")
-                where = self.folder.path / "rcotorch.log"
-        if where is None:
+                self.folder.log(f"{headline}:\n{text}")
+                return str(self.folder.path / "rcotorch.log")
+        with contextlib.suppress(OSError):
             fd, name = tempfile.mkstemp(prefix="rcotorch-error-", suffix=".log")
             with os.fdopen(fd, "w") as f:
                 f.write(f"{self.command()}\n{text}")
-            where = name
+            return name
+        return None
+
+    def error(self, e: RcoError) -> int:
+        """Bad input, or a fault of the file system (an ``OutputError`` raised from an OSError, whose traceback
+        goes to the log): one line on stderr that names the file or folder and says what to do."""
+        line = str(e)
+        if isinstance(e, OutputError) and isinstance(e.__cause__, OSError):
+            line += self._resume_hint()
+            where = self.keep_traceback(e.__cause__, f"error: {line}")
+            line += f" (traceback in {where})" if where else ""
+        else:
+            self.log(f"error: {line}")
+        _say(f"rcotorch: error: {line}")
+        return EXIT_INPUT
+
+    def _resume_hint(self) -> str:
+        """'; then resume with: ...' where the work can be resumed from the output folder."""
+        from .runner import CHECKPOINT
+        if self.resume is None or self.folder is None or not self.folder.is_open:
+            return ""
+        try:
+            self.folder.check()
+        except OutputError:
+            return ""
+        if self.folder.kind == "run" and not (self.folder.path / CHECKPOINT).is_file():
+            return ""
+        return f"; then resume with: {self.resume}"
+
+    def folder_fault(self, e: OSError) -> OutputError | None:
+        """``e`` as an ``OutputError`` when it comes from the output folder: the folder deleted or replaced, a
+        file in it that cannot be written, or a write fault without a file name (a full disk, met by
+        TensorBoard's writer thread); None when it does not (an internal error)."""
+        from .outputs import WRITE_FAULTS, write_error
+        if self.folder is None:
+            return None
+        fault = None
+        try:
+            self.folder.check()
+        except OutputError as gone:
+            fault = gone
+        names = [Path(os.path.abspath(os.fsdecode(n))) for n in (e.filename, e.filename2)
+                 if isinstance(n, (str, bytes, os.PathLike))]
+        root = Path(os.path.abspath(self.folder.path))
+        inside = [n for n in names if n == root or n.is_relative_to(root)]
+        if fault is None and inside:
+            fault = write_error(e, f"cannot write {inside[0]}")
+        elif fault is None and not names and e.errno in WRITE_FAULTS:
+            fault = write_error(e, f"cannot write to the output folder {self.folder.path}")
+        if fault is not None:
+            fault.__cause__ = e
+        return fault
+
+    def internal_error(self, e: BaseException) -> int:
+        """One line on stderr; the traceback in the output folder's log (or a temporary file)."""
+        where = self.keep_traceback(e, f"internal error in `{self.command()}`")
         message = str(e).strip().splitlines()[0] if str(e).strip() else ""
         if _out_of_memory(e):
             what = f"out of memory ({message}); try a smaller --batch"
         else:
             what = f"internal error: {type(e).__name__}: {message}"
-        print(f"rcotorch: {what} (traceback in {where})", file=sys.stderr)
+        _say(f"rcotorch: {what}" + (f" (traceback in {where})" if where else ""))
         return EXIT_INTERNAL
 
 
@@ -222,21 +331,21 @@ def cmd_run(args, session: Session) -> int:
             raise ConfigError("run needs a scenario NAME (or --resume DIR); see `rcotorch list`")
         r = Run(args.name, steps=args.steps, batch=args.batch or 1, seed=args.seed, device=args.device or "cpu",
                 dtype=args.dtype or "float64", out=args.out, overrides=overrides, overwrite=args.overwrite)
-    session.folder = r.folder
-    r.open_output()
-    session.log(f"`{session.command()}` at step {r.k} of {r.steps}")
+    session.folder, session.run = r.folder, r
+    session.resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
+    if args.checkpoint_every:
+        session.resume += f" --checkpoint-every {args.checkpoint_every}"
     with session.interruptible() as stop:
+        r.open_output()
+        session.log(f"`{session.command()}` at step {r.k} of {r.steps}")
         try:
             r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every,
                       stop=stop.is_set)
         except Interrupted as e:
-            resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
-            if args.checkpoint_every:
-                resume += f" --checkpoint-every {args.checkpoint_every}"
-            session.log(f"stopped by Ctrl-C at step {e.step}; resume with: {resume}")
-            print(f"rcotorch: stopped at step {e.step} of {r.steps}; checkpoint saved to {e.checkpoint}\n"
-                  f"resume with: {resume}", file=sys.stderr)
-            return EXIT_INTERRUPTED
+            session.log(f"stopped by {session.stopped_by} at step {e.step}; resume with: {session.resume}")
+            _say(f"rcotorch: stopped at step {e.step} of {r.steps}; checkpoint saved to {e.checkpoint}\n"
+                 f"resume with: {session.resume}")
+            return session.exit_stopped()
         summary = r.finish(figures=not args.no_figures, close=False)
     print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
           f"{summary['device']}, {summary['engine']} engine -> {r.out}")
@@ -254,18 +363,19 @@ def cmd_sweep(args, session: Session) -> int:
     sweep = Sweep.from_file(args.config)
     _device(args.device or "cpu")
     session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
+    session.resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
+                      "--resume")
+    session.log(f"`{session.command()}`")            # written once run_sweep opens the folder
     with session.interruptible() as stop:
         try:
             rows = run_sweep(sweep, backend=args.backend, device=args.device or "cpu",
                              ray_address=args.ray_address, overwrite=args.overwrite, resume=args.resume,
                              stop=stop.is_set, folder=session.folder)
         except Interrupted as e:
-            resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
-                      "--resume")
-            session.log(f"stopped by Ctrl-C; resume with: {resume}")
-            print(f"rcotorch: sweep stopped ({e}); finished shards are kept\nresume with: {resume}",
-                  file=sys.stderr)
-            return EXIT_INTERRUPTED
+            session.log(f"stopped by {session.stopped_by}; resume with: {session.resume}")
+            _say(f"rcotorch: sweep stopped ({e}); finished shards are kept\nresume with: {session.resume}")
+            return session.exit_stopped()
+    session.log(f"finished: {len(rows)} members")
     print(sweep_report(rows, session.folder.path))
     return EXIT_PASS
 
@@ -281,24 +391,26 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:   # --help, --version (0) and usage errors (2, with argparse's message)
         return e.code if isinstance(e.code, int) else EXIT_INPUT
     session = Session(argv)
-    try:
-        if getattr(args, "engine", None):
-            os.environ["RCOTORCH_ENGINE"] = args.engine
-        if args.command not in ("list", "show"):
-            _threads(args)
-        return COMMANDS[args.command](args, session)
-    except RcoError as e:
-        session.log(f"error: {e}")
-        print(f"rcotorch: error: {e}", file=sys.stderr)
-        return EXIT_INPUT
-    except KeyboardInterrupt:
-        session.log("stopped by a second Ctrl-C, without a checkpoint")
-        print("\nrcotorch: stopped (no checkpoint saved since the last one)", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Exception as e:
-        return session.internal_error(e)
-    finally:
-        session.close()
+    with session.thread_errors_logged():
+        try:
+            if getattr(args, "engine", None):
+                os.environ["RCOTORCH_ENGINE"] = args.engine
+            if args.command not in ("list", "show"):
+                _threads(args)
+            return COMMANDS[args.command](args, session)
+        except RcoError as e:
+            return session.error(e)
+        except KeyboardInterrupt:
+            session.log(f"stopped by a second {session.stopped_by}, without a checkpoint")
+            _say("\nrcotorch: stopped (no checkpoint saved since the last one)")
+            return session.exit_stopped()
+        except OSError as e:          # from the output folder (exit 2), or else an internal error
+            fault = session.folder_fault(e)
+            return session.error(fault) if fault is not None else session.internal_error(e)
+        except Exception as e:
+            return session.internal_error(e)
+        finally:
+            session.close()
 
 
 if __name__ == "__main__":

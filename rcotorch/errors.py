@@ -29,8 +29,9 @@ class DataError(RcoError, ValueError):
 
 
 class OutputError(RcoError, OSError):
-    """An output folder cannot be used: it is a file, not writable, in use by another process, or it holds
-    results this run did not write."""
+    """An output folder cannot be used: it is a file or a broken symbolic link, not writable, in use by another
+    process, or it holds results this run did not write; or writing to it failed (a full disk), or it was
+    deleted or replaced during the run."""
 
 
 class CheckpointError(RcoError, ValueError):

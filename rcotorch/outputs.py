@@ -10,6 +10,9 @@ holding results without a manifest (written by hand or by an older version) is a
 
 Files are written to a unique temporary file in the same folder and renamed over the target, so a reader (or
 a killed writer) never sees half a file and an existing file is only replaced once its successor is complete.
+A write that fails (no space left, permission denied, the folder gone) raises ``OutputError`` naming the file
+and what to do. An open folder remembers which folder it is: ``check`` refuses to go on once it was deleted or
+replaced by another folder of the same name, so that nothing is written into a folder the run did not open.
 A checkpoint starts with a header that records the SHA-256 and length of its payload (``torch.save`` output);
 ``load_checkpoint`` checks both and names the file when it is truncated or corrupted.
 """
@@ -17,11 +20,14 @@ A checkpoint starts with a header that records the SHA-256 and length of its pay
 from __future__ import annotations
 
 import contextlib
+import errno
 import fnmatch
 import hashlib
 import io
 import json
 import os
+import pickle
+import re
 import tempfile
 import time
 from collections.abc import Callable
@@ -45,13 +51,33 @@ RESULT_NAMES = ("summary.json", "checkpoint.pt", "events.out.tfevents.*", "*.png
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
+# What to do when writing fails, by errno (others: choose another folder).
+_ADVICE = {errno.ENOSPC: "free space on its disk or choose another --out",
+           errno.EDQUOT: "free space within the disk quota or choose another --out",
+           errno.EACCES: "choose a folder you may write to with --out",
+           errno.EPERM: "choose a folder you may write to with --out",
+           errno.EROFS: "choose a folder on a writable disk with --out",
+           errno.ELOOP: "fix the link or choose another --out"}
+# Errors that only writing to a full or read-only disk causes: an OSError without a file name and one of these
+# comes from the output folder (a write of TensorBoard's writer thread, say).
+WRITE_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
+
+
+def write_error(e: OSError, what: str) -> OutputError:
+    """``e``, raised by ``what`` (e.g. 'cannot write PATH'), as one line: what failed, why, what to do."""
+    why = "a symbolic link loop" if e.errno == errno.ELOOP else e.strerror or str(e)
+    return OutputError(f"{what}: {why}; {_ADVICE.get(e.errno, 'choose another --out')}")
+
 
 # --- atomic files ------------------------------------------------------------------------------------------
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
     """Write ``path`` through ``write(file)`` into a unique temporary file beside it, then rename it over
     ``path`` (atomic on POSIX and Windows): ``path`` is either the old file or the complete new one."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise write_error(e, f"cannot write {path}") from e
     try:
         os.chmod(tmp, 0o666 & ~_UMASK)   # as open() would create it (mkstemp makes it private)
         with os.fdopen(fd, "wb") as f:
@@ -59,9 +85,11 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, OutputError):
+            raise write_error(e, f"cannot write {path}") from e
         raise
 
 
@@ -133,8 +161,16 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: the checkpoint is corrupted (its SHA-256 does not match its header)")
     try:
         return torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
-    except Exception as e:  # a payload that hashes right but does not load: written by another version
-        raise CheckpointError(f"{path}: the checkpoint cannot be read: {e}") from None
+    except Exception as e:  # a payload that hashes right but does not load
+        text = str(e)
+        code = re.search(r"GLOBAL ([\w.]+)", text) if isinstance(e, pickle.UnpicklingError) else None
+        if code:   # torch's weights-only unpickler met a class or function: unpickling it could run code
+            raise CheckpointError(f"{path}: refused: the checkpoint holds {code.group(1)}, and loading it could "
+                                  "run code; rcotorch loads only tensors and plain data (the checkpoints it "
+                                  "writes)") from None
+        why = re.search(r"WeightsUnpickler error:\s*(\S.*)", text)     # the cause, after torch's general advice
+        reason = why.group(1) if why else (text.strip().splitlines() or [type(e).__name__])[0]
+        raise CheckpointError(f"{path}: the checkpoint cannot be read: {reason}") from None
 
 
 # --- output folders ----------------------------------------------------------------------------------------
@@ -155,6 +191,10 @@ class OutputFolder:
         self._lock: FileLock | None = None
         self._foreign: set[str] = set()    # files that were there before we opened the folder
         self._children: list[str] = []     # subfolders that are output folders of their own (shards)
+        self._identity: tuple | None = None   # (device, inode) of the open folder and of its lock file
+        self._made: tuple[bool, bool] = (False, False)   # whether open made the folder, the lock file
+        self._fresh = False                # opened to start a run (not to resume one)
+        self._pending: list[str] = []      # log lines from before the folder was opened
         self.info: dict[str, Any] = {}
 
     @property
@@ -168,29 +208,101 @@ class OutputFolder:
         if mode not in ("new", "overwrite", "resume"):
             raise ValueError(f"mode must be 'new', 'overwrite' or 'resume', got {mode!r}")
         p = self.path
-        if p.exists() and not p.is_dir():
-            raise OutputError(f"{p} is a file, not a folder; choose another --out")
-        try:
-            p.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise OutputError(f"cannot create the output folder {p}: {e.strerror}") from None
+        made = self._make_folder()
+        made_lock = not (p / LOCK).exists()
         lock = self._take_lock()
         try:
             self._claim(mode)
             self.info = dict(self.info, **(info or {}), kind=self.kind)
-            self._lock = lock
+            self._lock, self._made, self._fresh = lock, (made, made_lock), mode != "resume"
+            self._identity = self._stat()
             self.register()
-        except OSError as e:
-            self._lock = None
+        except BaseException as e:       # the folder is left as it was found
+            self._lock = self._identity = None
+            if made_lock:
+                with contextlib.suppress(OSError):
+                    (p / LOCK).unlink()
             lock.release()
-            if isinstance(e, OutputError):
-                raise
-            raise OutputError(f"cannot write to the output folder {p}: {e.strerror or e}") from None
-        except BaseException:
-            self._lock = None
-            lock.release()
+            if made:
+                with contextlib.suppress(OSError):
+                    p.rmdir()
+            if isinstance(e, OSError) and not isinstance(e, OutputError):
+                raise write_error(e, f"cannot write to the output folder {p}") from e
             raise
+        pending, self._pending = self._pending, []
+        if pending:
+            with contextlib.suppress(OSError):     # the log is no reason to refuse the folder
+                self._append_log("".join(pending))
         return self
+
+    def _make_folder(self) -> bool:
+        """Create the folder (with its parents) unless it is there; True when it was made."""
+        p = self.path
+        try:
+            if p.is_dir():
+                return False
+            if p.exists():
+                raise OutputError(f"{p} is a file, not a folder; choose another --out")
+            p.mkdir(parents=True)
+        except FileExistsError as e:     # a name on the way leads nowhere: a symbolic link loop, or to nothing
+            name = Path(e.filename or p)
+            try:
+                os.stat(name)
+            except OSError as why:
+                if why.errno == errno.ELOOP:
+                    raise OutputError(f"{name} is a symbolic link loop (following it leads back to it); fix the "
+                                      "link or choose another --out") from None
+                if name.is_symlink():
+                    raise OutputError(f"{name} is a symbolic link to {os.readlink(name)}, which does not exist; "
+                                      "create that folder or choose another --out") from None
+            raise OutputError(f"{name} is not a folder; choose another --out") from None
+        except OutputError:
+            raise
+        except OSError as e:
+            raise write_error(e, f"cannot create the output folder {p}") from None
+        return True
+
+    def _stat(self) -> tuple:
+        folder, lock = os.stat(self.path), os.stat(self.path / LOCK)
+        return folder.st_dev, folder.st_ino, lock.st_dev, lock.st_ino
+
+    def check(self) -> None:
+        """Raise ``OutputError`` when the open folder was deleted, or replaced by another folder (one without
+        this writer's lock file), since it was opened: what the run writes would be lost, or land in a folder it
+        did not open."""
+        if self._identity is None:
+            return
+        try:
+            now = self._stat()
+        except OSError:
+            now = None
+        if now is None and not os.path.isdir(self.path):
+            raise OutputError(f"the output folder {self.path} was deleted while rcotorch was writing to it; the "
+                              "results are lost: run again")
+        if now != self._identity:
+            raise OutputError(f"the output folder {self.path} was replaced by another folder while rcotorch was "
+                              "writing to it, and nothing more is written there; move the original back and "
+                              "resume, or run again")
+
+    def discard(self) -> None:
+        """Undo ``open`` when the folder was opened to start a run that then wrote nothing but its log (a sweep
+        refused before its first shard): remove the manifest, the log, the lock file and the folder where
+        ``open`` made them, so that the next run finds the folder as it was. Otherwise nothing happens (the
+        folder stays open)."""
+        if not self.is_open or not self._fresh:
+            return
+        own = [f for f in self._scan() if f not in self._foreign]
+        if set(own) - {LOG} or any((self.path / c).exists() for c in self._children):
+            return
+        made, made_lock = self._made
+        for name in [MANIFEST, *own] + ([LOCK] if made_lock else []):
+            with contextlib.suppress(OSError):
+                (self.path / name).unlink()
+        self._lock.release()
+        self._lock = self._identity = None
+        if made:
+            with contextlib.suppress(OSError):
+                self.path.rmdir()
 
     def _take_lock(self) -> FileLock:
         p = self.path
@@ -201,7 +313,7 @@ class OutputFolder:
             raise FolderInUseError(f"{p} is in use: another rcotorch run is writing to it (it holds {p / LOCK}); "
                               "wait for it to end or choose another --out") from None
         except OSError as e:
-            raise OutputError(f"cannot write to the output folder {p}: {e.strerror or e}") from None
+            raise write_error(e, f"cannot write to the output folder {p}") from None
         return lock
 
     def check_free(self) -> None:
@@ -313,16 +425,27 @@ class OutputFolder:
         """Record every file this writer has added so far in the manifest (atomically)."""
         if not self.is_open:
             return
+        self.check()
         files = sorted(f for f in self._scan() if f not in self._foreign)
         body = dict(self.info, files=files, children=self._children)
         write_text(self.path / MANIFEST, json.dumps(body, indent=1) + "\n")
 
     def log(self, line: str) -> None:
-        """Append a time-stamped line to the folder's ``rcotorch.log``."""
+        """Append a time-stamped line to the folder's ``rcotorch.log`` (before the folder is opened, the line
+        waits: it is written when ``open`` succeeds, and dropped when it fails)."""
+        stamped = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n"
         if not self.is_open:
+            self._pending.append(stamped)
             return
-        with open(self.path / LOG, "a") as f:
-            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
+        self.check()
+        self._append_log(stamped)
+
+    def _append_log(self, text: str) -> None:
+        try:
+            with open(self.path / LOG, "a") as f:
+                f.write(text)
+        except OSError as e:
+            raise write_error(e, f"cannot write {self.path / LOG}") from e
 
     def close(self) -> None:
         """Update the manifest and release the lock."""
@@ -334,4 +457,4 @@ class OutputFolder:
             pass       # the folder became unwritable: the manifest keeps listing less, never more
         finally:
             self._lock.release()
-            self._lock = None
+            self._lock = self._identity = None

@@ -7,7 +7,8 @@ Cadences, fixed when a run is created and kept by a resume:
 * logs (TensorBoard and the figures' history) every ``log_every`` steps: about 1000 per run, fewer for large
   batches (``default_log_every``), since a log costs about as much as a few steps of the whole batch; on
   check steps where the interval is longer than the checks';
-* checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C).
+* checkpoints every ``checkpoint_every`` steps when asked, at the end, and when a stop is requested (Ctrl-C,
+  SIGTERM, SIGHUP).
 
 What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
 and a history of the logged values of the first ``HISTORY_MEMBERS`` members, the ones the figures draw (at most
@@ -18,6 +19,7 @@ run is.
 from __future__ import annotations
 
 import math
+import re
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -28,7 +30,7 @@ import torch
 
 from . import intervals as ci
 from . import scenario as scenarios
-from .errors import CheckpointError, ConfigError
+from .errors import CheckpointError, ConfigError, RcoError
 from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
@@ -46,7 +48,7 @@ RESUME_CHANGEABLE = ("--steps", "--device", "--out", "--overwrite", "--checkpoin
 
 
 class Interrupted(Exception):
-    """A run stopped on request (Ctrl-C) after saving a checkpoint."""
+    """A run stopped on request (Ctrl-C, SIGTERM, SIGHUP) after saving a checkpoint."""
 
     def __init__(self, step: int | None, checkpoint: Path | None):
         super().__init__("stopped" if step is None else f"stopped at step {step}, checkpoint {checkpoint}")
@@ -177,16 +179,22 @@ class Run:
     # --- the output folder ---------------------------------------------------------------------------------
     def open_output(self) -> None:
         """Open (lock) the output folder, if not yet: refuses a folder that holds another run unless the run
-        was made with ``overwrite``, or is a resume into its own folder."""
+        was made with ``overwrite``, or is a resume into its own folder. An open folder is checked to be still
+        the one opened (``OutputFolder.check``)."""
         if not self.folder.is_open:
             self.folder.open(self._mode, info={"scenario": self.scenario.name})
             self._mode = "resume"           # a later reopening continues this run
+        else:
+            self.folder.check()
 
     def close(self) -> None:
-        """Release the output folder (its manifest lists every file the run wrote)."""
-        if self.monitor is not None:
-            self.monitor.writer.flush()
-        self.folder.close()
+        """Release the output folder (its manifest lists every file the run wrote), also when flushing the
+        TensorBoard writer fails."""
+        try:
+            if self.monitor is not None:
+                self.monitor.writer.flush()
+        finally:
+            self.folder.close()
 
     def __enter__(self) -> Run:
         return self
@@ -200,7 +208,8 @@ class Run:
                 desc: str | None = None) -> None:
         """Step to ``until`` (default: the run's ``steps``), checking health, logging and checkpointing on the
         way. ``stop()`` is asked after each stretch of steps; when it says True the run saves a checkpoint and
-        raises ``Interrupted``."""
+        raises ``Interrupted``. Each stretch ends with a check that the output folder was not deleted or replaced
+        (``OutputError``)."""
         until = self.steps if until is None else _positive_int(until, "until")
         if checkpoint_every is not None:
             _positive_int(checkpoint_every, "--checkpoint-every")
@@ -225,6 +234,7 @@ class Run:
                 if self.health.is_check(end):
                     self._check()
                 self._take_snapshot()
+                self.folder.check()
                 if end % self.log_every == 0:
                     self._log()
                 if checkpoint_every and end % checkpoint_every == 0:
@@ -314,7 +324,9 @@ class Run:
         the caller asked for besides (``name``, ``batch``, ``seed``, ``dtype``, ``overrides``); anything
         that differs from the checkpoint is refused. ``out``: continue into another folder (new, or replaced
         with ``overwrite``) instead of ``directory``. ``scenario``: the scenario object of a run that was not
-        made from a registered name (a graph run from Python, ``rcotorch.refine``)."""
+        made from a registered name (a graph run from Python, ``rcotorch.refine``). A checkpoint whose contents
+        do not fit a run of its scenario (a missing entry, a tensor of another shape) raises ``CheckpointError``
+        naming it."""
         directory = Path(directory)
         if not directory.is_dir():
             raise CheckpointError(f"--resume {directory}: no such folder")
@@ -323,27 +335,50 @@ class Run:
         if not path.is_file():
             raise CheckpointError(f"--resume {directory}: no {CHECKPOINT} there")
         state = load_checkpoint(path)
-        if state.get("format") != CHECKPOINT_FORMAT:
-            raise CheckpointError(f"{path}: written by another version of rcotorch (format {state.get('format')})")
-        _check_resume(path, state, expect or {})
-        if scenario is not None and scenario.name != state["scenario"]:
-            raise CheckpointError(f"--resume {directory}: the checkpoint is a run of {state['scenario']!r}, not "
-                                  f"{scenario.name!r}")
-        run = cls(scenario or state["scenario"], steps=steps or state["steps"], batch=state["batch"],
-                  device=device or "cpu", dtype=state["dtype"], out=out or directory,
-                  overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
-                  members=_members(state["settings"], state["batch"]), log_every=state["log_every"],
-                  trace=state["trace"], health=Criteria(**state["health"]["criteria"]),
-                  intervals=state["intervals"], level=state["level"])
+        version = state.get("format") if isinstance(state, dict) else None
+        if version != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"{path}: written by another version of rcotorch (format {version})")
+        try:
+            run = cls._from_state(path, state, steps, device, out or directory, expect or {}, scenario)
+        except RcoError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, RuntimeError) as e:
+            # A checkpoint that hashes right but whose contents do not fit a run of its scenario.
+            raise CheckpointError(f"{path}: the checkpoint does not hold a run this version can continue "
+                                  f"({_what_failed(e)}); start the run again") from e
         if out is None or Path(out).resolve() == directory.resolve():
             run._mode = "resume"
         elif overwrite:
             run._mode = "overwrite"
+        return run
+
+    @classmethod
+    def _from_state(cls, path: Path, state: dict[str, Any], steps: int | None, device: str | None,
+                    out: str | Path, expect: Mapping[str, Any], scenario: scenarios.Scenario | None) -> Run:
+        """The run a checkpoint's ``state`` holds. Raises KeyError, TypeError, ValueError, ... where a part of
+        ``state`` is missing, or its layout (entries, tensor shapes) differs from a fresh run of its scenario."""
+        _check_resume(path, state, expect)
+        if scenario is not None and scenario.name != state["scenario"]:
+            raise CheckpointError(f"--resume {path.parent}: the checkpoint is a run of {state['scenario']!r}, not "
+                                  f"{scenario.name!r}")
+        run = cls(scenario or state["scenario"], steps=steps or state["steps"], batch=state["batch"],
+                  device=device or "cpu", dtype=state["dtype"], out=out,
+                  overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
+                  members=_members(state["settings"], state["batch"]), log_every=state["log_every"],
+                  trace=state["trace"], health=Criteria(**state["health"]["criteria"]),
+                  intervals=state["intervals"], level=state["level"])
+        graph = run.graph.state_dict()      # its blocks check their tensors' shapes as they load them
+        _same_layout("graph", state["graph"], graph, shapes=False)
+        if state["snapshot"] is not None:
+            _same_layout("snapshot", state["snapshot"], graph, shapes=False)
+        _same_layout("sums", state["sums"], run.sums)
+        _same_layout("counters", state["counters"], run.counters)
+        _same_layout("health", state["health"], run.health.state_dict())
         run.graph.load_state_dict(state["graph"])
         run.history = {k: list(v.unbind(0)) if isinstance(v, torch.Tensor) else list(v)
                        for k, v in state["history"].items()}
-        run.history_members = state["history_members"]
-        run.counters = dict(state["counters"])
+        run.history_members = list(state["history_members"])
+        run.counters = {k: int(v) for k, v in state["counters"].items()}
         run.sums = {k: v.to(run.device) for k, v in state["sums"].items()}
         run.health.load_state_dict(state["health"])
         if run.k > run.steps:
@@ -514,6 +549,30 @@ def _check_resume(path: Path, state: Mapping[str, Any], expect: Mapping[str, Any
             if resolved[key] != state["settings"].get(key):
                 raise CheckpointError(f"--resume {path.parent}: --set {key}={overrides[key]} differs from the "
                                       f"checkpoint's {key} = {state['settings'].get(key)!r}; {changeable}")
+
+
+def _same_layout(what: str, got: Any, want: Mapping[str, Any], shapes: bool = True) -> None:
+    """Raise ValueError unless a checkpoint's ``got`` has the entries of ``want`` (a fresh run's) and, with
+    ``shapes``, each tensor of ``want``'s shape."""
+    if not isinstance(got, Mapping):
+        raise ValueError(f"{what}: a {type(got).__name__}, not a table")
+    missing, unknown = sorted(map(str, set(want) - set(got))), sorted(map(str, set(got) - set(want)))
+    if missing or unknown:
+        raise ValueError(f"{what}: " + "; ".join([f"missing {', '.join(missing[:3])}"] * bool(missing)
+                                                  + [f"unknown {', '.join(unknown[:3])}"] * bool(unknown)))
+    for key, v in want.items() if shapes else ():
+        if isinstance(v, torch.Tensor) and (not isinstance(got[key], torch.Tensor) or got[key].shape != v.shape):
+            shape = tuple(got[key].shape) if isinstance(got[key], torch.Tensor) else type(got[key]).__name__
+            raise ValueError(f"{what}: {key} has shape {shape}, not {tuple(v.shape)}")
+
+
+def _what_failed(e: BaseException) -> str:
+    """A short, one-line account of an error met reading a checkpoint's contents."""
+    if isinstance(e, KeyError):
+        return f"missing {e.args[0]!r}" if e.args else "an entry is missing"
+    text = " ".join(str(e).split()).rstrip(".") or type(e).__name__
+    text = re.sub(r"^Error\(s\) in loading state_dict for \w+: ", "graph: ", text)    # torch's load_state_dict
+    return text if len(text) <= 200 else text[:197] + "..."
 
 
 def member_truth(truth, batch: int) -> list:

@@ -26,6 +26,7 @@ Config file (TOML or JSON)::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import itertools
@@ -39,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from . import scenario as scenarios
-from .errors import ConfigError
+from .errors import ConfigError, RcoError
 
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
@@ -105,7 +106,13 @@ class Sweep:
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"{path}: no such sweep config")
-        text = path.read_text()
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start}); save "
+                              "the config as UTF-8") from None
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read the sweep config: {e.strerror or e}") from None
         if path.suffix == ".toml":
             import tomllib
             try:
@@ -261,8 +268,13 @@ def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype:
         else:
             run = make_run(scenario, shard, steps, dtype, device, out, overwrite=True)
     run = run or make_run(scenario, shard, steps, dtype, device, out)
-    run.advance(progress=desc is not None, stop=stop, desc=desc)
-    summary = run.finish(figures=False) if out else run.summary()
+    try:
+        run.advance(progress=desc is not None, stop=stop, desc=desc)
+        summary = run.finish(figures=False) if out else run.summary()
+    except BaseException:
+        with contextlib.suppress(OSError):
+            run.close()                  # releases the shard's folder (its checkpoint is kept)
+        raise
     return shard_rows(shard, summary)
 
 
@@ -314,8 +326,10 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
 
     ``out`` (default ``runs/sweep-SCENARIO``) must not hold results unless ``overwrite`` (replace the sweep
     there) or ``resume`` (continue the interrupted sweep there, with the same config). ``stop()`` is asked
-    between steps (Ctrl-C): the running shard saves a checkpoint and ``Interrupted`` is raised. ``folder``: an
-    ``OutputFolder`` for ``out`` made by the caller (to log into it)."""
+    between steps (Ctrl-C, SIGTERM, SIGHUP): the running shard saves a checkpoint and ``Interrupted`` is raised.
+    ``folder``: an ``OutputFolder`` for ``out`` made by the caller, who closes it (and may log into it
+    meanwhile). A sweep refused (an ``RcoError``) before its first shard wrote anything leaves the folder as it
+    found it."""
     from .outputs import OutputFolder
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
@@ -324,10 +338,15 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     shards = sweep.shards()  # validates everything before any work
     sc = scenarios.get(sweep.scenario)
     steps = sweep.steps or sc.steps
+    own = folder is None
     folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
     shard_out = [str(folder.path / f"shard_{s['index']:04d}") for s in shards]
     # Build every shard before running any, so a bad value fails before work starts.
     runs = [make_run(sweep.scenario, s, steps, sweep.dtype, device, o) for s, o in zip(shards, shard_out)]
+    if backend == "ray":
+        ray = _import_ray()
+        if ray_address and not ray.is_initialized():
+            _check_ray_address(ray_address)
     config = json.loads(json.dumps(asdict(sweep)))
     folder.open("resume" if resume else "overwrite" if overwrite else "new",
                 info=None if resume else {"scenario": sweep.scenario, "config": config})
@@ -344,10 +363,15 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
             del runs
             rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, progress, stop)
         rows.sort(key=lambda r: r["member"])
+        folder.check()
         write_table(rows, out)
         write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
+    except RcoError:
+        folder.discard()
+        raise
     finally:
-        folder.close()
+        if own:
+            folder.close()
     return rows
 
 
@@ -396,19 +420,23 @@ def _check_ray_address(address: str, timeout: float = RAY_TIMEOUT) -> None:
         channel.close()
 
 
-def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
+def _import_ray():
     try:
         import ray
     except ImportError:
         raise ConfigError("the ray backend needs Ray: pip install 'rcotorch[ray]' (or pip install ray)") from None
+    return ray
+
+
+def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
+    ray = _import_ray()
     started = not ray.is_initialized()
     if started:
-        if address:
-            _check_ray_address(address)
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
         except (ConnectionError, RuntimeError, ValueError) as e:
-            raise ConfigError(f"--ray-address {address}: cannot connect to Ray: {e}") from None
+            where = f"--ray-address {address}: cannot connect to Ray" if address else "cannot start Ray here"
+            raise ConfigError(f"{where}: {e}") from None
     try:
         task = ray.remote(num_cpus=1, num_gpus=1 if device == "cuda" else 0)(run_shard)
         refs = {task.remote(sweep.scenario, s, steps, sweep.dtype, device, o, 1): s for s, o in zip(shards, shard_out)}
