@@ -22,6 +22,7 @@ import threading
 import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from .errors import ConfigError, OutputError, RcoError
 
@@ -92,12 +93,16 @@ def _add_run(sub) -> None:
     run.add_argument("--seed", type=int, help="excitation seed (default: the scenario's)")
     run.add_argument("--dtype", choices=["float64", "float32"], help="float64 (default) or float32")
     run.add_argument("--out", help="output folder (default runs/NAME, or runs/NAME-2, ... when that holds a run)")
+    run.add_argument("--config", metavar="FILE", help="settings from a TOML/JSON file: a table [settings] (and "
+                     "optionally scenario = NAME), e.g. the best.toml of `rcotorch tune`; --set overrides it")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario setting (repeatable)")
     run.add_argument("--checkpoint-every", type=int, metavar="N", help="save a checkpoint every N steps")
     run.add_argument("--resume", metavar="DIR", help="continue the run in DIR from its checkpoint.pt "
                      "(--steps may extend it)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG/TensorBoard figures")
+    run.add_argument("--no-validation", action="store_true",
+                     help="skip the held-out validation of the refined model at the end")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(run)
 
@@ -113,6 +118,18 @@ def _add_sweep(sub) -> None:
     _add_common(sw)
 
 
+def _add_tune(sub) -> None:
+    tu = sub.add_parser("tune", help="choose a scenario's tuning (p0, nu, lam, ...) from held-out data")
+    tu.add_argument("config", help="tuning config file (.toml or .json): scenario, method, samples, seeds, "
+                    "[fixed], [space]; see docs/tuning.md")
+    tu.add_argument("--backend", default="local", choices=["local", "ray"])
+    tu.add_argument("--ray-address", help="address of an existing Ray cluster, HOST:PORT (default: start a "
+                    "local one)")
+    tu.add_argument("--out", help="output folder (default runs/tune-SCENARIO)")
+    tu.add_argument("--resume", action="store_true", help="continue an interrupted tuning in --out")
+    _add_common(tu)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
     parser = argparse.ArgumentParser(prog="rcotorch", description="Model refinement by retrospective cost "
@@ -124,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-ADD_COMMANDS: list[Callable] = [_add_list, _add_show, _add_run, _add_sweep]
+ADD_COMMANDS: list[Callable] = [_add_list, _add_show, _add_run, _add_sweep, _add_tune]
 
 
 def _say(text: str) -> None:
@@ -322,6 +339,12 @@ def cmd_run(args, session: Session) -> int:
     from .runner import Interrupted, Run, result_table
     _positive(args.checkpoint_every, "--checkpoint-every")
     overrides = _settings(args.overrides)
+    if args.config:
+        name, settings = _config_settings(args.config)
+        if name and args.name and name != args.name:
+            raise ConfigError(f"--config {args.config}: it is for scenario {name!r}, not {args.name!r}")
+        args.name = args.name or name
+        overrides = {**settings, **overrides}
     if args.resume:
         r = Run.resume(args.resume, steps=args.steps, device=args.device, out=args.out, overwrite=args.overwrite,
                        expect=dict(name=args.name, batch=args.batch, seed=args.seed, dtype=args.dtype,
@@ -330,7 +353,8 @@ def cmd_run(args, session: Session) -> int:
         if not args.name:
             raise ConfigError("run needs a scenario NAME (or --resume DIR); see `rcotorch list`")
         r = Run(args.name, steps=args.steps, batch=args.batch or 1, seed=args.seed, device=args.device or "cpu",
-                dtype=args.dtype or "float64", out=args.out, overrides=overrides, overwrite=args.overwrite)
+                dtype=args.dtype or "float64", out=args.out, overrides=overrides, overwrite=args.overwrite,
+                validation=not args.no_validation)
     session.folder, session.run = r.folder, r
     session.resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
     if args.checkpoint_every:
@@ -380,7 +404,53 @@ def cmd_sweep(args, session: Session) -> int:
     return EXIT_PASS
 
 
-COMMANDS: dict[str, Callable] = {"list": cmd_list, "show": cmd_show, "run": cmd_run, "sweep": cmd_sweep}
+def _config_settings(path: str) -> tuple[str | None, dict[str, Any]]:
+    """The scenario name and settings of a ``--config`` file."""
+    from .sweep import read_config
+    spec = read_config(path, "run")
+    unknown = set(spec) - {"scenario", "settings"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)}; a run config has scenario = NAME and a "
+                          "table [settings]")
+    settings = spec.get("settings", {})
+    if not isinstance(settings, dict) or any(isinstance(v, dict) for v in settings.values()):
+        raise ConfigError(f"{path}: [settings] must be a table of setting = value")
+    name = spec.get("scenario")
+    if name is not None and not isinstance(name, str):
+        raise ConfigError(f"{path}: scenario must be a name, got {name!r}")
+    return name, dict(settings)
+
+
+def cmd_tune(args, session: Session) -> int:
+    from .outputs import OutputFolder
+    from .runner import Interrupted, _device
+    from .tune import Tuning, run_tune
+    tuning = Tuning.from_file(args.config)
+    tuning.sweep().members()                          # every candidate checked before anything is written
+    _device(args.device or "cpu")
+    out = Path(args.out or Path("runs") / f"tune-{tuning.scenario}")
+    session.folder = OutputFolder(out, "tune")
+    session.resume = f"rcotorch tune {shlex.quote(args.config)} --out {shlex.quote(str(out))} --resume"
+    with session.interruptible() as stop:
+        try:
+            result = run_tune(tuning, out=out, backend=args.backend, device=args.device or "cpu",
+                              ray_address=args.ray_address, overwrite=args.overwrite, resume=args.resume,
+                              stop=stop.is_set, folder=session.folder)
+        except Interrupted as e:
+            session.log(f"stopped by {session.stopped_by}; resume with: {session.resume}")
+            _say(f"rcotorch: tuning stopped ({e}); finished shards are kept\nresume with: {session.resume}")
+            return session.exit_stopped()
+    session.log(f"finished: {len(result.candidates)} candidates, {result.members} members")
+    print(f"{tuning.scenario}: {len(result.candidates)} candidates x seeds = {result.members} members, scored on "
+          f"held-out data (validation_rmse) -> {out}")
+    print(result.table())
+    print(f"best: {out / 'best.toml'}  (rcotorch run {tuning.scenario} --config {out / 'best.toml'})")
+    print(f"sensitivity of the score to each setting: {out / 'sensitivity.csv'}")
+    return EXIT_PASS
+
+
+COMMANDS: dict[str, Callable] = {"list": cmd_list, "show": cmd_show, "run": cmd_run, "sweep": cmd_sweep,
+                                 "tune": cmd_tune}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -44,13 +44,14 @@ class GraphScenario(Scenario):
                  truth: Mapping[str, float | Sequence[float]] | None = None,
                  requirements: Sequence[Requirement] = (), scales: Mapping[str, float] | None = None,
                  units: Mapping[str, str] | None = None, name: str = "refinement", metrics=None,
-                 steps: int = 10000):
+                 steps: int = 10000, validation: Mapping[str, Any] | None = None):
         if not isinstance(graph, Graph):
             raise ConfigError(f"refine: expected an rcotorch Graph, got {type(graph).__name__}")
         if "estimator" not in graph.roles or "error" not in graph.roles:
             raise ConfigError("refine: the graph needs the roles 'estimator' and 'error' (rcotorch.refinement "
                               f"declares them; Graph(..., roles=...) otherwise); it has {sorted(graph.roles)}")
         self.graph, self.name, self.steps = graph, name, steps
+        self._validation = None if validation is None else dict(validation)
         self.description = f"a graph built in Python ({len(graph.blocks)} blocks)"
         self._estimates = dict(estimates) if estimates is not None else None
         self._truth = dict(truth or {})
@@ -77,6 +78,11 @@ class GraphScenario(Scenario):
 
     def truth(self, settings) -> dict[str, Any]:
         return dict(self._truth)
+
+    def validation(self, graph: Graph, settings) -> dict[str, Any] | None:
+        if self._validation is not None:
+            return dict(self._validation)
+        return super().validation(graph, settings)
 
     def estimates(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
         if self._estimates is None:
@@ -157,7 +163,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
            metrics: Mapping[str, Estimate] | None = None, name: str = "refinement",
            out: str | Path | None = None, overwrite: bool = False, level: float = ci.LEVEL,
            intervals: bool = True, figures: bool = True, progress: bool | None = None,
-           checkpoint_every: int | None = None, health: Criteria | None = None) -> RefinementResult:
+           checkpoint_every: int | None = None, health: Criteria | None = None,
+           validation: bool | Mapping[str, Any] = True) -> RefinementResult:
     """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
     for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
 
@@ -187,6 +194,11 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     intervals, figures, progress, checkpoint_every, health : optional
         As for ``rcotorch run``: whether to compute intervals and draw figures, a progress bar, periodic
         checkpoints, and the health criteria.
+    validation : bool or {argument: value}
+        Validate the refined model on held-out data at the end (``rcotorch.validate``; metrics
+        ``validation_rmse``, ``validation_fit_percent`` and the initial model's): True for 2000 steps of a
+        fresh excitation of a simulated physical system, or the arguments of ``rcotorch.validate``, e.g.
+        ``{'rows': (20000, 30000)}`` for a later window of recorded data; False for none.
 
     Returns
     -------
@@ -197,11 +209,12 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
         raise ConfigError(f"refine: the graph has already run {int(graph.k)} steps; pass a fresh graph (or call "
                           "graph.reset())")
     sc = GraphScenario(graph, estimates, truth=truth, requirements=requirements, scales=scales, units=units,
-                       name=name, metrics=metrics, steps=steps)
+                       name=name, metrics=metrics, steps=steps,
+                       validation=validation if isinstance(validation, Mapping) else None)
     dtype = _dtype_name(graph)
     device = str(graph.k.device)
     run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,
-              health=health, intervals=intervals, level=level)
+              health=health, intervals=intervals, level=level, validation=bool(validation))
     try:
         run.advance(progress=progress, checkpoint_every=checkpoint_every)
         summary = run.finish(figures=figures)

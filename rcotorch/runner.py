@@ -18,6 +18,7 @@ run is.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import sys
@@ -117,6 +118,8 @@ class Run:
             of the convergence window, up to ``intervals.REPLAY_STEPS`` steps, once per parameter and once
             more, on the PyTorch engine) and judge whether the data determined them.
         level: the intervals' confidence level.
+        validation: validate the refined model on held-out data at the end (``Scenario.validation``,
+            ``rcotorch.validate``): ``validation_*`` metrics and the ``validation`` entry of the summary.
 
     ``hparams_session`` (default True): the run's TensorBoard run is also its HParams session (a sweep sets it
     False and writes one session per member instead).
@@ -127,11 +130,13 @@ class Run:
                  overrides: Mapping[str, Any] | None = None, log_every: int | None = None,
                  members: list[Mapping[str, Any]] | None = None, trace: list[int] | None = None,
                  health: Criteria | None = None, overwrite: bool = False, intervals: bool = True,
-                 level: float = ci.LEVEL):
+                 level: float = ci.LEVEL, validation: bool = True):
         self.scenario = scenarios.get(name) if isinstance(name, str) else name
         if not isinstance(self.scenario, scenarios.Scenario):
             raise ConfigError(f"a run takes a scenario or its name, got {type(name).__name__}")
         self.intervals_on, self.level = bool(intervals) and self.scenario.intervals, float(level)
+        self.validation_on = bool(validation)
+        self._validation: tuple[int, Any, str | None] | None = None
         ci.quantile(self.level)                                    # checks the level
         self.trace = trace
         if members is not None:
@@ -310,7 +315,7 @@ class Run:
             "history_members": self.history_members, "counters": dict(self.counters),
             "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
             "snapshot": None if self.snapshot is None else {k: v.cpu() for k, v in self.snapshot.items()},
-            "intervals": self.intervals_on, "level": self.level,
+            "intervals": self.intervals_on, "level": self.level, "validation": self.validation_on,
         }
         save_checkpoint(path, state)
         self.folder.register()
@@ -366,7 +371,7 @@ class Run:
                   overrides={k: v for k, v in state["settings"].items() if not isinstance(v, list)},
                   members=_members(state["settings"], state["batch"]), log_every=state["log_every"],
                   trace=state["trace"], health=Criteria(**state["health"]["criteria"]),
-                  intervals=state["intervals"], level=state["level"])
+                  intervals=state["intervals"], level=state["level"], validation=state.get("validation", True))
         graph = run.graph.state_dict()      # its blocks check their tensors' shapes as they load them
         _same_layout("graph", state["graph"], graph, shapes=False)
         if state["snapshot"] is not None:
@@ -401,6 +406,11 @@ class Run:
         found, res = self._replayed()
         if res is not None:
             met.update(residual_metrics(res))
+        held_out = self.validation()
+        if held_out is not None:
+            met.update({"validation_rmse": held_out.rmse, "validation_rmse_initial": held_out.rmse_initial,
+                        "validation_fit_percent": held_out.fit_percent,
+                        "validation_fit_percent_initial": held_out.fit_percent_initial})
         if found is not None:
             ident = self.graph.role("estimator")
             explained = ci.change_explained(ident, self.health.state["theta_ref"], self.health.state["k_ref"],
@@ -431,6 +441,8 @@ class Run:
             "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
+            "validation": None if held_out is None else {
+                k: v for k, v in held_out.summary().items() if k in ("source", "steps", "fit_steps", "state_fitted")},
             "intervals": {} if found is None else {
                 k: {"level": found.level, "lower": self._values(found.lower(k)), "upper": self._values(found.upper(k))}
                 for k in found.estimate},
@@ -460,6 +472,30 @@ class Run:
                                                scales=self.scenario.scales(self.settings)), rep.residuals)
             self._intervals = (self.k, *found)
         return self._intervals[1:]
+
+    def validation(self):
+        """The refined model on held-out data (``rcotorch.validation.Validation``) at the current step, or None
+        when the run or its scenario validates nothing or the validation failed (``validation_reason``)."""
+        if not self.validation_on:
+            return None
+        if self._validation is None or self._validation[0] != self.k:
+            from .validation import validate
+            found, reason = None, None
+            plan = self.scenario.validation(self.graph, self.settings)
+            if plan is None:
+                reason = "the scenario has no held-out data"
+            else:
+                try:
+                    found = validate(self.graph, **plan)
+                except RcoError as e:
+                    reason = str(e)
+                    logging.getLogger("rcotorch").warning("validation skipped: %s", reason)
+            self._validation = (self.k, found, reason)
+        return self._validation[1]
+
+    @property
+    def validation_reason(self) -> str | None:
+        return None if self._validation is None else self._validation[2]
 
     def _plain(self, values: list):
         return values[0] if self.batch == 1 else values

@@ -103,30 +103,7 @@ class Sweep:
 
     @classmethod
     def from_file(cls, path: str | Path) -> Sweep:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such sweep config")
-        try:
-            text = path.read_text(encoding="utf-8")
-        except UnicodeDecodeError as e:
-            raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start}); save "
-                              "the config as UTF-8") from None
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot read the sweep config: {e.strerror or e}") from None
-        if path.suffix == ".toml":
-            import tomllib
-            try:
-                spec = tomllib.loads(text)
-            except tomllib.TOMLDecodeError as e:
-                raise ConfigError(f"{path}: not valid TOML: {e}") from None
-        elif path.suffix == ".json":
-            try:
-                spec = json.loads(text)
-            except json.JSONDecodeError as e:
-                raise ConfigError(f"{path}: not valid JSON: {e}") from None
-        else:
-            raise ConfigError(f"{path}: a sweep config is a .toml or .json file")
-        return cls.from_dict(spec, str(path))
+        return cls.from_dict(read_config(path, "sweep"), str(path))
 
     # --- members -----------------------------------------------------------------------------------------
     def seed_list(self) -> list[int]:
@@ -226,6 +203,36 @@ class Sweep:
                                "settings": [{k: v for k, v in members[i].items() if k in sc.per_member}
                                             for i in part]})
         return shards
+
+
+def read_config(path: str | Path, what: str) -> dict[str, Any]:
+    """A config file's table: TOML (``.toml``) or JSON (``.json``), UTF-8; ``what`` names it in errors."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such {what} config")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start}); save "
+                          "the config as UTF-8") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the {what} config: {e.strerror or e}") from None
+    if path.suffix == ".toml":
+        import tomllib
+        try:
+            spec = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    elif path.suffix == ".json":
+        try:
+            spec = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ConfigError(f"{path}: not valid JSON: {e}") from None
+        if not isinstance(spec, dict):
+            raise ConfigError(f"{path}: a {what} config is a JSON object")
+    else:
+        raise ConfigError(f"{path}: a {what} config is a .toml or .json file")
+    return spec
 
 
 def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,

@@ -1,0 +1,282 @@
+"""Tuning from held-out data: a search over a refinement's tuning settings, every candidate scored on held-out
+validation only (``rcotorch.validation``: the refined model, theta frozen, simulated on data the refinement did
+not use), never on the truth.
+
+A tuning is a sweep (``rcotorch.sweep``): every candidate is a member of batched runs (one batch per graph
+structure: candidates that differ only in per-member settings such as p0 and lam share a batch; nu and nc
+change the graph), run on the same backends (local or Ray), resumable the same way. Each candidate runs with
+``seeds`` seeds; its score is the mean over them of the held-out RMS error (``metrics.validation_rmse``, the
+first output's units), a seed that diverged or could not be validated scoring infinity.
+
+Config file (TOML or JSON)::
+
+    scenario = "sdof-stiffness-damping"
+    steps = 5000
+    method = "random"          # or "grid": the full factorial of the lists in [space]
+    samples = 64               # random candidates
+    seeds = 2
+    [fixed]                    # settings held for every candidate (e.g. a deliberately poor start)
+    dK = -0.3
+    [space]                    # what is searched: a list (grid, or choice) or a distribution (random)
+    p0 = {loguniform = [1.0, 1e6]}
+    nu = [10, 30, 100]
+    lam = {uniform = [0.98, 1.0]}
+
+Results in the output folder: ``tune.csv`` (one row per candidate, ranked: score, its spread over seeds, the
+held-out fit in percent against the initial model's, how many seeds diverged), ``best.toml`` (the best
+candidate's settings and the fixed ones, which ``rcotorch run NAME --config best.toml`` accepts),
+``sensitivity.csv`` (for each searched setting, the best and median score at each of its values, or in
+quantile bins of a continuous one) and the sweep's own ``sweep.csv`` under ``runs/``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import scenario as scenarios
+from .errors import ConfigError
+from .sweep import DISTRIBUTIONS, Sweep, run_sweep
+
+METHODS = ("grid", "random")
+CONFIG_KEYS = {"scenario", "steps", "method", "samples", "seeds", "seed", "fixed", "space", "shard_size", "dtype"}
+SCORE = "validation_rmse"
+BINS = 4                     # quantile bins of a continuous setting in the sensitivity table
+
+
+@dataclass
+class Tuning:
+    """A declared search; ``sweep()`` is the sweep that runs it."""
+
+    scenario: str
+    space: Mapping[str, Any]
+    method: str = "random"
+    samples: int = 32
+    seeds: int | Sequence[int] = 2
+    seed: int = 0
+    steps: int | None = None
+    fixed: Mapping[str, Any] = field(default_factory=dict)
+    shard_size: int = 4096
+    dtype: str = "float64"
+
+    @classmethod
+    def from_dict(cls, spec: Mapping[str, Any], source: str = "tune") -> Tuning:
+        unknown = set(spec) - CONFIG_KEYS
+        if unknown:
+            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)}; allowed: {sorted(CONFIG_KEYS)}")
+        for key in ("scenario", "space"):
+            if key not in spec:
+                raise ConfigError(f"{source}: '{key}' is missing")
+        if not isinstance(spec["space"], Mapping) or not spec["space"]:
+            raise ConfigError(f"{source}: space must be a non-empty table of settings")
+        if spec.get("method", "random") not in METHODS:
+            raise ConfigError(f"{source}: method must be one of {METHODS}, got {spec['method']!r}")
+        return cls(**spec)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> Tuning:
+        from .sweep import read_config
+        return cls.from_dict(read_config(path, "tuning"), str(path))
+
+    def sweep(self) -> Sweep:
+        """The sweep of every candidate and seed. Grid: the lists' full factorial. Random: ``samples`` draws,
+        a list meaning a uniform choice among its values. A searched setting overrides its value in ``fixed``
+        (the start the search leaves)."""
+        sc = scenarios.get(self.scenario)
+        if not sc.validation_steps:
+            raise ConfigError(f"tune: scenario '{sc.name}' has no held-out validation to score candidates on")
+        grid, random = {}, {}
+        for name, values in self.space.items():
+            if isinstance(values, Mapping):
+                if self.method == "grid":
+                    raise ConfigError(f"tune: method 'grid' needs a list of values for {name!r}, got {values!r}")
+                random[name] = values
+            elif isinstance(values, Sequence) and not isinstance(values, (str, bytes)) and values:
+                if self.method == "grid":
+                    grid[name] = list(values)
+                else:
+                    random[name] = {"choice": list(values)}
+            else:
+                raise ConfigError(f"tune: space {name!r} needs a list of values or one of {DISTRIBUTIONS}, "
+                                  f"got {values!r}")
+        return Sweep(scenario=self.scenario, grid=grid, random=random,
+                     samples=self.samples if random else 0, seeds=self.seeds, seed=self.seed, steps=self.steps,
+                     fixed={k: v for k, v in self.fixed.items() if k not in self.space},
+                     shard_size=self.shard_size, dtype=self.dtype)
+
+
+@dataclass
+class TuneResult:
+    """The ranked candidates (best first) and the search's folder."""
+
+    candidates: list[dict[str, Any]]
+    sensitivity: list[dict[str, Any]]
+    best: dict[str, Any]
+    out: Path
+    members: int
+
+    def table(self, top: int = 10) -> str:
+        keys = [k for k in self.candidates[0]["settings"]] if self.candidates else []
+        head = ["rank", *keys, "score", "spread", "fit %", "fit % initial", "diverged"]
+        lines = [head]
+        for c in self.candidates[:top]:
+            lines.append([str(c["rank"]), *(_fmt(c["settings"][k]) for k in keys), _fmt(c["score"]),
+                          _fmt(c["spread"]), _fmt(c["fit_percent"]), _fmt(c["fit_percent_initial"]),
+                          f"{c['diverged']}/{c['seeds']}"])
+        widths = [max(len(r[i]) for r in lines) for i in range(len(head))]
+        return "\n".join("  ".join(v.ljust(w) for v, w in zip(r, widths)) for r in lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "local", device: str = "cpu",
+             ray_address: str | None = None, progress: bool = True, overwrite: bool = False, resume: bool = False,
+             stop=None, folder=None) -> TuneResult:
+    """Run every candidate (as a sweep in ``out/runs``) and write ``tune.csv``, ``best.toml`` and
+    ``sensitivity.csv`` into ``out`` (default ``runs/tune-SCENARIO``). ``stop()`` is asked between steps
+    (``rcotorch.runner.Interrupted`` is raised after the running shard saved its checkpoint); ``folder``: an
+    ``OutputFolder`` for ``out`` made by the caller, who closes it."""
+    from .outputs import OutputFolder, write_text
+    sweep = tuning.sweep()
+    out = Path(out or Path("runs") / f"tune-{tuning.scenario}")
+    own = folder is None
+    folder = folder or OutputFolder(out, "tune")
+    folder.open("resume" if resume else "overwrite" if overwrite else "new",
+                info=None if resume else {"scenario": tuning.scenario, "config": _plain(tuning.__dict__)})
+    try:
+        folder.add_child("runs")
+        for name in ("tune.csv", "best.toml", "sensitivity.csv"):
+            folder.add_child(name)
+        folder.register()
+        rows = run_sweep(sweep, backend=backend, device=device, out=out / "runs", ray_address=ray_address,
+                         progress=progress, overwrite=overwrite, resume=resume, stop=stop)
+        searched = list(tuning.space)
+        candidates = rank(rows, searched)
+        if not candidates:
+            raise ConfigError("tune: no candidate ran")
+        best = {**_plain(dict(tuning.fixed)), **candidates[0]["settings"]}
+        write_text(out / "tune.csv", _csv(candidates, searched))
+        write_text(out / "best.toml", best_toml(tuning.scenario, best, candidates[0]))
+        sensitivity = sensitivity_table(candidates, searched)
+        write_text(out / "sensitivity.csv", _csv_rows(sensitivity))
+        folder.check()
+    finally:
+        if own:
+            folder.close()
+    return TuneResult(candidates=candidates, sensitivity=sensitivity, best=best, out=out, members=len(rows))
+
+
+def rank(rows: Sequence[Mapping[str, Any]], searched: Sequence[str]) -> list[dict[str, Any]]:
+    """Candidates (the searched settings' values) with their scores over seeds, best first."""
+    groups: dict[str, list[Mapping[str, Any]]] = {}
+    for r in rows:
+        key = json.dumps([r.get(k) for k in searched])
+        groups.setdefault(key, []).append(r)
+    out = []
+    for members in groups.values():
+        scores = np.array([_score(r) for r in members])
+        finite = scores[np.isfinite(scores)]
+        out.append({"settings": {k: members[0].get(k) for k in searched},
+                    "score": float(scores.mean()) if len(finite) == len(scores) else math.inf,
+                    "spread": float(finite.std()) if len(finite) > 1 else 0.0,
+                    "fit_percent": _mean(members, "validation_fit_percent"),
+                    "fit_percent_initial": _mean(members, "validation_fit_percent_initial"),
+                    "diverged": int(sum(bool(r.get("diverged")) for r in members)), "seeds": len(members)})
+    out.sort(key=lambda c: (c["score"], c["spread"]))
+    for i, c in enumerate(out):
+        c["rank"] = i + 1
+    return out
+
+
+def _score(row: Mapping[str, Any]) -> float:
+    v = row.get(SCORE)
+    if row.get("diverged") or v is None or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return math.inf
+    return float(v)
+
+
+def _mean(rows, key) -> float:
+    vals = [r.get(key) for r in rows if isinstance(r.get(key), (int, float)) and math.isfinite(r.get(key))]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def sensitivity_table(candidates: Sequence[Mapping[str, Any]], searched: Sequence[str]) -> list[dict[str, Any]]:
+    """For each searched setting: the best and median score of the candidates at each of its values (a
+    setting with more than ``BINS`` numeric values: at each quantile bin of them)."""
+    table = []
+    for name in searched:
+        values = [c["settings"][name] for c in candidates]
+        numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        if numeric and len(set(values)) > BINS:
+            edges = np.quantile(np.asarray(values, dtype=float), np.linspace(0, 1, BINS + 1))
+            labels = [f"{edges[i]:.4g}..{edges[i + 1]:.4g}" for i in range(BINS)]
+            which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, BINS - 1)
+            groups = {labels[i]: [c for c, w in zip(candidates, which) if w == i] for i in range(BINS)}
+        else:
+            groups = {}
+            for c in candidates:
+                groups.setdefault(_fmt(c["settings"][name]), []).append(c)
+        for label, part in groups.items():
+            if not part:
+                continue
+            scores = np.array([c["score"] for c in part])
+            table.append({"setting": name, "value": label, "candidates": len(part), "best": float(scores.min()),
+                          "median": float(np.median(scores))})
+    return table
+
+
+def best_toml(scenario: str, settings: Mapping[str, Any], best: Mapping[str, Any]) -> str:
+    """The chosen settings as a ``--config`` file of ``rcotorch run``."""
+    lines = [f"# rcotorch tune {scenario}: the best candidate (rank 1 of the search), score "
+             f"{best['score']:.6g} (held-out RMS error, mean over {best['seeds']} seeds)",
+             f'scenario = "{scenario}"', "", "[settings]"]
+    for k, v in settings.items():
+        lines.append(f"{k} = {_toml_value(v)}")
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ConfigError(f"tune: cannot write setting value {v!r} to TOML")
+
+
+def _csv(candidates: Sequence[Mapping[str, Any]], searched: Sequence[str]) -> str:
+    rows = [{"rank": c["rank"], **c["settings"], **{k: c[k] for k in ("score", "spread", "fit_percent",
+                                                                        "fit_percent_initial", "diverged",
+                                                                        "seeds")}} for c in candidates]
+    return _csv_rows(rows)
+
+
+def _csv_rows(rows: Sequence[Mapping[str, Any]]) -> str:
+    text = io.StringIO(newline="")
+    if rows:
+        w = csv.DictWriter(text, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r)
+    return text.getvalue()
+
+
+def _plain(value):
+    return json.loads(json.dumps(value, default=str))

@@ -1,0 +1,72 @@
+"""Tuning from held-out data (rcotorch.tune): ranking over seeds, the sensitivity table, best.toml, and a
+search that recovers a scenario's requirements from a deliberately poor start without looking at the truth."""
+
+import math
+import tomllib
+
+import pytest
+
+from rcotorch.errors import ConfigError
+from rcotorch.tune import Tuning, best_toml, rank, run_tune, sensitivity_table
+
+
+def _row(p0, nu, seed, score, diverged=False):
+    return {"p0": p0, "nu": nu, "seed": seed, "validation_rmse": score, "diverged": diverged,
+            "validation_fit_percent": 90.0, "validation_fit_percent_initial": 50.0}
+
+
+def test_candidates_are_ranked_by_their_mean_held_out_score_and_a_diverged_seed_disqualifies():
+    rows = [_row(1.0, 10, 0, 0.5), _row(1.0, 10, 1, 0.7),          # mean 0.6
+            _row(1e3, 10, 0, 0.2), _row(1e3, 10, 1, 0.4),          # mean 0.3: best
+            _row(1e6, 10, 0, 0.1), _row(1e6, 10, 1, math.nan, diverged=True)]
+    ranked = rank(rows, ["p0", "nu"])
+    assert [c["settings"]["p0"] for c in ranked] == [1e3, 1.0, 1e6]
+    assert ranked[0]["score"] == pytest.approx(0.3) and ranked[0]["spread"] == pytest.approx(0.1)
+    assert ranked[2]["score"] == math.inf and ranked[2]["diverged"] == 1 and ranked[0]["rank"] == 1
+    table = sensitivity_table(ranked, ["p0"])
+    assert {r["value"]: r["best"] for r in table} == {"1000": pytest.approx(0.3), "1": pytest.approx(0.6),
+                                                      "1e+06": math.inf}
+    text = best_toml("sdof-stiffness", {"p0": 1e3, "nu": 10, "method": "x"}, ranked[0])
+    assert tomllib.loads(text) == {"scenario": "sdof-stiffness", "settings": {"p0": 1e3, "nu": 10, "method": "x"}}
+
+
+def test_a_continuous_setting_is_binned_by_quantiles_in_the_sensitivity_table():
+    cands = [{"settings": {"p0": float(10 ** i)}, "score": float(i)} for i in range(8)]
+    table = sensitivity_table(cands, ["p0"])
+    assert len(table) == 4 and sum(r["candidates"] for r in table) == 8
+    assert [r["best"] for r in table] == sorted(r["best"] for r in table)
+
+
+def test_a_tuning_config_is_checked():
+    with pytest.raises(ConfigError, match="space"):
+        Tuning.from_dict({"scenario": "sdof-stiffness"})
+    with pytest.raises(ConfigError, match="method"):
+        Tuning.from_dict({"scenario": "sdof-stiffness", "space": {"p0": [1]}, "method": "anneal"})
+    with pytest.raises(ConfigError, match="grid.*list"):
+        Tuning.from_dict({"scenario": "sdof-stiffness", "space": {"p0": {"uniform": [1, 2]}},
+                          "method": "grid"}).sweep()
+    with pytest.raises(ConfigError, match="no held-out validation"):
+        Tuning.from_dict({"scenario": "thermosphere-no-cooling", "space": {"p0": [1.0]}}).sweep()
+
+
+def test_tune_recovers_the_requirements_from_a_poor_start_on_held_out_data_only(tmp_path):
+    """sdof-stiffness from p0 = 1 (too small to move theta in 3000 steps): the search over p0 picks a value whose
+    run meets the scenario's requirements on the truth, which the search never read."""
+    from rcotorch.runner import Run
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1.0, 10.0, 1e3, 1e5]}, seeds=2,
+               steps=3000, fixed={"dC": 0.0})
+    result = run_tune(t, out=tmp_path / "tune", progress=False)
+    assert result.members == 8 and len(result.candidates) == 4
+    assert result.candidates[-1]["settings"]["p0"] == 1.0              # the poor start ranks last
+    best = result.best
+    assert best["p0"] >= 1e3
+    for name in ("tune.csv", "best.toml", "sensitivity.csv"):
+        assert (tmp_path / "tune" / name).stat().st_size > 0
+    chosen = tomllib.loads((tmp_path / "tune" / "best.toml").read_text())["settings"]
+    run = Run("sdof-stiffness", steps=3000, out=tmp_path / "check", overrides=chosen)
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    assert all(r["pass"] for r in summary["requirements"].values()), summary["requirements"]
+    poor = Run("sdof-stiffness", steps=3000, out=tmp_path / "poor", overrides={"p0": 1.0, "dC": 0.0})
+    poor.advance(progress=False)
+    assert not all(r["pass"] for r in poor.finish(figures=False)["requirements"].values())
