@@ -384,11 +384,19 @@ class RCOEstimator(Block):
         if first_delay == 0 and self.proper:
             raise ConfigError(f"block '{self.name}': u acts on z at once (beta_0 != 0) and the identified "
                               "subsystem is proper: the step has an algebraic loop")
+        same = self._buffers["beta"].shape == beta.shape and self.__dict__.get("first_delay") == first_delay
         self.beta = beta
         self.beta_t = beta.flatten(2).mT.contiguous()
         self.first_delay = int(first_delay)
         self.delays = torch.arange(first_delay, first_delay + beta.shape[1], device=beta.device)
         self.window = first_delay + beta.shape[1]
+        lowered = self.__dict__.get("_native_beta_ring")     # (what a lowered program reads, what it was made of)
+        if lowered is not None:
+            ring = self._beta_padded().repeat(1, 1, 2)
+            if same and ring.shape == lowered[0].shape and ring.device == lowered[0].device:
+                lowered[0].copy_(ring)
+            else:                           # other sizes: the program, which holds the old beta, is made again
+                kernels.bump(*lowered[1])
 
     @property
     def nu(self) -> int:
@@ -598,7 +606,7 @@ class RCOEstimator(Block):
                       SHARED=b.shared(self.beta_t),
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
-                      BETA=b.param(self._beta_padded().repeat(1, 1, 2)), LAM=b.param(self.lam.reshape(-1, 1)),
+                      BETA=b.param(self._native_beta()), LAM=b.param(self.lam.reshape(-1, 1)),
                       RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
                       Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
                       UOUT=b.output("u"),
@@ -611,6 +619,14 @@ class RCOEstimator(Block):
         args += [flat[j] for j in self._gather.tolist()] + self.param_of.tolist() + self.rep.tolist()
         b.emit("RCO_OUT", args, port="u")
         b.emit("RCO_UPD", args)
+
+    def _native_beta(self) -> torch.Tensor:
+        """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, which
+        ``set_markov`` refills while its shape stays, so that the lowered program runs on with the new
+        parameters (a Markov refresh between two calls of the engine)."""
+        ring = self._beta_padded().repeat(1, 1, 2)
+        self.__dict__["_native_beta_ring"] = (ring, (self.beta, self.beta_t))
+        return ring
 
     def _lower_regressors(self, b) -> int:
         """Slots of s(k): the port itself (one port, no features), else s(k) computed into scratch, before u

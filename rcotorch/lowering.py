@@ -318,10 +318,13 @@ def _lower(graph) -> Program | str:
 
 
 def program(graph) -> Program | str:
-    """The graph's program (kept until its structure or a parameter changes), or why it has none."""
+    """The graph's program (kept until its structure or a parameter changes: a buffer modified in place or
+    replaced by another tensor), or why it has none."""
     entry = graph.__dict__.get("_lowered")
-    if entry is not None and entry[0] == _structure(graph) and memo._same(entry[1], memo._key(entry[2])):
-        return entry[3]
+    if entry is not None and entry[0] == _structure(graph):
+        names = entry[3].state_names if isinstance(entry[3], Program) else {}
+        if memo._same(entry[1], memo._key(_params(graph, names))):
+            return entry[3]
     prog = _lower(graph)
     names = prog.state_names if isinstance(prog, Program) else {}
     params = _params(graph, names)
@@ -387,11 +390,11 @@ def advance(graph, prog: Program, steps: int, accumulate: Mapping[Signal, torch.
             blk.k += T
         graph.k += T
         done += T
+        graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}    # of the program that ran
         if periods and any(int(graph.k) % p == 0 for p in periods):
-            graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}
             for hook in graph.hooks:
                 hook(graph)
-            prog = program(graph)
-            if isinstance(prog, str):
-                raise NotLowerable(f"after a step hook, {prog}")
-    graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}
+            if done < steps:                   # a hook may have changed a parameter: the program follows
+                prog = program(graph)
+                if isinstance(prog, str):
+                    raise NotLowerable(f"after a step hook, {prog}")

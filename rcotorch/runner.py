@@ -441,6 +441,7 @@ class Run:
             "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
+            "warnings": tuning_warnings(self.graph),
             "validation": None if held_out is None else {
                 k: v for k, v in held_out.summary().items() if k in ("source", "steps", "fit_steps", "state_fitted")},
             "intervals": {} if found is None else {
@@ -546,6 +547,32 @@ class Run:
         if close:
             self.close()
         return summary
+
+
+PRIOR_SHARE = 0.5     # P_ii / p0 above this at the end: the data did less than the prior to fix parameter i
+
+
+def tuning_warnings(graph) -> list[str]:
+    """Settings far off for the data, judged at the end of a run: a p0 so small against the regressors that
+    the data barely moved P from p0 I (P_ii / p0 > ``PRIOR_SHARE``; with P^-1 = I / p0 + sum Psi Psi^T that
+    means p0 sum psi_i^2 < 1, so theta stays near its initial value)."""
+    est = graph.role("estimator") if "estimator" in graph.roles else None
+    if est is None or not hasattr(est, "P") or est.P.shape[0] == 0:
+        return []
+    p0 = est.p0.to(torch.float64).reshape(-1, 1).expand(est.P.shape[0], 1)
+    share = torch.diagonal(est.P.to(torch.float64), dim1=1, dim2=2) / p0              # (B, n_eta)
+    stuck = share > PRIOR_SHARE
+    if not bool(stuck.any()):
+        return []
+    members = stuck.any(1).nonzero().flatten().tolist()
+    names = getattr(est, "theta_names", None) or [f"theta[{i}]" for i in range(share.shape[1])]
+    which = sorted({names[i] for i in stuck.any(0).nonzero().flatten().tolist() if i < len(names)})
+    info = (p0 / share.clamp_min(1e-300) - p0).clamp_min(0) / p0.square()             # sum psi_i^2
+    suggest = float((1e3 / info[stuck].clamp_min(1e-300)).median())
+    where = f"member {members[0]}" if len(members) == 1 else f"{len(members)} members"
+    return [f"p0 = {float(p0[members[0], 0]):.3g} is small for the regressors ({where}): the data moved P by less "
+            f"than half from p0 I for {', '.join(which)}, so theta stays near its initial value; "
+            f"try p0 of about {suggest:.2g}"]
 
 
 def residual_metrics(res: ci.Residuals) -> dict[str, torch.Tensor]:
@@ -712,4 +739,5 @@ def result_table(summary: Mapping[str, Any]) -> str:
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
     lines.append(health_line(summary))
+    lines += [f"warning: {w}" for w in summary.get("warnings") or []]
     return "\n".join(lines)

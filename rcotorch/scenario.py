@@ -381,7 +381,11 @@ def available() -> dict[str, Scenario]:
     return found
 
 
-def get(name: str) -> Scenario:
+def get(name: str | Scenario) -> Scenario:
+    """The scenario registered under ``name`` (a ``Scenario`` object is returned as it is: a scenario of one's
+    own, declared in a script, runs, sweeps and tunes without being registered)."""
+    if isinstance(name, Scenario):
+        return name
     found = available()
     if name not in found:
         import difflib

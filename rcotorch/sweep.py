@@ -33,7 +33,7 @@ import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,7 @@ def _check_types(spec: Mapping[str, Any], source: str) -> None:
 class Sweep:
     """A declared sweep; ``members()`` lists each member's settings (validated before any work)."""
 
-    scenario: str
+    scenario: str | scenarios.Scenario        # a registered name, or a scenario object of one's own
     grid: Mapping[str, Sequence] = field(default_factory=dict)
     random: Mapping[str, Mapping[str, Sequence]] = field(default_factory=dict)
     samples: int = 0
@@ -100,6 +100,16 @@ class Sweep:
             raise ConfigError(f"{source}: 'scenario' is missing")
         _check_types(spec, source)
         return cls(**spec)
+
+    @property
+    def scenario_name(self) -> str:
+        return scenarios.get(self.scenario).name
+
+    def config(self) -> dict[str, Any]:
+        """The sweep as plain data (the scenario by name), as its folder records it."""
+        spec = {f: getattr(self, f) for f in self.__dataclass_fields__}
+        spec["scenario"] = self.scenario_name
+        return json.loads(json.dumps(spec, default=list))
 
     @classmethod
     def from_file(cls, path: str | Path) -> Sweep:
@@ -235,7 +245,7 @@ def read_config(path: str | Path, what: str) -> dict[str, Any]:
     return spec
 
 
-def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
+def make_run(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
              out: str | None, overwrite: bool = False):
     """The batched run of one shard (building it checks every member's settings)."""
     from .runner import Run
@@ -250,7 +260,7 @@ def make_run(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: 
     return run
 
 
-def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
+def run_shard(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], steps: int | None, dtype: str, device: str,
               out: str | None, threads: int | None = None, run=None, stop=None, desc: str | None = None
               ) -> list[dict[str, Any]]:
     """Run one shard as a batched run; return one table row per member. A shard folder left by an
@@ -270,7 +280,7 @@ def run_shard(scenario: str, shard: Mapping[str, Any], steps: int | None, dtype:
             if summary["steps"] == (steps or scenarios.get(scenario).steps):
                 return shard_rows(shard, summary)
         if (folder / CHECKPOINT).is_file():
-            run = Run.resume(folder)
+            run = Run.resume(folder, scenario=None if isinstance(scenario, str) else scenario)
             run.hparams_session = False
         else:
             run = make_run(scenario, shard, steps, dtype, device, out, overwrite=True)
@@ -346,7 +356,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     sc = scenarios.get(sweep.scenario)
     steps = sweep.steps or sc.steps
     own = folder is None
-    folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
+    folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     shard_out = [str(folder.path / f"shard_{s['index']:04d}") for s in shards]
     # Build every shard before running any, so a bad value fails before work starts.
     runs = [make_run(sweep.scenario, s, steps, sweep.dtype, device, o) for s, o in zip(shards, shard_out)]
@@ -354,9 +364,9 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         ray = _import_ray()
         if ray_address and not ray.is_initialized():
             _check_ray_address(ray_address)
-    config = json.loads(json.dumps(asdict(sweep)))
+    config = sweep.config()
     folder.open("resume" if resume else "overwrite" if overwrite else "new",
-                info=None if resume else {"scenario": sweep.scenario, "config": config})
+                info=None if resume else {"scenario": sweep.scenario_name, "config": config})
     try:
         if resume and folder.info.get("config") != config:
             raise ConfigError(f"--resume: the sweep in {folder.path} was run with another config")
@@ -506,7 +516,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         for r in rows:
             summary = _member_summary(r, settings)
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
-            hp.update(scenario=sweep.scenario, shard=r["shard"])
+            hp.update(scenario=sweep.scenario_name, shard=r["shard"])
             with SummaryWriter(str(out / "members" / f"member_{r['member']:06d}")) as w:
                 write_session(w, hp, summary)
                 for tag, value in final_values(summary).items():
@@ -524,7 +534,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         summary["status"] = [r.get("status") or ("diverged" if r["diverged"] else "finished") for r in part]
         hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
               for k, v in summary["settings"].items()}
-        hp.update(scenario=sweep.scenario, members=f"{part[0]['member']}..{part[-1]['member']}")
+        hp.update(scenario=sweep.scenario_name, members=f"{part[0]['member']}..{part[-1]['member']}")
         with SummaryWriter(str(folder)) as w:
             write_session(w, hp, summary)
             for tag, value in final_values(summary).items():

@@ -56,7 +56,7 @@ BINS = 4                     # quantile bins of a continuous setting in the sens
 class Tuning:
     """A declared search; ``sweep()`` is the sweep that runs it."""
 
-    scenario: str
+    scenario: str | scenarios.Scenario       # a registered name, or a scenario object of one's own
     space: Mapping[str, Any]
     method: str = "random"
     samples: int = 32
@@ -150,15 +150,16 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
     ``OutputFolder`` for ``out`` made by the caller, who closes it."""
     from .outputs import OutputFolder, write_text
     sweep = tuning.sweep()
-    out = Path(out or Path("runs") / f"tune-{tuning.scenario}")
+    name = sweep.scenario_name
+    out = Path(out or Path("runs") / f"tune-{name}")
     own = folder is None
     folder = folder or OutputFolder(out, "tune")
     folder.open("resume" if resume else "overwrite" if overwrite else "new",
-                info=None if resume else {"scenario": tuning.scenario, "config": _plain(tuning.__dict__)})
+                info=None if resume else {"scenario": name, "config": {**_plain(tuning.__dict__), "scenario": name}})
     try:
         folder.add_child("runs")
-        for name in ("tune.csv", "best.toml", "sensitivity.csv"):
-            folder.add_child(name)
+        for child in ("tune.csv", "best.toml", "sensitivity.csv"):
+            folder.add_child(child)
         folder.register()
         rows = run_sweep(sweep, backend=backend, device=device, out=out / "runs", ray_address=ray_address,
                          progress=progress, overwrite=overwrite, resume=resume, stop=stop)
@@ -168,7 +169,7 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
             raise ConfigError("tune: no candidate ran")
         best = {**_plain(dict(tuning.fixed)), **candidates[0]["settings"]}
         write_text(out / "tune.csv", _csv(candidates, searched))
-        write_text(out / "best.toml", best_toml(tuning.scenario, best, candidates[0]))
+        write_text(out / "best.toml", best_toml(name, best, candidates[0]))
         sensitivity = sensitivity_table(candidates, searched)
         write_text(out / "sensitivity.csv", _csv_rows(sensitivity))
         folder.check()

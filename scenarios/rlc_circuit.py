@@ -61,16 +61,20 @@ divides by 1 + gw = L0/L = 3.6e-5, so any error in gw is amplified 3e4-fold. A c
 at the chosen sample time.
 """
 
-import control
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.linalg
 import torch
 
 import rcotorch as rt
-from rcotorch.figures import frequency_figure
 from rcotorch.intervals import member_band
 from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
+
+if TYPE_CHECKING:
+    import control
 
 PAPER_L0, PAPER_C0 = 2e-6, 1.0
 
@@ -100,6 +104,7 @@ def true_gains(s) -> dict[str, float]:
 
 
 def truth_discrete(s) -> control.StateSpace:
+    import control
     T = series_rlc(s["R"], s["L"], s["C"], measured=["v_R"], sees=[], actuation=False)
     return control.sample_system(T, s["Ts"], method="zoh")
 
@@ -107,6 +112,7 @@ def truth_discrete(s) -> control.StateSpace:
 def h2_rel_err(model: control.StateSpace, ref: control.StateSpace) -> float:
     """||ref - model||_2 / ||ref||_2 for sampled SISO systems without feedthrough: the rms output error for white
     input relative to the rms output (inf if the model is unstable)."""
+    import scipy.linalg
     if np.max(np.abs(np.linalg.eigvals(model.A))) >= 1:
         return float("inf")
 
@@ -121,6 +127,7 @@ def h2_rel_err(model: control.StateSpace, ref: control.StateSpace) -> float:
 
 def output_rms(s) -> float:
     """Steady-state rms of R i for white w of std w_std (discrete Lyapunov equation of the sampled truth)."""
+    import scipy.linalg
     Td = truth_discrete(s)
     X = scipy.linalg.solve_discrete_lyapunov(Td.A, Td.B @ Td.B.T)
     return float(s["w_std"] * np.sqrt((Td.C @ X @ Td.C.T)[0, 0]))
@@ -175,6 +182,7 @@ class RlcCircuit(Scenario):
     @staticmethod
     def _refined_discrete(g, member: int) -> control.StateSpace:
         """The simulated system w -> y: the sampled known model with u(k) = theta [y0(k); w(k)]."""
+        import control
         known = g.role("known")
         A, B, C = (getattr(known, k)[0].detach().cpu().double().numpy() for k in ("A", "B", "C"))
         th = g.role("estimator").theta[member, 0].detach().cpu().double().numpy()
@@ -189,6 +197,7 @@ class RlcCircuit(Scenario):
         drive, noise-free, relative to the rms output (||T - G||_2 / ||T||_2 of the sampled systems); gC, gR, gw:
         the identified gains, gC_true, gR_true, gw_true: the continuous-time ones (``true_gains``); noise_std:
         the measurement noise std in volts."""
+        import control
         omega = np.logspace(1, np.log10(np.pi / s["Ts"]), 300)
         zs = np.exp(1j * omega * s["Ts"])
         true = np.asarray(truth_discrete(s)(zs)).reshape(-1)
@@ -210,6 +219,7 @@ class RlcCircuit(Scenario):
         return out
 
     def figures(self, g, s):
+        from rcotorch.figures import frequency_figure
         omega = np.logspace(1, np.log10(np.pi / s["Ts"]), 400)
         L0, C0, R0 = initial_values(s)
         est = {k: float(v[0]) for k, v in self.estimates(g, s).items()}

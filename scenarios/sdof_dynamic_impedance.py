@@ -11,16 +11,21 @@ with its confidence interval; near Nyquist the closed loop carries little inform
 so. Setting ``noise``: white measurement noise on y, its std a fraction of the rms of y.
 """
 
-import control
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
 from rcotorch.analysis import frequency_error, log_grid
-from rcotorch.figures import frequency_figure
 from rcotorch.intervals import band
 from rcotorch.scenario import Requirement, Scenario
+
+if TYPE_CHECKING:
+    import control
 
 FREQUENCIES = {"gain_0.5rad_s": 0.5, "gain_5rad_s": 5.0}    # rad/s; and gain_nyquist90 at 0.9 pi / Ts
 
@@ -51,6 +56,7 @@ class SdofDynamicImpedance(Scenario):
     )
 
     def truth_tf(self, s):
+        import control
         return control.sample_system(control.tf([s["gain"]], [1.0, s["pole"]]), s["Ts"], method="zoh")
 
     def build(self, s, batch, dtype, device):
@@ -64,6 +70,7 @@ class SdofDynamicImpedance(Scenario):
 
     def truth_system(self, s) -> control.StateSpace:
         """The true closed loop w -> y, discrete (for the noise level)."""
+        import control
         G = control.sample_system(rt.models.sdof(s["m"], s["c"], s["k"], measured=["velocity"], sees=["velocity"]),
                                   s["Ts"])
         D = control.tf2ss(self.truth_tf(s), inputs="y0", outputs="u")
@@ -91,6 +98,7 @@ class SdofDynamicImpedance(Scenario):
         return {"freq_rel_err_max": frequency_error(g.role("estimator"), self.truth_tf(s), self.omega(s))}
 
     def figures(self, g, s):
+        from rcotorch.figures import frequency_figure
         w = self.omega(s)
         est = g.role("estimator")
         ident = est.frequency_response(w)[0, :, 0, 0].cpu().numpy()

@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
@@ -58,7 +57,16 @@ import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.models.thermosphere import Column, ColumnBlock, SpaceWeather, TemperatureFeatures, few_threads
+from rcotorch.models.thermosphere import (
+    Column,
+    ColumnBlock,
+    Observation,
+    Record,
+    SpaceWeather,
+    TemperatureFeatures,
+    few_threads,
+    native_here,
+)
 from rcotorch.scenario import Requirement, Scenario, member_values
 
 EVAL_ALTITUDE = 152e3          # cooling metrics
@@ -104,16 +112,20 @@ def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
 
 @lru_cache(maxsize=8)
 def _spin_up(f107: tuple, days: float, dz_km: float, latitude: float, local_time0: float, Ts: float,
-             substeps: int) -> torch.Tensor:
+             substeps: int, native: bool) -> torch.Tensor:
     truth = Column(dz=dz_km * 1e3, latitude=latitude, local_time0=local_time0, dt=Ts, substeps=substeps)
-    return truth.spin_up(torch.tensor(f107, dtype=torch.float64), days)
+    if not native:
+        return truth.spin_up(torch.tensor(f107, dtype=torch.float64), days)
+    from rcotorch.models.thermosphere_native import NativeColumn
+    return NativeColumn(truth).spin_up(torch.tensor(f107, dtype=torch.float64), days)
 
 
-def initial_state(s) -> torch.Tensor:
-    """The truth's state after the quiet spin-up, (1 or B, 2n + 1), float64 (cached)."""
+def initial_state(s, native: bool = False) -> torch.Tensor:
+    """The truth's state after the quiet spin-up, (1 or B, 2n + 1), float64 (cached); ``native``: stepped by the
+    column's native code."""
     f107 = tuple(float(v) for v in member_values(s, "f107").reshape(-1))
     return _spin_up(f107, float(s["spinup_days"]), float(s["dz_km"]), float(s["latitude"]),
-                    float(s["local_time0"]), float(s["Ts"]), int(s["substeps"])).clone()
+                    float(s["local_time0"]), float(s["Ts"]), int(s["substeps"]), native).clone()
 
 
 def replay_settings(s) -> dict:
@@ -121,9 +133,9 @@ def replay_settings(s) -> dict:
     return {**s, **{key: s[f"replay_{key}"] for key in REPLAY}}
 
 
-def densities(column: Column, altitudes) -> Callable[[torch.Tensor], torch.Tensor]:
+def densities(column: Column, altitudes) -> Observation:
     """State -> mass densities at ``altitudes`` [1e-12 kg/m^3], (B, len(altitudes))."""
-    return lambda x: torch.cat([column.density_at(x, a) for a in altitudes], 1)
+    return Observation(column, "density", altitudes)
 
 
 def _rms(v: torch.Tensor) -> torch.Tensor:
@@ -212,22 +224,20 @@ class ThermosphereNoCooling(Scenario):
     def _graph(self, s, batch, dtype, device, frozen: rt.Graph | None = None) -> rt.Graph:
         """The refinement graph; with ``frozen`` (a trained graph) its identified subsystem, held fixed."""
         truth, model = columns(s, dtype)
-        x0 = initial_state(s).to(dtype)
+        x0 = initial_state(s, native_here(dtype, device)).to(dtype)
         measured = measured_altitudes(s)
         alts = [DENSITY_ALTITUDE, *measured]
         outputs = {"y": densities(model, measured)}
         if s["structure"] == "kockarts":
-            outputs["y0"] = model.no_cooling_at_nodes
+            outputs["y0"] = Observation(model, "no_cooling_at_nodes")
         elif s["structure"] == "temperature":
-            outputs["T"] = model.temperature_at_nodes
-        def record(x, ins):   # densities, u, w and, for interpolate='strength', the model's Kockarts rate
-            shape = [model.no_cooling_profile(x)] if model.interpolate == "strength" else []
-            return torch.cat([densities(model, alts)(x), ins["u"], ins["w"], *shape], 1)
-
-        known = ColumnBlock(model, outputs, x0=x0, name="known", dtype=dtype, record=record)
+            outputs["T"] = Observation(model, "temperature_at_nodes")
+        # densities, u, w and, for interpolate='strength', the model's Kockarts rate
+        shape = [Observation(model, "no_cooling_profile")] if model.interpolate == "strength" else []
+        known = ColumnBlock(model, outputs, x0=x0, name="known", dtype=dtype,
+                            record=Record(densities(model, alts), "u", "w", *shape))
         plant = ColumnBlock(truth, {"y": densities(truth, measured)}, x0=x0, name="plant", dtype=dtype,
-                            record=lambda x, ins: torch.cat([densities(truth, alts)(x),
-                                                             truth.no_cooling_profile(x)], 1))
+                            record=Record(densities(truth, alts), Observation(truth, "no_cooling_profile")))
         f107, peak = member_values(s, "f107", dtype), member_values(s, "storm_peak", dtype)
         driver = SpaceWeather(s["Ts"], f107, peak, start=s["storm_start_h"], rise=s["storm_rise_h"], dtype=dtype)
         if frozen is None:
@@ -282,7 +292,7 @@ class ThermosphereNoCooling(Scenario):
             tie[j, j * nt:(j + 1) * nt] = torch.arange(nt) + (0 if s["shared"] else j * nt)
         km = [f"{float(a) / 1e3:g}km" for a in model.nodes]
         names = [f"{t}@{km[j]}" for j in range(n) for t in features.terms]
-        columns_of = {name: (lambda sig, c=c: sig["f"][:, c:c + 1]) for c, name in enumerate(names)}
+        columns_of = {name: rt.features.port(f"f[{c}]") for c, name in enumerate(names)}
         return rt.RCOEstimator.static_gain({"f": n * nt}, n_u=n, features=columns_of, tie=tie, **common)
 
     # --- traces ------------------------------------------------------------------------------------------------
@@ -318,14 +328,18 @@ class ThermosphereNoCooling(Scenario):
         if cached is not None and cached.shape[1] == K:
             return cached
         x = known.x0.expand(B, -1).clone()
-        u = x.new_zeros(B, 3)
         observe = densities(known.column, [DENSITY_ALTITUDE, *measured_altitudes(s)])
-        ys = []
-        with torch.no_grad(), few_threads(x.numel()):
-            for k in range(K):
-                ys.append(observe(x))
-                x = known.column.step(x, w[:, k], u)
-        out = torch.stack(ys, 1) if ys else x.new_zeros(B, 0, m)
+        if g.engine != "torch" and native_here(x.dtype, x.device):     # the same loop, compiled
+            from rcotorch.models.thermosphere_native import NativeColumn
+            out = NativeColumn(known.column).trajectory(x, w, x.new_zeros(B, K, 3), observe.reads())[0].to(x)
+        else:
+            u = x.new_zeros(B, 3)
+            ys = []
+            with torch.no_grad(), few_threads(x.numel()):
+                for k in range(K):
+                    ys.append(observe(x))
+                    x = known.column.step(x, w[:, k], u)
+            out = torch.stack(ys, 1) if ys else x.new_zeros(B, 0, m)
         self._initial_runs[g] = out
         return out
 
@@ -338,6 +352,7 @@ class ThermosphereNoCooling(Scenario):
         rs = replay_settings(s)
         est = g.role("estimator")
         rg = self._graph(rs, g.batch_size, est.theta.dtype, est.theta.device, frozen=g)
+        rg.engine = g.engine
         with torch.no_grad():
             rg.advance(K)
         tr = self.traces(rg, rs)

@@ -55,15 +55,20 @@ The discrete-interconnection truth (sees = 'sampled', Ts = 0.05, nu = 30, lam = 
 Defaults: Ts = 0.02 s, nu = 60 (1.2 s of impulse response), lam = 0.9995, p0 = 1e3, 20 000 steps.
 """
 
-import control
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.figures import frequency_figure
 from rcotorch.intervals import member_band
 from rcotorch.scenario import Requirement, Scenario
+
+if TYPE_CHECKING:
+    import control
 
 
 def _kc(a, b, c):
@@ -74,6 +79,7 @@ def _kc(a, b, c):
 def known_model(s, dk1: float = 0.0, dk3: float = 0.0, actuation: bool = True) -> control.StateSpace:
     """Continuous 2-DOF structure (stiffnesses k1 + dk1, k2, k3 + dk3); outputs y = velocity[1] and, with
     ``actuation``, y0 = the positions as the unknown subsystem sees them (``s['sees']``), inputs w, u."""
+    import control
     K = _kc(s["k1"] + dk1, s["k2"], s["k3"] + dk3)
     C = _kc(s["c1"], s["c2"], s["c3"])
     sees = ["position[0]", "position[1]", "velocity[0]", "velocity[1]"] if actuation else []
@@ -139,6 +145,7 @@ class TwoDofStiffness(Scenario):
     @staticmethod
     def truth_system(s) -> control.StateSpace:
         """The true system w -> y as a discrete python-control system (for the noise level)."""
+        import control
         if s["truth"] == "discrete":
             G = control.sample_system(known_model(s), s["Ts"])
             A = G.A + G.B[:, 1:3] @ -np.diag([s["dk1"], s["dk3"]]) @ G.C[1:3]
@@ -173,6 +180,7 @@ class TwoDofStiffness(Scenario):
         return {"freq_rel_err_max": torch.tensor(errs)}
 
     def figures(self, g, s):
+        from rcotorch.figures import frequency_figure
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         bands = None
         cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals

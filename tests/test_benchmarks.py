@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import csv_memory  # noqa: E402
 import duffing  # noqa: E402
 import rls_kernel  # noqa: E402
+import thermosphere_native  # noqa: E402
 import throughput  # noqa: E402
 import user_function  # noqa: E402
 
@@ -105,6 +106,14 @@ def test_duffing_script_quick(tmp_path):
     duffing.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
     row = json.loads(out.read_text())["results"][0]
     assert row["batch"] == 1 and row["engine_ns"] > 0 and row["numba_loop_ns"] > 0
+
+
+def test_thermosphere_native_script_quick(tmp_path):
+    out = tmp_path / "th.json"
+    thermosphere_native.main(["--quick", "--no-figures", "--out", str(out)])
+    res = json.loads(out.read_text())
+    assert res["steps"] == 48 and res["run_ratio"] > 0 and res["metrics_relative_difference"] < 1e-6
+    assert res["native"]["run_s"] > 0 and res["torch"]["process_s"] > res["torch"]["run_s"]
 
 
 def test_rls_kernel_script_quick(tmp_path):

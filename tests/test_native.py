@@ -71,7 +71,7 @@ def _run_both(build, steps, chunks=(1,)):
     ("silverbox-cubic-stiffness", {}),
 ])
 def test_scenarios_agree_with_the_torch_engine(name, overrides):
-    """Every shipped scenario but the thermosphere (a user-function Nonlinear block) runs natively."""
+    """Every shipped scenario runs natively (the thermosphere: tests/test_thermosphere_native.py)."""
     sc = scenarios.get(name)
     s = sc.resolve(overrides)
     try:
@@ -82,10 +82,10 @@ def test_scenarios_agree_with_the_torch_engine(name, overrides):
     _assert_same_state(a, b)
 
 
-def test_the_thermosphere_says_why_it_runs_on_pytorch():
+def test_the_thermosphere_runs_natively_with_its_markov_refresh():
     sc = scenarios.get("thermosphere-no-cooling")
     g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
-    assert "hooks" in g.native_status() or "Nonlinear" in g.native_status()
+    assert g.native_status() is None and any(isinstance(h, rt.MarkovRefresh) for h in g.hooks)
 
 
 # --- every option of the estimator ---------------------------------------------------------------------
@@ -525,6 +525,7 @@ def test_the_program_is_lowered_once_and_again_when_the_graph_changes():
 def test_engine_choice_is_said_once_and_kept(caplog):
     sc = scenarios.get("thermosphere-no-cooling")
     g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
+    g.add_hook(lambda graph: None)                      # a hook after every step keeps it on PyTorch
     with caplog.at_level(logging.INFO, logger="rcotorch"):
         g.advance(2)
         g.advance(2)

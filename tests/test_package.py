@@ -67,8 +67,7 @@ def test_wheel_lists_shows_and_runs_every_scenario_from_another_folder(installed
         assert run.returncode in (0, 1), f"{name}: exit {run.returncode}\n{run.stdout}\n{run.stderr}"
         summary = json.loads((out / "summary.json").read_text())
         assert summary["scenario"] == name and summary["steps"] == 20
-        if name != "thermosphere-no-cooling":                        # a user-function block: PyTorch
-            assert summary["engine"] == "native", (name, summary["engine_reason"])
+        assert summary["engine"] == "native", (name, summary["engine_reason"])
 
 
 def test_every_shipped_setting_is_documented():

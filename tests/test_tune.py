@@ -70,3 +70,54 @@ def test_tune_recovers_the_requirements_from_a_poor_start_on_held_out_data_only(
     poor = Run("sdof-stiffness", steps=3000, out=tmp_path / "poor", overrides={"p0": 1.0, "dC": 0.0})
     poor.advance(progress=False)
     assert not all(r["pass"] for r in poor.finish(figures=False)["requirements"].values())
+
+
+class _Room:
+    """A problem of one's own, declared in a script: a room whose wall lost insulation (first-order thermal
+    model, conductance 0.04 W/K known, 0.06 W/K true), its temperature measured with noise."""
+
+    @staticmethod
+    def scenario():
+        import rcotorch as rt
+        from rcotorch.scenario import Scenario
+
+        class Room(Scenario):
+            name = "my-room"
+            steps = 3000
+            settings = dict(p0=1e-4, lam=1.0, nu=60, seed=1)
+            per_member = frozenset({"p0", "lam", "seed"})
+            estimator_options = ()
+
+            def build(self, s, batch, dtype, device):
+                known = rt.LTI.continuous([[-0.04]], [[1.0, 1.0]], [[1.0], [1.0]], [[0, 0], [0, 0]],
+                                          inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=1.0, name="known")
+                truth = rt.LTI.continuous([[-0.06]], [[1.0]], [[1.0]], [[0]], inputs=["w"], outputs=["y"], dt=1.0)
+                ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=s["p0"], lam=s["lam"])
+                return rt.refinement(known, ident, physical=truth, excitation=rt.WhiteNoise(1, seed=s["seed"]),
+                                     noise=rt.WhiteNoise(1, std=0.05, seed=s["seed"]), nu=s["nu"],
+                                     batch_size=batch, dtype=dtype, device=device)
+
+            def estimates(self, g, s):
+                return {"g": 0.04 - g.role("estimator").theta[:, 0, 0]}
+        return Room()
+
+
+def test_a_scenario_declared_in_a_script_is_tuned_without_registering_it(tmp_path):
+    room = _Room.scenario()
+    t = Tuning(scenario=room, method="grid", space={"p0": [1e-4, 1e-2, 1.0]}, seeds=2)
+    result = run_tune(t, out=tmp_path / "room", progress=False)
+    assert result.best["p0"] >= 1e-2 and result.candidates[-1]["settings"]["p0"] == 1e-4
+    assert tomllib.loads((tmp_path / "room" / "best.toml").read_text())["scenario"] == "my-room"
+
+
+def test_a_p0_far_too_small_for_the_regressors_is_named_at_the_end_of_a_run(tmp_path):
+    from rcotorch.runner import Run
+    warned = []
+    for p0 in (1e-3, 1e3):
+        run = Run("sdof-stiffness", steps=2000, out=tmp_path / f"p0-{p0}", overrides={"p0": p0}, intervals=False,
+                  validation=False)
+        run.advance(progress=False)
+        warned.append(run.finish(figures=False)["warnings"])
+    assert len(warned[0]) == 1 and "p0 = 0.001 is small for the regressors" in warned[0][0]
+    suggested = float(warned[0][0].rsplit("about ", 1)[1])
+    assert 1e2 < suggested < 1e5 and warned[1] == []

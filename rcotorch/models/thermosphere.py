@@ -52,14 +52,18 @@ solar heating) peaking near 130 km, n_NO peaking near 120 km at about 1.4e13 m^-
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
+from .. import kernels
 from ..blocks import DEFAULT_DTYPE, Block
 from ..errors import ConfigError
 from ..nonlinear import Nonlinear
@@ -336,10 +340,15 @@ class Column(nn.Module):
         return x
 
     # --- observation ---------------------------------------------------------------------------------------
+    def bracket(self, altitude: float) -> tuple[int, float]:
+        """The level i at or below ``altitude`` [m] (within the grid's last interval at most) and the weight a of
+        level i + 1 in the linear interpolation at it."""
+        i = min(max(int((altitude - float(self.z[0])) // self.dz), 0), self.n - 2)
+        return i, (altitude - float(self.z[i])) / self.dz
+
     def at(self, profile: torch.Tensor, altitude: float, log: bool = False) -> torch.Tensor:
         """A profile (B, n) at ``altitude`` [m] by linear (``log``: log-linear) interpolation: (B, 1)."""
-        i = min(max(int((altitude - float(self.z[0])) // self.dz), 0), self.n - 2)
-        a = (altitude - float(self.z[i])) / self.dz
+        i, a = self.bracket(altitude)
         p = torch.log(profile[:, i: i + 2]) if log else profile[:, i: i + 2]
         v = (1 - a) * p[:, :1] + a * p[:, 1:]
         return torch.exp(v) if log else v
@@ -386,6 +395,75 @@ class Column(nn.Module):
         return torch.cat([x[:, :-1], torch.zeros_like(x[:, -1:])], 1)
 
 
+def native_here(dtype: torch.dtype, device) -> bool:
+    """Whether the column's native code (``thermosphere_native``) may run: float64 on the CPU, numba installed,
+    the compiled engine allowed here (not inside ``kernels.disabled()``, which the PyTorch engine's steps run in)
+    and not turned off for the process (``RCOTORCH_ENGINE=torch``)."""
+    return dtype == torch.float64 and torch.device(device).type == "cpu" and kernels.allowed() and \
+        os.environ.get("RCOTORCH_ENGINE", "auto") != "torch" and importlib.util.find_spec("numba") is not None
+
+
+class Observation:
+    """A quantity of a column's state for ``ColumnBlock``'s outputs and records, (B, width):
+
+    * ``'density'``: the mass density at ``altitudes`` [1e-12 kg/m^3] (``Column.density_at``);
+    * ``'temperature_at_nodes'`` [K], ``'no_cooling_at_nodes'`` [nW/m^3] and ``'no_cooling_profile'`` [nW/m^3,
+      every level]: the ``Column`` methods of these names.
+
+    Called with a state x (B, 2n + 1) it is the torch column's; ``reads`` describes it to the native engine
+    (``thermosphere_native.observe``), which computes the same."""
+
+    KINDS = ("density", "temperature_at_nodes", "no_cooling_at_nodes", "no_cooling_profile")
+
+    def __init__(self, column: Column, kind: str, altitudes: Sequence[float] = ()):
+        if kind not in self.KINDS:
+            raise ConfigError(f"observation: kind must be one of {self.KINDS}, got {kind!r}")
+        if (kind == "density") != bool(altitudes):
+            raise ConfigError("observation: give altitudes for 'density' and only for it")
+        self.column, self.kind, self.altitudes = column, kind, tuple(float(a) for a in altitudes)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if self.kind == "density":
+            return torch.cat([self.column.density_at(x, a) for a in self.altitudes], 1)
+        return getattr(self.column, self.kind)(x)
+
+    @property
+    def width(self) -> int:
+        c = self.column
+        return {"density": len(self.altitudes), "no_cooling_profile": c.n}.get(self.kind, c.n_nodes)
+
+    def reads(self):
+        """The rows (profile, level, weight, mode, scale) of ``thermosphere_native.READ_FIELDS``, (width, 5)."""
+        from . import thermosphere_native as tn
+        c = self.column
+        if self.kind == "no_cooling_profile":
+            rows = [(tn.NO_COOLING, j, 0.0, tn.LEVEL, 1.0) for j in range(c.n)]
+        elif self.kind == "density":
+            rows = [(tn.MASS_DENSITY, *c.bracket(a), tn.LOG, 1e12) for a in self.altitudes]
+        else:
+            profile = tn.TEMPERATURE if self.kind == "temperature_at_nodes" else tn.NO_COOLING
+            rows = [(profile, *c.bracket(float(a)), tn.LINEAR, 1.0) for a in c.nodes]
+        return np.array(rows, dtype=np.float64).reshape(-1, len(tn.READ_FIELDS))
+
+
+class Record:
+    """What a ``ColumnBlock`` appends to its ``history`` at every step: ``Observation``s of the state and input
+    ports (by name), side by side, e.g. ``Record(Observation(col, 'density', [407e3]), 'u', 'w')``. Called as
+    ``record(x, inputs)``, as a record function is."""
+
+    def __init__(self, *parts: Observation | str):
+        if not parts or not all(isinstance(p, (Observation, str)) for p in parts):
+            raise ConfigError("record: give observations and input port names")
+        self.parts = parts
+
+    def __call__(self, x: torch.Tensor, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([p(x) if isinstance(p, Observation) else inputs[p] for p in self.parts], 1)
+
+
+#: Steps the native engine runs between moves of a ``ColumnBlock``'s recorded rows into its history.
+RECORD_RING = 32
+
+
 class ColumnBlock(Nonlinear):
     """A ``Column`` as a nonlinear block: inputs ``w`` (width 2) and, with cooling nodes, ``u``; outputs given
     as functions of the state.
@@ -395,6 +473,12 @@ class ColumnBlock(Nonlinear):
     model, or 'fd' central differences) on one intra-op thread. ``record`` (a function of
     the state and the inputs, (B, m)) is appended to the buffer ``history`` (B, steps, m) at every step, so a
     checkpoint holds the traces.
+
+    The native form (``lower``, with ``thermosphere_native``) needs the outputs given as ``Observation``s and the
+    record as a ``Record``; the engine writes the rows of the last steps into ``pending`` (RECORD_RING, B, m),
+    which move to ``history`` before each call of the engine and whenever ``history`` is read. Where the native
+    code may run (``native_here``), ``markov`` computes the same Markov parameters with it: by the tangent of
+    the step written out for 'autograd', by the same differences for 'fd'.
 
     Args:
         column: the physics.
@@ -413,14 +497,44 @@ class ColumnBlock(Nonlinear):
         super().__init__(lambda x, s: column.step(x, s["w"], s.get("u")),
                          lambda x: torch.cat([fn(x) for fn in fns], 1), column.n_states, inputs, widths,
                          dt=column.dt, x0=x0, name=name, dtype=dtype)
-        self.column, self.record = column, record
+        self.column, self.record, self.observations = column, record, dict(outputs)
+        zeros = {p: probe.new_zeros(1, w) for p, w in inputs.items()}
+        self.record_width = 0 if record is None else int(record(probe, zeros).shape[1])
         self.register_buffer("history", torch.zeros(0, 0, 0, dtype=dtype))
+        self.register_buffer("pending", torch.zeros(0, 0, 0, dtype=dtype), persistent=False)
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
 
     def reset(self, batch_size: int) -> None:
         super().reset(batch_size)
         self.k = torch.zeros((), dtype=torch.int64, device=self.x.device)
         self.history = self.x.new_zeros(batch_size, 0, 0)
+        self.pending = self.x.new_zeros(RECORD_RING, batch_size, self.record_width)
+
+    def __getattr__(self, name: str):
+        if name == "history":            # with the rows the native engine left in ``pending``
+            self._flush()
+        return super().__getattr__(name)
+
+    def _flush(self) -> None:
+        """Move the rows of the steps the native engine ran since the last move from ``pending`` to ``history``
+        (the history has one row per step: k rows)."""
+        history, pending, k = (self._buffers.get(key) for key in ("history", "pending", "k"))
+        if history is None or pending is None or k is None or pending.device.type != "cpu":   # none pending
+            return
+        new = int(k) - history.shape[1]
+        if new > 0 and pending.shape[2]:
+            rows = pending[pending.shape[0] - new:].transpose(0, 1)
+            self._buffers["history"] = rows.clone() if history.shape[1] == 0 else torch.cat([history, rows], 1)
+
+    def _room(self) -> int:
+        """Before each call of the native engine: the pending rows move to the history, and the ring takes
+        RECORD_RING more steps."""
+        self._flush()
+        return RECORD_RING
+
+    def _save_to_state_dict(self, destination, prefix, keep_vars):
+        self._flush()
+        super()._save_to_state_dict(destination, prefix, keep_vars)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         key = prefix + "history"
@@ -436,14 +550,86 @@ class ColumnBlock(Nonlinear):
         with few_threads(self.x.numel()):
             if self.record is not None:
                 row = self.record(self.x, inputs).detach().unsqueeze(1)
-                self.history = row if self.history.shape[1] == 0 else torch.cat([self.history, row], 1)
+                history = self.history
+                self.history = row if history.shape[1] == 0 else torch.cat([history, row], 1)
             super().update(inputs)
             self.k += 1
 
-    def markov(self, *args, **kwargs) -> torch.Tensor:
-        """``Nonlinear.markov`` on one intra-op thread for small columns (see ``few_threads``)."""
+    def lower(self, b) -> None:
+        """The native form: outputs, record and step as calls of ``thermosphere_native``'s entry points, each
+        with the column's packed constants in its first input slots."""
+        if not all(isinstance(o, Observation) and o.column is self.column for o in self.observations.values()):
+            b.refuse("its outputs are Python functions; give thermosphere.Observation's of its column")
+        if self.record is not None and not (isinstance(self.record, Record) and all(
+                p.column is self.column for p in self.record.parts if isinstance(p, Observation))):
+            b.refuse("its record is a Python function; give a thermosphere.Record")
+        if importlib.util.find_spec("numba") is None:
+            b.refuse("numba is not installed (pip install numba)")
+        from . import thermosphere_native as tn
+        packed = tn.pack(self.column)
+        params, size, n = b.param(torch.from_numpy(packed).reshape(1, -1)), packed.size, self.n_states
+        x = b.state("x")
+
+        def observe(obs: Observation, out: int, port: str | None) -> None:
+            reads = obs.reads()
+            table = torch.from_numpy(reads).reshape(1, -1)
+            count = table.shape[1] + 1
+            block = b.scratch(size + count + n)
+            b.emit("COPY", [size, params, block], port=port)
+            b.emit("COPY", [count, b.param(torch.cat([table.new_full((1, 1), len(reads)), table], 1)),
+                            block + size], port=port)
+            b.emit("COPY", [n, x, block + size + count], port=port)
+            fn = tn.entry("observe")
+            b.emit("CALL", [size + count + n, block, len(reads), out, b.function(fn.address, fn)], port=port)
+
+        for port, obs in self.observations.items():
+            observe(obs, b.output(port), port)
+        if self.record is not None:            # the ring moves up one row; the newest row is the last
+            m = self.record_width
+            ring = b.state("pending", rows=RECORD_RING)
+            b.emit("COPY", [(RECORD_RING - 1) * m, ring + m, ring])
+            at = ring + (RECORD_RING - 1) * m
+            for part in self.record.parts:
+                if isinstance(part, Observation):
+                    observe(part, at, None)
+                    at += part.width
+                elif part in self.inputs and b.input(part) is not None:
+                    b.emit("COPY", [self.inputs[part], b.input(part), at])
+                    at += self.inputs[part]
+                else:
+                    b.refuse(f"its record reads '{part}', which is not a connected input")
+            b.steps_left(self._room)
+        block = b.scratch(size + n + sum(self.inputs.values()))
+        b.emit("COPY", [size, params, block])
+        b.emit("COPY", [n, x, block + size])
+        at = block + size + n
+        for port, width in self.inputs.items():
+            if b.input(port) is None:
+                b.refuse(f"input '{port}' is not connected")
+            b.emit("COPY", [width, b.input(port), at])
+            at += width
+        fn = tn.entry("step")
+        b.emit("CALL", [at - block, block, n, x, b.function(fn.address, fn)])
+        b.counter()
+
+    def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
+               inputs: Mapping[str, torch.Tensor] | None = None, method: str = "auto",
+               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
+        """``Nonlinear.markov``: by the native code where it may run (``native_here``) and the output is an
+        ``Observation``, else with torch on one intra-op thread for small columns (see ``few_threads``)."""
+        obs = self.observations.get(output)
+        if isinstance(obs, Observation) and input in self.inputs and method in ("auto", "autograd", "fd") and \
+                along in ("trajectory", "point") and native_here(self.x0.dtype, self.x0.device):
+            from . import thermosphere_native as tn
+            x = ((self.x if self.x.shape[0] else self.x0) if x is None else x).detach()
+            B = x.shape[0]
+            ins = {p: x.new_zeros(B, w) for p, w in self.inputs.items()}
+            ins.update({p: v.detach().to(x).expand(B, -1) for p, v in dict(inputs or {}).items()})
+            u = ins.get("u", x.new_zeros(B, 0))
+            H = tn.NativeColumn(self.column).markov(obs.reads(), x, ins["w"], u, input, n, along, method, eps)
+            return H.to(x)
         with few_threads(self.x.numel() * self.inputs.get("u", 1)):
-            return super().markov(*args, **kwargs)
+            return super().markov(input, output, n, x, inputs, method, along, eps)
 
 
 class SpaceWeather(Block):
@@ -482,6 +668,35 @@ class SpaceWeather(Block):
 
     def update(self, inputs):
         self.k += 1
+
+    @property
+    def count(self) -> torch.Tensor:
+        """The step count k as a float per member (B, 1): the native form's state, set from k before each call
+        of the engine (which advances k itself, ``Builder.counter``). One tensor while the batch stays, so the
+        engine's binding of it stays too."""
+        count = self.__dict__.get("_count")
+        if count is None or count.shape[0] != self.batch_size:
+            count = self.__dict__["_count"] = torch.zeros(self.batch_size, 1, dtype=torch.float64)
+        if float(count[0, 0]) != float(self.k):
+            count.fill_(float(self.k))
+        return count
+
+    def lower(self, b) -> None:
+        """The native form: ``thermosphere_native``'s storm entry on [dt, start, rise, k, F10.7, peak]; k
+        advances by one per step."""
+        if importlib.util.find_spec("numba") is None:
+            b.refuse("numba is not installed (pip install numba)")
+        from . import thermosphere_native as tn
+        count, block = b.state("count"), b.scratch(6)
+        b.emit("COPY", [3, b.param(torch.tensor([[self.dt, self.start, self.rise]], dtype=torch.float64)), block],
+               port="out")
+        b.emit("COPY", [1, count, block + 3], port="out")
+        b.emit("COPY", [1, b.param(self.f107), block + 4], port="out")
+        b.emit("COPY", [1, b.param(self.peak), block + 5], port="out")
+        fn = tn.entry("storm")
+        b.emit("CALL", [6, block, 2, b.output("out"), b.function(fn.address, fn)], port="out")
+        b.emit("SUM", [1, 2, count, count, 1, b.param(torch.ones(1, 1, dtype=torch.float64)), 1])
+        b.counter()
 
 
 #: Scale of the Arrhenius basis of ``TemperatureFeatures``: the NO 5.3 um quantum h nu / k, Kockarts' 2700 K. The
@@ -598,6 +813,31 @@ class TemperatureFeatures(Block):
     def update(self, inputs):
         if self.memory:
             self.set_state(m=self._memory_now(inputs["T"]))
+
+    def lower(self, b) -> None:
+        """The native form: ``thermosphere_native``'s features entry computes the features and the next memory
+        together (for the output ``f``); the update keeps the memory."""
+        if importlib.util.find_spec("numba") is None:
+            b.refuse("numba is not installed (pip install numba)")
+        from . import thermosphere_native as tn
+        nodes, terms, mem = self.T_ref.shape[1], len(self.terms), len(self.memory)
+        layout = [nodes, terms, mem, self.activation, *[t.power for t in self.terms],
+                  *[self.memory.index(i) if i in self.memory else -1 for i in range(terms)],
+                  *self.decay.reshape(-1).tolist()]
+        head = len(layout)
+        block, out = b.scratch(head + (2 + mem) * nodes), b.scratch((terms + mem) * nodes)
+        b.emit("COPY", [head, b.param(torch.tensor([layout], dtype=torch.float64)), block], port="f")
+        b.emit("COPY", [nodes, b.input("T"), block + head], port="f")
+        b.emit("COPY", [nodes, b.param(self.T_ref), block + head + nodes], port="f")
+        if mem:
+            m = b.state("m")
+            b.emit("COPY", [mem * nodes, m, block + head + 2 * nodes], port="f")
+        fn = tn.entry("features")
+        b.emit("CALL", [head + (2 + mem) * nodes, block, (terms + mem) * nodes, out, b.function(fn.address, fn)],
+               port="f")
+        b.emit("COPY", [terms * nodes, out, b.output("f")], port="f")
+        if mem:
+            b.emit("COPY", [mem * nodes, out + terms * nodes, m])
 
 
 def interpolation_basis(z: torch.Tensor, nodes: torch.Tensor) -> torch.Tensor:
