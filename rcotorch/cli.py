@@ -467,9 +467,15 @@ def main(argv: list[str] | None = None) -> int:
                 os.environ["RCOTORCH_ENGINE"] = args.engine
             if args.command not in ("list", "show"):
                 _threads(args)
-            return COMMANDS[args.command](args, session)
+            code = COMMANDS[args.command](args, session)
+            sys.stdout.flush()        # here, so that a closed stdout is met inside this handler
+            return code
         except RcoError as e:
             return session.error(e)
+        except BrokenPipeError:       # the reader of stdout stopped reading (`rcotorch list | head`)
+            with contextlib.suppress(OSError, ValueError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return EXIT_PASS
         except KeyboardInterrupt:
             session.log(f"stopped by a second {session.stopped_by}, without a checkpoint")
             _say("\nrcotorch: stopped (no checkpoint saved since the last one)")

@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import signal
+import shlex
 import subprocess
 import sys
 import time
@@ -369,3 +370,11 @@ def test_a_sweep_refused_for_ray_leaves_no_manifest_or_lock(ray, message, tmp_pa
     assert not (tmp_path / "fresh").exists()
     assert main(["sweep", str(cfg), "--out", str(out)]) == 0           # the plain re-run
     assert (out / "notes.txt").read_text() == "mine" and (out / LOCK).exists()
+
+
+def test_a_reader_that_stops_reading_stdout_is_no_internal_error():
+    """`rcotorch show NAME | true`: the pipe is closed before rcotorch writes; it exits 0, with no traceback."""
+    cmd = f"set -o pipefail; {shlex.quote(sys.executable)} -m rcotorch show sdof-stiffness | true"
+    out = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, (out.returncode, out.stderr)
+    assert "Traceback" not in out.stderr and "BrokenPipeError" not in out.stderr
