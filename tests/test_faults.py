@@ -11,9 +11,9 @@ member frozen while the healthy ones stay bitwise those of a clean run (tests/te
 import errno
 import json
 import os
+import shlex
 import shutil
 import signal
-import shlex
 import subprocess
 import sys
 import time
