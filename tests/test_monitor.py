@@ -131,9 +131,11 @@ def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
     tags = _tags(mux, "sdof-stiffness")
     checks = {f"final/{k}" for k in ("fit_percent", "fit_percent_initial", "z_autocorr_max", "z_whiteness_p",
                                      "z_w_xcorr_max", "residual_bound", "dK lower", "dK upper", "dC lower",
-                                     "dC upper", "requirements passed")}
+                                     "dC upper", "requirements passed", "validation_rmse",
+                                     "validation_rmse_initial", "validation_fit_percent",
+                                     "validation_fit_percent_initial")}
     bands = {f"intervals/{k} {side}" for k in ("dK", "dC") for side in ("lower", "upper")}
-    assert len(tags - checks - bands) <= 40, sorted(tags)   # the residual checks and the intervals on top
+    assert len(tags - checks - bands) <= 40, sorted(tags)   # residual checks, validation, intervals on top
     members = sorted(t for t in tags if t.startswith("members/"))
     assert members == sorted(f"members/{k} m{b}" for k in ("dK", "dC", "z rms") for b in range(3))
     assert {"Estimates/dK mean", "Estimates/dK truth", "quantiles/dK q10", "quantiles/dK q50", "quantiles/dK q90",

@@ -34,7 +34,7 @@ import numba
 import numpy as np
 import torch
 
-from .thermosphere import (
+from .thermosphere_constants import (
     DIURNAL_AMPLITUDE,
     K_B,
     KAPPA_A,
