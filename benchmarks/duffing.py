@@ -4,7 +4,7 @@ as a performance-minded user would (scalar RK4 per member, normals in pairs), an
 
     python benchmarks/duffing.py --threads 1              # B = 1 and 4096, about a minute
 
-Goal (issue): the engine at least as fast as the numba loop at B = 1 and B = 4096.
+Goal: the engine at least as fast as the numba loop at B = 1 and B = 4096.
 Writes benchmarks/results/duffing.json.
 """
 

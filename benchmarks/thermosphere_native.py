@@ -10,7 +10,7 @@ Timed inside the process from the scenario's ``Run`` to the end of ``finish`` (`
 
     python benchmarks/thermosphere_native.py --threads 1          # about a minute (the PyTorch run)
 
-Goal (issue): the run at least 10x faster natively. Writes benchmarks/results/thermosphere_native.json.
+Goal: the run at least 10x faster natively. Writes benchmarks/results/thermosphere_native.json.
 """
 
 from __future__ import annotations

@@ -386,7 +386,7 @@ def cmd_sweep(args, session: Session) -> int:
     from .sweep import Sweep, run_sweep
     sweep = Sweep.from_file(args.config)
     _device(args.device or "cpu")
-    session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario}", "sweep")
+    session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     session.resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
                       "--resume")
     session.log(f"`{session.command()}`")            # written once run_sweep opens the folder
