@@ -42,3 +42,26 @@ def test_a_scenario_folder_that_does_not_exist_is_an_error(monkeypatch, tmp_path
     monkeypatch.setenv("RCOTORCH_SCENARIOS", str(tmp_path / "missing"))
     with pytest.raises(rt.ConfigError, match=r"RCOTORCH_SCENARIOS names .*missing, which is not a folder"):
         scenarios.available()
+
+
+def test_a_uniform_shear_building_has_the_closed_form_frequencies_and_rayleigh_damping():
+    """n equal storeys: omega_r = 2 sqrt(k/m) sin((2r - 1) pi / (2 (2n + 1))); Rayleigh damping gives the
+    damping ratio asked for in the first two modes; a force pair -dk d_j on storey j is that storey's stiffness
+    changed by dk."""
+    import numpy as np
+    m, k, n, zeta = 2.0e4, 2.0e7, 3, 0.03
+    G = rt.models.shear_building([m] * n, [k] * n, damping_ratio=zeta, identified=[2],
+                                 measured=["displacement[1]", "velocity[-1]"])
+    poles = np.linalg.eigvals(G.A)
+    wn = np.sort(np.abs(poles))[::2]
+    want = 2 * np.sqrt(k / m) * np.sin((2 * np.arange(1, n + 1) - 1) * np.pi / (2 * (2 * n + 1)))
+    assert np.allclose(wn, want, rtol=1e-10)
+    by_mode = poles[np.argsort(np.abs(poles))][::2]          # one pole of each conjugate pair, slowest first
+    assert np.allclose(-by_mode.real[:2] / np.abs(by_mode[:2]), zeta, rtol=1e-8)
+    dk = -0.2 * k
+    closed = G.A + G.B[:, 1:2] @ (-dk * G.C[2:3])            # u = -dk (x2 - x1), acting as a force pair
+    damaged = rt.models.shear_building([m] * n, [k, k + dk, k], damping_ratio=zeta)
+    Minv_K = slice(n, 2 * n), slice(0, n)
+    assert np.allclose(closed[Minv_K], damaged.A[Minv_K], rtol=1e-12)
+    with pytest.raises(rt.ConfigError, match="floors are 1..3"):
+        rt.models.shear_building([m] * n, [k] * n, measured=["velocity[4]"])

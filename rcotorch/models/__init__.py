@@ -2,7 +2,8 @@
 
 They are kept apart from the library core: the core (blocks, estimator, graph) never imports them.
 
-* ``structures``: mass-spring-damper structures with named signals (``sdof``, ``structure``).
+* ``structures``: mass-spring-damper structures with named signals (``sdof``, ``structure``,
+  ``shear_building``).
 * ``circuits``: a series RLC circuit with named signals.
 * ``ports``: any python-control plant as a known model, its signals picked and named w, u, y, y0
   (``label_ports``, ``known_model``).
@@ -14,7 +15,7 @@ from . import circuits, identification, ports
 from .circuits import series_rlc
 from .identification import MassSpringDamper
 from .ports import known_model, label_ports
-from .structures import SIGNALS, sdof, sdof_matrices, structure
+from .structures import SIGNALS, sdof, sdof_matrices, shear_building, structure
 
 __all__ = ["circuits", "identification", "known_model", "label_ports", "MassSpringDamper", "ports", "sdof",
-           "sdof_matrices", "series_rlc", "SIGNALS", "structure"]
+           "sdof_matrices", "series_rlc", "shear_building", "SIGNALS", "structure"]

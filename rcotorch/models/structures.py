@@ -88,3 +88,90 @@ def sdof_matrices(m, c, k, measured=("velocity",), sees=("position", "velocity")
     C = torch.tensor([rows[sig] for sig in list(measured) + list(sees)], dtype=dtype)
     D = torch.zeros(C.shape[0], B.shape[-1], dtype=dtype)
     return A, B, C, D
+
+
+def shear_building(masses: Sequence[float], stiffnesses: Sequence[float], damping_ratio: float = 0.02,
+                   force: str | int = "base", measured: Sequence[str] = ("velocity[-1]",),
+                   identified: Sequence[int] = (), actuation: bool = True) -> control.StateSpace:
+    """A shear building of n storeys, floors 1..n above the ground (floor 0), as a continuous structure.
+
+    Storey j (1..n) joins floor j - 1 and floor j with stiffness ``stiffnesses[j - 1]``; floor j carries
+    ``masses[j - 1]``. Damping is Rayleigh, C = a M + b K, with ``damping_ratio`` in the first two modes (the
+    first alone for one storey). ``force``: ``'base'`` (w is the ground acceleration: every floor feels
+    -m_j w) or a floor number 1..n (w is a force on that floor). ``measured``: 'displacement[j]' or
+    'velocity[j]' of floors j = 1..n (negative j counts from the roof: -1 is the roof), relative to the ground.
+
+    ``identified``: the storeys whose stiffness change the unknown subsystem supplies. For each, it sees the
+    storey drift d_j = x_j - x_(j-1) (output ``y0[i]``) and acts with a force pair u_j: +u_j on floor j and
+    -u_j on floor j - 1 (input ``u[i]``), so that u_j = -dk_j d_j is a change dk_j of that storey's
+    stiffness. State [x_1..x_n, x_1'..x_n'] (floor displacements relative to the ground and their rates)."""
+    import control
+    m = np.asarray(masses, dtype=float).reshape(-1)
+    k = np.asarray(stiffnesses, dtype=float).reshape(-1)
+    n = len(m)
+    if len(k) != n or n == 0 or np.any(m <= 0) or np.any(k <= 0):
+        raise ConfigError(f"shear_building: needs one positive mass and one positive stiffness per storey, got "
+                          f"{len(m)} masses {m.tolist()} and {len(k)} stiffnesses {k.tolist()}")
+    K = np.zeros((n, n))
+    for j in range(n):                       # storey j + 1 joins floors j and j + 1 (0-based: j - 1 and j)
+        K[j, j] += k[j]
+        if j > 0:
+            K[j - 1, j - 1] += k[j]
+            K[j - 1, j] -= k[j]
+            K[j, j - 1] -= k[j]
+    M = np.diag(m)
+    w2 = np.sort(np.linalg.eigvals(np.linalg.solve(M, K)).real)
+    if n == 1:
+        a, b = 0.0, 2 * damping_ratio / np.sqrt(w2[0])
+    else:
+        w1, w2_ = np.sqrt(w2[0]), np.sqrt(w2[1])
+        a, b = 2 * damping_ratio * w1 * w2_ / (w1 + w2_), 2 * damping_ratio / (w1 + w2_)
+    C = a * M + b * K
+
+    def floor(j: int, what: str) -> int:
+        if not (1 <= j <= n or -n <= j <= -1):
+            raise ConfigError(f"shear_building: {what} names floor {j}; floors are 1..{n} (or -1..-{n} from the "
+                              "roof)")
+        return j - 1 if j > 0 else n + j
+
+    if force == "base":
+        Fw = -m.reshape(n, 1)
+    elif isinstance(force, (int, np.integer)) and not isinstance(force, bool):
+        Fw = np.zeros((n, 1))
+        Fw[floor(int(force), "force="), 0] = 1.0
+    else:
+        raise ConfigError(f"shear_building: force must be 'base' or a floor number 1..{n}, got {force!r}")
+    storeys = [int(s) for s in identified]
+    for s in storeys:
+        if not 1 <= s <= n:
+            raise ConfigError(f"shear_building: identified storey {s}; storeys are 1..{n}")
+    Fu = np.zeros((n, len(storeys)))
+    drift = np.zeros((len(storeys), 2 * n))
+    for i, s in enumerate(storeys):
+        Fu[s - 1, i] = 1.0
+        drift[i, s - 1] = 1.0
+        if s > 1:
+            Fu[s - 2, i] = -1.0
+            drift[i, s - 2] = -1.0
+    rows = []
+    for sig in measured:
+        kind, _, idx = str(sig).partition("[")
+        try:
+            j = int(idx.rstrip("]"))
+        except ValueError:
+            j = 0
+        if kind not in ("displacement", "velocity") or not idx:
+            raise ConfigError(f"shear_building: measured signal {sig!r}; use 'displacement[j]' or 'velocity[j]' "
+                              f"with a floor j in 1..{n} (or -1 for the roof)")
+        r = np.zeros(2 * n)
+        r[floor(j, f"measured {sig!r}") + (n if kind == "velocity" else 0)] = 1.0
+        rows.append(r)
+    Minv = np.linalg.inv(M)
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    B = np.vstack([np.zeros((n, 1 + (len(storeys) if actuation else 0))),
+                   Minv @ (np.hstack([Fw, Fu]) if actuation else Fw)])
+    Cm = np.vstack(rows + ([drift] if len(storeys) else []))
+    names = dict(inputs=["w"] + (vector("u", len(storeys)) if actuation and storeys else []),
+                 outputs=vector("y", len(rows)) + (vector("y0", len(storeys)) if storeys else []),
+                 states=vector("x", n) + vector("xdot", n))
+    return control.ss(A, B, Cm, np.zeros((Cm.shape[0], B.shape[1])), **names)
