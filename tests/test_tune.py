@@ -6,7 +6,7 @@ import tomllib
 
 import pytest
 
-from rcotorch.errors import ConfigError
+from rcotorch.errors import ConfigError, OutputError
 from rcotorch.tune import Tuning, best_toml, rank, run_tune, sensitivity_table
 
 
@@ -121,3 +121,15 @@ def test_a_p0_far_too_small_for_the_regressors_is_named_at_the_end_of_a_run(tmp_
     assert len(warned[0]) == 1 and "p0 = 0.001 is small for the regressors" in warned[0][0]
     suggested = float(warned[0][0].rsplit("about ", 1)[1])
     assert 1e2 < suggested < 1e5 and warned[1] == []
+
+
+def test_a_tuning_resumed_in_its_folder_reuses_the_finished_candidates(tmp_path):
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1.0, 1e3]}, seeds=1, steps=1500)
+    first = run_tune(t, out=tmp_path / "t", progress=False)
+    shard = next((tmp_path / "t" / "runs").glob("shard_*")) / "summary.json"
+    stamp = shard.stat().st_mtime_ns
+    again = run_tune(t, out=tmp_path / "t", progress=False, resume=True)
+    assert shard.stat().st_mtime_ns == stamp                     # the finished shard was not run again
+    assert [c["score"] for c in again.candidates] == [c["score"] for c in first.candidates]
+    with pytest.raises(OutputError, match="already holds a tune"):     # nor is a tuning overwritten unasked
+        run_tune(t, out=tmp_path / "t", progress=False)
