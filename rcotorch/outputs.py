@@ -276,13 +276,21 @@ class OutputFolder:
             now = self._stat()
         except OSError:
             now = None
-        if now is None and not os.path.isdir(self.path):
+        if now is None and (not os.path.isdir(self.path) or self._only_event_files()):
+            # deleted (a folder that holds nothing but TensorBoard event files was made again at the same path
+            # by this run's own writer, which writes by path)
             raise OutputError(f"the output folder {self.path} was deleted while rcotorch was writing to it; the "
                               "results are lost: run again")
         if now != self._identity:
             raise OutputError(f"the output folder {self.path} was replaced by another folder while rcotorch was "
                               "writing to it, and nothing more is written there; move the original back and "
                               "resume, or run again")
+
+    def _only_event_files(self) -> bool:
+        try:
+            return all(p.name.startswith("events.out.tfevents") for p in self.path.rglob("*") if not p.is_dir())
+        except OSError:
+            return False
 
     def discard(self) -> None:
         """Undo ``open`` when the folder was opened to start a run that then wrote nothing but its log (a sweep

@@ -25,6 +25,7 @@ import torch
 
 import rcotorch.runner
 from rcotorch.cli import Session, main
+from rcotorch.errors import OutputError
 from rcotorch.outputs import LOCK, MANIFEST, OutputFolder, load_checkpoint, save_checkpoint
 
 QUICK = ["--steps", "300", "--quiet", "--no-figures"]
@@ -210,7 +211,8 @@ def test_the_output_folder_deleted_during_a_run_exits_2(tmp_path, monkeypatch, c
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 2
     err = _one_line(capsys.readouterr().err)
     assert f"the output folder {out} was deleted while rcotorch was writing to it" in err and "run again" in err
-    assert not out.exists()
+    # nothing of the run is there again but what TensorBoard's writer, which writes by path, may have recreated
+    assert not out.exists() or all(p.name.startswith("events.out.tfevents") for p in out.rglob("*") if p.is_file())
 
 
 def test_the_output_folder_replaced_during_a_run_exits_2_and_the_new_one_is_not_written(tmp_path, monkeypatch,
@@ -378,3 +380,18 @@ def test_a_reader_that_stops_reading_stdout_is_no_internal_error():
     out = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, (out.returncode, out.stderr)
     assert "Traceback" not in out.stderr and "BrokenPipeError" not in out.stderr
+
+
+def test_a_deleted_folder_that_tensorboards_writer_made_again_is_reported_as_deleted(tmp_path):
+    """TensorBoard's writer writes by path and may make the deleted folder again for its event file: that is
+    still a deleted folder (the results are lost), not one a user put in its place."""
+    folder = OutputFolder(tmp_path / "run", "run")
+    folder.open("new", info={"scenario": "x"})
+    shutil.rmtree(tmp_path / "run")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "events.out.tfevents.1.host").write_bytes(b"")
+    with pytest.raises(OutputError, match="was deleted while rcotorch was writing to it"):
+        folder.check()
+    (tmp_path / "run" / "notes.txt").write_text("the user's")
+    with pytest.raises(OutputError, match="was replaced by another folder"):
+        folder.check()
