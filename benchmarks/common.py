@@ -96,3 +96,37 @@ def table(rows: list[list], header: list[str]) -> str:
     lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
+
+
+def proc_status(key: str) -> int | None:
+    """A memory figure of this process from /proc/self/status (Linux), in bytes."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def reset_peak_rss() -> bool:
+    """Reset the resident-set high-water mark (Linux: write 5 to /proc/self/clear_refs)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def ns_per_member_step(run, batch: int, seconds: float, steps: int) -> float:
+    """Nanoseconds per member-step of ``run(steps)`` over ``batch`` members: the best of three stretches of
+    ``seconds / 3`` each (the least disturbed by other processes on a shared machine)."""
+    best = float("inf")
+    for _ in range(3):
+        t0, done = time.perf_counter(), 0
+        while time.perf_counter() - t0 < seconds / 3:
+            run(steps)
+            done += steps
+        best = min(best, (time.perf_counter() - t0) / (done * batch))
+    return best * 1e9

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import machine, table, write_json
+from common import machine, proc_status, reset_peak_rss, table, write_json
 
 
 def write_csv(path: Path, rows: int, columns: int, seed: int = 0) -> None:
@@ -38,25 +38,6 @@ def write_csv(path: Path, rows: int, columns: int, seed: int = 0) -> None:
         f.write(",".join(f"c{i}" for i in range(columns)) + "\n")
         for start in range(0, rows, 100_000):
             np.savetxt(f, rng.standard_normal((min(100_000, rows - start), columns)), delimiter=",", fmt="%.17g")
-
-
-def _status(key: str) -> int | None:
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak() -> bool:
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
 
 
 def child(reader: str, path: str, asked: list[str]) -> None:
@@ -80,13 +61,13 @@ def child(reader: str, path: str, asked: list[str]) -> None:
         load(small)
     if reader == "tracemalloc":
         tracemalloc.start()
-    rss0 = _status("VmRSS")
-    exact = rss0 is not None and _reset_peak()
+    rss0 = proc_status("VmRSS")
+    exact = rss0 is not None and reset_peak_rss()
     base = rss0 if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
     values = load(path)
     seconds = time.perf_counter() - t0
-    peak = _status("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = proc_status("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     out = {"reader": reader, "seconds": seconds, "method": "VmHWM reset" if exact else "ru_maxrss",
            "rss_baseline_bytes": base, "peak_bytes": peak - base, "shape": list(values.shape)}
     if reader == "tracemalloc":

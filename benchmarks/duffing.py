@@ -15,7 +15,7 @@ import time
 
 import numba
 import numpy as np
-from common import add_common_args, machine, setup, table, write_json
+from common import add_common_args, machine, ns_per_member_step, setup, table, write_json
 
 import rcotorch as rt
 
@@ -69,14 +69,7 @@ def numba_loop(x, steps, seed):
 def best_ns(run, batch: int, seconds: float) -> float:
     steps = max(1, int(2e5 / batch))
     run(steps)                                       # compile / warm
-    best = float("inf")
-    for _ in range(3):
-        t0, done = time.perf_counter(), 0
-        while time.perf_counter() - t0 < seconds / 3:
-            run(steps)
-            done += steps
-        best = min(best, (time.perf_counter() - t0) / (done * batch))
-    return best * 1e9
+    return ns_per_member_step(run, batch, seconds, steps)
 
 
 def main(argv=None) -> dict:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy_reference
 import torch
-from common import add_common_args, machine, setup, sync, table, write_json
+from common import add_common_args, machine, proc_status, reset_peak_rss, setup, sync, table, write_json
 
 from rcotorch import scenario as scenarios
 
@@ -75,27 +75,6 @@ def numpy_rate(seconds: float, repeats: int = 3) -> dict:
     return {"steps": steps, "repeats": repeats, "refinement_steps_per_s": rate}
 
 
-def _proc_status(key: str) -> int | None:
-    """A memory figure of this process from /proc/self/status (Linux), in bytes."""
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak_rss() -> bool:
-    """Reset the resident-set high-water mark (Linux: write 5 to /proc/self/clear_refs)."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
 def memory_child(name: str, B: int, device: str, steps: int, threads: int | None) -> None:
     """Run in a subprocess: print peak memory of a B-member run as JSON. The peak is the resident-set
     high-water mark during the run (reset after a warm batch-of-one step) minus the resident set before it;
@@ -111,8 +90,8 @@ def memory_child(name: str, B: int, device: str, steps: int, threads: int | None
     del warm
     gc.collect()
     sync(dev)
-    rss0 = _proc_status("VmRSS")
-    exact = rss0 is not None and _reset_peak_rss()
+    rss0 = proc_status("VmRSS")
+    exact = rss0 is not None and reset_peak_rss()
     base = rss0 if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
@@ -121,7 +100,7 @@ def memory_child(name: str, B: int, device: str, steps: int, threads: int | None
     est = g.blocks["identified"]
     g.advance(steps)
     sync(dev)
-    peak = _proc_status("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = proc_status("VmHWM") if exact else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     out = {"scenario": name, "B": B, "n_theta": est.n_theta, "steps": steps,
            "method": "VmHWM reset" if exact else "ru_maxrss", "rss_baseline_bytes": base,
            "rss_peak_bytes": peak, "peak_bytes": peak - base,

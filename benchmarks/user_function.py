@@ -12,10 +12,9 @@ Writes benchmarks/results/user_function.json.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
-from common import add_common_args, machine, setup, table, write_json
+from common import add_common_args, machine, ns_per_member_step, setup, table, write_json
 
 import rcotorch as rt
 
@@ -39,14 +38,7 @@ def per_member_step(make, batch: int, seconds: float, engine: str = "auto") -> f
     g.engine = engine
     g.advance(10)                                    # lowering and compilation outside the timing
     steps = max(1, int(2e5 / batch)) if engine != "torch" else 20
-    best = float("inf")
-    for _ in range(3):
-        t0, done = time.perf_counter(), 0
-        while time.perf_counter() - t0 < seconds / 3:
-            g.advance(steps)
-            done += steps
-        best = min(best, (time.perf_counter() - t0) / (done * batch))
-    return best * 1e9
+    return ns_per_member_step(g.advance, batch, seconds, steps)
 
 
 def main(argv=None) -> dict:
