@@ -380,9 +380,22 @@ def cmd_run(args, session: Session) -> int:
     return EXIT_PASS if passed else EXIT_FAILED
 
 
+def _in_shards(session: Session, what: str, job: Callable):
+    """``job(stop)`` (a sweep or a tuning, run as shards) with Ctrl-C, SIGTERM and SIGHUP asking it to stop;
+    its result, or None when it stopped (the running shard saved its checkpoint)."""
+    from .runner import Interrupted
+    with session.interruptible() as stop:
+        try:
+            return job(stop.is_set)
+        except Interrupted as e:
+            session.log(f"stopped by {session.stopped_by}; resume with: {session.resume}")
+            _say(f"rcotorch: {what} stopped ({e}); finished shards are kept\nresume with: {session.resume}")
+            return None
+
+
 def cmd_sweep(args, session: Session) -> int:
     from .outputs import OutputFolder
-    from .runner import Interrupted, _device
+    from .runner import _device
     from .sweep import Sweep, run_sweep
     sweep = Sweep.from_file(args.config)
     _device(args.device or "cpu")
@@ -390,15 +403,11 @@ def cmd_sweep(args, session: Session) -> int:
     session.resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
                       "--resume")
     session.log(f"`{session.command()}`")            # written once run_sweep opens the folder
-    with session.interruptible() as stop:
-        try:
-            rows = run_sweep(sweep, backend=args.backend, device=args.device or "cpu",
-                             ray_address=args.ray_address, overwrite=args.overwrite, resume=args.resume,
-                             stop=stop.is_set, folder=session.folder)
-        except Interrupted as e:
-            session.log(f"stopped by {session.stopped_by}; resume with: {session.resume}")
-            _say(f"rcotorch: sweep stopped ({e}); finished shards are kept\nresume with: {session.resume}")
-            return session.exit_stopped()
+    rows = _in_shards(session, "sweep", lambda stop: run_sweep(
+        sweep, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
+        overwrite=args.overwrite, resume=args.resume, stop=stop, folder=session.folder))
+    if rows is None:
+        return session.exit_stopped()
     session.log(f"finished: {len(rows)} members")
     print(sweep_report(rows, session.folder.path))
     return EXIT_PASS
@@ -423,23 +432,19 @@ def _config_settings(path: str) -> tuple[str | None, dict[str, Any]]:
 
 def cmd_tune(args, session: Session) -> int:
     from .outputs import OutputFolder
-    from .runner import Interrupted, _device
+    from .runner import _device
     from .tune import Tuning, run_tune
     tuning = Tuning.from_file(args.config)
-    tuning.sweep().members()                          # every candidate checked before anything is written
     _device(args.device or "cpu")
     out = Path(args.out or Path("runs") / f"tune-{tuning.scenario}")
     session.folder = OutputFolder(out, "tune")
     session.resume = f"rcotorch tune {shlex.quote(args.config)} --out {shlex.quote(str(out))} --resume"
-    with session.interruptible() as stop:
-        try:
-            result = run_tune(tuning, out=out, backend=args.backend, device=args.device or "cpu",
-                              ray_address=args.ray_address, overwrite=args.overwrite, resume=args.resume,
-                              stop=stop.is_set, folder=session.folder)
-        except Interrupted as e:
-            session.log(f"stopped by {session.stopped_by}; resume with: {session.resume}")
-            _say(f"rcotorch: tuning stopped ({e}); finished shards are kept\nresume with: {session.resume}")
-            return session.exit_stopped()
+    session.log(f"`{session.command()}`")            # written once run_tune opens the folder
+    result = _in_shards(session, "tuning", lambda stop: run_tune(
+        tuning, out=out, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
+        overwrite=args.overwrite, resume=args.resume, stop=stop, folder=session.folder))
+    if result is None:
+        return session.exit_stopped()
     session.log(f"finished: {len(result.candidates)} candidates, {result.members} members")
     print(f"{tuning.scenario}: {len(result.candidates)} candidates x seeds = {result.members} members, scored on "
           f"held-out data (validation_rmse) -> {out}")

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from . import scenario as scenarios
-from .errors import ConfigError
+from .errors import ConfigError, RcoError
 from .sweep import DISTRIBUTIONS, Sweep, run_sweep
 
 METHODS = ("grid", "random")
@@ -150,6 +150,7 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
     ``OutputFolder`` for ``out`` made by the caller, who closes it."""
     from .outputs import OutputFolder, write_text
     sweep = tuning.sweep()
+    sweep.shards()                           # every candidate checked before the folder is touched
     name = sweep.scenario_name
     out = Path(out or Path("runs") / f"tune-{name}")
     own = folder is None
@@ -158,8 +159,6 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
                 info=None if resume else {"scenario": name, "config": {**_plain(tuning.__dict__), "scenario": name}})
     try:
         folder.add_child("runs")
-        for child in ("tune.csv", "best.toml", "sensitivity.csv"):
-            folder.add_child(child)
         folder.register()
         rows = run_sweep(sweep, backend=backend, device=device, out=out / "runs", ray_address=ray_address,
                          progress=progress, overwrite=overwrite, resume=resume, stop=stop)
@@ -172,7 +171,10 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
         write_text(out / "best.toml", best_toml(name, best, candidates[0]))
         sensitivity = sensitivity_table(candidates, searched)
         write_text(out / "sensitivity.csv", _csv_rows(sensitivity))
-        folder.check()
+        folder.register()                    # tune.csv, best.toml and sensitivity.csv are the tuning's files
+    except RcoError:
+        folder.discard()                     # refused before anything ran: the folder as it was found
+        raise
     finally:
         if own:
             folder.close()

@@ -133,3 +133,12 @@ def test_a_tuning_resumed_in_its_folder_reuses_the_finished_candidates(tmp_path)
     assert [c["score"] for c in again.candidates] == [c["score"] for c in first.candidates]
     with pytest.raises(OutputError, match="already holds a tune"):     # nor is a tuning overwritten unasked
         run_tune(t, out=tmp_path / "t", progress=False)
+    replaced = run_tune(t, out=tmp_path / "t", progress=False, overwrite=True)    # but when asked
+    assert [c["score"] for c in replaced.candidates] == [c["score"] for c in first.candidates]
+
+
+def test_a_tuning_with_a_bad_candidate_is_refused_before_its_folder_is_made(tmp_path):
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1e3, -1.0]}, seeds=1, steps=100)
+    with pytest.raises(ConfigError, match="p0"):
+        run_tune(t, out=tmp_path / "t", progress=False)
+    assert not (tmp_path / "t").exists()
