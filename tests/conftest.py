@@ -1,6 +1,7 @@
 """Shared models for the rcotorch tests."""
 
 import os
+import time
 from pathlib import Path
 
 import control
@@ -54,3 +55,13 @@ def zoh_first_order():
         return rt.LTI.from_control(control.tf([10.0], [1.0, 2.0]), inputs=["in"], outputs=["out"], dt=dt)
 
     return make
+
+
+def wait_for(predicate, timeout: float = 120.0) -> None:
+    """Poll ``predicate()`` until it is true (a subprocess reached some state), or fail after ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError("timed out")

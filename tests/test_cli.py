@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import wait_for
 
 import rcotorch
 from rcotorch.cli import Session, main
@@ -30,15 +31,6 @@ def _cli(*args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "rcotorch", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, **kw)
-
-
-def _wait_for(predicate, timeout=120.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError("timed out")
 
 
 def test_version_and_python_m():
@@ -151,7 +143,7 @@ def _long_run(out: Path, *extra) -> subprocess.Popen:
     """A run long enough to be interrupted (the PyTorch engine: about 0.3 ms per step)."""
     proc = _cli("run", "sdof-stiffness", "--steps", "400000", "--out", str(out), "--quiet", "--no-figures",
                 "--engine", "torch", *extra)
-    _wait_for(lambda: any(out.glob("events.out.tfevents.*")) or proc.poll() is not None)
+    wait_for(lambda: any(out.glob("events.out.tfevents.*")) or proc.poll() is not None)
     assert proc.poll() is None, proc.communicate()
     return proc
 
@@ -200,7 +192,7 @@ def test_two_writers_and_a_killed_writer(tmp_path, capsys):
             assert main(args) == 2
             assert "is in use: another rcotorch run is writing to it" in capsys.readouterr().err
             assert time.monotonic() - start < 30
-        _wait_for(lambda: (out / "checkpoint.pt").exists())
+        wait_for(lambda: (out / "checkpoint.pt").exists())
     finally:
         proc.kill()                                   # kill -9: no chance to clean up
         proc.communicate()

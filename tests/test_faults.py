@@ -16,12 +16,12 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 import types
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import wait_for
 
 import rcotorch.runner
 from rcotorch.cli import Session, main
@@ -43,18 +43,9 @@ def _cli(*args) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_default_signals)
 
 
-def _wait_for(predicate, timeout=120.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError("timed out")
-
-
 def _stepping(proc: subprocess.Popen, folder: Path) -> None:
     """Wait until the run writing ``folder`` has started stepping (its TensorBoard file exists)."""
-    _wait_for(lambda: any(folder.glob("events.out.tfevents.*")) or proc.poll() is not None)
+    wait_for(lambda: any(folder.glob("events.out.tfevents.*")) or proc.poll() is not None)
     assert proc.poll() is None, proc.communicate()
 
 
