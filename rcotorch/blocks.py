@@ -29,7 +29,7 @@ DEFAULT_DTYPE = torch.float64
 def as_batched_matrix(value, name: str, block: str, dtype=DEFAULT_DTYPE, rows: int | None = None,
                       cols: int | None = None) -> torch.Tensor:
     """Return ``value`` as a ``(Bp, rows, cols)`` tensor: a matrix shared by the batch (Bp = 1) or one per member."""
-    t = torch.as_tensor(value, dtype=dtype)
+    t = torch.as_tensor(value, dtype=dtype, device="cpu")     # blocks are built on the CPU; the graph moves them
     if t.dim() == 0:
         t = t.reshape(1, 1, 1)
     elif t.dim() == 1:

@@ -41,6 +41,7 @@ Robustness options (each off by default, each a scalar or one value per member):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -59,6 +60,14 @@ if TYPE_CHECKING:
 # The buffer that holds each robustness option (see ``RCOEstimator._options``).
 _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
 
+
+
+def _solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """A^-1 b per member, NaN for a member whose A is singular or not finite (a diverged member; CUDA's solver
+    reports those as singular where LAPACK returns NaN)."""
+    x, info = torch.linalg.solve_ex(A, b)
+    bad = (info != 0).reshape(info.shape + (1,) * (x.dim() - info.dim()))
+    return torch.where(bad, torch.full_like(x, math.nan), x)
 
 class RCOEstimator(Block):
     """Identified subsystem u = theta phi with the retrospective-cost RLS update.
@@ -133,21 +142,21 @@ class RCOEstimator(Block):
         self.dt = dt
         self._structure(mask, tie)
         for key, value in (("p0", p0), ("lam", lam)):
-            t = torch.as_tensor(value, dtype=dtype).reshape(-1)
+            t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
             if key == "p0" and bool((t <= 0).any()):
                 raise ConfigError(f"block '{name}': p0 must be positive, got {value!r}")
             if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
                 raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
             self.register_buffer(key, t)
         self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
-        R = torch.as_tensor(R, dtype=dtype)
+        R = torch.as_tensor(R, dtype=dtype, device="cpu")
         R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
         if tuple(R.shape) != (n_z, n_z):
             raise DimensionError(f"block '{name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
         self.register_buffer("r_inv", torch.linalg.inv(R))
         self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
-            torch.as_tensor(theta0, dtype=dtype).reshape(-1, n_u, self.n_phi)
+            torch.as_tensor(theta0, dtype=dtype, device="cpu").reshape(-1, n_u, self.n_phi)
         theta0 = theta0 * self.mask
         self._check_tied("theta0", theta0.reshape(theta0.shape[0], -1))
         self.register_buffer("theta0", theta0)
@@ -189,7 +198,7 @@ class RCOEstimator(Block):
         for key, value in values.items():
             low, stored = {"r_delta": (0.0, torch.sqrt), "normalize": (None, lambda t: 1.0 / (t * t)),
                            "p_max": (None, lambda t: t)}[key]
-            t = None if value is None else torch.as_tensor(value, dtype=dtype).reshape(-1)
+            t = None if value is None else torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
             if t is not None and not bool(torch.isfinite(t).all() & ((t >= low) if low is not None else (t > 0)).all()):
                 bound = "finite and >= 0" if low is not None else "finite and > 0"
                 raise ConfigError(f"block '{self.name}': {key} must be {bound}, got {value!r}")
@@ -210,11 +219,11 @@ class RCOEstimator(Block):
         """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of
         entry e of Theta (-1: pinned to zero), ``rep[p]`` the first entry holding parameter p."""
         name, shape = self.name, (self.n_u, self.n_phi)
-        mask = torch.ones(shape, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
+        mask = torch.ones(shape, dtype=torch.bool) if mask is None else torch.as_tensor(mask, device="cpu")
         if tuple(mask.shape) != shape:
             raise DimensionError(f"block '{name}': mask has shape {tuple(mask.shape)}, expected "
                                  f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
-        labels = torch.arange(mask.numel()).reshape(shape) if tie is None else torch.as_tensor(tie)
+        labels = torch.arange(mask.numel()).reshape(shape) if tie is None else torch.as_tensor(tie, device="cpu")
         if tuple(labels.shape) != shape:
             raise DimensionError(f"block '{name}': tie has shape {tuple(labels.shape)}, expected "
                                  f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
@@ -269,7 +278,7 @@ class RCOEstimator(Block):
         if bounds is None:
             return None, None
         try:
-            lo, hi = (torch.as_tensor(b, dtype=dtype) for b in bounds)
+            lo, hi = (torch.as_tensor(b, dtype=dtype, device="cpu") for b in bounds)
         except (TypeError, ValueError):
             raise ConfigError(f"block '{self.name}': {what} must be a pair (low, high), got {bounds!r}") from None
         lo, hi = (t.reshape(-1) if t.dim() else t for t in (lo, hi))
@@ -676,7 +685,7 @@ class RCOEstimator(Block):
         ulags = torch.arange(1, M.shape[1] + 1, device=N.device)
         den = torch.eye(self.n_u, dtype=zinv.dtype, device=N.device) - \
             torch.einsum("fl,blij->bfij", zinv.unsqueeze(1) ** ulags, M.to(zinv.dtype))
-        return torch.linalg.solve(den, num)
+        return _solve(den, num)
 
     def dc_gain(self) -> torch.Tensor:
         """DC gain of the identified subsystem, (B, n_u, n_sig): (I - sum M_l)^-1 sum N_l (sum N_l without
@@ -685,7 +694,7 @@ class RCOEstimator(Block):
         if not self.feed_u:
             return N.sum(1)
         eye = torch.eye(self.n_u, dtype=N.dtype, device=N.device)
-        return torch.linalg.solve(eye - M.sum(1), N.sum(1))
+        return _solve(eye - M.sum(1), N.sum(1))
 
     def _check_member(self, member: int) -> None:
         B = self.theta.shape[0]

@@ -84,7 +84,8 @@ class LTI(Block):
         self.n_states = n
         for key, M in (("A", A), ("B", B), ("C", C), ("D", D)):
             self.register_buffer(key, M)
-        x0 = torch.zeros(1, n, dtype=dtype) if x0 is None else torch.as_tensor(x0, dtype=dtype).reshape(-1, n)
+        x0 = torch.zeros(1, n, dtype=dtype) if x0 is None else \
+            torch.as_tensor(x0, dtype=dtype, device="cpu").reshape(-1, n)
         self.register_buffer("x0", x0)
         self.register_buffer("x", torch.zeros(0, n, dtype=dtype))
         self._in_slices = self._slices(self.inputs)

@@ -52,7 +52,7 @@ class Nonlinear(Block):
         self.f, self.h, self.n_states = f, h, int(n_states)
         self.dt, self.continuous, self.substeps = float(dt), bool(continuous), int(substeps)
         x0 = torch.zeros(1, self.n_states, dtype=dtype) if x0 is None else \
-            torch.as_tensor(x0, dtype=dtype).reshape(-1, self.n_states)
+            torch.as_tensor(x0, dtype=dtype, device="cpu").reshape(-1, self.n_states)
         self.register_buffer("x0", x0)
         self.register_buffer("x", torch.zeros(0, self.n_states, dtype=dtype))
         self._out_slices, start = {}, 0

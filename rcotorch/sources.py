@@ -28,9 +28,9 @@ class WhiteNoise(Block):
                  dtype=DEFAULT_DTYPE):
         super().__init__(name, {}, {"out": width})
         self.width = width
-        std = torch.as_tensor(std, dtype=dtype).reshape(-1, 1)
-        mean = torch.as_tensor(mean, dtype=dtype).reshape(-1, 1)
-        seed = torch.as_tensor(seed, dtype=torch.int64).reshape(-1)
+        std = torch.as_tensor(std, dtype=dtype, device="cpu").reshape(-1, 1)
+        mean = torch.as_tensor(mean, dtype=dtype, device="cpu").reshape(-1, 1)
+        seed = torch.as_tensor(seed, dtype=torch.int64, device="cpu").reshape(-1)
         if bool((std < 0).any()):
             raise ConfigError(f"block '{name}': std must be non-negative")
         self.register_buffer("std", std)
@@ -46,11 +46,12 @@ class WhiteNoise(Block):
         super().reset(batch_size)
         for key in ("std", "mean", "seed"):
             self.check_batch(getattr(self, key), key)
+        dev = self.seed.device
         if self.seed.numel() > 1 or batch_size == 1:
-            seeds, members = self.seed.expand(batch_size), torch.zeros(batch_size, dtype=torch.int64)
+            seeds, members = self.seed.expand(batch_size), torch.zeros(batch_size, dtype=torch.int64, device=dev)
         else:
-            seeds, members = self.seed.expand(batch_size), torch.arange(batch_size)
-        self.stream = torch.stack([seeds, members], 1).to(self.seed.device)
+            seeds, members = self.seed.expand(batch_size), torch.arange(batch_size, device=dev)
+        self.stream = torch.stack([seeds, members], 1)
         self.k = torch.zeros((), dtype=torch.int64, device=self.seed.device)
 
     def feedthrough(self):
@@ -186,7 +187,7 @@ class Recorded(Block):
         self.source = rec.path
         self.first_row = rec.first_row
         self.length = values.shape[1]
-        self.register_buffer("values", torch.as_tensor(held, dtype=dtype))
+        self.register_buffer("values", torch.as_tensor(held, dtype=dtype, device="cpu"))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self._slices, start = {}, 0
         for port, w in ports.items():

@@ -1,18 +1,23 @@
 """Every tensor a step touches moves with the graph (``graph.to(device)``), checked without a GPU: while the
 PyTorch engine steps each shipped scenario's graph (masked, tied and featured estimators included), every
 tensor handed to a torch function must be a buffer of the graph or computed during the run, and no tensor may be
-created without naming its device (that one would stay on the CPU when the graph is on a GPU)."""
+created without naming its device (that one would stay on the CPU when the graph is on a GPU). And whole runs
+(build, steps, summary, intervals, validation, figures) on a virtual GPU (``virtual_cuda.py``), where a CPU
+tensor that meets the graph's fails as it would on CUDA."""
 
 import traceback
 
+import numpy as np
 import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._pytree import tree_flatten
+from virtual_cuda import virtual_cuda
 
 import rcotorch as rt
 from rcotorch import memo, rls
 from rcotorch import scenario as scenarios
+from rcotorch.runner import Run
 
 FACTORIES = {torch.tensor, torch.as_tensor, torch.zeros, torch.ones, torch.empty, torch.full, torch.eye,
              torch.arange, torch.linspace, torch.randn, torch.rand}
@@ -75,3 +80,47 @@ def test_every_tensor_a_step_touches_is_the_graphs(name, overrides):
         for _ in range(5):
             graph.step()
     assert not mode.strays, sorted(set(mode.strays))
+
+
+# --- whole runs as on a GPU (tests/virtual_cuda.py) -------------------------------------------------------------
+
+def test_virtual_cuda_refuses_what_cuda_refuses():
+    with virtual_cuda():
+        g = torch.zeros(3, device="cuda")
+        assert g.device.type == "cuda" and g.is_cuda and (g + 1).device.type == "cuda"
+        with pytest.raises(RuntimeError, match="same device"):
+            torch.stack([g, torch.arange(3.0)])
+        with pytest.raises(RuntimeError, match="same device"):
+            g * torch.ones(3)
+        with pytest.raises(TypeError, match="numpy"):
+            g.numpy()
+        assert (g * torch.tensor(2.0)).is_cuda                       # a CPU scalar is allowed, as by PyTorch
+        c = g.cpu()
+        assert not c.is_cuda and c.numpy().shape == (3,) and g.is_cuda
+        assert torch.as_tensor(g, device="cpu").device.type == "cpu" and g.is_cuda
+
+
+@pytest.mark.parametrize("name,steps,batch,overrides", [
+    ("sdof-stiffness-damping", 200, 2, {}),                                   # excitation streams, intervals
+    ("twodof-stiffness", 200, 1, {}),                                         # masked static gain
+    ("thermosphere-no-cooling", 30, 1, {"structure": "temperature", "shared": True}),  # tied, replay, refresh
+], ids=["sdof-stiffness-damping", "twodof-masked", "thermosphere-tied"])
+def test_a_whole_run_on_the_gpu(tmp_path, name, steps, batch, overrides):
+    """Build, step, summary (intervals, validation, health, metrics, a scenario's replay) and figures of a run on
+    the (virtual) GPU: a CPU tensor meeting the graph's anywhere fails here as it would on CUDA."""
+    with virtual_cuda():
+        run = Run(name, steps=steps, batch=batch, device="cuda", overrides=overrides, out=tmp_path)
+        run.advance(progress=False)
+        summary = run.finish(figures=True)
+        assert run.graph.role("estimator").theta.is_cuda
+    values = [v for v in summary["estimates"].values()]
+    assert values and all(np.all(np.isfinite(np.asarray(v, dtype=float))) for v in values)
+
+
+def test_an_estimator_built_from_gpu_tensors():
+    # A frozen estimate handed to a new graph (as a replay does): theta0 and beta on the GPU, the mask on the CPU.
+    with virtual_cuda():
+        theta0 = torch.full((1, 1, 2), 0.5, device="cuda")
+        est = rt.RCOEstimator.static_gain({"y": 2}, mask=[[True, False]], theta0=theta0,
+                                          markov=torch.ones(3, 1, 1, device="cuda"), name="identified")
+        assert not est.theta0.is_cuda and est.theta0.tolist() == [[[0.5, 0.0]]]

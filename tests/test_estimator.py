@@ -35,6 +35,19 @@ def test_siso_transfer_function_closed_form():
     np.testing.assert_allclose(tf.dcgain(), 0.5 / 0.7, rtol=1e-14)
 
 
+def test_a_member_with_a_singular_denominator_gets_nan_not_an_error():
+    # Member 0: u(k) = 0.5 y0(k-1) + u(k-1), a pole at z = 1 (I - sum M = 0, no DC gain); member 1 as above. CUDA's
+    # solver reports such a matrix (or a diverged member's NaN one) as singular; the other members are kept.
+    est = rt.RCOEstimator({"y0": 1}, nc=1, markov=[[[1.0]]], dt=DT)
+    est.reset(2)
+    est.theta.copy_(torch.tensor([[[0.5, 1.0]], [[0.5, 0.3]]], dtype=torch.float64))
+    gain = est.dc_gain()
+    assert torch.isnan(gain[0]).all()
+    np.testing.assert_allclose(gain[1, 0, 0].item(), 0.5 / 0.7, rtol=1e-14)
+    response = est.frequency_response(torch.tensor([0.0, 1.0]))
+    assert torch.isnan(response[0, 0]).all() and torch.isfinite(response[0, 1]).all()   # z = 1 only
+
+
 def test_controller_output_is_the_transfer_functions_impulse_response():
     """Stepping the estimator with theta held (valid = 0 skips the update) realizes its own transfer function."""
     theta = [0.5, -0.2, 0.3, 0.1]                     # y0(k-1), y0(k-2), u(k-1), u(k-2)

@@ -111,6 +111,9 @@ def test_cuda_matches_cpu(tmp_path):
     gpu.advance(progress=False)
     np.testing.assert_allclose(gpu.graph.blocks["identified"].theta.cpu().numpy(),
                                cpu.graph.blocks["identified"].theta.numpy(), rtol=1e-9, atol=1e-12)
+    on_cpu, on_gpu = cpu.finish(figures=False), gpu.finish(figures=True)   # intervals, validation, health
+    for key, value in on_cpu["estimates"].items():
+        np.testing.assert_allclose(on_gpu["estimates"][key], value, rtol=1e-9, atol=1e-12)
 
 
 def test_a_diverging_member_is_frozen_and_reported(tmp_path):

@@ -441,7 +441,7 @@ class ColumnBlock(Nonlinear):
                  dtype=DEFAULT_DTYPE):
         inputs = {"w": 2, **({"u": column.n_nodes} if column.n_nodes else {})}
         x0 = column.initial_state() if x0 is None else x0
-        probe = torch.as_tensor(x0, dtype=dtype).reshape(-1, column.n_states)[:1]
+        probe = torch.as_tensor(x0, dtype=dtype, device="cpu").reshape(-1, column.n_states)[:1]
         widths = {p: int(fn(probe).shape[1]) for p, fn in outputs.items()}
         fns = list(outputs.values())
         super().__init__(lambda x, s: column.step(x, s["w"], s.get("u")),
@@ -593,8 +593,8 @@ class SpaceWeather(Block):
         if rise <= 0 or dt <= 0:
             raise ConfigError(f"block '{name}': dt and the storm's rise time must be positive")
         self.dt, self.start, self.rise = float(dt), float(start), float(rise)
-        self.register_buffer("f107", torch.as_tensor(f107, dtype=dtype).reshape(-1, 1))
-        self.register_buffer("peak", torch.as_tensor(peak, dtype=dtype).reshape(-1, 1))
+        self.register_buffer("f107", torch.as_tensor(f107, dtype=dtype, device="cpu").reshape(-1, 1))
+        self.register_buffer("peak", torch.as_tensor(peak, dtype=dtype, device="cpu").reshape(-1, 1))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
 
     def reset(self, batch_size: int) -> None:
@@ -717,9 +717,10 @@ class TemperatureFeatures(Block):
             raise ConfigError(f"block '{name}': no temperature features given")
         if dt <= 0 or activation <= 0:
             raise ConfigError(f"block '{name}': dt and the activation temperature must be positive")
-        T_ref = torch.as_tensor(T_ref, dtype=dtype)
+        T_ref = torch.as_tensor(T_ref, dtype=dtype, device="cpu")
         T_ref = T_ref.reshape(1, -1) if T_ref.dim() < 2 else T_ref
-        T_init = T_ref if T_init is None else torch.as_tensor(T_init, dtype=dtype).reshape(-1, T_ref.shape[1])
+        T_init = T_ref if T_init is None else \
+            torch.as_tensor(T_init, dtype=dtype, device="cpu").reshape(-1, T_ref.shape[1])
         if bool((T_ref <= 0).any()) or bool((T_init <= 0).any()):
             raise ConfigError(f"block '{name}': temperatures must be positive (kelvin)")
         nodes = T_ref.shape[1]
