@@ -12,12 +12,14 @@ from .refine import RefinementResult, refine
 from .refinement import derive_markov, refinement
 from .rls import rls_update
 from .sources import Recorded, WhiteNoise
+from .tracking import ChangeDetector, ResetOnChange, at_step
 from .validation import Validation, validate
 
 __all__ = [
-    "AlgebraicLoopError", "Block", "ConfigError", "DataError", "datasets", "derive_markov", "DimensionError",
-    "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models", "Nonlinear", "PortError",
-    "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult", "refinement", "rls_update",
-    "rng", "StaticMap", "Sum", "validate", "Validation", "WhiteNoise", "zoh",
+    "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "ConfigError", "DataError", "datasets",
+    "derive_markov", "DimensionError", "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models",
+    "Nonlinear", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult",
+    "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "validate", "Validation", "WhiteNoise",
+    "zoh",
 ]
 __version__ = "0.1.0"

@@ -1,0 +1,202 @@
+"""Physics that changes while it is watched: detecting a change in the model error and tracking it.
+
+A refinement with lam = 1 weighs all its past alike: after a change (a storey that lost stiffness, a drifted
+component) its covariance P has shrunk and theta moves towards the new value only as 1 / k. A constant
+forgetting factor lam < 1 tracks, at the price of noisier estimates all the time and covariance windup when the
+excitation is poor. Detecting the change and resetting the covariance then (covariance resetting, a classic of
+adaptive estimation) keeps lam = 1's accuracy while nothing changes and re-identifies quickly when something
+does.
+
+``ChangeDetector``: a one-sided CUSUM on the normalized squared model error, per member,
+
+    s(k) = (1 / n_z) sum_i z_i(k)^2 / sigma_i^2,      g(k) = max(0, g(k-1) + s(k) - 1 - drift),
+
+alarm when g(k) > threshold. sigma_i^2 is the mean of z_i^2 over a reference window of ``window`` steps that
+starts ``warmup`` steps after the detector starts, and ``holdoff`` steps after each alarm (so that a second
+change is detected too, once the refinement has settled again). While the model is right, s has mean 1 and g
+stays near 0; a change that adds to z even a fraction of the noise's power drives g up at the rate of the added
+power (relative to the noise's) less ``drift``. It is a ``Nonlinear`` block written with operations that NumPy,
+numba and torch share, so it runs in the native engine and on a GPU alike.
+
+``ResetOnChange``: a step hook that, at the steps it acts (every ``every`` steps), sets P = p0 I for the members
+whose detector alarmed since (theta is kept) and lets them forget for a while. ``at_step``: a hook that calls
+a function once, at one step (a simulated change of the truth).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+
+from .blocks import DEFAULT_DTYPE
+from .errors import ConfigError
+from .nonlinear import Nonlinear
+
+# The detector's state, per member.
+PHASE, TIME, POWER, G, FIRST, LAST, COUNT, PENDING = range(8)
+N_STATE = 8
+
+
+def _cusum(n_z: int, warmup: int, window: int, holdoff: int, drift: float, threshold: float) -> Callable:
+    """The detector's state map, written with slicing, arithmetic and comparisons times 1.0, which NumPy arrays,
+    numba and torch tensors all accept. The phase counts the steps since the start (from 0) or since the last
+    alarm (from warmup - holdoff, so that the reference window starts holdoff steps after it)."""
+    start, armed_at, restart = float(warmup), float(warmup + window), float(warmup - holdoff)
+    inv_n, inv_window = 1.0 / n_z, 1.0 / window
+
+    def step(x, ins):
+        z = ins["z"]
+        phase, t = x[:, 0:1], x[:, 1:2] + 1.0
+        in_ref = (phase >= start) * (phase < armed_at) * 1.0
+        armed = (phase >= armed_at) * 1.0
+        out = x * 0.0
+        s = x[:, 0:1] * 0.0
+        for i in range(n_z):
+            zi = z[:, i:i + 1]
+            ref = x[:, 8 + i:9 + i]
+            sigma2 = ref * inv_window + (ref <= 0.0) * 1.0          # 1 until the reference window has data
+            s = s + zi * zi / sigma2 * inv_n
+            out[:, 8 + i:9 + i] = ref + in_ref * zi * zi
+        g = x[:, 3:4] + s - 1.0 - drift
+        g = armed * g * (g > 0.0)                                    # max(0, g) once armed, else 0
+        alarm = (g > threshold) * 1.0
+        keep = 1.0 - alarm
+        first = x[:, 4:5]
+        new_first = (first < 0.0) * alarm
+        out[:, 0:1] = (phase + 1.0) * keep + restart * alarm
+        out[:, 1:2] = t
+        out[:, 2:3] = s
+        out[:, 3:4] = g * keep
+        out[:, 4:5] = first + new_first * (t - first)
+        out[:, 5:6] = x[:, 5:6] + alarm * (t - x[:, 5:6])
+        out[:, 6:7] = x[:, 6:7] + alarm
+        out[:, 7:8] = x[:, 7:8] + alarm
+        for i in range(n_z):
+            out[:, 8 + i:9 + i] = out[:, 8 + i:9 + i] * keep
+        return out
+
+    return step
+
+
+def _statistic(x):
+    return x[:, 3:4]
+
+
+class ChangeDetector(Nonlinear):
+    """CUSUM change detector on the model error z (module docstring), one per member.
+
+    Args:
+        n_z: width of z (its input port ``z``).
+        warmup: steps after the start before the reference window; long enough for the refinement to settle.
+        window: steps of the reference window that sets each channel's scale sigma_i^2.
+        holdoff: steps after an alarm before the next reference window (default ``warmup``): long enough for the
+            refinement to re-converge.
+        drift: allowance subtracted from s each step: changes smaller than ``drift`` times the noise's power
+            are ignored (0.5-1 is usual).
+        threshold: alarm level of g; the mean time between false alarms grows about exponentially with it.
+        dt: sample time (for times in seconds).
+
+    Output port ``g``: the statistic. State (``x``, per member): phase, step, s, g, the step of the first alarm
+    (-1: none), of the last, the number of alarms, alarms not yet acted on, then the reference sums of z_i^2.
+    """
+
+    def __init__(self, n_z: int = 1, warmup: int = 200, window: int = 200, holdoff: int | None = None,
+                 drift: float = 1.0, threshold: float = 50.0, dt: float = 1.0, name: str = "detector",
+                 dtype=DEFAULT_DTYPE):
+        n_z, warmup, window = int(n_z), int(warmup), int(window)
+        holdoff = warmup if holdoff is None else int(holdoff)
+        if n_z < 1 or warmup < 0 or window < 1 or holdoff < 0:
+            raise ConfigError(f"block '{name}': n_z >= 1, warmup >= 0, window >= 1 and holdoff >= 0 are needed, "
+                              f"got n_z={n_z}, warmup={warmup}, window={window}, holdoff={holdoff}")
+        if not (math.isfinite(drift) and drift >= 0 and math.isfinite(threshold) and threshold > 0):
+            raise ConfigError(f"block '{name}': drift must be >= 0 and threshold > 0, got drift={drift}, "
+                              f"threshold={threshold}")
+        self.n_z, self.warmup, self.window, self.holdoff = n_z, warmup, window, holdoff
+        self.drift, self.threshold = float(drift), float(threshold)
+        x0 = torch.zeros(N_STATE + n_z, dtype=dtype)
+        x0[FIRST] = x0[LAST] = -1.0
+        super().__init__(_cusum(n_z, warmup, window, holdoff, self.drift, self.threshold), _statistic, N_STATE + n_z,
+                         {"z": n_z}, {"g": 1}, dt=dt, x0=x0, name=name, dtype=dtype)
+
+    def first_alarm(self) -> torch.Tensor:
+        """The step of each member's first alarm, (B,) int64, -1 where there was none."""
+        return self.x[:, FIRST].round().long()
+
+    def alarms(self) -> torch.Tensor:
+        """The number of alarms of each member, (B,) int64."""
+        return self.x[:, COUNT].round().long()
+
+
+class ResetOnChange:
+    """A step hook (``graph.add_hook``) that restarts the estimator of the members whose ``ChangeDetector``
+    alarmed since it last acted: their covariance becomes P = p0 I (the estimator's own p0 unless ``p0`` is
+    given; theta is kept; ``restart=False`` keeps P), and, with ``lam``, they forget with that factor for the
+    ``hold`` steps after each alarm and return to their own factor after. It acts every ``every`` steps, so the
+    native engine runs the steps in between (and renews its program when the factors change).
+
+    What the restart can and cannot do is measured in docs/tracking.md: after a change, the known model's
+    state has drifted from the truth's, so the first post-change data regress on the model's signals while they
+    differ from the truth's; a moderate p0 (one step moves theta part of the way) with a while of forgetting
+    follows the change, a very large p0 fits that transient exactly and goes astray."""
+
+    def __init__(self, graph, every: int = 5, detector: str = "detector", estimator: str | None = None,
+                 p0: float | None = None, lam: float | None = None, hold: int = 0, restart: bool = True):
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ConfigError(f"ResetOnChange: every must be a positive integer, got {every!r}")
+        if detector not in graph.blocks or not isinstance(graph.blocks[detector], ChangeDetector):
+            raise ConfigError(f"ResetOnChange: the graph has no ChangeDetector named '{detector}'")
+        if p0 is not None and not (math.isfinite(p0) and p0 > 0):
+            raise ConfigError(f"ResetOnChange: p0 must be positive, got {p0!r}")
+        if lam is not None and not 0 < lam <= 1:
+            raise ConfigError(f"ResetOnChange: lam must lie in (0, 1], got {lam!r}")
+        if isinstance(hold, bool) or not isinstance(hold, int) or hold < 0:
+            raise ConfigError(f"ResetOnChange: hold must be a non-negative integer, got {hold!r}")
+        self.graph, self.every, self.detector = graph, every, detector
+        self.estimator, self.p0, self.lam, self.hold, self.restart = estimator, p0, lam, hold, bool(restart)
+        est = self._est()
+        self.own_lam = est.lam.detach().clone().expand(graph.batch_size).clone()   # each member's factor
+
+    def _est(self):
+        return self.graph.blocks[self.estimator] if self.estimator else self.graph.role("estimator")
+
+    def __call__(self, graph=None) -> bool:
+        g = self.graph
+        k = int(g.k)
+        if k % self.every:
+            return False
+        det, est = g.blocks[self.detector], self._est()
+        hit = det.x[:, PENDING] > 0
+        acted = False
+        if bool(hit.any()) and self.restart:
+            n = est.P.shape[-1]
+            p0 = est.p0 if self.p0 is None else torch.full((1,), self.p0, dtype=est.P.dtype)
+            fresh = p0.to(est.P).reshape(-1, 1, 1) * torch.eye(n, dtype=est.P.dtype, device=est.P.device)
+            est.P.copy_(torch.where(hit.reshape(-1, 1, 1), fresh.expand_as(est.P), est.P))
+            acted = True
+        det.x[:, PENDING] = 0.0
+        if self.lam is not None:
+            last = det.x[:, LAST]
+            tracking = (last >= 0) & (k - last <= self.hold)
+            want = torch.where(tracking, torch.full_like(last, self.lam), self.own_lam.to(last)).to(est.lam)
+            if want.shape != est.lam.shape or not torch.equal(want, est.lam):
+                est.lam = want
+                acted = True
+        return acted
+
+
+class at_step:
+    """A step hook that calls ``action(graph)`` once, when the graph reaches step ``step`` (after that step's
+    update): a change of the simulated truth at a known time, on either engine."""
+
+    def __init__(self, step: int, action: Callable):
+        if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+            raise ConfigError(f"at_step: step must be a positive integer, got {step!r}")
+        self.every, self.step, self.action = step, step, action
+
+    def __call__(self, graph) -> bool:
+        if int(graph.k) != self.step:
+            return False
+        self.action(graph)
+        return True

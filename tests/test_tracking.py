@@ -1,0 +1,160 @@
+"""Change detection and tracking (rcotorch.tracking): the CUSUM against a plain loop of its equations, its false
+alarms on white noise, the covariance restart per member on both engines, and a change of the truth at a step."""
+
+import numpy as np
+import pytest
+import torch
+
+import rcotorch as rt
+from rcotorch import kernels
+from rcotorch.tracking import FIRST, LAST, PENDING, G
+
+needs_native = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built")
+
+
+def cusum_reference(z, warmup, window, holdoff, drift, threshold):
+    """The detector's equations for one member, written out with floats: z (steps, n_z) -> (g per step, alarm
+    steps)."""
+    n_z = z.shape[1]
+    phase, g, ref, alarms, gs = 0, 0.0, np.zeros(n_z), [], []
+    for k in range(z.shape[0]):
+        s = 0.0
+        for i in range(n_z):
+            sigma2 = ref[i] / window if ref[i] > 0 else 1.0
+            s += z[k, i] ** 2 / sigma2 / n_z
+            if warmup <= phase < warmup + window:
+                ref[i] += z[k, i] ** 2
+        g = max(0.0, g + s - 1.0 - drift) if phase >= warmup + window else 0.0
+        if g > threshold:
+            alarms.append(k + 1)                 # the step after which the detector holds the alarm
+            phase, g, ref = warmup - holdoff, 0.0, np.zeros(n_z)
+        else:
+            phase += 1
+        gs.append(g)
+    return np.array(gs), alarms
+
+
+def noise_graph(batch, scale_at, scale, engine, seed=5, **detector):
+    """z = white noise of std 1 (two channels), its std multiplied by ``scale`` from step ``scale_at`` on."""
+    det = rt.ChangeDetector(2, **detector)
+    g = rt.Graph([rt.WhiteNoise(2, seed=seed, name="w"), rt.Gain(np.eye(2), name="gain"), det],
+                 [("w.out", "gain.in"), ("gain.out", "detector.z")], batch_size=batch)
+    g.engine = engine
+    g.add_hook(rt.at_step(scale_at, lambda gr: gr.blocks["gain"].K.mul_(scale)))
+    return g, det
+
+
+@pytest.mark.parametrize("engine", ["torch", pytest.param("native", marks=needs_native)])
+def test_cusum_matches_its_equations_written_out(engine):
+    settings = dict(warmup=50, window=100, holdoff=80, drift=0.5, threshold=12.0)
+    g, det = noise_graph(3, 400, 1.6, engine, **settings)
+    gs, zs = [], []
+    for _ in range(900):
+        g.advance(1)
+        zs.append(g.last[("gain", "out")].clone())
+        gs.append(det.x[:, G].clone())
+    z, got = torch.stack(zs, 1).numpy(), torch.stack(gs, 1).numpy()
+    for b in range(3):
+        want, alarms = cusum_reference(z[b], **settings)
+        np.testing.assert_allclose(got[b], want, rtol=1e-12, atol=1e-12)
+        assert alarms and alarms[0] > 400                # the variance step is found, nothing before it
+        assert int(det.x[b, FIRST]) == alarms[0] and int(det.x[b, LAST]) == alarms[-1]
+        assert int(det.alarms()[b]) == len(alarms) == int(det.x[b, PENDING])
+
+
+@needs_native
+def test_no_false_alarm_on_white_noise_and_a_quick_detection():
+    # 64 members, 20,000 steps of white noise; then the std grows by 30% (power x 1.69) at step 20,000.
+    g, det = noise_graph(64, 20000, 1.3, "native", warmup=100, window=500, drift=0.5, threshold=40.0)
+    g.advance(20000)
+    assert int(det.alarms().sum()) == 0
+    g.advance(2000)
+    delay = det.first_alarm() - 20000
+    assert bool((delay > 0).all())
+    # g grows by about 1.69 - 1 - 0.5 = 0.19 a step: 40 / 0.19 = 210 steps on average
+    assert 100 < float(delay.float().median()) < 400
+
+
+def building(batch, engine, reset, device="cpu"):
+    m, k, Ts = 2.0e4, 2.0e7, 0.01
+    G_ = rt.models.shear_building([m] * 3, [k] * 3, force="base", measured=["velocity[1]", "velocity[2]",
+                                                                              "velocity[3]"], identified=[1, 2, 3])
+    known = rt.LTI.from_control(G_, inputs={"w": 1, "u": 3}, outputs={"y": 3, "y0": 3}, dt=Ts, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, n_z=3, mask=np.eye(3, dtype=bool), p0=1e20)
+    det = rt.ChangeDetector(3, warmup=200, window=200, holdoff=3000, threshold=30.0, dt=Ts)
+    g = rt.refinement(known, ident, truth=rt.Gain(np.zeros((batch, 3, 3)), name="unknown"),
+                      excitation=rt.WhiteNoise(1, seed=1), noise=rt.WhiteNoise(3, std=2e-4, seed=2), nu=100,
+                      batch_size=batch, blocks=[det], connections=[("error.out", "detector.z")], device=device)
+    g.engine = engine
+    damage = torch.diag(torch.tensor([0.0, 0.2 * k, 0.0], dtype=torch.float64)).reshape(1, 3, 3)
+    # only member 0's storey 2 softens: the others must keep their estimator as it was
+    g.add_hook(rt.at_step(1000, lambda gr: gr.blocks["unknown"].K.copy_(
+        torch.cat([damage, torch.zeros(batch - 1, 3, 3, dtype=torch.float64)]).to(gr.blocks["unknown"].K))))
+    if reset:
+        g.add_hook(rt.ResetOnChange(g, every=5, p0=1e14, lam=0.997, hold=300))
+    return g, det
+
+
+@pytest.mark.parametrize("engine", ["torch", pytest.param("native", marks=needs_native)])
+def test_the_restart_acts_on_the_alarmed_member_only(engine):
+    g, det = building(3, engine, reset=True)
+    plain, _ = building(3, engine, reset=False)
+    g.advance(999)
+    plain.advance(999)
+    est = g.role("estimator")
+    assert est.lam.numel() == 1 or bool((est.lam == 1).all())
+    while int(det.x[0, FIRST]) < 0 and int(g.k) < 1100:
+        g.advance(1)
+    alarm = int(det.x[0, FIRST])
+    assert det.first_alarm().tolist()[1:] == [-1, -1] and 1000 < alarm <= 1010
+    g.advance(-alarm % 5)                      # the hook acts at the next multiple of its 5 steps
+    plain.advance(int(g.k) - int(plain.k))
+    P, P_plain = est.P, plain.role("estimator").P
+    assert torch.equal(P[1:], P_plain[1:])                       # untouched members run as without the hook
+    assert torch.equal(P[0], 1e14 * torch.eye(3, dtype=torch.float64)) and int(det.x[0, PENDING]) == 0
+    assert est.lam.tolist() == [0.997, 1.0, 1.0]
+    g.advance(400)                                                # the hold ends: back to lam = 1
+    assert est.lam.tolist() == [1.0, 1.0, 1.0]
+
+
+@needs_native
+def test_both_engines_track_alike():
+    runs = {}
+    for engine in ("torch", "native"):
+        g, det = building(2, engine, reset=True)
+        g.advance(1600)
+        runs[engine] = (g.role("estimator").theta.clone(), det.x.clone())
+    np.testing.assert_allclose(runs["native"][0].numpy(), runs["torch"][0].numpy(), rtol=1e-9, atol=1e-3)
+    np.testing.assert_array_equal(runs["native"][1][:, :2].numpy(), runs["torch"][1][:, :2].numpy())   # phase, step
+    np.testing.assert_allclose(runs["native"][1].numpy(), runs["torch"][1].numpy(), rtol=1e-9, atol=1e-12)
+    assert runs["native"][1][0, FIRST] > 1000 and runs["native"][1][1, FIRST] == -1
+
+
+def test_detection_and_restart_on_the_gpu():
+    from virtual_cuda import virtual_cuda
+    with virtual_cuda():
+        g, det = building(2, "torch", reset=True, device="cuda")
+        g.advance(1030)
+        assert det.x.is_cuda and g.role("estimator").lam.is_cuda
+        assert det.first_alarm().cpu().tolist()[1] == -1 and int(det.first_alarm()[0]) > 1000
+        assert g.role("estimator").lam.cpu().tolist() == [0.997, 1.0]
+
+
+def test_at_step_acts_once_at_its_step():
+    g = rt.Graph([rt.WhiteNoise(1, seed=1, name="w"), rt.Gain([[1.0]], name="gain")], [("w.out", "gain.in")])
+    seen = []
+    g.add_hook(rt.at_step(3, lambda gr: seen.append(int(gr.k))))
+    g.advance(10)
+    assert seen == [3]
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(rt.ConfigError, match="detector"):
+        rt.ChangeDetector(2, window=0)
+    with pytest.raises(rt.ConfigError, match="threshold"):
+        rt.ChangeDetector(2, threshold=-1.0)
+    g = rt.Graph([rt.WhiteNoise(1, seed=1, name="w"), rt.Gain([[1.0]], name="gain")], [("w.out", "gain.in")])
+    with pytest.raises(rt.ConfigError, match="no ChangeDetector named 'detector'"):
+        rt.ResetOnChange(g)
+    with pytest.raises(rt.ConfigError, match="at_step"):
+        rt.at_step(0, print)
