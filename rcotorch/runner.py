@@ -35,6 +35,7 @@ from .errors import CheckpointError, ConfigError, RcoError
 from .health import STATUSES, Criteria, Health, check_every, finite_list
 from .monitor import Monitor
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
+from .tracking import change_report
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 CHECKPOINT = "checkpoint.pt"
@@ -442,6 +443,8 @@ class Run:
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
             "warnings": tuning_warnings(self.graph),
+            "changes": {name: {k: self._values(v.detach().to(torch.float64).cpu()) for k, v in found_.items()}
+                        for name, found_ in change_report(self.graph).items()},
             "validation": None if held_out is None else {
                 k: v for k, v in held_out.summary().items() if k in ("source", "steps", "fit_steps", "state_fitted")},
             "intervals": {} if found is None else {

@@ -156,7 +156,13 @@ class ResetOnChange:
         self.graph, self.every, self.detector = graph, every, detector
         self.estimator, self.p0, self.lam, self.hold, self.restart = estimator, p0, lam, hold, bool(restart)
         est = self._est()
-        self.own_lam = est.lam.detach().clone().expand(graph.batch_size).clone()   # each member's factor
+        if lam is not None:
+            # Each member's own factor, kept beside the estimator's (so it moves with the graph; not saved, as
+            # the graph's builder makes it again); and one factor per member from the start, so that a
+            # checkpoint's layout does not depend on when the first alarm came.
+            own = est.lam.detach().clone().expand(graph.batch_size).clone()
+            est.register_buffer("lam_own", own, persistent=False)
+            est.lam = own.clone()
 
     def _est(self):
         return self.graph.blocks[self.estimator] if self.estimator else self.graph.role("estimator")
@@ -179,7 +185,7 @@ class ResetOnChange:
         if self.lam is not None:
             last = det.x[:, LAST]
             tracking = (last >= 0) & (k - last <= self.hold)
-            want = torch.where(tracking, torch.full_like(last, self.lam), self.own_lam.to(last)).to(est.lam)
+            want = torch.where(tracking, torch.full_like(last, self.lam), est.lam_own.to(last)).to(est.lam)
             if want.shape != est.lam.shape or not torch.equal(want, est.lam):
                 est.lam = want
                 acted = True
@@ -200,3 +206,16 @@ class at_step:
             return False
         self.action(graph)
         return True
+
+
+def change_report(graph) -> dict[str, dict[str, torch.Tensor]]:
+    """What each ``ChangeDetector`` of ``graph`` found, per member: the step and time [s] of its first and last
+    alarm (-1 / NaN: none) and the number of alarms."""
+    out = {}
+    for name, blk in graph.blocks.items():
+        if isinstance(blk, ChangeDetector) and blk.x.shape[0]:
+            first, last = blk.x[:, FIRST].round(), blk.x[:, LAST].round()
+            nan = torch.full_like(first, math.nan)
+            out[name] = {"first_alarm_step": first, "first_alarm_s": torch.where(first >= 0, first * blk.dt, nan),
+                         "last_alarm_step": last, "alarms": blk.x[:, COUNT].round()}
+    return out

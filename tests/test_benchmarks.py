@@ -149,3 +149,23 @@ def test_benchmarks_run_on_cuda(tmp_path):
     assert json.loads(out.read_text())["machine"]["device"].startswith("cuda")
     rls_kernel.main(["--device", "cuda", "--quick", "--batches", "1024", "--n", "3", "--no-compile",
                      "--out", str(out)])
+
+
+def test_the_batched_unscented_filter_is_filterpys():
+    """The performance-minded peer of benchmarks/ukf_peer.py computes what filterpy's UnscentedKalmanFilter does,
+    step for step, on the damaged building's data."""
+    pytest.importorskip("filterpy")
+    import numpy as np
+    import ukf_peer
+    sc = scenarios.get(ukf_peer.NAME)
+    s = sc.resolve({})
+    A, Bw, Bu, Cy, Cd = ukf_peer.model(sc, s)
+    R = np.eye(Cy.shape[0]) * s["noise"] ** 2
+    w, y = ukf_peer.record(sc, s, 2)[:2]
+    steps = 600
+    batched = ukf_peer.batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w[:steps], y[:steps], R)[0]
+    for b in range(2):
+        one = ukf_peer.filterpy_run(A, Bw, Bu, Cy, Cd, s["k"], w[:steps, b], y[:steps, b], R)[0]
+        # the first steps divide tiny innovations by tiny variances (P0 of the states 1e-8): rounding grows to 1e-8
+        np.testing.assert_allclose(batched[:, b], one, rtol=1e-6, atol=1e-7)
+        assert np.abs(one).max() > 0.01

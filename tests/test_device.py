@@ -50,7 +50,7 @@ class StrayTensors(TorchFunctionMode):
 
 
 CASES = [(name, {}) for name in ("sdof-dynamic-impedance", "sdof-stiffness", "sdof-stiffness-damping",
-                                 "twodof-stiffness", "rlc-circuit")] + [
+                                 "twodof-stiffness", "rlc-circuit", "shear-building-damage")] + [
     ("sdof-stiffness", {"truth": "discrete", "noise": 0.05, "normalize": 1.0, "p_max": 1e4, "r_delta": 0.1})]
 
 

@@ -7,6 +7,7 @@ import torch
 
 import rcotorch as rt
 from rcotorch import kernels
+from rcotorch.runner import Run
 from rcotorch.tracking import FIRST, LAST, PENDING, G
 
 needs_native = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built")
@@ -158,3 +159,29 @@ def test_bad_settings_are_refused():
         rt.ResetOnChange(g)
     with pytest.raises(rt.ConfigError, match="at_step"):
         rt.at_step(0, print)
+
+
+def test_the_damage_scenario_meets_its_requirements(tmp_path):
+    run = Run("shear-building-damage", out=tmp_path)
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    assert len(summary["requirements"]) == 5 and all(r["pass"] for r in summary["requirements"].values())
+    change = summary["changes"]["detector"]
+    assert 6000 < change["first_alarm_step"] <= 6000 + 5 * 44.6 and change["alarms"] == 1
+    assert change["first_alarm_s"] == pytest.approx(change["first_alarm_step"] * 0.01)
+
+
+def test_a_resumed_damage_run_is_bitwise_the_same(tmp_path):
+    # checkpointed after the change, the alarm and the restart (per-member forgetting under way)
+    kw = dict(steps=6400, batch=2, intervals=False, validation=False)
+    full = Run("shear-building-damage", out=tmp_path / "full", **kw)
+    full.advance(progress=False)
+    part = Run("shear-building-damage", out=tmp_path / "part", **kw)
+    part.advance(until=6203, progress=False)
+    assert int(part.graph.blocks["detector"].alarms().sum()) == 2
+    part.save()
+    part.close()
+    resumed = Run.resume(tmp_path / "part")
+    resumed.advance(progress=False)
+    a, b = full.graph.state_dict(), resumed.graph.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)

@@ -1,0 +1,224 @@
+"""The damaged building (scenario shear-building-damage) identified three ways on the same data, side by side:
+rcotorch (RCMR with the change detector and restart), the unscented Kalman filter of filterpy (joint estimation of
+the floors' states and the storeys' stiffness changes, one filter per member, as the field's standard code does
+it), and the same unscented filter batched over the members in torch, as a performance-minded user writes it.
+
+    python benchmarks/ukf_peer.py                   # about 2 minutes; --members, --filterpy-members, --batch
+
+The data: the scenario's graph run for B members (seeds 1..B), its ground acceleration w and measured velocities y
+recorded by the native engine. Both filters get w and y and know the building (the discrete model the truth is
+made of): augmented state [floor displacements and velocities (6), dk1, dk2, dk3], dynamics x(k+1) = A x + B_w w
++ B_u u with u_j = -dk_j k d_j(x), the parameters a random walk of variance q per step, y = C x with the
+measurement noise's variance as R. Tuning: q = 1e-7 (a change of 0.2 is followed within a few hundred steps,
+and the estimate's noise before the change stays near 1e-3), P0 = 1e-8 on the floors' states and 1e-2 on the
+parameters, Merwe's sigma points (alpha = 0.1, beta = 2, kappa = 0). A filter's "detection" is the first step,
+from the 1,000th on (where rcotorch's detector arms), where an estimate moves more than half the change (0.1)
+from zero; before the change that is a false alarm. rcotorch's detection is its detector's alarm. The batched
+filter is filterpy's algorithm step for step (a test checks it against filterpy to rounding).
+
+Compared: detection delay, false alarms, the largest error over the storeys 50 periods after the change, and the
+cost per member-step (rcotorch: the graph's steps with the detector; filterpy: its predict and update; batched:
+one predict and update of all members). Writes benchmarks/results/ukf_peer.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from common import machine, table, write_json
+from rcotorch.scenarios.shear_building_damage import first_period
+
+from rcotorch import scenario as scenarios
+
+NAME = "shear-building-damage"
+Q_THETA, P0_X, P0_THETA, ALPHA, BETA, KAPPA = 1e-7, 1e-8, 1e-2, 0.1, 2.0, 0.0
+MOVE = 0.1              # half the change: a filter's estimate past it counts as a detection
+
+
+def model(sc, s):
+    """The discrete building the truth is made of: A (6, 6), B_w (6, 1), B_u (6, 3), C_y (3, 6), C_d (3, 6)."""
+    g = sc.build(s, 1, torch.float64, "cpu")
+    known = g.blocks["known"]
+    A, B, C = (getattr(known, key)[0].numpy() for key in ("A", "B", "C"))
+    n_y = C.shape[0] - 3
+    return A, B[:, :1], B[:, 1:], C[:n_y], C[n_y:]
+
+
+def record(sc, s, batch: int):
+    """w (K, B) and y (K, B, n_y) of the scenario's run, the rcotorch estimates at the end, its detection steps, and
+    its cost per member-step."""
+    g = sc.build(sc.resolve({"seed": s["seed"]}), batch, torch.float64, "cpu")
+    K = sc.steps
+    w_sig, y_sig = g.role_signal("exogenous"), g.role_signal("measured")
+    w = torch.zeros(K, batch, 1, dtype=torch.float64)
+    y = torch.zeros(K, batch, len(str(s["measured"]).split(",")), dtype=torch.float64)
+    t = time.perf_counter()
+    g.advance(K, record={w_sig: w, y_sig: y})
+    seconds = time.perf_counter() - t
+    est = sc.estimates(g, s)
+    dk = torch.stack([est[f"dk{j}"] for j in (1, 2, 3)], 1)
+    return w[:, :, 0].numpy(), y.numpy(), dk.numpy(), g.blocks["detector"].first_alarm().numpy(), \
+        seconds / (K * batch), g.ran_engine
+
+
+def filterpy_run(A, Bw, Bu, Cy, Cd, k, w, y, R):
+    """One member's filterpy UKF over the data: the parameter estimates per step (K, 3) and seconds per step."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+    n = A.shape[0]
+
+    def fx(X, dt, w_k=0.0):
+        x, th = X[:n], X[n:]
+        u = -th * k * (Cd @ x)
+        return np.concatenate([A @ x + Bw[:, 0] * w_k + Bu @ u, th])
+
+    def hx(X):
+        return Cy @ X[:n]
+
+    pts = MerweScaledSigmaPoints(n + 3, alpha=ALPHA, beta=BETA, kappa=KAPPA)
+    ukf = UnscentedKalmanFilter(dim_x=n + 3, dim_z=Cy.shape[0], dt=1.0, hx=hx, fx=fx, points=pts)
+    ukf.x = np.zeros(n + 3)
+    ukf.P = np.diag([P0_X] * n + [P0_THETA] * 3)
+    ukf.Q = np.diag([1e-14] * n + [Q_THETA] * 3)
+    ukf.R = R
+    out = np.zeros((len(w), 3))
+    t = time.perf_counter()
+    for i in range(len(w)):
+        ukf.predict(w_k=w[i - 1] if i else 0.0)
+        ukf.update(y[i])
+        out[i] = ukf.x[n:]
+    return out, (time.perf_counter() - t) / len(w)
+
+
+def batched_ukf(A, Bw, Bu, Cy, Cd, k, w, y, R):
+    """The same filter for all members at once in torch: estimates (K, B, 3) and seconds per step."""
+    f64 = torch.float64
+    A, Bw, Bu, Cy, Cd, R = (torch.as_tensor(a, dtype=f64) for a in (A, Bw, Bu, Cy, Cd, R))
+    w, y = torch.as_tensor(w, dtype=f64), torch.as_tensor(y, dtype=f64)
+    K, B = w.shape
+    n = A.shape[0]
+    N = n + 3
+    lam = ALPHA ** 2 * (N + KAPPA) - N
+    Wm = torch.full((2 * N + 1,), 1 / (2 * (N + lam)), dtype=f64)
+    Wc = Wm.clone()
+    Wm[0], Wc[0] = lam / (N + lam), lam / (N + lam) + 1 - ALPHA ** 2 + BETA
+    X = torch.zeros(B, N, dtype=f64)
+    P = torch.diag(torch.tensor([P0_X] * n + [P0_THETA] * 3, dtype=f64)).expand(B, N, N).clone()
+    Q = torch.diag(torch.tensor([1e-14] * n + [Q_THETA] * 3, dtype=f64))
+    out = torch.zeros(K, B, 3, dtype=f64)
+
+    def sigma(X, P):
+        L = torch.linalg.cholesky((N + lam) * P)                   # (B, N, N)
+        d = L.mT                                                   # rows of L^T, as filterpy's points
+        return torch.cat([X.unsqueeze(1), X.unsqueeze(1) + d, X.unsqueeze(1) - d], 1)   # (B, 2N+1, N)
+
+    def f(S, w_k):
+        x, th = S[..., :n], S[..., n:]
+        u = -th * k * (x @ Cd.T)
+        return torch.cat([x @ A.T + w_k.reshape(-1, 1, 1) * Bw[:, 0] + u @ Bu.T, th], -1)
+
+    t = time.perf_counter()
+    for i in range(K):
+        S = f(sigma(X, P), w[i - 1] if i else torch.zeros(B, dtype=f64))      # predict: points through f
+        X = torch.einsum("s,bsn->bn", Wm, S)
+        Dx = S - X.unsqueeze(1)
+        P = torch.einsum("s,bsi,bsj->bij", Wc, Dx, Dx) + Q
+        Z = S[..., :n] @ Cy.T                                      # update: the predicted points through h
+        zm = torch.einsum("s,bsz->bz", Wm, Z)
+        Dz = Z - zm.unsqueeze(1)
+        Pz = torch.einsum("s,bsi,bsj->bij", Wc, Dz, Dz) + R
+        Pxz = torch.einsum("s,bsi,bsj->bij", Wc, Dx, Dz)
+        G = torch.linalg.solve(Pz, Pxz.mT).mT                      # Pxz Pz^-1
+        X = X + (G @ (y[i] - zm).unsqueeze(-1)).squeeze(-1)
+        P = P - G @ Pz @ G.mT
+        out[i] = X[:, n:]
+    return out.numpy(), (time.perf_counter() - t) / K
+
+
+def judge(traj, kd, judge_step, truth, settle):
+    """From parameter estimates per step (K, B, 3): detection steps (the first step from ``settle`` on past MOVE,
+    -1: none) and the largest error over the storeys at ``judge_step``."""
+    moved = np.abs(traj).max(2) > MOVE                              # (K, B)
+    moved[:settle] = False                                         # the start, as the detector's warm-up
+    first = np.where(moved.any(0), moved.argmax(0) + 1, -1)
+    return first, np.abs(traj[judge_step - 1] - truth).max(1)
+
+
+def summary(name, first, err, kd, T1, seconds, members):
+    detected = first >= kd
+    delay = (first[detected] - kd) * 0.01 / T1
+    return {"method": name, "members": int(members), "us_per_member_step": seconds * 1e6,
+            "false_alarms": int(((first >= 0) & (first < kd)).sum()), "detected": int(detected.sum()),
+            "delay_periods_max": float(delay.max()) if len(delay) else None,
+            "delay_periods_median": float(np.median(delay)) if len(delay) else None,
+            "error_median": float(np.median(err)), "error_max": float(err.max()),
+            "within_0.016": float((err < 0.016).mean())}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--members", type=int, default=64, help="members for the accuracy comparison")
+    ap.add_argument("--filterpy-members", type=int, default=4, help="members run through filterpy (slow)")
+    ap.add_argument("--batch", type=int, default=4096, help="batch of the cost comparison")
+    ap.add_argument("--cost-steps", type=int, default=200, help="steps timed at --batch")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    sc = scenarios.get(NAME)
+    s = sc.resolve({})
+    T1 = first_period(s)
+    kd, judge_step = sc.change_step(s), sc.steps
+    settle = int(s["warmup"] + s["window"])           # the filters' estimates count from where the detector arms
+    truth = np.zeros(3)
+    truth[int(s["storey"]) - 1] = s["change"]
+    A, Bw, Bu, Cy, Cd = model(sc, s)
+    R = np.eye(Cy.shape[0]) * s["noise"] ** 2
+    w, y, dk, first_rco, cost_rco, engine = record(sc, s, args.members)
+    results = [summary(f"rcotorch ({engine})", first_rco, np.abs(dk - truth).max(1), kd, T1, cost_rco,
+                       args.members)]
+    traj, cost_b = batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w, y, R)
+    results.append(summary("UKF batched (torch)", *judge(traj, kd, judge_step, truth, settle), kd, T1,
+                           cost_b / args.members, args.members))
+    m = args.filterpy_members
+    trajs, costs = [], []
+    for b in range(m):
+        tr, c = filterpy_run(A, Bw, Bu, Cy, Cd, s["k"], w[:, b], y[:, b], R)
+        trajs.append(tr)
+        costs.append(c)
+    results.append(summary("UKF filterpy (one member at a time)",
+                           *judge(np.stack(trajs, 1), kd, judge_step, truth, settle), kd, T1, float(np.median(costs)),
+                           m))
+    # The cost at a large batch: rcotorch's graph and the batched filter, a few hundred steps each.
+    big = sc.build(sc.resolve({}), args.batch, torch.float64, "cpu")
+    big.advance(10)
+    t = time.perf_counter()
+    big.advance(args.cost_steps)
+    rco_big = (time.perf_counter() - t) / (args.cost_steps * args.batch)
+    wb = np.random.default_rng(0).standard_normal((args.cost_steps, args.batch))
+    yb = np.zeros((args.cost_steps, args.batch, Cy.shape[0]))
+    ukf_big = batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], wb, yb, R)[1] / args.batch
+    fp = results[-1]["us_per_member_step"] * 1e-6
+    cost = {"batch": args.batch, "rcotorch_us": rco_big * 1e6, "ukf_batched_us": ukf_big * 1e6,
+            "ukf_filterpy_us": fp * 1e6, "filterpy_over_rcotorch": fp / rco_big,
+            "batched_over_rcotorch": ukf_big / rco_big}
+    rows = [[r["method"], r["members"], r["detected"], r["false_alarms"],
+             "-" if r["delay_periods_max"] is None else f"{r['delay_periods_max']:.2f}",
+             f"{r['error_median']:.4f}", f"{r['error_max']:.4f}", f"{100 * r['within_0.016']:.0f}%",
+             f"{r['us_per_member_step']:.3g}"] for r in results]
+    print(f"{NAME}: change at step {kd}, judged at step {judge_step} (50 periods of {T1:.4f} s later)")
+    print(table(rows, ["method", "members", "detected", "false alarms", "delay max [T1]", "error median",
+                       "error max", "within 0.016", "us / member-step"]))
+    print(f"cost at B = {args.batch}: rcotorch {cost['rcotorch_us']:.3g} us, batched UKF {cost['ukf_batched_us']:.3g} "
+          f"us, filterpy {cost['ukf_filterpy_us']:.3g} us per member-step: filterpy / rcotorch "
+          f"{cost['filterpy_over_rcotorch']:.0f}x (goal 1000x), batched / rcotorch "
+          f"{cost['batched_over_rcotorch']:.2f}x (goal 10x)")
+    write_json({"benchmark": "ukf_peer", "machine": machine(torch.device("cpu")), "scenario": NAME,
+                "settings": {"q_theta": Q_THETA, "p0_x": P0_X, "p0_theta": P0_THETA, "alpha": ALPHA, "beta": BETA,
+                             "kappa": KAPPA, "move": MOVE},
+                "results": results, "cost": cost}, "ukf_peer", args.out)
+
+
+if __name__ == "__main__":
+    main()

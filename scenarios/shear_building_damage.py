@@ -1,0 +1,137 @@
+"""A building that is damaged while it is watched: storey 2 of a 3-storey shear building loses 20% of its
+stiffness during the run; the refinement detects the change and re-identifies the storeys.
+
+Known: floors of m = 2e4 kg, storeys of k = 2e7 N/m, 2% Rayleigh damping in the first two modes (periods 0.4465,
+0.1593 and 0.1103 s), excited at the base by white-noise ground acceleration (std ``w_std``); the velocities of
+the ``measured`` floors are measured with white noise of std ``noise``. The truth is the discrete known model
+with the storeys' stiffness changes as force pairs u_j = -dk_j k d_j on the storey drifts d_j, zero until
+``t_change``, then ``change`` on storey ``storey``. The identified subsystem is a static gain from the drifts to
+the force pairs, masked to its diagonal: dk_j = -theta_jj / k.
+
+Tracking: a ``ChangeDetector`` (CUSUM) on the model error z, and ``ResetOnChange``, which restarts an alarmed
+member's estimator (P = ``restart_p0`` I) and lets it forget at ``track_lam`` for ``track_hold`` steps. The run
+ends 50 first-mode periods after the change, where the estimates are judged; docs/tracking.md has the study over
+200 seeds (every change detected within 0.18 periods and no false alarm; 82% of the seeds within 2% of the new
+stiffness 50 periods after it).
+"""
+
+import math
+
+import numpy as np
+import torch
+
+import rcotorch as rt
+from rcotorch.scenario import Requirement, Scenario, member_values
+
+NOISE_SEED = 7919
+
+
+def building(s, identified=(1, 2, 3)):
+    floors = [int(f) for f in str(s["measured"]).split(",")]
+    return rt.models.shear_building([s["m"]] * 3, [s["k"]] * 3, damping_ratio=s["zeta"], force="base",
+                                    measured=[f"velocity[{f}]" for f in floors], identified=list(identified))
+
+
+def first_period(s) -> float:
+    G = building(s, identified=())
+    return 2 * math.pi / float(np.sort(np.abs(np.linalg.eigvals(G.A)))[0])
+
+
+class ShearBuildingDamage(Scenario):
+    name = "shear-building-damage"
+    section = "tracking"
+    description = "3-storey shear building, storey 2 loses 20% of its stiffness mid-run: detect and re-identify"
+    # t_change / Ts, then 50 periods of 0.4465 s
+    steps = 6000 + 2232
+    settings = dict(Ts=0.01, m=2.0e4, k=2.0e7, zeta=0.02, storey=2, change=-0.2, t_change=60.0, w_std=1.0,
+                    noise=2e-4, measured="1,2,3", nu=300, p0=1e20, lam=1.0, threshold=30.0, drift=1.0,
+                    warmup=500, window=500, holdoff=3000, restart_p0=1e14, track_lam=0.995, track_hold=3000,
+                    seed=1)
+    about = dict(
+        Ts=("s", "sample time"),
+        m=("kg", "mass of each floor"),
+        k=("N/m", "stiffness of each storey (known model)"),
+        zeta=("", "damping ratio of the first two modes (Rayleigh)"),
+        storey=("", "the storey that changes (1..3)"),
+        change=("", "its stiffness change, relative to k"),
+        t_change=("s", "when it changes"),
+        w_std=("m/s^2", "std of the white-noise ground acceleration"),
+        noise=("m/s", "std of the velocity measurement noise"),
+        measured=("", "the floors whose velocities are measured, separated by commas"),
+        threshold=("", "the change detector's alarm level (CUSUM on the normalized squared model error)"),
+        drift=("", "the detector's allowance (changes below drift x the noise power are ignored)"),
+        warmup=("steps", "steps before the detector's reference window"),
+        window=("steps", "steps of the detector's reference window"),
+        holdoff=("steps", "steps after an alarm before the detector's next reference window"),
+        restart_p0=("", "P = restart_p0 I for a member whose detector alarmed (0: keep P)"),
+        track_lam=("", "forgetting factor for track_hold steps after an alarm"),
+        track_hold=("steps", "how long the forgetting lasts after an alarm"),
+        seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
+    )
+    per_member = frozenset({"p0", "lam", "seed"})
+    units = {"y": "m/s"}
+    requirements = (Requirement("estimates.dk1", "abs_err", 0.016), Requirement("estimates.dk2", "abs_err", 0.016),
+                    Requirement("estimates.dk3", "abs_err", 0.016),
+                    Requirement("metrics.detection_delay_periods", "max", 5.0, inclusive=True),
+                    Requirement("metrics.false_alarms", "max", 0.5))
+
+    def build(self, s, batch, dtype, device):
+        G = building(s)
+        n_y = G.noutputs - 3
+        if not 1 <= int(s["storey"]) <= 3:
+            raise rt.ConfigError(f"scenario '{self.name}': storey must be 1, 2 or 3, got {s['storey']}")
+        known = rt.LTI.from_control(G, inputs={"w": 1, "u": 3}, outputs={"y": n_y, "y0": 3}, dt=s["Ts"],
+                                    name="known")
+        ident = rt.RCOEstimator.static_gain({"y0": 3}, n_u=3, n_z=n_y, mask=np.eye(3, dtype=bool),
+                                            p0=member_values(s, "p0"), lam=member_values(s, "lam"))
+        detector = rt.ChangeDetector(n_y, warmup=int(s["warmup"]), window=int(s["window"]),
+                                     holdoff=int(s["holdoff"]), drift=s["drift"], threshold=s["threshold"],
+                                     dt=s["Ts"])
+        seed = s["seed"]
+        noise_seed = [x + NOISE_SEED for x in seed] if isinstance(seed, list) else seed + NOISE_SEED
+        graph = rt.refinement(known, ident, truth=rt.Gain(np.zeros((3, 3)), name="unknown"),
+                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=seed),
+                              noise=rt.WhiteNoise(n_y, std=s["noise"], seed=noise_seed), nu=int(s["nu"]),
+                              batch_size=batch, dtype=dtype, device=device, blocks=[detector],
+                              connections=[("error.out", "detector.z")])
+        damage = torch.zeros(1, 3, 3, dtype=torch.float64)
+        j = int(s["storey"]) - 1
+        damage[0, j, j] = -s["change"] * s["k"]
+
+        def change(g):
+            g.blocks["unknown"].K.copy_(damage.to(g.blocks["unknown"].K))
+
+        graph.add_hook(rt.at_step(self.change_step(s), change))
+        graph.add_hook(rt.ResetOnChange(graph, every=5, p0=s["restart_p0"] or None, restart=bool(s["restart_p0"]),
+                                        lam=s["track_lam"], hold=int(s["track_hold"])))
+        return graph
+
+    @staticmethod
+    def change_step(s) -> int:
+        return max(1, int(round(s["t_change"] / s["Ts"])))
+
+    def truth(self, s):
+        out = {"dk1": 0.0, "dk2": 0.0, "dk3": 0.0}
+        out[f"dk{int(s['storey'])}"] = s["change"]
+        return out
+
+    def scales(self, s):
+        return {f"dk{j}": 1.0 for j in (1, 2, 3)}
+
+    def estimates(self, g, s):
+        theta = g.role("estimator").theta
+        return {f"dk{j + 1}": -theta[:, j, j] / s["k"] for j in range(3)}
+
+    def metrics(self, g, s):
+        det = g.blocks["detector"]
+        first = det.first_alarm().to(torch.float64)
+        kd = self.change_step(s)
+        T1 = first_period(s)
+        detected = first >= kd
+        delay = torch.where(detected, (first - kd) * s["Ts"] / T1, torch.full_like(first, math.nan))
+        return {"detection_step": first, "detection_delay_periods": delay,
+                "false_alarms": ((first >= 0) & (first < kd)).to(torch.float64),
+                "alarms": det.alarms().to(torch.float64), "first_period_s": torch.full_like(first, T1)}
+
+
+SCENARIO = ShearBuildingDamage()
