@@ -100,16 +100,18 @@ def test_virtual_cuda_refuses_what_cuda_refuses():
         assert torch.as_tensor(g, device="cpu").device.type == "cpu" and g.is_cuda
 
 
-@pytest.mark.parametrize("name,steps,batch,overrides", [
-    ("sdof-stiffness-damping", 200, 2, {}),                                   # excitation streams, intervals
-    ("twodof-stiffness", 200, 1, {}),                                         # masked static gain
-    ("thermosphere-no-cooling", 30, 1, {"structure": "temperature", "shared": True}),  # tied, replay, refresh
+@pytest.mark.parametrize("name,steps,batch,overrides,full", [
+    ("sdof-stiffness-damping", 200, 2, {}, True),                             # excitation streams, intervals
+    ("twodof-stiffness", 200, 1, {}, False),                                  # masked static gain
+    ("thermosphere-no-cooling", 30, 1, {"structure": "temperature", "shared": True}, True),  # tied, replay
 ], ids=["sdof-stiffness-damping", "twodof-masked", "thermosphere-tied"])
-def test_a_whole_run_on_the_gpu(tmp_path, name, steps, batch, overrides):
+def test_a_whole_run_on_the_gpu(tmp_path, name, steps, batch, overrides, full):
     """Build, step, summary (intervals, validation, health, metrics, a scenario's replay) and figures of a run on
-    the (virtual) GPU: a CPU tensor meeting the graph's anywhere fails here as it would on CUDA."""
+    the (virtual) GPU: a CPU tensor meeting the graph's anywhere fails here as it would on CUDA. (``full``: with
+    the intervals and the held-out validation, which the first case checks for every graph alike.)"""
     with virtual_cuda():
-        run = Run(name, steps=steps, batch=batch, device="cuda", overrides=overrides, out=tmp_path)
+        run = Run(name, steps=steps, batch=batch, device="cuda", overrides=overrides, out=tmp_path, intervals=full,
+                  validation=full)
         run.advance(progress=False)
         summary = run.finish(figures=True)
         assert run.graph.role("estimator").theta.is_cuda
