@@ -329,12 +329,22 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
         return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"
     pd = ctypes.POINTER(ctypes.c_double)
     one = np.empty((len(x), n_out))
-    for i in range(len(x)):
-        xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
-        cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd), 1)
-        one[i] = yi
-    xs, ys = np.ascontiguousarray(x.T), np.empty((n_out, len(x)))
-    cf.ctypes(xs.ctypes.data_as(pd), ys.ctypes.data_as(pd), len(x))
+    # An exception inside a C function cannot propagate: Python reports it as unraisable and the function returns
+    # what it had. Here that is a failed check (e.g. code from the disk cache that does not fit these sizes).
+    raised: list[str] = []
+    hook, sys.unraisablehook = sys.unraisablehook, lambda info: raised.append(f"{info.exc_type.__name__}: "
+                                                                                  f"{info.exc_value}")
+    try:
+        for i in range(len(x)):
+            xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
+            cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd), 1)
+            one[i] = yi
+        xs, ys = np.ascontiguousarray(x.T), np.empty((n_out, len(x)))
+        cf.ctypes(xs.ctypes.data_as(pd), ys.ctypes.data_as(pd), len(x))
+    finally:
+        sys.unraisablehook = hook
+    if raised:
+        return f"the compiled code raised {raised[0]}"
     with np.errstate(all="ignore"):
         return _compare(x, one, want) or _compare(x, ys.T, want)
 

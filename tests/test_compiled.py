@@ -250,3 +250,21 @@ def test_a_function_whose_globals_have_no_stable_description_is_not_kept_on_disk
         return -K2 * x
     assert compiled._fingerprint(g) is not None
     assert compiled._fingerprint(friction) != compiled._fingerprint(g)
+
+
+def test_compiled_code_that_raises_fails_its_check_quietly(capfd):
+    # Code that raises inside a C function cannot pass the exception on (e.g. code from the disk cache that
+    # does not fit the sizes asked for): the check reports it, and nothing is printed.
+    import numba
+
+    def bad(x, y, vl):
+        if vl > 0:
+            raise ValueError("cannot assign slice of shape (64, 1) from input of shape (64, 0)")
+        y[0] = x[0]
+
+    cf = numba.cfunc(numba.types.void(numba.types.CPointer(numba.types.float64),
+                                      numba.types.CPointer(numba.types.float64), numba.types.int64))(bad)
+    why = compiled._check(lambda t: t * 1.0, cf, 1, 1)
+    assert why == ("the compiled code raised ValueError: cannot assign slice of shape (64, 1) from input of "
+                   "shape (64, 0)")
+    assert "Exception ignored" not in capfd.readouterr().err
