@@ -20,17 +20,14 @@ import time
 import numpy as np
 import torch
 from common import machine, table, write_json
+from rcotorch.scenarios.shear_building_damage import first_period
 
 import rcotorch as rt
+from rcotorch import scenario as scenarios
 
 M, K, TS = 2.0e4, 2.0e7, 0.01
 T_CHANGE = 6000
 CHANGE = np.array([0.0, -0.2, 0.0])
-
-
-def period() -> float:
-    G = rt.models.shear_building([M] * 3, [K] * 3, force="base", measured=["velocity[1]"])
-    return 2 * np.pi / float(np.sort(np.abs(np.linalg.eigvals(G.A)))[0])
 
 
 def graph(batch: int, variant: dict):
@@ -87,7 +84,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    T1 = period()
+    T1 = first_period(scenarios.get("shear-building-damage").resolve({"m": M, "k": K}))
     variants = {
         "lam = 1": {},
         "lam = 0.999": {"lam": 0.999},

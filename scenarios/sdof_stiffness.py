@@ -33,13 +33,16 @@ def noise_std(s, truth_system) -> list[float] | float:
     return [std({**s, **{k: s[k][b] for k in keys}}) for b in range(len(s[keys[0]]))]
 
 
+def noise_seed(seed):
+    """The measurement noise's seed (or per-member seeds) for an excitation seed (or per-member seeds)."""
+    return [x + NOISE_SEED for x in seed] if isinstance(seed, list) else seed + NOISE_SEED
+
+
 def noise_block(s, truth_system):
     """The measurement-noise source of a scenario with a ``noise`` setting, or None when it is 0."""
     if not s["noise"]:
         return None
-    seed = s["seed"]
-    seeds = [x + NOISE_SEED for x in seed] if isinstance(seed, list) else seed + NOISE_SEED
-    return rt.WhiteNoise(1, std=noise_std(s, truth_system), seed=seeds)
+    return rt.WhiteNoise(1, std=noise_std(s, truth_system), seed=noise_seed(s["seed"]))
 
 
 class SdofStiffness(Scenario):

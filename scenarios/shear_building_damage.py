@@ -23,7 +23,7 @@ import torch
 import rcotorch as rt
 from rcotorch.scenario import Requirement, Scenario, member_values
 
-NOISE_SEED = 7919
+from .sdof_stiffness import noise_seed
 
 
 def building(s, identified=(1, 2, 3)):
@@ -87,11 +87,9 @@ class ShearBuildingDamage(Scenario):
         detector = rt.ChangeDetector(n_y, warmup=int(s["warmup"]), window=int(s["window"]),
                                      holdoff=int(s["holdoff"]), drift=s["drift"], threshold=s["threshold"],
                                      dt=s["Ts"])
-        seed = s["seed"]
-        noise_seed = [x + NOISE_SEED for x in seed] if isinstance(seed, list) else seed + NOISE_SEED
         graph = rt.refinement(known, ident, truth=rt.Gain(np.zeros((3, 3)), name="unknown"),
-                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=seed),
-                              noise=rt.WhiteNoise(n_y, std=s["noise"], seed=noise_seed), nu=int(s["nu"]),
+                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"]),
+                              noise=rt.WhiteNoise(n_y, std=s["noise"], seed=noise_seed(s["seed"])), nu=int(s["nu"]),
                               batch_size=batch, dtype=dtype, device=device, blocks=[detector],
                               connections=[("error.out", "detector.z")])
         damage = torch.zeros(1, 3, 3, dtype=torch.float64)
