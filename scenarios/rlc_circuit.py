@@ -73,8 +73,6 @@ from rcotorch.intervals import member_band
 from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
 
-from .sdof_stiffness import noise_seed
-
 if TYPE_CHECKING:
     import control
 
@@ -166,9 +164,11 @@ class RlcCircuit(Scenario):
         G = series_rlc(R0, L0, C0, measured=["v_R"], sees=["v_C", "v_R"])
         known = rt.LTI.from_control(G, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
         truth = rt.LTI.from_control(truth_discrete(s), inputs=["w"], outputs=["y"], name="circuit")
+        seed = s["seed"]
+        noise_seed = [x + 7919 for x in seed] if isinstance(seed, list) else seed + 7919
         ident = rt.RCOEstimator.static_gain({"y0": 2, "w": 1}, p0=s["p0"], lam=s["lam"])
         return rt.refinement(known, ident, physical=truth,
-                             noise=rt.WhiteNoise(1, std=s["noise"] * output_rms(s), seed=noise_seed(s["seed"])),
+                             noise=rt.WhiteNoise(1, std=s["noise"] * output_rms(s), seed=noise_seed),
                              excitation=rt.WhiteNoise(1, std=s["w_std"], seed=s["seed"]), nu=s["nu"],
                              batch_size=batch, dtype=dtype, device=device)
 
