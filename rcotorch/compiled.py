@@ -42,6 +42,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from .errors import DimensionError
+
 PROBES = 64                 # test inputs the compiled function must reproduce
 RTOL = 1e-12
 
@@ -52,7 +54,7 @@ class Compiled:
 
     address: int
     owner: Any
-    form: str               # 'scalar' or 'array'
+    form: str               # 'scalar', 'array' or 'member'
 
     def __deepcopy__(self, memo) -> Compiled:
         return self         # compiled code is immutable: copies of a graph (and of its program) share it
@@ -77,26 +79,69 @@ def describe(fn) -> str:
     return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
 
 
-def compile_map(fn, n_in: int, n_out: int) -> Compiled | str:
-    """``fn`` (a (B, n_in) -> (B, n_out) map) as a compiled C function, or why it cannot be compiled; it must
-    reproduce ``fn`` called with tensors."""
-    key = (id(fn), n_in, n_out)
+def components(out, n: int, batch: int, dtype, device=None) -> torch.Tensor:
+    """A components-form function's result as a batch (B, n): a sequence of n components (each a (B,) tensor
+    or array, or a number shared by every member), an (n, B) tensor or array, or, for n = 1, one component."""
+    if isinstance(out, (torch.Tensor, np.ndarray)) and out.ndim == 2:
+        parts = list(out)
+    elif isinstance(out, (tuple, list)):
+        parts = list(out)
+    elif n == 1:
+        parts = [out]
+    else:
+        raise DimensionError(f"returned {type(out).__name__}, not a sequence of {n} components")
+    if len(parts) != n:
+        raise DimensionError(f"returned {len(parts)} components, expected {n}")
+    cols = []
+    for c in parts:
+        c = torch.as_tensor(c, dtype=dtype, device=device)
+        if c.dim() > 1 or (c.dim() == 1 and c.shape[0] not in (1, batch)):
+            raise DimensionError(f"returned a component of shape {tuple(c.shape)}, expected ({batch},) or a number")
+        cols.append(c.reshape(-1).expand(batch))
+    return torch.stack(cols, dim=1)
+
+
+def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | str:
+    """``fn`` (a (B, n_in) -> (B, n_out) map; in the ``components`` form, a function of the sequence of n_in
+    components returning n_out components, ``rcotorch.nonlinear``) as a compiled C function, or why it cannot
+    be compiled; it must reproduce ``fn`` called with tensors."""
+    key = (id(fn), n_in, n_out, form)
     with _lock:
         hit = _cache.get(key)
         if hit is not None and hit[0] is fn:
             return hit[1]
         fp = _fingerprint(fn)
-        result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
-                          None if fp is None else f"map {n_in} {n_out} {fp}")
+        if form == "components":
+            args = ", ".join(f"a{i}" for i in range(n_in))
+            source = f"def call({args}):\n    return f(({args},))\n"
+            reference: dict = {"f": fn}
+            exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
+            result = _compile(lambda module: _numba().njit(module.call), _batch_reference(reference["call"], n_out),
+                              n_in, n_out, source, {"f": _jit(fn), "item": _numba_item()},
+                              None if fp is None else f"components map {n_in} {n_out} {fp}", ("member",))
+        else:
+            result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
+                              None if fp is None else f"map {n_in} {n_out} {fp}")
         _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
         return result
 
 
-def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int) -> Compiled | str:
+def _batch_reference(member, n_out: int):
+    """A components-form function of n_in arguments as a batch map (B, n_in) -> (B, n_out), called with the
+    batch's columns: what its compiled form must reproduce."""
+    def batch(xu: torch.Tensor) -> torch.Tensor:
+        return components(call_user(member, *xu.T), n_out, xu.shape[0], xu.dtype, xu.device)
+    return batch
+
+
+def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int,
+                 form: str = "batch") -> Compiled | str:
     """The discrete map of a ``Nonlinear`` block compiled, x(k+1) from [x(k), inputs(k)] stacked in one
     (B, n + m) array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held,
     as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
     builds the inputs' dict as the PyTorch engine passes it."""
+    if form == "components":
+        return _compile_member_step(f, n, inputs, dt, continuous, substeps)
     key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
     with _lock:
         hit = _cache.get(key)
@@ -124,6 +169,83 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
                           source, {"f": _jit(f)}, None if fp is None else f"step {fp}")
         _cache[key] = (f, result)
         return result
+
+
+def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
+                         substeps: int) -> Compiled | str:
+    """``compile_step`` for a components-form ``f``: one member at a time, the state and the inputs as tuples
+    of floats, the RK4 stages written out component by component, so that no array is made in a step."""
+    key = ("member step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is f:
+            return hit[1]
+        m = sum(inputs.values())
+        xs = [f"x{i}" for i in range(n)]
+        cols, start = [], 0
+        for port, width in inputs.items():
+            cols.append(f"{port!r}: ({''.join(f'u{start + j}, ' for j in range(width))})")
+            start += width
+        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        args = ", ".join(xs + [f"u{j}" for j in range(m)])
+        state = lambda xv: "(" + "".join(f"{v}, " for v in xv) + ")"          # noqa: E731
+        lines = [f"def step({args}):", f"    ins = {ins}"]
+        if continuous:
+            h = float(dt) / int(substeps)
+            stage = lambda k, c: [f"{x} + {c!r} * item({k}, {i})" for i, x in enumerate(xs)]  # noqa: E731
+            lines += [f"    for _ in range({int(substeps)}):",
+                      f"        k1 = f({state(xs)}, ins)",
+                      f"        k2 = f({state(stage('k1', 0.5 * h))}, ins)",
+                      f"        k3 = f({state(stage('k2', 0.5 * h))}, ins)",
+                      f"        k4 = f({state(stage('k3', h))}, ins)"]
+            lines += [f"        {x} = {x} + {h / 6.0!r} * (item(k1, {i}) + 2.0 * item(k2, {i}) + 2.0 * item(k3, {i})"
+                      f" + item(k4, {i}))" for i, x in enumerate(xs)]
+            lines.append(f"    return {state(xs)}")
+        else:
+            lines.append(f"    r = f({state(xs)}, ins)")
+            lines.append(f"    return ({''.join(f'item(r, {i}), ' for i in range(n))})")
+        source = "\n".join(lines) + "\n"
+        reference: dict = {"f": f, "item": _item}
+        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
+        fp = _fingerprint(f)
+        result = _compile(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
+                          n + m, n, source, {"f": _jit(f), "item": _numba_item()},
+                          None if fp is None else f"member step {fp}", ("member",))
+        _cache[key] = (f, result)
+        return result
+
+
+def _item(r, i: int):
+    """Component i of a components-form result: r[i] of a sequence, r itself when it is one number (or one
+    (B,) component)."""
+    if isinstance(r, (tuple, list)) or (isinstance(r, (torch.Tensor, np.ndarray)) and r.ndim == 2):
+        return r[i]
+    return r
+
+
+_item_jit = None
+
+
+def _numba_item():
+    """``_item`` for numba: typed by what the user's function returns (a float, a tuple or an array)."""
+    global _item_jit
+    if _item_jit is None:
+        numba = _numba()
+        from numba import types as nt
+        from numba.extending import overload
+
+        def item(r, i):
+            pass
+
+        @overload(item, inline="always")
+        def _ov(r, i):
+            if isinstance(r, (nt.Float, nt.Integer, nt.Boolean)):
+                return lambda r, i: float(r)
+            if isinstance(r, nt.Array) and r.ndim == 0:
+                return lambda r, i: float(r[()])
+            return lambda r, i: float(r[i])
+        _item_jit = numba.njit(inline="always")(lambda r, i: item(r, i))
+    return _item_jit
 
 
 def _numba():
@@ -187,7 +309,15 @@ def array(x, y, vl):
 """
 
 
-def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None) -> Compiled | str:
+def _member_wrapper(n_in: int, n_out: int) -> str:
+    """The C wrapper of a components-form function: member by member, its inputs as separate floats."""
+    args = ", ".join(f"x[{i} * vl + lane]" for i in range(n_in))
+    body = "".join(f"        y[{j} * vl + lane] = item(r, {j})\n" for j in range(n_out))
+    return f"\n\ndef member(x, y, vl):\n    for lane in range(vl):\n        r = jfn({args})\n{body}"
+
+
+def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None,
+             forms: tuple[str, ...] | None = None) -> Compiled | str:
     """Compile the wrappers of a module holding ``source`` with ``bind`` as globals and ``jfn = entry(module)``;
     the result must reproduce ``reference``. ``key`` names everything the code depends on (None: not known, so
     nothing is kept on disk); a module loaded from the disk cache that does not reproduce ``reference`` is
@@ -198,13 +328,14 @@ def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, k
         return "numba is not installed (pip install numba)"
     reasons: list[str] = []
     for cached in ((True, False) if key is not None and cache_folder() is not None else (False,)):
-        module = _module(source, n_in, n_out, key if cached else None)
+        module = _module(source + (_member_wrapper(n_in, n_out) if forms == ("member",) else ""), n_in, n_out,
+                         key if cached else None)
         try:
             module.__dict__.update(bind)
             module.jfn = entry(module)
         except Exception as e:                # not a Python function numba can take
             return f"numba cannot take it: {_first_line(e)}"
-        for form in (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]:
+        for form in forms or (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]:
             try:
                 cf = numba.cfunc(module.SIG, nopython=True, cache=cached)(getattr(module, form))
             except Exception as e:

@@ -1,9 +1,9 @@
 """The native engine's front end: a graph lowered once to a program of the compiled engine, then run.
 
-PyTorch dispatches every tensor operation from Python (a few microseconds each), and one step of a
-refinement graph is about a hundred small operations; for one member, or a few thousand, that dispatch is
-most of the time. On the CPU, in float64, a graph whose blocks all have a native form is therefore lowered to
-a short list of instructions that ``rcotorch._engine`` runs for many steps per call (``csrc/lanes.h``).
+PyTorch dispatches every tensor operation from Python, and one step of a refinement graph is many small
+operations, so for one member, or a few thousand, a step's time goes to dispatch rather than to arithmetic. On
+the CPU, in float64, a graph whose blocks all have a native form is therefore lowered to a short list of
+instructions that ``rcotorch._engine`` runs for many steps per call (``csrc/lanes.h``).
 
 Each block describes itself: ``Block.lower(b)`` receives a ``Builder`` and asks it for the slots of its
 state, parameters and ports and emits its instructions (``LTI``, ``Gain``, ``Sum``, ``WhiteNoise``,
@@ -76,7 +76,7 @@ class Builder:
         self.binds: list[_Bind] = []
         self.pointers: list[torch.Tensor | _Address] = []
         self.counted: list = []                       # blocks whose step counter k the engine advances
-        self.state_names: dict[str, set[str]] = {}    # block -> buffers the engine writes
+        self.state_names: dict[str, set[str]] = {}    # block -> buffers the engine writes or does not read
         self.limits: list = []                        # (block, steps_left()) of recordings
         self.keep: list[torch.Tensor] = []            # derived parameters, held while the program lives
         self.signals = {(n, p): torch.zeros(batch, w, dtype=torch.float64)
@@ -192,6 +192,11 @@ class Builder:
         else:
             outer_port = port if self._inner is None else self._inner[2]
             self.outs.setdefault((self._top.name, outer_port), []).append(ins)
+
+    def unread(self, name: str) -> None:
+        """A buffer of the block that the program does not read (kept on the Python side, e.g. rows recorded
+        for the user): replacing it does not renew the program, as a changed parameter would."""
+        self._written(name)
 
     # --- internal -----------------------------------------------------------------------------------------
     def _written(self, name: str) -> None:

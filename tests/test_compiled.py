@@ -268,3 +268,103 @@ def test_compiled_code_that_raises_fails_its_check_quietly(capfd):
     assert why == ("the compiled code raised ValueError: cannot assign slice of shape (64, 1) from input of "
                    "shape (64, 0)")
     assert "Exception ignored" not in capfd.readouterr().err
+
+
+# --- the components form (scipy's solve_ivp convention): one member at a time in compiled code --------------
+def duffing_components(x, ins):
+    q, v = x
+    return v, -K * q - C * v - A * q ** 3 + ins["w"][0]
+
+
+def velocity_component(x):
+    return x[1]
+
+
+def _duffing_driven(form: str, engine: str, batch: int = 3, steps: int = 400):
+    f, h = (duffing_components, velocity_component) if form == "components" else (duffing, velocity)
+    blk = rt.Nonlinear(f, h, 2, inputs=["w"], outputs=["y"], dt=0.01, continuous=True, substeps=4,
+                       x0=[0.5, 0.0], name="duffing", form=form)
+    g = rt.Graph([rt.WhiteNoise(1, std=3.0, seed=list(range(1, batch + 1)), name="w"), blk],
+                 [("w.out", "duffing.w")], batch_size=batch)
+    g.engine = engine
+    rec = g.run(steps, record={"w": "w.out", "y": "duffing.y"})
+    return g, rec
+
+
+def test_a_components_form_block_compiles_to_scalar_code_and_matches_scipy_and_the_other_forms():
+    from scipy.integrate import solve_ivp
+    g, rec = _duffing_driven("components", "auto")
+    assert g.native_status() is None and g.ran_engine == "native"
+    assert compiled.compile_map(velocity_component, 2, 1, "components").form == "member"
+    # independent reference: scipy's adaptive integrator of the same equations, the input held over each step
+    w = rec["w"][:, :, 0].numpy()
+    for b in range(3):
+        x, ys = np.array([0.5, 0.0]), []
+        for k in range(w.shape[0]):
+            ys.append(x[1])
+            sol = solve_ivp(lambda t, s, u=w[k, b]: [s[1], -K * s[0] - C * s[1] - A * s[0] ** 3 + u], (0.0, 0.01), x,
+                            rtol=1e-12, atol=1e-13, method="DOP853")
+            x = sol.y[:, -1]
+        assert np.allclose(rec["y"][:, b, 0].numpy(), ys, rtol=0, atol=1e-8), b
+    # the PyTorch engine (the batch called with (B,) components) and the batch form give the same numbers
+    gt, rect = _duffing_driven("components", "torch")
+    gb, recb = _duffing_driven("batch", "auto")
+    assert gt.ran_engine == "torch"
+    assert torch.allclose(rec["y"], rect["y"], rtol=1e-12, atol=1e-13)
+    assert torch.allclose(rec["y"], recb["y"], rtol=1e-12, atol=1e-13)
+
+
+def test_a_discrete_components_block_with_wide_ports_and_several_outputs():
+    def f(x, ins):                          # a discrete map of 3 states driven by a port of width 2
+        a, b, c = x
+        u = ins["u"]
+        return 0.9 * a + 0.1 * u[0], 0.8 * b - 0.05 * np.sin(a) + 0.2 * u[1], 0.5 * c + a * b
+
+    def h(x):
+        return x[0] + x[2], 2.0 * x[1]
+
+    def run(engine):
+        blk = rt.Nonlinear(f, h, 3, inputs={"u": 2}, outputs={"y": 1, "z": 1}, dt=1.0, name="plant",
+                           form="components")
+        g = rt.Graph([rt.WhiteNoise(2, seed=[4, 5], name="u"), blk], [("u.out", "plant.u")], batch_size=2)
+        g.engine = engine
+        return g, g.run(200, record={"u": "u.out", "y": "plant.y", "z": "plant.z"})
+
+    g, rec = run("auto")
+    assert g.native_status() is None and g.ran_engine == "native"
+    u = rec["u"].numpy()
+    x = np.zeros((2, 3))
+    for k in range(u.shape[0]):              # the same map written out with NumPy over the batch
+        assert np.allclose(rec["y"][k, :, 0].numpy(), x[:, 0] + x[:, 2], rtol=1e-13, atol=1e-14)
+        assert np.allclose(rec["z"][k, :, 0].numpy(), 2.0 * x[:, 1], rtol=1e-13, atol=1e-14)
+        a, b, c = x.T
+        x = np.stack((0.9 * a + 0.1 * u[k, :, 0], 0.8 * b - 0.05 * np.sin(a) + 0.2 * u[k, :, 1], 0.5 * c + a * b), 1)
+    _, rect = run("torch")
+    assert torch.allclose(rec["y"], rect["y"], rtol=1e-13, atol=1e-14)
+
+
+def test_a_components_function_of_the_wrong_size_is_refused_naming_the_block():
+    with pytest.raises(rt.DimensionError, match=r"block 'plant': f \(form 'components'\) returned 1 components"):
+        rt.Nonlinear(lambda x, ins: (x[1],), lambda x: x[0], 2, inputs=["w"], outputs=["y"], dt=0.1, name="plant",
+                     form="components")
+    with pytest.raises(rt.ConfigError, match="form must be 'batch' or 'components'"):
+        rt.Nonlinear(duffing, velocity, 2, inputs=["w"], outputs=["y"], dt=0.1, form="rows")
+
+
+def test_the_markov_parameters_of_a_components_model_match_autograd_of_the_torch_model():
+    def f_np(x, ins):
+        q, v = x
+        return v, -G_L * np.sin(q) - DAMP * v + ins["u"][0]
+
+    def f_torch(x, ins):
+        q, v = x
+        return v, -G_L * torch.sin(q) - DAMP * v + ins["u"][0]
+
+    x0 = [[0.4, -0.2], [1.0, 0.3]]
+    H = {}
+    for name, f, method in (("np", f_np, "fd"), ("torch", f_torch, "autograd")):
+        blk = rt.Nonlinear(f, lambda x: x[1], 2, inputs=["u"], outputs=["y"], dt=0.05, continuous=True, substeps=2,
+                           x0=x0, form="components")
+        blk.reset(2)
+        H[name] = blk.markov("u", "y", 6, method=method)
+    assert torch.allclose(H["np"], H["torch"], rtol=1e-6, atol=1e-9)

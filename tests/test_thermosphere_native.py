@@ -161,3 +161,20 @@ def test_the_default_scenario_agrees_with_the_torch_engine_after_700_steps():
     a.advance(700)
     b.advance(700)
     _assert_same(a, b)
+
+
+def test_a_column_advanced_one_step_at_a_time_keeps_its_program(monkeypatch):
+    """The rows a column records move to its history on the Python side between calls of the engine; the
+    program does not read the history, so advancing step by step (as a run that logs every step does) lowers the
+    graph again only where the Markov refresh changed the estimator's parameters."""
+    from rcotorch import lowering
+    _, g = _pair(_settings())
+    calls = []
+    real = lowering._lower
+    monkeypatch.setattr(lowering, "_lower", lambda graph: calls.append(int(graph.k)) or real(graph))
+    for _ in range(60):
+        g.advance(1)
+    assert g.ran_engine == "native"
+    assert g.blocks["plant"].history.shape[1] > 50
+    every = SMALL["refresh_every"]
+    assert calls and all(k % every == 0 for k in calls), calls

@@ -109,9 +109,9 @@ SINGLE_THREAD_BELOW = 65536
 
 @contextmanager
 def few_threads(entries: int) -> Iterator[None]:
-    """Run small column workloads on one intra-op thread: with ~100 levels there is nothing to parallelize, and on
-    a shared machine the thread wake-ups dominate (on 2 busy cores a (3, 101, 101) solve took 8 ms on 2 threads
-    and 0.2 ms on one). The previous thread count is restored on exit."""
+    """Run small column workloads on one intra-op thread: with ~100 levels there is nothing to parallelize, and
+    waking further threads for each small operation costs more than the operation itself, most of all on a
+    shared machine. The previous thread count is restored on exit."""
     threads = torch.get_num_threads()
     if threads == 1 or entries >= SINGLE_THREAD_BELOW:
         yield
@@ -419,8 +419,8 @@ class ColumnBlock(Nonlinear):
     as functions of the state.
 
     ``markov`` is ``Nonlinear.markov`` (all input directions at once; 'autograd' by double-backward products,
-    about 4 times faster than ``torch.autograd.forward_ad`` and 70 times faster than ``torch.func.jvp`` on this
-    model, or 'fd' central differences) on one intra-op thread. ``record`` (a function of
+    the fastest of torch's forward-mode products for this model of many elementwise operations (docs/engine.md),
+    or 'fd' central differences) on one intra-op thread. ``record`` (a function of
     the state and the inputs, (B, m)) is appended to the buffer ``history`` (B, steps, m) at every step, so a
     checkpoint holds the traces.
 
@@ -549,6 +549,7 @@ class ColumnBlock(Nonlinear):
                 else:
                     b.refuse(f"its record reads '{part}', which is not a connected input")
             b.steps_left(self._room)
+            b.unread("history")                # the pending rows move there on the Python side
         block = b.scratch(size + n + sum(self.inputs.values()))
         b.emit("COPY", [size, params, block])
         b.emit("COPY", [n, x, block + size])
