@@ -15,9 +15,9 @@ from setuptools.command.build_ext import build_ext
 # depend on the instruction set, the lane width or the batch it runs in.
 # Loops over lanes are marked for vectorization (OpenMP simd, no OpenMP runtime needed); -fno-trapping-math
 # and -fno-math-errno let selects and square roots vectorize and change no value. Functions start on a cache
-# line: one member's step runs in a few functions, and their placement otherwise moved its time by 10-15% from
-# one build to the next. -fno-wrapv undoes Python's -fwrapv (the engine's integers never overflow; its hashes
-# are unsigned), which cost one member's step 3-5% in index arithmetic.
+# line: one member's step runs in a few functions, so aligning them keeps its time from depending on where
+# a build happens to place them. -fno-wrapv undoes Python's -fwrapv (the engine's integers never overflow; its
+# hashes are unsigned), so the compiler may simplify the index arithmetic.
 FLAGS = ["-O3", "-ftree-vectorize", "-fvect-cost-model=dynamic", "-ffp-contract=off", "-fno-math-errno",
          "-fno-trapping-math", "-fno-tree-loop-distribute-patterns", "-fopenmp-simd", "-std=gnu11",
          "-falign-functions=64", "-fno-wrapv"]

@@ -45,6 +45,30 @@ class Recording:
     ``values[0]`` (0-based, header excluded), so errors and splits refer to rows of the file. ``metadata``
     holds what the file stores beside the signals (a ``.mat`` file's scalars and strings, an ``.npz`` file's
     scalars, e.g. a sample time or a gain), by variable name.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The samples, (T, columns), or one recording per member (B, T, columns).
+    columns : list of str
+        The column names, in the order of the last axis of ``values``.
+    dt : float, optional
+        The sample time [s]; None where it is not known.
+    path : str, optional
+        The file the signals were read from (named in errors).
+    first_row : int, optional
+        The file's 0-based data-row index of ``values[0]``.
+    valid : numpy.ndarray of bool, optional
+        Same shape as ``values``: False where a sample is missing; None where all are valid.
+    units : dict[str, str], optional
+        Column name -> unit.
+    metadata : dict[str, Any], optional
+        Variable name -> a scalar or string stored in the file beside the signals.
+
+    Raises
+    ------
+    DataError
+        If ``dt`` is given and is not a finite number > 0.
     """
 
     values: np.ndarray
@@ -60,17 +84,82 @@ class Recording:
         self.dt = check_sample_time(self.dt, self.path or "recording")
 
     def unit(self, name: str | int) -> str | None:
-        """The unit of a column (from ``units=`` or a CSV header such as ``force [N]``), or None."""
+        """The unit of a column (from ``units=`` or a CSV header such as ``force [N]``).
+
+        Parameters
+        ----------
+        name : str or int
+            The column's name or index.
+
+        Returns
+        -------
+        str or None
+            None where the column has no unit.
+
+        Raises
+        ------
+        DataError
+            If there is no such column.
+        """
         return self.units.get(self.columns[self.index(name)])
 
     def column(self, name: str) -> np.ndarray:
+        """The samples of one column.
+
+        Parameters
+        ----------
+        name : str
+            The column's name (or index).
+
+        Returns
+        -------
+        numpy.ndarray
+            (T,) for a recording of shape (T, columns).
+
+        Raises
+        ------
+        DataError
+            If there is no such column.
+        """
         return self.values[:, self.index(name)]
 
     def index(self, name: str | int) -> int:
+        """The index of a column.
+
+        Parameters
+        ----------
+        name : str or int
+            The column's name, or an index (checked to be in range).
+
+        Returns
+        -------
+        int
+
+        Raises
+        ------
+        DataError
+            If there is no such column, or the index is out of range.
+        """
         return _column_index(self.path or "recording", self.columns, name)
 
     def rows(self, start: int, stop: int) -> Recording:
-        """The file rows [start, stop) (0-based data rows), as a new recording."""
+        """The file rows [start, stop) (0-based data rows), as a new recording.
+
+        Parameters
+        ----------
+        start, stop : int
+            The rows, as numbered in the file (``first_row`` is the first loaded one).
+
+        Returns
+        -------
+        Recording
+            Its ``first_row`` is ``start``.
+
+        Raises
+        ------
+        DataError
+            If the rows are empty or lie outside the loaded ones.
+        """
         lo, hi = start - self.first_row, stop - self.first_row
         if not (0 <= lo < hi <= len(self.values)):
             raise DataError(f"{self.path or 'recording'}: rows [{start}, {stop}) are outside the loaded rows "
@@ -79,9 +168,29 @@ class Recording:
                          None if self.valid is None else self.valid[lo:hi], dict(self.units), dict(self.metadata))
 
     def derive(self, **signals: Derivation) -> Recording:
-        """A new recording with derived columns appended, each computed from the whole recording at once
-        (e.g. ``rec.derive(velocity=derivative("position", tau=0.005))``). Derive before selecting rows, so that a
-        filter's start-up lies outside the rows used. Columns with missing samples cannot be derived from."""
+        """A new recording with derived columns appended, each computed from the whole recording at once.
+
+        For example ``rec.derive(velocity=derivative("position", tau=0.005))``. Derive before selecting rows, so
+        that a filter's start-up lies outside the rows used. Columns with missing samples cannot be derived
+        from.
+
+        Parameters
+        ----------
+        **signals : Derivation
+            New column name -> ``rcotorch.data.difference / derivative / function``, computed in this order
+            (a derivation may use the columns derived before it).
+
+        Returns
+        -------
+        Recording
+            The columns of this one followed by the derived ones, with their units.
+
+        Raises
+        ------
+        DataError
+            If a name is already a column, a value is not a derivation, or a derivation fails (a missing
+            column, missing samples, no sample time, a function of the wrong shape).
+        """
         values, columns, units = self.values, list(self.columns), dict(self.units)
         for name, how in signals.items():
             if name in columns:
@@ -226,19 +335,41 @@ def _check_finite(values: np.ndarray, columns: list[str], path: str, first_row: 
 
 def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | str | None = None,
          on_nonfinite: str = "error", units: dict[str, str] | None = None) -> Recording:
-    """Load measured signals from a ``.csv`` (UTF-8, header row of names; trailing commas and empty fields
-    allowed), ``.npz`` (one array per name, or a 2-D array) or MATLAB ``.mat`` file (v4 to v7; its numeric
-    vectors and matrices become columns, see ``_read_mat``).
+    """Load measured signals from a ``.csv``, ``.npz`` or MATLAB ``.mat`` file.
 
-    Args:
-        columns: names (or indices) to keep, in this order, each once; all by default. Of a CSV file only
-            these columns are parsed and stored.
-        rows: 0-based data rows [start, stop) to keep.
-        dt: sample time in seconds (finite, > 0), or the name of a scalar stored in the file (``dt="Ts"``).
-        on_nonfinite: 'error' raises naming file, row and column; 'skip' keeps the sample, marked invalid.
-        units: column name -> unit (e.g. ``{'V1': 'V'}``), kept in ``Recording.units``. A CSV header
-            ``name [unit]`` gives column ``name`` with that unit; ``units=`` overrides it.
+    A ``.csv`` file is UTF-8 with a header row of names (trailing commas and empty fields allowed); an ``.npz``
+    file holds one array per name, or a 2-D array; of a MATLAB file (v4 to v7) the numeric vectors and matrices
+    become columns (see ``_read_mat``).
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    columns : sequence of str or int, optional
+        Names (or indices) to keep, in this order, each once; all by default. Of a CSV file only these columns
+        are parsed and stored.
+    rows : tuple of (int, int), optional
+        0-based data rows [start, stop) to keep.
+    dt : float or str, optional
+        Sample time in seconds (finite, > 0), or the name of a scalar stored in the file (``dt="Ts"``).
+    on_nonfinite : {'error', 'skip'}, optional
+        'error' raises naming file, row and column; 'skip' keeps the sample, marked invalid.
+    units : dict[str, str], optional
+        Column name -> unit (e.g. ``{'V1': 'V'}``), kept in ``Recording.units``. A CSV header ``name [unit]``
+        gives column ``name`` with that unit; ``units=`` overrides it.
+
+    Returns
+    -------
+    Recording
+        values (rows, columns kept), with the file's path, first row, units and metadata.
+
+    Raises
+    ------
+    DataError
+        For every fault in the file or the arguments, naming the file and, where they apply, row and column.
+
+    Notes
+    -----
     Files are read strictly: a CSV that is not UTF-8 (a leading byte-order mark is dropped), two header
     names that give the same column (``x`` twice, or ``x`` and ``x [m]``), a field that is not a decimal
     number (``1e-3``, ``-0.5``, ``+2`` and ``.5`` are; ``1_000`` is not; ``nan`` and ``inf`` are non-finite

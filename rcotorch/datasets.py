@@ -36,7 +36,26 @@ from .errors import DataError
 class Dataset:
     """A data set: its ``files`` (name -> SHA-256), the ``archive`` holding them and where it is served.
 
-    ``env``: environment variable naming a local folder with the files. ``citation``: what to cite.
+    Parameters
+    ----------
+    name : str
+        The data set's name, also its cache folder's.
+    archive : str
+        The file name of the archive that holds the files.
+    urls : tuple of str
+        Where the archive is served, tried in order.
+    files : dict[str, str]
+        File name -> its published SHA-256 (hex).
+    env : str
+        Environment variable naming a local folder with the files.
+    size : int, optional
+        The archive's size in bytes, where known.
+    citation : str, optional
+        What to cite.
+    page : str, optional
+        The data set's web page.
+    splits : dict[str, tuple of (int, int)], optional
+        Name -> 0-based data rows [start, stop) of a part the benchmark defines.
     """
 
     name: str
@@ -71,7 +90,12 @@ SILVERBOX_TS = 2 ** 14 / 1e7          # sample time [s]: fs = 1e7 / 2^14 = 610.3
 
 
 def cache_dir() -> Path:
-    """The folder data sets are cached in: ``$RCOTORCH_DATA`` or the user's cache folder."""
+    """The folder data sets are cached in: ``$RCOTORCH_DATA`` or the user's cache folder.
+
+    Returns
+    -------
+    pathlib.Path
+    """
     env = os.environ.get("RCOTORCH_DATA")
     if env:
         return Path(env).expanduser()
@@ -80,7 +104,18 @@ def cache_dir() -> Path:
 
 
 def sha256(path: str | Path) -> str:
-    """SHA-256 of a file, as hex (remembered while the file's size and modification time stay the same)."""
+    """SHA-256 of a file, as hex (remembered while the file's size and modification time stay the same).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file.
+
+    Returns
+    -------
+    str
+        64 hexadecimal digits.
+    """
     stat = os.stat(path)
     key = (str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
     if key not in _HASHES:
@@ -101,8 +136,35 @@ def _sha256(path: str | Path) -> str:
 
 def fetch(ds: Dataset, path: str | Path | None = None, urls: Sequence[str] | None = None,
           cache: str | Path | None = None, progress: bool | None = None) -> dict[str, Path]:
-    """The verified files of a data set, {file name: path}: from ``path`` (or ``$<ds.env>``) if given, else
-    from the cache, downloading the archive from ``urls`` (default: the official ones) on first use."""
+    """The verified files of a data set.
+
+    They come from ``path`` (or ``$<ds.env>``) if given, else from the cache, which a download of the archive
+    from ``urls`` fills on first use.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data set.
+    path : str or pathlib.Path, optional
+        A local folder holding the files.
+    urls : Sequence[str], optional
+        Where to download the archive from (default: ``ds.urls``, the official ones).
+    cache : str or pathlib.Path, optional
+        The cache folder for this data set (default: ``cache_dir() / ds.name``).
+    progress : bool, optional
+        Show a download progress bar (default: when stderr is a terminal).
+
+    Returns
+    -------
+    dict[str, pathlib.Path]
+        File name -> path of the verified file.
+
+    Raises
+    ------
+    DataError
+        If the local folder lacks a file, a file's SHA-256 differs from the published one, or every download
+        fails (the message says what to do).
+    """
     local = path if path is not None else os.environ.get(ds.env) or None
     if local is not None:
         return _local(ds, Path(local).expanduser(), "path=" if path is not None else f"${ds.env}")
@@ -197,14 +259,29 @@ def _extract(ds: Dataset, archive: Path, folder: Path) -> dict[str, Path]:
 
 def silverbox_files(path: str | Path | None = None, urls: Sequence[str] | None = None,
                     cache: str | Path | None = None, progress: bool | None = None) -> dict[str, Path]:
-    """The Silverbox benchmark's CSV files, verified: {'SNLS80mV.csv': path, 'Schroeder80mV.csv': path}.
+    """The Silverbox benchmark's CSV files, verified.
 
-    Args:
-        path: a folder holding the two CSV files (e.g. the unpacked ``SilverboxFiles.zip``); default
-            ``$RCOTORCH_SILVERBOX``, else the cache, filled by a download on first use.
-        urls: where to download ``SilverboxFiles.zip`` from (default: the benchmark's own links).
-        cache: the cache folder for this data set (default ``$RCOTORCH_DATA/silverbox``).
-        progress: show a download progress bar (default: when stderr is a terminal).
+    Parameters
+    ----------
+    path : str or pathlib.Path, optional
+        A folder holding the two CSV files (e.g. the unpacked ``SilverboxFiles.zip``); default
+        ``$RCOTORCH_SILVERBOX``, else the cache, filled by a download on first use.
+    urls : Sequence[str], optional
+        Where to download ``SilverboxFiles.zip`` from (default: the benchmark's own links).
+    cache : str or pathlib.Path, optional
+        The cache folder for this data set (default ``$RCOTORCH_DATA/silverbox``).
+    progress : bool, optional
+        Show a download progress bar (default: when stderr is a terminal).
+
+    Returns
+    -------
+    dict[str, pathlib.Path]
+        {'SNLS80mV.csv': path, 'Schroeder80mV.csv': path}.
+
+    Raises
+    ------
+    DataError
+        If a file is missing or differs from the published one, or the download fails.
     """
     return fetch(SILVERBOX, path, urls, cache, progress)
 
@@ -216,8 +293,26 @@ def silverbox(record: str = "SNLS80mV", path: str | Path | None = None, **fetch_
     spring, m y'' + d y' + k1 y + k3 y^3 = u. ``record``: 'SNLS80mV' (the benchmark: an arrow of filtered
     Gaussian noise of rising amplitude, then ten multisine realizations) or 'Schroeder80mV' (a Schroeder-phase
     multisine). ``metadata['splits']`` gives the benchmark's rows of SNLS80mV: 'arrow', 'estimation',
-    'validation' (0-based, [start, stop)); ``metadata['citation']`` what to cite. ``path`` and the other
-    options are those of ``silverbox_files``.
+    'validation' (0-based, [start, stop)); ``metadata['citation']`` what to cite.
+
+    Parameters
+    ----------
+    record : {'SNLS80mV', 'Schroeder80mV'}, optional
+        The record.
+    path : str or pathlib.Path, optional
+        A folder holding the CSV files, as for ``silverbox_files``.
+    **fetch_options
+        The other options of ``silverbox_files`` (``urls``, ``cache``, ``progress``).
+
+    Returns
+    -------
+    Recording
+        Columns ``V1`` (input) and ``V2`` (output) in volts.
+
+    Raises
+    ------
+    DataError
+        If there is no such record, or the files cannot be had.
     """
     files = silverbox_files(path, **fetch_options)
     name = f"{record}.csv"

@@ -72,44 +72,91 @@ def _solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 class RCOEstimator(Block):
     """Identified subsystem u = theta phi with the retrospective-cost RLS update.
 
-    Args:
-        signals: input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``.
-            Which signals feed phi decides identifiability (see docs/method.md).
-        features: optional basis functions of the input ports that become phi's regressor signals instead
-            of the ports themselves: terms of ``rcotorch.features`` (one, or a list), e.g.
-            ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable
-            maps the dict of port tensors (B, width) to a (B, m) tensor (probed with batches of 1 and 2 when the
-            block is built; PyTorch engine only). theta stays linear in them, so the update is least squares.
-        n_u: width of u (the identified subsystem's output).
-        n_z: width of z (the model error).
-        nc: controller order (number of past samples of each signal and of u).
-        proper: also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
-        feed_u: put past u into phi (the controller's poles); False gives an FIR controller.
-        mask: bool (n_u, n_phi), True where theta is free; False pins that entry to zero.
-        tie: integer (n_u, n_phi): entries with the same label share one parameter (labels are any
-            integers; a negative label pins the entry to zero, as does ``mask``). For example, with u_j =
-            theta_j1 e_j + theta_j2 e_j^2 at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the
-            function the same at every node. ``theta_names`` lists one name per parameter.
-        p0: initial covariance P(0) = p0 I, scalar or one per member.
-        lam: forgetting factor in (0, 1], scalar or one per member.
-        R: weight on z (scalar or n_z x n_z).
-        theta0: initial theta (n_u, n_phi) or (B, n_u, n_phi); zero by default.
-        markov: beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u); with its relative
-            degree ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
-        dt: sample time (for transfer functions and frequency responses).
-        u_bounds: (low, high) saturation of u, scalars or per component (n_u,), e.g. (0, inf) where physics
-            forbids a sign (a cooling that cannot heat). The retrospective cost uses the saturated u, the one
-            actually applied.
-        theta_bounds: (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each
-            update (P unchanged).
-        r_delta: weight of the penalty r_delta |eta - eta(k)|^2 on the parameters' change in the retrospective
-            cost, scalar or one per member (>= 0); None (the default) leaves it out. Larger values slow and
-            smooth the estimate (noisy data, a member that jumps).
-        normalize: scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the
-            update divided by sqrt(1 + |Psi|_R^2 / s^2) (module docstring), which bounds the step for large
-            signals. None (the default): not normalized.
-        p_max: bound on trace(P), scalar or one per member (> 0): after each update P is scaled by
-            p_max / trace(P) where the trace exceeds it (covariance windup). None (the default): unbounded.
+    Parameters
+    ----------
+    signals : Mapping[str, int]
+        Input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``. Which
+        signals feed phi decides identifiability (see docs/method.md).
+    n_u : int, optional
+        Width of u (the identified subsystem's output).
+    n_z : int, optional
+        Width of z (the model error).
+    nc : int, optional
+        Controller order (number of past samples of each signal and of u).
+    features : Term, sequence of Term, or Mapping[str, Term or callable], optional
+        Basis functions of the input ports that become phi's regressor signals instead of the ports
+        themselves: terms of ``rcotorch.features`` (one, or a list), e.g.
+        ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable
+        maps the dict of port tensors (B, width) to a (B, m) tensor (probed with batches of 1 and 2 when the
+        block is built; PyTorch engine only). theta stays linear in them, so the update is least squares.
+    proper : bool, optional
+        Also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
+    feed_u : bool, optional
+        Put past u into phi (the controller's poles); False gives an FIR controller.
+    mask : array_like of bool, optional
+        (n_u, n_phi), True where theta is free; False pins that entry to zero.
+    tie : array_like of int, optional
+        (n_u, n_phi): entries with the same label share one parameter (labels are any integers; a negative
+        label pins the entry to zero, as does ``mask``). For example, with u_j = theta_j1 e_j + theta_j2 e_j^2
+        at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the function the same at every node.
+        ``theta_names`` lists one name per parameter.
+    p0 : float or array_like, optional
+        Initial covariance P(0) = p0 I, scalar or one per member (B,), > 0.
+    lam : float or array_like, optional
+        Forgetting factor in (0, 1], scalar or one per member (B,).
+    R : float or array_like, optional
+        Weight on z, scalar or (n_z, n_z).
+    theta0 : array_like, optional
+        Initial theta (n_u, n_phi) or (B, n_u, n_phi); zero by default.
+    markov : array_like, optional
+        beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u), with the relative degree
+        ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
+    first_delay : int, optional
+        d, the delay of the first Markov parameter in ``markov`` (>= 0; 0 only for a strictly proper
+        identified subsystem).
+    dt : float, optional
+        Sample time [s] (for transfer functions and frequency responses).
+    u_bounds : tuple, optional
+        (low, high) saturation of u, scalars or per component (n_u,), e.g. (0, inf) where physics forbids a
+        sign (a cooling that cannot heat). The retrospective cost uses the saturated u, the one actually
+        applied.
+    theta_bounds : tuple, optional
+        (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each update
+        (P unchanged).
+    r_delta : float or array_like, optional
+        Weight of the penalty r_delta |eta - eta(k)|^2 on the parameters' change in the retrospective cost,
+        scalar or one per member (>= 0); None (the default) leaves it out. Larger values slow and smooth the
+        estimate (noisy data, a member that jumps).
+    normalize : float or array_like, optional
+        Scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the update divided
+        by sqrt(1 + |Psi|_R^2 / s^2) (module docstring), which bounds the step for large signals. None (the
+        default): not normalized.
+    p_max : float or array_like, optional
+        Bound on trace(P), scalar or one per member (> 0): after each update P is scaled by p_max / trace(P)
+        where the trace exceeds it (covariance windup). None (the default): unbounded.
+    name : str, optional
+        The block's name.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    ConfigError
+        If a port is named 'z', 'u' or 'valid', ``nc`` is not a non-negative integer, phi is empty, a setting
+        is out of its range, ``tie`` does not hold integers, the mask leaves no free entry, or values that
+        tied entries share differ.
+    DimensionError
+        If ``R``, ``mask``, ``tie``, a bound or ``markov`` has the wrong shape, or a feature returns the wrong
+        shape.
+
+    Shape
+    -----
+    n_phi is the length of phi (``phi_names``), n_theta the number of free parameters (``theta_names``).
+
+    - Inputs: one per entry of ``signals``, (B, width); ``z``: (B, n_z); ``valid`` (optional): (B, 1), 0 skips
+      the update of that step.
+    - Output ``u``: (B, n_u).
+    - State: ``theta`` (B, n_u, n_phi), ``P`` (B, n_theta, n_theta).
     """
 
     def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
@@ -205,8 +252,27 @@ class RCOEstimator(Block):
             self.register_buffer(_OPTION_BUFFER[key], None if t is None else stored(t))
 
     def set_options(self, r_delta=None, normalize=None, p_max=None) -> None:
-        """Switch robustness options on after construction, before the graph runs: each value given replaces
-        that option (checked as in the constructor: a scalar or one value per member); None leaves it as is."""
+        """Switch robustness options on after construction, before the graph runs.
+
+        Each value given replaces that option (checked as in the constructor: a scalar or one value per
+        member); None leaves it as it is.
+
+        Parameters
+        ----------
+        r_delta : float or array_like, optional
+            Weight of the penalty on the parameters' change (>= 0).
+        normalize : float or array_like, optional
+            Scale s of normalized regressors (> 0).
+        p_max : float or array_like, optional
+            Bound on trace(P) (> 0).
+
+        Raises
+        ------
+        ConfigError
+            If a value is out of its range.
+        DimensionError
+            If a value is given per member for another number of members than the batch's.
+        """
         given = {k: v for k, v in (("r_delta", r_delta), ("normalize", normalize), ("p_max", p_max)) if v is not None}
         self._options(self.theta0.dtype, **given)
         for key in given:
@@ -265,12 +331,35 @@ class RCOEstimator(Block):
                               "parameter (tie)")
 
     def theta_free(self) -> torch.Tensor:
-        """The free parameters eta, (B, n_theta), in the order of ``theta_names``."""
+        """The free parameters eta, in the order of ``theta_names``.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_theta).
+        """
         return self.theta.reshape(self.theta.shape[0], -1).index_select(1, self.free_idx)
 
     @classmethod
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
-        """Exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...)."""
+        """An estimator of the exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...).
+
+        Parameters
+        ----------
+        signals : Mapping[str, int]
+            Input ports and widths.
+        n_u : int, optional
+            Width of u.
+        n_z : int, optional
+            Width of z.
+        **kwargs
+            Further arguments of ``RCOEstimator`` (not ``nc``, ``proper`` or ``feed_u``, which this sets).
+
+        Returns
+        -------
+        RCOEstimator
+            With nc = 0, ``proper=True`` and ``feed_u=False``.
+        """
         return cls(signals, n_u=n_u, n_z=n_z, nc=0, proper=True, feed_u=False, **kwargs)
 
     def _bounds(self, bounds, what: str, width: int, dtype):
@@ -382,7 +471,25 @@ class RCOEstimator(Block):
         return torch.tensor(idx, dtype=torch.int64)
 
     def set_markov(self, markov, first_delay: int = 1) -> None:
-        """Set beta_d..beta_(d+nu-1) of the map u -> z (sign included): (nu, n_z, n_u) or (B, nu, n_z, n_u)."""
+        """Set the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z (sign included).
+
+        A lowered native program reads the new values where their shape stays, and is built again where it
+        changes.
+
+        Parameters
+        ----------
+        markov : array_like
+            (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1.
+        first_delay : int, optional
+            d, the delay of the first one (>= 0; 0 only for an estimator that is not ``proper``).
+
+        Raises
+        ------
+        DimensionError
+            If ``markov`` has the wrong shape.
+        ConfigError
+            If ``first_delay`` is negative, or 0 for a proper estimator (an algebraic loop).
+        """
         beta = torch.as_tensor(markov, dtype=self.theta0.dtype, device=self.theta0.device)
         beta = beta.unsqueeze(0) if beta.dim() == 3 else beta
         if beta.dim() != 4 or tuple(beta.shape[2:]) != (self.n_z, self.n_u) or beta.shape[1] < 1:
@@ -409,6 +516,7 @@ class RCOEstimator(Block):
 
     @property
     def nu(self) -> int:
+        """nu, the number of Markov parameters the retrospective cost uses (0 before they are set)."""
         return int(self.beta.shape[1])
 
     # --- block protocol -------------------------------------------------------------------------------
@@ -475,6 +583,25 @@ class RCOEstimator(Block):
         return memo.derived(self, "lam", (self.lam,), lambda: 1.0 if bool((self.lam == 1).all()) else self.lam)
 
     def update(self, inputs):
+        """The retrospective-cost update of theta from the error z(k), then the shift of the histories.
+
+        The stages: store [phi(k), u(k)] in the window; the Markov filter gives Psi^T and
+        zeta(k) = z(k) - sum_i beta_i u(k-i); z_R = zeta + Psi^T eta; ``rls_update`` on (T^T Psi, z_R) (rows
+        normalized and penalty rows added per the robustness options); the trace bound on P; Theta = T eta and
+        the projection onto ``theta_bounds``; members that became non-finite are frozen; the regressor signals
+        and u move into the past.
+
+        Parameters
+        ----------
+        inputs : Mapping[str, torch.Tensor]
+            The regressor ports, (B, width); ``z``, (B, n_z); and optionally ``valid``, (B, 1): a member with
+            valid <= 0.5 keeps theta and P this step.
+
+        Raises
+        ------
+        ConfigError
+            If the Markov parameters are not set, or changed since ``reset``.
+        """
         W = self.window
         if self.win.shape[0] != W:
             if W == 0:
@@ -544,8 +671,18 @@ class RCOEstimator(Block):
         return torch.bmm(beta.expand(B, -1, -1), self.win.transpose(0, 1)).reshape(B, self.n_z, self.n_u, m)
 
     def last_regressor(self) -> torch.Tensor:
-        """The regressor of the parameters in the last update, Psi^T (B, n_z, n_theta): z_hat(eta) =
-        zeta + Psi^T eta (before the division by m of normalized regressors)."""
+        """The regressor of the parameters in the last update, Psi^T: z_hat(eta) = zeta + Psi^T eta.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_z, n_theta), before the division by m of normalized regressors.
+
+        Raises
+        ------
+        ConfigError
+            If no update has run yet.
+        """
         if not int(self.k):
             raise ConfigError(f"block '{self.name}': no update has run yet")
         B = self.batch_size
@@ -557,14 +694,30 @@ class RCOEstimator(Block):
         return psi_t
 
     def set_theta_free(self, eta: torch.Tensor) -> None:
-        """Set theta from the free parameters eta (B, n_theta): Theta = T eta (pinned entries stay 0)."""
+        """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).
+
+        Parameters
+        ----------
+        eta : torch.Tensor
+            (B, n_theta), in the order of ``theta_names``.
+        """
         flat = self.theta.reshape(self.theta.shape[0], -1).clone()
         flat[:, self.free] = eta.to(flat.dtype)[:, self.param_of[self.free]]
         self.set_state(theta=flat.reshape(self.theta.shape).contiguous())
 
     def row_scale(self, psi_t: torch.Tensor) -> torch.Tensor | None:
-        """m = sqrt(1 + |Psi|_R^2 / s^2) (B,) that normalized regressors divide the rows of z by, or None when
-        they are not normalized."""
+        """The scale m = sqrt(1 + |Psi|_R^2 / s^2) that normalized regressors divide the rows of z by.
+
+        Parameters
+        ----------
+        psi_t : torch.Tensor
+            Psi^T, (B, n_z, n_theta).
+
+        Returns
+        -------
+        torch.Tensor or None
+            m, (B,); None where the regressors are not normalized.
+        """
         if self.norm_inv_s2 is None:
             return None
         return torch.sqrt(1.0 + (psi_t * (self.r_weight @ psi_t)).sum((1, 2)) * self.norm_inv_s2)
@@ -586,8 +739,18 @@ class RCOEstimator(Block):
 
     # --- native form ------------------------------------------------------------------------------------
     def lower(self, b) -> None:
-        """The estimator for the native engine: state, parameters and ports in slots; the regressor signals
-        s(k) (ports or features) computed once per step; RCO_OUT (``output``) and RCO_UPD (``update``)."""
+        """Describe the estimator to the native engine.
+
+        State, parameters and ports go in slots; the regressor signals s(k) (ports or features) are computed
+        once per step; ``RCO_OUT`` computes ``output`` and ``RCO_UPD`` ``update``, from the fields of
+        ``kernels.RCO_FIELD``.
+
+        Parameters
+        ----------
+        b : rcotorch.lowering.Builder
+            Receives the state, parameters, ports and instructions; refuses the block where its features are
+            Python functions or its Markov parameters are missing.
+        """
         if self.features is not None and self.terms is None:
             b.refuse("features are Python functions (the native engine runs rcotorch.features terms)")
         W = self.window
@@ -658,8 +821,15 @@ class RCOEstimator(Block):
 
     # --- the identified subsystem -----------------------------------------------------------------------
     def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """theta split by lag: N (B, n_lags, n_u, n_sig) for the signals at ``lags``, M (B, nc, n_u, n_u)
-        for past u (zeros if ``feed_u`` is False): u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l)."""
+        """theta split by lag: u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l).
+
+        Returns
+        -------
+        N : torch.Tensor
+            (B, n_lags, n_u, n_sig), the coefficients of the signals at ``lags``.
+        M : torch.Tensor
+            (B, max(nc, 1), n_u, n_u), the coefficients of u(k-1)..u(k-nc) (zeros if ``feed_u`` is False).
+        """
         B, theta = self.theta.shape[0], self.theta
         N = theta.new_zeros(B, len(self.lags), self.n_u, self.n_sig)
         j, offset = 0, 0
@@ -674,7 +844,25 @@ class RCOEstimator(Block):
         return N, M
 
     def frequency_response(self, omega) -> torch.Tensor:
-        """Identified subsystem at z = exp(j omega dt): complex (B, len(omega), n_u, n_sig)."""
+        """The identified subsystem's frequency response at z = exp(j omega dt).
+
+        H(z) = (I - sum_l M_l z^-l)^-1 sum_l N_l z^-l, from the regressor signals to u.
+
+        Parameters
+        ----------
+        omega : array_like
+            Angular frequencies [rad/s], (F,).
+
+        Returns
+        -------
+        torch.Tensor
+            Complex, (B, F, n_u, n_sig); NaN for a member whose denominator is singular or not finite.
+
+        Raises
+        ------
+        ConfigError
+            If the estimator has no ``dt``.
+        """
         if not self.dt:
             raise ConfigError(f"block '{self.name}': dt is needed for a frequency response")
         N, M = self.coefficients()
@@ -688,8 +876,15 @@ class RCOEstimator(Block):
         return _solve(den, num)
 
     def dc_gain(self) -> torch.Tensor:
-        """DC gain of the identified subsystem, (B, n_u, n_sig): (I - sum M_l)^-1 sum N_l (sum N_l without
-        fed-back u, where M = 0: no solve, which costs several ms for a batch of 65,536)."""
+        """DC gain of the identified subsystem: (I - sum M_l)^-1 sum N_l.
+
+        Without fed-back u (M = 0) it is sum N_l, with no linear solve.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_u, n_sig); NaN for a member whose I - sum M_l is singular or not finite.
+        """
         N, M = self.coefficients()
         if not self.feed_u:
             return N.sum(1)
@@ -712,6 +907,21 @@ class RCOEstimator(Block):
         port, a feature's name such as ``'y0^3'``); outputs are ``'u'`` (``'u[i]'`` for n_u > 1). So
         ``control.interconnect([known, identified.to_control()], inputs='w', outputs='y')`` with a known model
         whose ports carry the same names (``rt.models``, ``rt.models.label_ports``) builds the refined model.
+
+        Parameters
+        ----------
+        member : int, optional
+            The batch member (negative counts from the end).
+
+        Returns
+        -------
+        control.TransferFunction
+            Discrete, with sample time ``dt`` (True where the estimator has none).
+
+        Raises
+        ------
+        ConfigError
+            If the block has no members yet or ``member`` is out of range.
         """
         import control
         self._check_member(member)

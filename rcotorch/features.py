@@ -54,8 +54,21 @@ def _fmt(v: float) -> str:
 
 @dataclass(frozen=True)
 class Factor:
-    """One factor f(x) of a term: ``kind`` (see the module table), port and channel (None: the whole port),
-    ``power`` for 'pow', ``params`` for 'sat' / 'deadzone' (lo, hi), 'tanh' (scale,), 'affine' (a, b)."""
+    """One factor f(x) of a term; build them with the functions of this module.
+
+    Parameters
+    ----------
+    kind : str
+        'pow', 'sign', 'abs', 'sat', 'deadzone', 'tanh' or 'affine' (see the module table).
+    port : str
+        The input port x is read from.
+    channel : int, optional
+        The channel of the port; None: the whole port.
+    power : int, optional
+        The exponent of 'pow'.
+    params : tuple of float, optional
+        (lo, hi) for 'sat' and 'deadzone', (scale,) for 'tanh', (a, b) for 'affine'.
+    """
 
     kind: str
     port: str
@@ -64,10 +77,32 @@ class Factor:
     params: tuple[float, ...] = ()
 
     def ref(self, c: int | None = None) -> str:
+        """The reference of x: ``'p'`` or ``'p[c]'``.
+
+        Parameters
+        ----------
+        c : int, optional
+            The channel read from a whole port (ignored where the factor names its channel).
+
+        Returns
+        -------
+        str
+        """
         ch = self.channel if self.channel is not None else c
         return self.port if ch is None else f"{self.port}[{ch}]"
 
     def name(self, c: int | None = None) -> str:
+        """The readable name of the factor, e.g. ``'y0^3'``, ``'sign(v)'``, ``'sat(x, -1, 1)'``.
+
+        Parameters
+        ----------
+        c : int, optional
+            The channel read from a whole port.
+
+        Returns
+        -------
+        str
+        """
         x, p = self.ref(c), self.params
         if self.kind == "pow":
             return x if self.power == 1 else f"{x}^{self.power}"
@@ -82,7 +117,18 @@ class Factor:
         return f"{'sat' if self.kind == 'sat' else 'dz'}({x}, {_fmt(p[0])}, {_fmt(p[1])})"
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        """f(x) elementwise, in the native engine's order of operations."""
+        """f(x) elementwise, in the native engine's order of operations.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            (B, width), the port (or channel) values.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, width).
+        """
         k, p = self.kind, self.params
         if k == "pow":
             r = x
@@ -103,7 +149,27 @@ class Factor:
 
 
 class Term:
-    """``coefficient * f_1(x_1) * ...``; build terms with the functions of this module."""
+    """A feature ``coefficient * f_1(x_1) * ...``; build terms with the functions of this module.
+
+    Terms multiply (``*``) with each other and with numbers.
+
+    Parameters
+    ----------
+    factors : Sequence[Factor], optional
+        The factors; none for a constant.
+    coefficient : float, optional
+        The constant factor.
+
+    Raises
+    ------
+    ConfigError
+        If ``coefficient`` is not finite.
+
+    Shape
+    -----
+    Called with port tensors (B, port width), a term returns (B, w): w = 1, or the width of the whole ports it
+    reads.
+    """
 
     def __init__(self, factors: Sequence[Factor] = (), coefficient: float = 1.0):
         self.factors = tuple(factors)
@@ -125,7 +191,27 @@ class Term:
 
     # --- checks against an estimator's ports -----------------------------------------------------------
     def width(self, ports: Mapping[str, int], block: str = "identified") -> int:
-        """Number of features this term gives for the port widths ``ports`` (checks the references)."""
+        """The number of features this term gives for the estimator's port widths (checks the references).
+
+        Parameters
+        ----------
+        ports : Mapping[str, int]
+            The estimator's input ports and widths.
+        block : str, optional
+            The estimator's name, for error messages.
+
+        Returns
+        -------
+        int
+            1, or the width of the whole ports the term reads.
+
+        Raises
+        ------
+        ConfigError
+            If a factor reads a port the estimator does not have.
+        DimensionError
+            If a channel is out of range, or whole ports of different widths are multiplied.
+        """
         widths = set()
         for f in self.factors:
             if f.port not in ports:
@@ -146,11 +232,33 @@ class Term:
         return widths.pop() if widths else 1
 
     def names(self, ports: Mapping[str, int]) -> list[str]:
-        """One readable name per feature, e.g. ['y0^3'] or ['y0[0]^3', 'y0[1]^3']."""
+        """One readable name per feature, e.g. ['y0^3'] or ['y0[0]^3', 'y0[1]^3'].
+
+        Parameters
+        ----------
+        ports : Mapping[str, int]
+            The estimator's input ports and widths.
+
+        Returns
+        -------
+        list of str
+        """
         return [self.name(ports, c) for c in range(self.width(ports))]
 
     def name(self, ports: Mapping[str, int], c: int = 0) -> str:
-        """The name of feature c (whole ports of width > 1 read channel c)."""
+        """The name of one feature of the term.
+
+        Parameters
+        ----------
+        ports : Mapping[str, int]
+            The estimator's input ports and widths.
+        c : int, optional
+            The feature (whole ports of width > 1 read channel c).
+
+        Returns
+        -------
+        str
+        """
         parts = [f.name(c if f.channel is None and ports.get(f.port, 1) > 1 else None) for f in self.factors]
         if not parts:
             return _fmt(self.coefficient)
@@ -159,7 +267,18 @@ class Term:
 
     # --- the two engines --------------------------------------------------------------------------------
     def __call__(self, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """The features (B, width) from the port tensors (B, port width)."""
+        """The features from the port tensors.
+
+        Parameters
+        ----------
+        inputs : Mapping[str, torch.Tensor]
+            Port -> (B, port width).
+
+        Returns
+        -------
+        torch.Tensor
+            (B, w), w from ``width``.
+        """
         ports = {p: t.shape[1] for p, t in inputs.items()}
         B = next(iter(inputs.values())).shape[0]
         ref = next(iter(inputs.values()))
@@ -172,7 +291,23 @@ class Term:
         return v
 
     def encode(self, ports: Mapping[str, int], slot: Callable[[str], int], const: Callable[..., int]) -> list[int]:
-        """This term in the native engine's FEATURE layout (engine.h): width, coefficient, factors."""
+        """This term in the native engine's FEATURE layout (engine.h): width, coefficient, factors.
+
+        Parameters
+        ----------
+        ports : Mapping[str, int]
+            The estimator's input ports and widths.
+        slot : Callable[[str], int]
+            Port -> the slot of its first channel.
+        const : Callable[..., int]
+            Stores constants and returns the slot of the first one.
+
+        Returns
+        -------
+        list of int
+            [width, coefficient's slot, number of factors], then the fields ``kernels.FACTOR_FIELD`` of each
+            factor.
+        """
         w = self.width(ports)
         out = [w, const(self.coefficient), len(self.factors)]
         for f in self.factors:
@@ -205,19 +340,68 @@ def _term(kind: str, ref: str, power: int = 1, params: tuple[float, ...] = ()) -
 
 # --- the vocabulary --------------------------------------------------------------------------------------
 def port(ref: str) -> Term:
-    """x itself (a port, or one channel: ``'y0[1]'``)."""
+    """x itself.
+
+    Parameters
+    ----------
+    ref : str
+        A port (``'y0'``) or one channel of it (``'y0[1]'``).
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If ``ref`` is not a port reference.
+    """
     return _term("pow", ref)
 
 
 def power(ref: str, exponent: int) -> Term:
-    """x^exponent, an integer exponent >= 1 (x^3: a cubic spring)."""
+    """x^exponent (x^3: a cubic spring).
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+    exponent : int
+        An integer >= 1.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If ``exponent`` is not an integer >= 1, or ``ref`` is not a port reference.
+    """
     if not isinstance(exponent, int) or isinstance(exponent, bool) or exponent < 1:
         raise ConfigError(f"features: power of {ref!r} needs an integer exponent >= 1, got {exponent!r}")
     return _term("pow", ref, exponent)
 
 
 def monomial(exponents: Mapping[str, int] | None = None, **by_port: int) -> Term:
-    """prod_p x_p^e_p, e.g. ``monomial(y0=2, w=1)`` or ``monomial({'y0[1]': 2})``."""
+    """prod_p x_p^e_p, e.g. ``monomial(y0=2, w=1)`` or ``monomial({'y0[1]': 2})``.
+
+    Parameters
+    ----------
+    exponents : Mapping[str, int], optional
+        Port reference -> integer exponent >= 1 (for references that are not Python names, e.g. channels).
+    **by_port : int
+        Port name -> integer exponent >= 1.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If no port is given, or an exponent or reference is invalid.
+    """
     exps = {**(exponents or {}), **by_port}
     if not exps:
         raise ConfigError("features: monomial needs at least one port")
@@ -228,7 +412,22 @@ def monomial(exponents: Mapping[str, int] | None = None, **by_port: int) -> Term
 
 
 def product(*refs: str) -> Term:
-    """x_1 x_2 ... of ports (or channels)."""
+    """x_1 x_2 ... of ports (or channels).
+
+    Parameters
+    ----------
+    *refs : str
+        Port references, at least one.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If no port is given, or a reference is invalid.
+    """
     if not refs:
         raise ConfigError("features: product needs at least one port")
     term = Term()
@@ -238,24 +437,80 @@ def product(*refs: str) -> Term:
 
 
 def sign(ref: str) -> Term:
-    """sign(x) in {-1, 0, 1} (Coulomb friction)."""
+    """sign(x) in {-1, 0, 1} (Coulomb friction).
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+
+    Returns
+    -------
+    Term
+    """
     return _term("sign", ref)
 
 
 def absolute(ref: str) -> Term:
-    """abs(x) (e.g. ``absolute('v') * port('v')`` for quadratic damping)."""
+    """abs(x) (e.g. ``absolute('v') * port('v')`` for quadratic damping).
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+
+    Returns
+    -------
+    Term
+    """
     return _term("abs", ref)
 
 
 def saturation(ref: str, low: float, high: float) -> Term:
-    """clamp(x, low, high)."""
+    """clamp(x, low, high).
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+    low, high : float
+        The bounds, low <= high, finite.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If low > high or a bound is not finite.
+    """
     if not low <= high:
         raise ConfigError(f"features: saturation of {ref!r} needs low <= high, got {low}, {high}")
     return _term("sat", ref, params=(low, high))
 
 
 def dead_zone(ref: str, low: float, high: float | None = None) -> Term:
-    """x - clamp(x, low, high): zero inside [low, high]; ``dead_zone('x', d)`` is [-d, d]."""
+    """x - clamp(x, low, high): zero inside [low, high]; ``dead_zone('x', d)`` is [-d, d].
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+    low : float
+        The lower bound, or with ``high`` left out the half-width d of [-|d|, |d|].
+    high : float, optional
+        The upper bound.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If low > high or a bound is not finite.
+    """
     lo, hi = (-builtins.abs(low), builtins.abs(low)) if high is None else (low, high)
     if not lo <= hi:
         raise ConfigError(f"features: dead zone of {ref!r} needs low <= high, got {lo}, {hi}")
@@ -263,19 +518,60 @@ def dead_zone(ref: str, low: float, high: float | None = None) -> Term:
 
 
 def tanh(ref: str, scale: float = 1.0) -> Term:
-    """tanh(x / scale) (a smooth sign)."""
+    """tanh(x / scale) (a smooth sign).
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+    scale : float, optional
+        > 0, finite.
+
+    Returns
+    -------
+    Term
+
+    Raises
+    ------
+    ConfigError
+        If ``scale`` is not a finite number > 0.
+    """
     if not scale > 0:
         raise ConfigError(f"features: tanh of {ref!r} needs scale > 0, got {scale!r}")
     return _term("tanh", ref, params=(scale,))
 
 
 def affine(ref: str, gain: float = 1.0, offset: float = 0.0) -> Term:
-    """gain x + offset."""
+    """gain x + offset.
+
+    Parameters
+    ----------
+    ref : str
+        A port or one channel of it.
+    gain : float, optional
+        Finite.
+    offset : float, optional
+        Finite.
+
+    Returns
+    -------
+    Term
+    """
     return _term("affine", ref, params=(gain, offset))
 
 
 def constant(value: float = 1.0) -> Term:
-    """A constant feature (an offset the estimator can fit)."""
+    """A constant feature (an offset the estimator can fit).
+
+    Parameters
+    ----------
+    value : float, optional
+        The constant, finite.
+
+    Returns
+    -------
+    Term
+    """
     return Term((), value)
 
 
@@ -283,8 +579,18 @@ abs = absolute  # noqa: A001  rcotorch.features.abs reads like the other names
 
 
 def as_terms(features) -> list[Term] | None:
-    """``features`` as a list of terms when it is vocabulary only (a term, a list of terms, or a mapping whose
-    values are terms), else None (Python callables: the PyTorch engine)."""
+    """An estimator's features as a list of terms, where they are vocabulary only.
+
+    Parameters
+    ----------
+    features : Term, sequence, or Mapping
+        A term, a list of terms, or a mapping whose values are terms or Python callables.
+
+    Returns
+    -------
+    list of Term or None
+        None where some value is a Python callable (the PyTorch engine only).
+    """
     if isinstance(features, Term):
         return [features]
     values = list(features.values()) if isinstance(features, Mapping) else list(features)

@@ -61,20 +61,50 @@ def _suggest(name: str, choices: Iterable[str]) -> str:
 class Graph(nn.Module):
     """Blocks wired by port name.
 
-    Args:
-        blocks: the blocks (names must be unique).
-        connections: pairs ``("src_block.out_port", "dst_block.in_port")`` or strings ``"src.out -> dst.in"``.
-        batch_size: number of parallel members B.
-        dtype, device: one dtype and device for every block (float64 by default).
-        engine: how ``advance`` and ``run`` step: ``'native'`` (the graph lowered to the compiled engine, many
-            steps per call; CPU, float64, blocks with a native form; raises with the reason where it does not
-            apply), ``'torch'`` (``step`` after ``step``, PyTorch operations only, no compiled code), or
-            ``'auto'`` (native where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``). ``auto``
-            logs once which engine runs and why it fell back; ``ran_engine`` and ``engine_reason`` keep it.
-            ``step`` always uses PyTorch; both engines update the same state.
-        roles: what the parts of a refinement are, e.g. ``{'estimator': 'refine', 'known': 'model',
-            'error': 'err.out'}`` (see ``BLOCK_ROLES`` and ``SIGNAL_ROLES``); ``role()`` and
-            ``role_signal()`` look them up.
+    The graph is checked when it is built (see the module docstring) and reset for ``batch_size`` members.
+
+    Parameters
+    ----------
+    blocks : Sequence[Block]
+        The blocks (names must be unique).
+    connections : Iterable
+        Pairs ``("src_block.out_port", "dst_block.in_port")`` or strings ``"src.out -> dst.in"``.
+    batch_size : int, optional
+        Number of parallel members B.
+    dtype : torch.dtype, optional
+        One floating-point type for every block: float64 (the default) or float32.
+    device : str or torch.device, optional
+        One device for every block.
+    engine : {'auto', 'native', 'torch'}, optional
+        How ``advance`` and ``run`` step: ``'native'`` (the graph lowered to the compiled engine, many steps
+        per call; CPU, float64, blocks with a native form; raises with the reason where it does not apply),
+        ``'torch'`` (``step`` after ``step``, PyTorch operations only, no compiled code), or ``'auto'`` (native
+        where it applies, else torch; the default, or ``$RCOTORCH_ENGINE``). ``auto`` logs once which engine
+        runs and why it fell back; ``ran_engine`` and ``engine_reason`` keep it. ``step`` always uses PyTorch;
+        both engines update the same state.
+    roles : Mapping[str, str], optional
+        What the parts of a refinement are, e.g. ``{'estimator': 'refine', 'known': 'model',
+        'error': 'err.out'}`` (see ``BLOCK_ROLES`` and ``SIGNAL_ROLES``); ``role()`` and ``role_signal()`` look
+        them up.
+
+    Raises
+    ------
+    ConfigError
+        If ``dtype`` or ``engine`` is not one of those allowed, an entry of ``blocks`` is not a block, two
+        blocks share a name, or a role is unknown.
+    PortError
+        If a connection is malformed, names an unknown block or port, drives an input twice, or a required
+        input is left unconnected.
+    DimensionError
+        If a connection joins ports of different widths.
+    AlgebraicLoopError
+        If direct-feedthrough paths form a cycle.
+    DataError
+        If recorded data is played at another sample time than a block that has one.
+
+    Shape
+    -----
+    Every signal ``(block, port)`` is (B, width of the port); a trace of ``run`` is (T, B, width).
     """
 
     def __init__(self, blocks: Sequence[Block], connections: Iterable, batch_size: int = 1,
@@ -173,14 +203,45 @@ class Graph(nn.Module):
         return roles
 
     def role(self, role: str) -> Block:
-        """The block that plays ``role`` (e.g. ``'estimator'``, ``'known'``)."""
+        """The block that plays a role.
+
+        Parameters
+        ----------
+        role : str
+            One of ``BLOCK_ROLES``, e.g. ``'estimator'``, ``'known'``.
+
+        Returns
+        -------
+        Block
+
+        Raises
+        ------
+        ConfigError
+            If no block has the role.
+        """
         if role not in self.roles:
             raise ConfigError(f"graph: no block has the role '{role}' (declared roles: {sorted(self.roles)}); "
                               "build the graph with rcotorch.refinement or pass roles= to Graph")
         return self.blocks[self.roles[role]]
 
     def role_signal(self, role: str) -> Signal:
-        """The signal that plays ``role`` (e.g. ``'error'``, z) as (block, port)."""
+        """The signal that plays a role.
+
+        Parameters
+        ----------
+        role : str
+            One of ``SIGNAL_ROLES``, e.g. ``'error'`` (z).
+
+        Returns
+        -------
+        tuple of (str, str)
+            (block, port).
+
+        Raises
+        ------
+        ConfigError
+            If no signal has the role.
+        """
         if role not in self.roles:
             raise ConfigError(f"graph: no signal has the role '{role}' (declared roles: {sorted(self.roles)}); "
                               "build the graph with rcotorch.refinement or pass roles= to Graph")
@@ -216,10 +277,17 @@ class Graph(nn.Module):
     # --- running --------------------------------------------------------------------------------------
     @property
     def batch_size(self) -> int:
+        """B, the number of members the blocks are reset for."""
         return next(iter(self.blocks.values())).batch_size
 
     def reset(self, batch_size: int | None = None) -> None:
-        """Reset every block's state (for ``batch_size`` members) and the step counter."""
+        """Reset every block's state and the step counter.
+
+        Parameters
+        ----------
+        batch_size : int, optional
+            The number of members; by default the present one.
+        """
         B = batch_size or self.batch_size
         for blk in self.blocks.values():
             blk.reset(B)
@@ -248,10 +316,22 @@ class Graph(nn.Module):
 
     def step(self, overrides: Mapping[Signal, torch.Tensor] | None = None,
              frozen: Iterable[str] = ()) -> dict[Signal, torch.Tensor]:
-        """Advance every block one step; return all output signals at time k as {(block, port): tensor}.
+        """Advance every block one step on PyTorch and return all output signals at time k.
 
-        ``overrides`` replaces output ports by given values, ``frozen`` blocks are not advanced (used to
-        probe the graph, e.g. for Markov parameters). With ``engine='torch'`` no compiled code runs."""
+        With ``engine='torch'`` no compiled code runs. The hooks are called after the step.
+
+        Parameters
+        ----------
+        overrides : Mapping[tuple of (str, str), torch.Tensor], optional
+            (block, port) -> a value, (B, width), that replaces that output port this step.
+        frozen : Iterable[str], optional
+            Blocks that are not advanced (used to probe the graph, e.g. for Markov parameters).
+
+        Returns
+        -------
+        dict[tuple of (str, str), torch.Tensor]
+            (block, port) -> its value at time k, (B, width); also kept in ``last``.
+        """
         if self.engine == "torch":
             with kernels.disabled():
                 return self._step(overrides, frozen)
@@ -276,6 +356,8 @@ class Graph(nn.Module):
 
     @property
     def engine(self) -> str:
+        """The engine ``advance`` and ``run`` use: 'auto', 'native' or 'torch'; setting another value raises a
+        ``ConfigError``."""
         return self._engine
 
     @engine.setter
@@ -285,17 +367,41 @@ class Graph(nn.Module):
         self._engine = value
 
     def native_status(self) -> str | None:
-        """None when ``advance`` runs natively, else why it runs on PyTorch."""
+        """Whether ``advance`` runs on the native engine.
+
+        Returns
+        -------
+        str or None
+            None when it does, else why it runs on PyTorch.
+        """
         if self.engine == "torch":
             return "engine='torch'"
         return lowering.unsupported(self)
 
     def advance(self, steps: int, accumulate: Mapping[Signal, torch.Tensor] | None = None,
                 record: Mapping[Signal, torch.Tensor] | None = None, every: int = 1) -> None:
-        """Advance ``steps`` steps (on the engine chosen by ``engine``); afterwards ``last`` holds the signals
-        of the last step. ``accumulate``: {signal: (B,) float64 tensor} gets sum_c signal[b, c]^2 of every
-        step added (e.g. for an rms of z). ``record``: {signal: (steps // every, B, width) tensor} receives the
-        signal after every ``every``-th step (inside the native engine: no Python per step)."""
+        """Advance ``steps`` steps on the engine chosen by ``engine``.
+
+        Afterwards ``last`` holds the signals of the last step.
+
+        Parameters
+        ----------
+        steps : int
+            The number of steps (none for steps <= 0).
+        accumulate : Mapping[tuple of (str, str), torch.Tensor], optional
+            Signal -> a (B,) float64 tensor that gets sum_c signal[b, c]^2 of every step added (e.g. for an
+            rms of z).
+        record : Mapping[tuple of (str, str), torch.Tensor], optional
+            Signal -> a (steps // every, B, width) tensor that receives the signal after every ``every``-th
+            step (inside the native engine: no Python per step).
+        every : int, optional
+            The recording interval in steps.
+
+        Raises
+        ------
+        ConfigError
+            If ``engine='native'`` and the graph cannot run natively (the reason is in the message).
+        """
         steps = int(steps)
         if steps <= 0:
             return
@@ -327,17 +433,53 @@ class Graph(nn.Module):
                 logger.warning("graph: running on the PyTorch engine: %s", reason)
 
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
-        """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``); returns the hook. A hook with an
-        integer attribute ``every`` promises to act only after steps k with k % every == 0: it is called
-        only there on the native engine, which runs the steps in between."""
+        """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``).
+
+        A hook with an integer attribute ``every`` promises to act only after steps k with k % every == 0: it
+        is called only there on the native engine, which runs the steps in between.
+
+        Parameters
+        ----------
+        hook : Callable[[Graph], object]
+            Called with the graph.
+
+        Returns
+        -------
+        Callable
+            ``hook`` itself.
+        """
         self.hooks.append(hook)
         return hook
 
     def run(self, steps: int, record: Mapping[str, str | Callable] | None = None, every: int = 1,
             progress: bool = False) -> dict[str, torch.Tensor]:
-        """Run ``steps`` steps; return traces {name: (T, B, ...)} of the recorded signals ('block.port', or a
-        callable of the graph), taken every ``every`` steps after the step. Signals are recorded inside the
-        native engine; a callable needs Python after every ``every`` steps."""
+        """Run ``steps`` steps and return traces of the recorded signals.
+
+        Signals are recorded inside the native engine; a callable needs Python after every ``every`` steps.
+
+        Parameters
+        ----------
+        steps : int
+            The number of steps.
+        record : Mapping[str, str or Callable], optional
+            Trace name -> a signal 'block.port', or a callable of the graph returning a tensor.
+        every : int, optional
+            Take the traces every ``every`` steps, after the step.
+        progress : bool, optional
+            Show a progress bar (tqdm).
+
+        Returns
+        -------
+        dict[str, torch.Tensor]
+            Name -> (T, B, width) with T = steps // every (a callable's values stacked along T).
+
+        Raises
+        ------
+        ConfigError
+            If the recorded data gives fewer samples than the run needs, or ``every`` is not positive.
+        PortError
+            If a recorded signal is not an output port of the graph.
+        """
         self.check_steps(steps)
         if every < 1:
             raise ConfigError(f"graph: every must be a positive number of steps, got {every!r}")
@@ -370,15 +512,50 @@ class Graph(nn.Module):
                 torch.stack(traces[key]) if traces[key] else torch.empty(0) for key in record}
 
     def check_steps(self, steps: int) -> None:
+        """Check that the sources (recorded data) can deliver ``steps`` more steps.
+
+        Parameters
+        ----------
+        steps : int
+            The steps to run from the present one.
+
+        Raises
+        ------
+        ConfigError
+            If the recorded data gives fewer samples.
+        """
         limit = self.max_steps
         if limit is not None and int(self.k) + steps > limit:
             raise ConfigError(f"graph: {int(self.k) + steps} steps asked for, but the recorded data gives "
                               f"{limit} samples")
 
     def markov(self, src: str, dst: str, n: int, eps: float = 1.0) -> torch.Tensor:
-        """Markov parameters of the map ``src`` (an output port) -> ``dst`` (an output port) by probing a
-        copy of the graph: impulses of size ``eps`` in each channel of ``src`` against a baseline run, with
-        the block owning ``src`` frozen. Exact for linear paths. Returns (B, n, width(dst), width(src))."""
+        """Markov parameters of the map from one output port to another, by probing a copy of the graph.
+
+        Impulses of size ``eps`` in each channel of ``src`` are run against a baseline run, with the block
+        owning ``src`` frozen: H_i = (dst with impulse - dst of the baseline)(i) / eps. Exact for linear paths.
+
+        Parameters
+        ----------
+        src : str
+            The output port 'block.port' the impulses replace.
+        dst : str
+            The output port 'block.port' whose response is read.
+        n : int
+            The number of Markov parameters (steps of each run).
+        eps : float, optional
+            The size of the impulses.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n, width(dst), width(src)).
+
+        Raises
+        ------
+        PortError
+            If ``src`` or ``dst`` is not an output port of the graph.
+        """
         s, d = _split(src), _split(dst)
         w_in = self._port(s, "output")
         self._port(d, "output")
@@ -401,6 +578,13 @@ class Graph(nn.Module):
 
     # --- display --------------------------------------------------------------------------------------
     def table(self) -> str:
+        """The blocks with their ports, the connections, the unconnected outputs and the evaluation order.
+
+        Returns
+        -------
+        str
+            The text ``print(graph)`` shows.
+        """
         lines = [f"Graph: {len(self.blocks)} blocks, batch {self.batch_size}, {_dtype(self)}"]
         for name, blk in self.blocks.items():
             ins = ", ".join(f"{p}[{w}]" for p, w in blk.inputs.items()) or "-"

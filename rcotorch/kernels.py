@@ -215,10 +215,26 @@ _MADVISE = _libc_madvise() if sys.platform.startswith("linux") else None
 
 
 def empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.Tensor:
-    """``torch.empty``; a large CPU buffer is first advised to the kernel as huge-page memory (Linux
-    ``madvise(MADV_HUGEPAGE)``, before anything touches it), so that filling it faults one page per 2 MiB
-    instead of one per 4 KiB (a 190 MB recording: about 0.04 s of faults instead of 0.12 s). Elsewhere, or
-    where the system refuses, a plain ``torch.empty``."""
+    """``torch.empty``; a large CPU buffer is first advised to the kernel as huge-page memory.
+
+    The advice (Linux ``madvise(MADV_HUGEPAGE)``, given before anything touches the buffer) lets filling it
+    fault once per 2 MiB page rather than once per 4 KiB page. Elsewhere, or where the system refuses, it is a
+    plain ``torch.empty``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The tensor's shape.
+    dtype : torch.dtype
+        Its type.
+    device : torch.device or str, optional
+        Its device.
+
+    Returns
+    -------
+    torch.Tensor
+        Uninitialized.
+    """
     t = torch.empty(shape, dtype=dtype, device=device)
     if _MADVISE is not None and t.device.type == "cpu":
         start = -(-t.data_ptr() // _HUGE) * _HUGE                        # the whole huge pages inside the buffer

@@ -35,7 +35,28 @@ def _ports(spec, total: int, what: str, name: str) -> dict[str, int]:
 
 
 def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tensor]:
-    """Zero-order-hold discretization of (A, B), batched: exp([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]]."""
+    """Zero-order-hold discretization of (A, B), batched: exp([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]].
+
+    Members with equal matrices share one matrix exponential.
+
+    Parameters
+    ----------
+    A : array_like
+        Continuous state matrix, (n, n) or batched (..., n, n).
+    B : array_like
+        Continuous input matrix, (n, m) or batched (..., n, m); its batch dimensions broadcast with A's.
+    dt : float
+        Sample time [s].
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Returns
+    -------
+    Ad : torch.Tensor
+        (..., n, n), the discrete state matrix exp(A dt).
+    Bd : torch.Tensor
+        (..., n, m), the discrete input matrix (integral of exp(A s) ds over [0, dt]) B.
+    """
     A = torch.as_tensor(A, dtype=dtype)
     B = torch.as_tensor(B, dtype=dtype)
     n, m = A.shape[-1], B.shape[-1]
@@ -59,12 +80,40 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
 class LTI(Block):
     """Discrete LTI block with named input and output ports.
 
-    Args:
-        A, B, C, D: state-space matrices, each (rows, cols) or (batch, rows, cols).
-        inputs: port name -> width (or a list of width-1 names), in the column order of B and D.
-        outputs: port name -> width, in the row order of C and D.
-        dt: sample time in seconds (recorded; the block steps once per sample).
-        x0: initial state (n,) or (batch, n); zero by default.
+    x(k+1) = A x(k) + B u(k), y(k) = C x(k) + D u(k), where u stacks the input ports in the order given and y
+    the output ports. An output port depends on an input port at the same step only where D's block for the
+    pair is nonzero (``feedthrough``).
+
+    Parameters
+    ----------
+    A, B, C, D : array_like
+        State-space matrices, each (rows, cols) shared by the batch or (B, rows, cols) one per member.
+    inputs : Mapping[str, int] or list of str
+        Port name -> width (or a list of width-1 names), in the column order of B and D.
+    outputs : Mapping[str, int] or list of str
+        Port name -> width (or a list of width-1 names), in the row order of C and D.
+    dt : float
+        Sample time in seconds (recorded; the block steps once per sample).
+    name : str, optional
+        The block's name.
+    x0 : array_like, optional
+        Initial state (n,) or (B, n); zero by default.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    DimensionError
+        If A is not square, the matrices do not fit together, or the ports' widths do not add up to the
+        columns of B (inputs) or the rows of C (outputs).
+    ConfigError
+        If ``dt`` is not a positive number.
+
+    Shape
+    -----
+    - Inputs: one per entry of ``inputs``, (B, width); together u, (B, m) with m the columns of B.
+    - Outputs: one per entry of ``outputs``, (B, width); together y, (B, p) with p the rows of C.
+    - State ``x``: (B, n).
     """
 
     def __init__(self, A, B, C, D, inputs, outputs, dt: float, name: str = "lti", x0=None,
@@ -107,8 +156,36 @@ class LTI(Block):
     @classmethod
     def from_control(cls, sys, inputs, outputs, dt: float | None = None, name: str = "lti", x0=None,
                      dtype=DEFAULT_DTYPE) -> LTI:
-        """From a python-control ``StateSpace`` or ``TransferFunction``. A continuous system is discretized
-        by zero-order hold at ``dt``; a discrete one keeps its own sample time (``dt`` must agree)."""
+        """An LTI block from a python-control ``StateSpace`` or ``TransferFunction``.
+
+        A continuous system is discretized by zero-order hold at ``dt``; a discrete one keeps its own sample
+        time (``dt`` must agree).
+
+        Parameters
+        ----------
+        sys : control.StateSpace or control.TransferFunction
+            The system.
+        inputs, outputs : Mapping[str, int] or list of str
+            Port layouts, as for ``LTI``.
+        dt : float, optional
+            Sample time [s]; required for a continuous system.
+        name : str, optional
+            The block's name.
+        x0 : array_like, optional
+            Initial state (n,) or (B, n); zero by default.
+        dtype : torch.dtype, optional
+            Floating-point type (float64 by default).
+
+        Returns
+        -------
+        LTI
+
+        Raises
+        ------
+        ConfigError
+            If ``sys`` is of another type, a continuous system has no ``dt``, or a discrete system's sample time
+            differs from ``dt``.
+        """
         import control
         if isinstance(sys, control.TransferFunction):
             sys = control.tf2ss(sys)
@@ -127,7 +204,32 @@ class LTI(Block):
     @classmethod
     def continuous(cls, A, B, C, D, inputs, outputs, dt: float, name: str = "lti", x0=None,
                    dtype=DEFAULT_DTYPE) -> LTI:
-        """From continuous matrices (shared or per member), ZOH-discretized in torch at ``dt``."""
+        """An LTI block from continuous matrices (shared or per member), ZOH-discretized in torch at ``dt``.
+
+        Parameters
+        ----------
+        A, B, C, D : array_like
+            Continuous state-space matrices, each (rows, cols) or (B, rows, cols).
+        inputs, outputs : Mapping[str, int] or list of str
+            Port layouts, as for ``LTI``.
+        dt : float
+            Sample time [s].
+        name : str, optional
+            The block's name.
+        x0 : array_like, optional
+            Initial state (n,) or (B, n); zero by default.
+        dtype : torch.dtype, optional
+            Floating-point type (float64 by default).
+
+        Returns
+        -------
+        LTI
+
+        Raises
+        ------
+        ConfigError
+            If ``dt`` is not a positive number.
+        """
         if not dt or dt <= 0:
             raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
         A = as_batched_matrix(A, "A", name, dtype)
@@ -164,6 +266,14 @@ class LTI(Block):
         self.set_state(x=x)
 
     def lower(self, b) -> None:
+        """Describe the block to the native engine: an ``LTI_OUT`` instruction per output port (C x plus the
+        feedthrough columns of D u) and one ``LTI_UPD`` (x <- A x + B u).
+
+        Parameters
+        ----------
+        b : rcotorch.lowering.Builder
+            Receives the block's state, parameters, ports and instructions.
+        """
         n, mt = self.n_states, self.B.shape[2]
         x, shared = b.state("x"), b.shared(self.A, self.B, self.C, self.D)
         C, D = b.param(self.C), None
@@ -184,8 +294,30 @@ class LTI(Block):
 
     # --- analysis -------------------------------------------------------------------------------------
     def markov(self, input: str, output: str, n: int) -> torch.Tensor:
-        """Markov parameters H_0 = D, H_i = C A^(i-1) B of the map ``input -> output``, i = 0..n-1:
-        a (Bp, n, rows, cols) tensor (impulse response of the discrete system)."""
+        """Markov parameters H_0 = D, H_i = C A^(i-1) B of the map ``input -> output``, i = 0..n-1.
+
+        They are the impulse response of the discrete system from one input port to one output port.
+
+        Parameters
+        ----------
+        input : str
+            The input port.
+        output : str
+            The output port.
+        n : int
+            The number of Markov parameters.
+
+        Returns
+        -------
+        torch.Tensor
+            (Bp, n, rows, cols): Bp is 1 where the matrices are shared, else the batch; rows is the output
+            port's width, cols the input port's.
+
+        Raises
+        ------
+        ConfigError
+            If the block has no such input or output port.
+        """
         for p, ports, kind in ((input, self._in_slices, "input"), (output, self._out_slices, "output")):
             if p not in ports:
                 raise ConfigError(f"block '{self.name}' has no {kind} port '{p}'; its {kind}s are {list(ports)}")
@@ -200,7 +332,18 @@ class LTI(Block):
         return torch.stack(H[:n], dim=1)
 
     def to_control(self, member: int = 0) -> control.StateSpace:
-        """The discrete system of one batch member as a python-control ``StateSpace`` with its dt."""
+        """The discrete system of one batch member as a python-control ``StateSpace`` with its dt.
+
+        Parameters
+        ----------
+        member : int, optional
+            The batch member (its matrices, or the shared ones).
+
+        Returns
+        -------
+        control.StateSpace
+            Its signals named after the ports (``p[i]`` for the columns of a port wider than 1).
+        """
         import control
         A, B, C, D = (M[member if M.shape[0] > 1 else 0].detach().cpu().numpy()
                       for M in (self.A, self.B, self.C, self.D))

@@ -106,16 +106,36 @@ class GraphScenario(Scenario):
 class RefinementResult:
     """What a refinement found, like a scipy or python-control result object.
 
-    Attributes:
-        estimates: {key: (B,) float64 tensor} the final estimates.
-        lower, upper: {key: (B,) tensor} the confidence interval of each estimate (NaN where none).
-        level: the intervals' confidence level.
-        status: one word per member: ``converged``, ``undetermined`` (settled, but the data did not determine
-            an estimate), ``not_converged`` or ``diverged``.
-        determined: (B,) bool, whether the data determined every estimate of the member.
-        passed: {requirement key: (B,) bool} each member's pass or fail.
-        summary: the run's ``summary.json`` as a dict; ``out`` the folder it was written to.
-        run: the ``rcotorch.runner.Run``, for its graph and history.
+    ``refine`` makes it; printing it prints the table of estimates, intervals, status and requirements.
+
+    Parameters
+    ----------
+    run : rcotorch.runner.Run
+        The finished run.
+    summary : Mapping[str, Any]
+        The run's ``summary.json`` as a dict.
+
+    Attributes
+    ----------
+    estimates : dict[str, torch.Tensor]
+        Key -> (B,) float64, the final estimates.
+    lower, upper : dict[str, torch.Tensor]
+        Key -> (B,), the confidence interval of each estimate (NaN where none).
+    level : float or None
+        The intervals' confidence level (None without intervals).
+    status : list of str
+        One word per member: ``converged``, ``undetermined`` (settled, but the data did not determine an
+        estimate), ``not_converged`` or ``diverged``.
+    determined : torch.Tensor
+        (B,) bool, whether the data determined every estimate of the member.
+    passed : dict[str, torch.Tensor]
+        Requirement key -> (B,) bool, each member's pass or fail.
+    summary : dict
+        The run's ``summary.json`` as a dict.
+    out : pathlib.Path
+        The folder it was written to.
+    run : rcotorch.runner.Run
+        The run, for its graph and history.
     """
 
     def __init__(self, run: Run, summary: Mapping[str, Any]):
@@ -143,6 +163,7 @@ class RefinementResult:
 
     @property
     def half_width(self) -> dict[str, torch.Tensor]:
+        """Key -> (B,), half the width of each estimate's confidence interval (NaN where none)."""
         return {k: (self.upper[k] - self.lower[k]) / 2 for k in self.estimates}
 
     @property
@@ -204,6 +225,12 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     -------
     RefinementResult
         Estimates, intervals, status and requirement checks per member; printing it prints the table.
+
+    Raises
+    ------
+    ConfigError
+        If the graph has already run, is not a ``Graph`` with the roles 'estimator' and 'error', its dtype is
+        not one the runner knows, or truth, scales, requirements or estimates do not fit the estimates.
     """
     if int(graph.k) != 0:
         raise ConfigError(f"refine: the graph has already run {int(graph.k)} steps; pass a fresh graph (or call "

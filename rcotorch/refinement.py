@@ -47,14 +47,74 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     parameters, ``nu`` of them are derived from ``known``: beta_i = -H_i of u -> y (z = y - y_hat), from its
     relative degree d on.
 
-    ``noise``: measurement noise of a simulated physical system, a source whose output ``out`` has the width
-    of ``y`` (e.g. ``WhiteNoise(1, std=0.01, seed=7)``); it is added to the physical system's output in a
-    block ``measurement`` (y = plant.y + noise), so the refinement sees noisy data as it would from a sensor.
-
     Recorded data with missing samples of the input ``w``: the known model runs on with the held input, so
     after a gap the update is held (``valid`` = 0) for ``input_holdoff`` samples, by default the samples until
     the known model's impulse response w -> y has decayed below 1e-3 of its peak for good, plus the
     estimator's window (``holdoff_samples``). A hold-off set on the data block itself is kept.
+
+    The blocks given become parts of the graph: ``excitation``, the physical block, ``truth`` and ``noise``
+    are renamed ``excitation``, ``plant``, ``unknown`` and ``noise``; an estimator without ``dt`` takes the
+    known model's; Markov parameters derived here and a hold-off set here are set on the estimator and the
+    data block.
+
+    Parameters
+    ----------
+    known : Block
+        The known subsystem, with inputs ``exogenous`` and ``actuation`` and output ``measured``.
+    identified : RCOEstimator
+        The estimator, the identified subsystem.
+    truth : Block, optional
+        The true unknown subsystem (one input, one output port) of a simulated physical system.
+    physical : Block, optional
+        A simulated physical system with input ``w`` and output ``y``.
+    data : Block, optional
+        Recorded measurements (named 'data'), a source with outputs ``w`` and ``y``.
+    excitation : Block, optional
+        The source of ``w`` for a simulated physical system (e.g. ``WhiteNoise``).
+    nu : int, optional
+        How many Markov parameters to derive from ``known`` (needed unless the estimator has them).
+    batch_size : int, optional
+        B, the number of parallel members.
+    dtype : torch.dtype, optional
+        Floating-point type of the graph (float64 by default).
+    device : str or torch.device, optional
+        Device of the graph.
+    exogenous : str, optional
+        The known model's input port for the exogenous signal (and the data's column port).
+    actuation : str, optional
+        The known model's input port for u, the unknown subsystem's output.
+    measured : str, optional
+        The known model's (and the physical system's) measured output port.
+    feeds : Mapping[str, str], optional
+        Estimator port -> 'block.port' that feeds it, where it is not the known model's output of the same
+        name (or ``w``).
+    blocks : Sequence[Block], optional
+        Further blocks of the simulated system (e.g. filters that make the estimator's regressors).
+    connections : Iterable, optional
+        Their connections, as for ``Graph``.
+    input_holdoff : int, optional
+        Samples to hold the update after a missing sample of ``w`` (default: ``holdoff_samples``).
+    noise : Block, optional
+        Measurement noise of a simulated physical system, a source whose output ``out`` has the width of
+        ``y`` (e.g. ``WhiteNoise(1, std=0.01, seed=7)``); it is added to the physical system's output in a
+        block ``measurement`` (y = plant.y + noise), so the refinement sees noisy data as it would from a
+        sensor.
+
+    Returns
+    -------
+    Graph
+        With the roles 'estimator', 'known', 'physical', 'error', 'measured', 'prediction', 'exogenous' (and
+        'excitation' for a simulated physical system).
+
+    Raises
+    ------
+    ConfigError
+        If not exactly one of ``truth``, ``physical`` and ``data`` is given, the data block is not named
+        'data', a simulated system has no excitation, ``noise`` comes with recorded data, ``nu`` is missing,
+        or the known model does not give the unknown subsystem exactly one signal to see.
+    PortError
+        If a port the figure wires is missing, ``truth`` or ``noise`` has other ports than it needs, or an
+        estimator input has no source.
     """
     given = [x is not None for x in (truth, physical, data)]
     if sum(given) != 1:
@@ -153,9 +213,30 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
 
 def holdoff_samples(known: LTI, identified: RCOEstimator, exogenous: str = "w", measured: str = "y",
                     tol: float = 1e-3, horizon: int = 20_000) -> int:
-    """Samples to hold the update after a missing input sample: until the known model's impulse response
-    exogenous -> measured stays below ``tol`` times its peak (within ``horizon``), plus the estimator's window
-    (its Markov parameters and past regressors)."""
+    """Samples to hold the update after a missing input sample.
+
+    They last until the known model's impulse response exogenous -> measured stays below ``tol`` times its
+    peak (within ``horizon``), plus the estimator's window (its Markov parameters and past regressors).
+
+    Parameters
+    ----------
+    known : LTI
+        The known model.
+    identified : RCOEstimator
+        The estimator, with its Markov parameters set.
+    exogenous : str, optional
+        The known model's input port.
+    measured : str, optional
+        The known model's output port.
+    tol : float, optional
+        The level, relative to the peak, below which the response counts as decayed.
+    horizon : int, optional
+        The number of samples of the impulse response examined.
+
+    Returns
+    -------
+    int
+    """
     H = known.markov(exogenous, measured, horizon).abs().flatten(2).amax(2).amax(0)      # (horizon,)
     above = (H > tol * H.max()).nonzero()
     decay = int(above[-1]) + 1 if above.numel() else 0
@@ -164,8 +245,37 @@ def holdoff_samples(known: LTI, identified: RCOEstimator, exogenous: str = "w", 
 
 def derive_markov(known: LTI, actuation: str, measured: str, nu: int, tol: float = 1e-12
                   ) -> tuple[torch.Tensor, int]:
-    """beta_d..beta_(d+nu-1) of u -> z for z = y - y_hat (minus the known model's Markov parameters) and the
-    relative degree d (the first nonzero one, relative to the largest in a long horizon)."""
+    """The Markov parameters of u -> z for z = y - y_hat and the relative degree, from the known model.
+
+    beta_i = -H_i, the known model's Markov parameters of u -> y with the sign of z, for i = d..d+nu-1, where d
+    is the first index whose parameter is nonzero (above ``tol`` times the largest in a horizon of
+    max(4 nu, 64) + nu).
+
+    Parameters
+    ----------
+    known : LTI
+        The known model (any block with a ``markov(input, output, n)`` method).
+    actuation : str
+        Its input port for u.
+    measured : str
+        Its output port y.
+    nu : int
+        The number of Markov parameters, >= 1.
+    tol : float, optional
+        The relative size below which a Markov parameter counts as zero.
+
+    Returns
+    -------
+    beta : torch.Tensor
+        (Bp, nu, width(y), width(u)).
+    d : int
+        The relative degree.
+
+    Raises
+    ------
+    ConfigError
+        If ``nu`` < 1, or every Markov parameter of u -> y is zero.
+    """
     if nu < 1:
         raise ConfigError(f"nu must be at least 1, got {nu}")
     horizon = max(4 * nu, 64)

@@ -32,16 +32,50 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
                lam: torch.Tensor | float = 1.0, r_inv: torch.Tensor | float = 1.0,
                active: torch.Tensor | None = None, *, inplace: bool = False, kernel: str = "auto"
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One RLS step for all members. Returns (theta, P, ok).
+    """One RLS step for all members (module docstring: S, theta and P).
 
     Members with ``active = False`` are left exactly as they were. ``ok`` is False for an active member whose
     innovation covariance S is not positive and finite (P has lost definiteness) or whose new theta is not
     finite; such a member is also left as it was, so a caller can freeze it without losing the others.
-    The P update forms ``P - W W^T``, so P stays exactly symmetric. With ``inplace=True`` theta and P (both
-    contiguous) are updated in place and returned; otherwise new tensors are returned and the inputs kept.
-    ``kernel``: ``'native'`` (the compiled kernel, CPU and float64, the same RLS code as the native engine's
-    estimator step; raises where it does not apply), ``'torch'`` (PyTorch operations), or ``'auto'`` (native
-    where it applies and is allowed: not inside ``Graph(engine='torch')`` steps).
+    The P update forms ``P - W W^T``, so P stays exactly symmetric.
+
+    Parameters
+    ----------
+    theta : torch.Tensor
+        (B, n), the parameters.
+    P : torch.Tensor
+        (B, n, n), their covariance.
+    psi : torch.Tensor
+        (B, n, l), the regressor Psi.
+    z_r : torch.Tensor
+        (B, l), the retrospective error z_R.
+    lam : torch.Tensor or float, optional
+        The forgetting factor, a scalar or (B,).
+    r_inv : torch.Tensor or float, optional
+        R^-1, a scalar or (l, l).
+    active : torch.Tensor, optional
+        (B,) bool; inactive members are not updated. All are active by default.
+    inplace : bool, optional
+        Update theta and P (both contiguous) in place and return them; otherwise new tensors are returned and
+        the inputs kept.
+    kernel : {'auto', 'native', 'torch'}, optional
+        ``'native'`` (the compiled kernel, CPU and float64, the same RLS code as the native engine's estimator
+        step; raises where it does not apply), ``'torch'`` (PyTorch operations), or ``'auto'`` (native where it
+        applies and is allowed: not inside ``Graph(engine='torch')`` steps).
+
+    Returns
+    -------
+    theta : torch.Tensor
+        (B, n), updated.
+    P : torch.Tensor
+        (B, n, n), updated.
+    ok : torch.Tensor
+        (B,) bool: False for an active member that could not be updated; True for inactive members.
+
+    Raises
+    ------
+    ConfigError
+        If ``kernel='native'`` and the compiled kernel does not apply.
     """
     B, n = theta.shape
     native = (kernels.allowed() and theta.device.type == "cpu" and theta.dtype == P.dtype == torch.float64

@@ -30,7 +30,20 @@ def _mix32(x: torch.Tensor) -> torch.Tensor:
 
 
 def hash32(*keys: torch.Tensor | int) -> torch.Tensor:
-    """Combine integer keys (broadcast) into uniformly distributed 32-bit integers (int64 tensor)."""
+    """Combine integer keys into uniformly distributed 32-bit integers.
+
+    h_1 = mix(k_1 ^ 0x9E3779B9), h_i = mix(h_(i-1) ^ mix(k_i + 0x632BE5AB)), each key taken mod 2**32.
+
+    Parameters
+    ----------
+    *keys : torch.Tensor or int
+        Integer keys, broadcast together (e.g. seed, member, step, component).
+
+    Returns
+    -------
+    torch.Tensor
+        int64, values in [0, 2**32), of the keys' broadcast shape.
+    """
     h = None
     for key in keys:
         k = torch.as_tensor(key, dtype=torch.int64) if not isinstance(key, torch.Tensor) else key.long()
@@ -40,7 +53,20 @@ def hash32(*keys: torch.Tensor | int) -> torch.Tensor:
 
 
 def uniform(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
-    """Uniform samples in the open interval (0, 1), 53 random bits from two hashes."""
+    """Uniform samples in the open interval (0, 1), 53 random bits from two hashes.
+
+    Parameters
+    ----------
+    *keys : torch.Tensor or int
+        Integer keys, broadcast together; equal keys give equal samples.
+    dtype : torch.dtype, optional
+        Floating-point type of the result (float64 by default).
+
+    Returns
+    -------
+    torch.Tensor
+        Of the keys' broadcast shape.
+    """
     a = hash32(*keys, 0x1B873593)
     b = hash32(*keys, 0x5BD1E995)
     hi = (a >> 5).to(torch.float64)  # 27 bits
@@ -50,7 +76,22 @@ def uniform(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
 
 
 def normal(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
-    """Standard normal samples by the Box-Muller transform of two keyed uniforms."""
+    """Standard normal samples by the Box-Muller transform of two keyed uniforms.
+
+    x = sqrt(-2 ln u1) cos(2 pi u2), with u1 = uniform(*keys, 1) and u2 = uniform(*keys, 2).
+
+    Parameters
+    ----------
+    *keys : torch.Tensor or int
+        Integer keys, broadcast together; equal keys give equal samples.
+    dtype : torch.dtype, optional
+        Floating-point type of the result (float64 by default).
+
+    Returns
+    -------
+    torch.Tensor
+        Of the keys' broadcast shape.
+    """
     u1 = uniform(*keys, 1, dtype=torch.float64)
     u2 = uniform(*keys, 2, dtype=torch.float64)
     return (torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)).to(dtype)

@@ -22,6 +22,30 @@ class WhiteNoise(Block):
     Samples are a pure function of (seed, member, k, component) (see ``rcotorch.rng``): with an integer
     ``seed`` member b draws the stream (seed, b); with one seed per member, member b draws (seed[b], 0), so
     a batched sweep reproduces its separate batch-of-one runs exactly. ``std`` may differ per member.
+
+    Parameters
+    ----------
+    width : int, optional
+        The width of the output port.
+    std : float or array_like, optional
+        Standard deviation, shared or one per member (B,).
+    seed : int or array_like of int, optional
+        One seed for the batch, or one per member (B,).
+    mean : float or array_like, optional
+        Mean, shared or one per member (B,).
+    name : str, optional
+        The block's name.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    ConfigError
+        If ``std`` is negative.
+
+    Shape
+    -----
+    - Output ``out``: (B, width).
     """
 
     def __init__(self, width: int = 1, std=1.0, seed=0, mean=0.0, name: str = "excitation",
@@ -85,6 +109,14 @@ class WhiteNoise(Block):
         self.k += 1
 
     def lower(self, b) -> None:
+        """Describe the block to the native engine: one ``NOISE`` instruction draws ``out`` from each member's
+        hashed (seed, member) key and the step counter, the same samples as the PyTorch form.
+
+        Parameters
+        ----------
+        b : rcotorch.lowering.Builder
+            Receives the block's parameters, port, scratch and instruction.
+        """
         keys = memo.derived(self, "keys", (self.stream,), lambda: rng.hash32(
             self.stream[:, 0], self.stream[:, 1]).to(torch.float64).reshape(-1, 1))   # (seed, member) prefix
         b.emit("NOISE", [self.width, b.counter(), b.param(keys), b.param(self.std), b.param(self.mean),
@@ -95,7 +127,7 @@ def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length:
                  dtype: torch.dtype) -> torch.Tensor:
     """``rng.normal(seeds, members, steps, comp)`` on the grid (B, steps start..start+length-1, comp
     0..width-1), bit for bit, with the hash chain's common prefixes computed once: (seed, member) per member,
-    (seed, member, step, comp) once for the four hashes behind a normal sample. About half the integer work."""
+    (seed, member, step, comp) once for the four hashes behind a normal sample, not once per hash."""
     fast = kernels.uniform_grid(seeds, members, start, length, width)
     if fast is not None:                                     # the integer hashing in C, same bits
         u1, u2 = fast                                        # the transform below, in place
@@ -124,28 +156,52 @@ def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length:
 class Recorded(Block):
     """Plays recorded signals back, one sample per step.
 
-    Args:
-        data: a ``Recording`` or an array (T, columns), or one per member (B, T, columns).
-        outputs: port name -> column name(s) or index(es), e.g. ``{'w': 'V1', 'y': 'V2'}``.
-        dt: the sample time of ``data`` in seconds where it carries none (an array, or a recording loaded
-            without ``dt``); a recording's own sample time must agree with it.
-        derive: derived signals, name -> ``rcotorch.data.difference / derivative / function``, computed once
-            from the whole recording when the block is built (playback stays a plain table); ``outputs`` may
-            name them, e.g. ``derive={"v": derivative("x", tau=0.01)}, outputs={"y": "v", ...}``.
-        resample: play the recording back at this sample time [s] instead of its own: each output is
-            interpolated linearly onto t = k * resample (k = 0, 1, ... while t lies within the recording),
-            without an anti-aliasing filter. A graph refuses recorded data whose sample time differs from
-            that of another block (e.g. the known model), so another rate needs this option.
-
     Where the recording marks samples invalid (non-finite, loaded with ``on_nonfinite='skip'``), the block
     holds the last valid value and emits ``valid = 0`` on the extra output port ``valid``, so an estimator
-    wired to it skips that sample.
-
-    ``holdoff``: port -> samples; after a missing sample of that port, ``valid`` stays 0 for that many further
-    samples. A missing *input* is held at its last value, so a model driven by it is wrong until its response
-    to the wrong input has decayed; ``rcotorch.refinement`` sets the input's hold-off from the known model
-    unless one is given here. Reading past the end raises a ``DataError``; a graph checks the run length
+    wired to it skips that sample. Reading past the end raises a ``DataError``; a graph checks the run length
     against it before starting.
+
+    Parameters
+    ----------
+    data : Recording or array_like
+        A ``Recording``, or an array (T, columns), or one per member (B, T, columns).
+    outputs : Mapping[str, str or int or Sequence[str or int]]
+        Port name -> column name(s) or index(es), e.g. ``{'w': 'V1', 'y': 'V2'}``.
+    name : str, optional
+        The block's name.
+    dt : float, optional
+        The sample time of ``data`` in seconds where it carries none (an array, or a recording loaded without
+        ``dt``); a recording's own sample time must agree with it.
+    derive : Mapping[str, Derivation], optional
+        Derived signals, name -> ``rcotorch.data.difference / derivative / function``, computed once from the
+        whole recording when the block is built (playback stays a plain table); ``outputs`` may name them,
+        e.g. ``derive={"v": derivative("x", tau=0.01)}, outputs={"y": "v", ...}``.
+    holdoff : Mapping[str, int], optional
+        Port -> samples; after a missing sample of that port, ``valid`` stays 0 for that many further
+        samples. A missing *input* is held at its last value, so a model driven by it is wrong until its
+        response to the wrong input has decayed; ``rcotorch.refinement`` sets the input's hold-off from the
+        known model unless one is given here.
+    resample : float, optional
+        Play the recording back at this sample time [s] instead of its own: each output is interpolated
+        linearly onto t = k * resample (k = 0, 1, ... while t lies within the recording), without an
+        anti-aliasing filter. A graph refuses recorded data whose sample time differs from that of another
+        block (e.g. the known model), so another rate needs this option.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    DataError
+        If a column is unknown, a derivation fails, a sample is non-finite in a recording that does not mark
+        invalid samples, ``dt`` disagrees with the recording's sample time, or ``resample`` is given for a
+        recording without a sample time.
+    ConfigError
+        If a ``holdoff`` entry names no output port or is not a non-negative integer.
+
+    Shape
+    -----
+    - Outputs: one per entry of ``outputs``, (B, number of columns it names).
+    - Output ``valid`` (only where the recording misses samples): (B, 1), 1 for a valid sample, else 0.
     """
 
     def __init__(self, data, outputs: Mapping[str, str | int | Sequence[str | int]], name: str = "data",
@@ -198,11 +254,32 @@ class Recorded(Block):
         self.set_holdoff(dict(holdoff or {}))
 
     def gaps(self, port: str) -> bool:
-        """Whether the recording misses a sample of ``port``."""
+        """Whether the recording misses a sample of an output port.
+
+        Parameters
+        ----------
+        port : str
+            The output port.
+
+        Returns
+        -------
+        bool
+        """
         return not self._valid[:, :, self._slices[port]].all()
 
     def set_holdoff(self, holdoff: Mapping[str, int]) -> None:
-        """Samples for which ``valid`` stays 0 after a missing sample, per port (added to those already set)."""
+        """Set the samples for which ``valid`` stays 0 after a missing sample, per port.
+
+        Parameters
+        ----------
+        holdoff : Mapping[str, int]
+            Output port -> samples, added to (or replacing for the same port) those already set.
+
+        Raises
+        ------
+        ConfigError
+            If a port is not an output of the block, or a count is not a non-negative integer.
+        """
         for port, n in holdoff.items():
             if port not in self._slices:
                 raise ConfigError(f"block '{self.name}': holdoff names '{port}', not one of its outputs "
@@ -221,7 +298,23 @@ class Recorded(Block):
         self.valid_mask = torch.as_tensor(ok[:, :, None], dtype=dtype, device=self.values.device)
 
     def window(self, start: int, stop: int) -> Recorded:
-        """A copy that plays samples [start, stop) of this block's recording, from its first step."""
+        """A copy that plays samples [start, stop) of this block's recording, from its first step.
+
+        Parameters
+        ----------
+        start, stop : int
+            The window, in samples of the (resampled) recording: 0 <= start < stop <= ``length``.
+
+        Returns
+        -------
+        Recorded
+            Its hold-off mask recomputed from the window's own samples, at step 0.
+
+        Raises
+        ------
+        ConfigError
+            If the window does not lie within the recording.
+        """
         if not 0 <= start < stop <= self.length:
             raise ConfigError(f"block '{self.name}': window ({start}, {stop}) must lie within the recording's "
                               f"{self.length} samples")
@@ -235,6 +328,7 @@ class Recorded(Block):
 
     @property
     def max_steps(self) -> int:
+        """The number of steps the block can play: the recording's length in samples."""
         return self.length
 
     def reset(self, batch_size: int) -> None:
@@ -246,6 +340,25 @@ class Recorded(Block):
         return {p: () for p in self.outputs}
 
     def output(self, port, inputs):
+        """The recorded sample of a port at time k (for ``valid``: whether it is valid).
+
+        Parameters
+        ----------
+        port : str
+            The output port.
+        inputs : Mapping[str, torch.Tensor]
+            Empty: the block has no inputs.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, outputs[port]).
+
+        Raises
+        ------
+        DataError
+            If step k is past the end of the recording.
+        """
         k = int(self.k)
         if k >= self.length:
             raise DataError(f"block '{self.name}': step {k} is past the end of the recording "
@@ -260,6 +373,14 @@ class Recorded(Block):
         self.k += 1
 
     def lower(self, b) -> None:
+        """Describe the block to the native engine: a ``PLAYBACK`` instruction per output port reads the
+        table at the step counter; the run length is bounded by the samples left.
+
+        Parameters
+        ----------
+        b : rcotorch.lowering.Builder
+            Receives the table, the ports and the instructions.
+        """
         b.steps_left(lambda: self.length - int(self.k))
         for port in self.outputs:
             t, off, w = (self.valid_mask, 0, 1) if port == "valid" else \

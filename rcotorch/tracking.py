@@ -87,19 +87,43 @@ def _statistic(x):
 class ChangeDetector(Nonlinear):
     """CUSUM change detector on the model error z (module docstring), one per member.
 
-    Args:
-        n_z: width of z (its input port ``z``).
-        warmup: steps after the start before the reference window; long enough for the refinement to settle.
-        window: steps of the reference window that sets each channel's scale sigma_i^2.
-        holdoff: steps after an alarm before the next reference window (default ``warmup``): long enough for the
-            refinement to re-converge.
-        drift: allowance subtracted from s each step: changes smaller than ``drift`` times the noise's power
-            are ignored (0.5-1 is usual).
-        threshold: alarm level of g; the mean time between false alarms grows about exponentially with it.
-        dt: sample time (for times in seconds).
+    s(k) = (1 / n_z) sum_i z_i(k)^2 / sigma_i^2, g(k) = max(0, g(k-1) + s(k) - 1 - drift); an alarm when
+    g(k) > threshold.
 
-    Output port ``g``: the statistic. State (``x``, per member): phase, step, s, g, the step of the first alarm
-    (-1: none), of the last, the number of alarms, alarms not yet acted on, then the reference sums of z_i^2.
+    Parameters
+    ----------
+    n_z : int, optional
+        Width of z (its input port ``z``).
+    warmup : int, optional
+        Steps after the start before the reference window; long enough for the refinement to settle.
+    window : int, optional
+        Steps of the reference window that sets each channel's scale sigma_i^2.
+    holdoff : int, optional
+        Steps after an alarm before the next reference window (default ``warmup``): long enough for the
+        refinement to re-converge.
+    drift : float, optional
+        Allowance subtracted from s each step: changes smaller than ``drift`` times the noise's power are
+        ignored (0.5-1 is usual).
+    threshold : float, optional
+        Alarm level of g; the mean time between false alarms grows about exponentially with it.
+    dt : float, optional
+        Sample time [s] (for times in seconds).
+    name : str, optional
+        The block's name.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    ConfigError
+        If n_z < 1, warmup < 0, window < 1, holdoff < 0, drift < 0 or threshold <= 0 (or one is not finite).
+
+    Shape
+    -----
+    - Input ``z``: (B, n_z).
+    - Output ``g``: (B, 1), the statistic.
+    - State ``x``: (B, 8 + n_z), per member: phase, step, s, g, the step of the first alarm (-1: none), of the
+      last, the number of alarms, alarms not yet acted on, then the reference sums of z_i^2.
     """
 
     def __init__(self, n_z: int = 1, warmup: int = 200, window: int = 200, holdoff: int | None = None,
@@ -121,11 +145,23 @@ class ChangeDetector(Nonlinear):
                          {"z": n_z}, {"g": 1}, dt=dt, x0=x0, name=name, dtype=dtype)
 
     def first_alarm(self) -> torch.Tensor:
-        """The step of each member's first alarm, (B,) int64, -1 where there was none."""
+        """The step of each member's first alarm.
+
+        Returns
+        -------
+        torch.Tensor
+            (B,) int64, -1 where there was none.
+        """
         return self.x[:, FIRST].round().long()
 
     def alarms(self) -> torch.Tensor:
-        """The number of alarms of each member, (B,) int64."""
+        """The number of alarms of each member.
+
+        Returns
+        -------
+        torch.Tensor
+            (B,) int64.
+        """
         return self.x[:, COUNT].round().long()
 
 
@@ -139,7 +175,34 @@ class ResetOnChange:
     What the restart can and cannot do is measured in docs/tracking.md: after a change, the known model's
     state has drifted from the truth's, so the first post-change data regress on the model's signals while they
     differ from the truth's; a moderate p0 (one step moves theta part of the way) with a while of forgetting
-    follows the change, a very large p0 fits that transient exactly and goes astray."""
+    follows the change, a very large p0 fits that transient exactly and goes astray.
+
+    Parameters
+    ----------
+    graph : Graph
+        The graph, with a ``ChangeDetector`` and an estimator.
+    every : int, optional
+        Act after the steps k with k % every == 0.
+    detector : str, optional
+        The name of the ``ChangeDetector`` block.
+    estimator : str, optional
+        The name of the estimator block; by default the graph's 'estimator' role.
+    p0 : float, optional
+        The restarted covariance P = p0 I (> 0); by default the estimator's own p0.
+    lam : float, optional
+        Forgetting factor in (0, 1] of a member for the ``hold`` steps after each of its alarms; None keeps
+        the estimator's factors.
+    hold : int, optional
+        How many steps after an alarm ``lam`` applies (>= 0).
+    restart : bool, optional
+        Reset P at an alarm; False keeps P (only ``lam`` acts).
+
+    Raises
+    ------
+    ConfigError
+        If ``every``, ``p0``, ``lam`` or ``hold`` is out of range, or the graph has no ``ChangeDetector`` named
+        ``detector``.
+    """
 
     def __init__(self, graph, every: int = 5, detector: str = "detector", estimator: str | None = None,
                  p0: float | None = None, lam: float | None = None, hold: int = 0, restart: bool = True):
@@ -168,6 +231,18 @@ class ResetOnChange:
         return self.graph.blocks[self.estimator] if self.estimator else self.graph.role("estimator")
 
     def __call__(self, graph=None) -> bool:
+        """Act after a step: restart the members that alarmed since the last call, and set the factors.
+
+        Parameters
+        ----------
+        graph : Graph, optional
+            Ignored (the hook acts on the graph it was made for); given by ``Graph`` when it calls hooks.
+
+        Returns
+        -------
+        bool
+            Whether it changed the estimator (P or the forgetting factors).
+        """
         g = self.graph
         k = int(g.k)
         if k % self.every:
@@ -193,8 +268,22 @@ class ResetOnChange:
 
 
 class at_step:
-    """A step hook that calls ``action(graph)`` once, when the graph reaches step ``step`` (after that step's
-    update): a change of the simulated truth at a known time, on either engine."""
+    """A step hook that calls ``action(graph)`` once, when the graph reaches step ``step``.
+
+    It acts after that step's update: a change of the simulated truth at a known time, on either engine.
+
+    Parameters
+    ----------
+    step : int
+        The step count (``graph.k``) at which to act, >= 1.
+    action : Callable
+        Called with the graph.
+
+    Raises
+    ------
+    ConfigError
+        If ``step`` is not a positive integer.
+    """
 
     def __init__(self, step: int, action: Callable):
         if isinstance(step, bool) or not isinstance(step, int) or step < 1:
@@ -202,6 +291,18 @@ class at_step:
         self.every, self.step, self.action = step, step, action
 
     def __call__(self, graph) -> bool:
+        """Call the action if the graph is at the step.
+
+        Parameters
+        ----------
+        graph : Graph
+            The graph, after a step.
+
+        Returns
+        -------
+        bool
+            Whether the action ran.
+        """
         if int(graph.k) != self.step:
             return False
         self.action(graph)
@@ -209,8 +310,19 @@ class at_step:
 
 
 def change_report(graph) -> dict[str, dict[str, torch.Tensor]]:
-    """What each ``ChangeDetector`` of ``graph`` found, per member: the step and time [s] of its first and last
-    alarm (-1 / NaN: none) and the number of alarms."""
+    """What each ``ChangeDetector`` of a graph found, per member.
+
+    Parameters
+    ----------
+    graph : Graph
+        The graph.
+
+    Returns
+    -------
+    dict[str, dict[str, torch.Tensor]]
+        Detector name -> 'first_alarm_step', 'first_alarm_s', 'last_alarm_step', 'alarms', each (B,): the step
+        and time [s] of its first and last alarm (-1 / NaN: none) and the number of alarms.
+    """
     out = {}
     for name, blk in graph.blocks.items():
         if isinstance(blk, ChangeDetector) and blk.x.shape[0]:

@@ -34,8 +34,42 @@ FIT_STEPS = 50           # samples that fix the initial state (excluded from the
 class Validation:
     """Scores of a refined model on held-out data, per member ((B,) tensors), and the traces they come from.
 
-    Shape: ``measured``, ``refined``, ``initial`` are (T, B, width), T = ``steps`` (the first ``fit_steps``
-    samples fix the initial state and are not scored)."""
+    ``validate`` makes it.
+
+    Parameters
+    ----------
+    source : str
+        What the held-out data are.
+    steps : int
+        T, the samples simulated, the first ``fit_steps`` included.
+    fit_steps : int
+        The leading samples that fix the initial state (not scored).
+    rmse : torch.Tensor
+        (B,), sqrt(mean_k |y(k) - y_hat(k)|^2) of the refined model.
+    rmse_initial : torch.Tensor
+        (B,), the same for the initial model.
+    fit_percent : torch.Tensor
+        (B,), 100 (1 - ||y - y_hat|| / ||y - mean(y)||) of the refined model.
+    fit_percent_initial : torch.Tensor
+        (B,), the same for the initial model.
+    state_fitted : bool
+        False when the known model has no state ``x`` to fit (it starts as reset).
+    x0 : torch.Tensor or None
+        (B, n), the refined model's fitted initial state.
+    x0_initial : torch.Tensor or None
+        (B, n), the initial model's.
+    measured : torch.Tensor
+        (T, B, width), y.
+    refined : torch.Tensor
+        (T, B, width), y_hat of the refined model.
+    initial : torch.Tensor
+        (T, B, width), y_hat of the initial model.
+
+    Shape
+    -----
+    ``measured``, ``refined``, ``initial`` are (T, B, width), T = ``steps`` (the first ``fit_steps`` samples fix
+    the initial state and are not scored); the scores are (B,).
+    """
 
     source: str              # what the held-out data are
     steps: int
@@ -52,7 +86,14 @@ class Validation:
     initial: torch.Tensor = field(repr=False)
 
     def summary(self) -> dict:
-        """The scores as plain numbers (B = 1) or lists, for ``summary.json``."""
+        """The scores as plain numbers (B = 1) or lists, for ``summary.json``.
+
+        Returns
+        -------
+        dict
+            'source', 'steps', 'fit_steps', 'state_fitted', 'rmse', 'rmse_initial', 'fit_percent',
+            'fit_percent_initial'.
+        """
         def plain(t: torch.Tensor):
             values = [float(v) for v in t.cpu()]
             return values[0] if len(values) == 1 else values
@@ -85,6 +126,13 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
     Returns
     -------
     Validation
+
+    Raises
+    ------
+    ConfigError
+        If the graph lacks one of the roles, ``rows`` or ``data`` does not fit the kind of refinement (both
+        given, a recording without either, a window outside the recording or overlapping the samples the
+        refinement read, a data block with other ports), or ``steps`` <= ``fit_steps``.
     """
     for role in ("estimator", "known", "physical", "measured", "prediction"):
         if role not in graph.roles:

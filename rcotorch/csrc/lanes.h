@@ -9,16 +9,24 @@
  * The equations follow the PyTorch blocks, the reference semantics: blocks.py (Gain, Sum), lti.py, sources.py
  * (WhiteNoise, Recorded), features.py, estimator.py (RCOEstimator.output, .update) and rls.py (rls_update).
  *
- * One member alone (VL = 1) is bound by the instructions it executes, not by arithmetic: loops over sizes
- * known only at run time cost more than their few multiply-adds. There these operations run copies of the
- * same functions compiled with their sizes as constants, which the compiler unrolls, chosen once per call
- * when the program is decoded (each with its own jump): LTI blocks of up to 4 states and 1-2 output rows
- * (without feedthrough) or input columns (more copies made the step slower), the estimator's output with one
- * u and up to SMALL regressors, and a sum of two inputs of width 1; the sized LTI updates hold the new state in
- * registers. The SISO estimator's update (n <= SMALL parameters, one per regressor) chooses its copy on each
- * step (SMALL_SIZES), keeps its intermediates in registers (OWN) and sums its Markov filter before storing the
- * step's row where that row is weighed by 0 (rco_upd_n), and any estimator sums its Markov filter 4, then 2
- * columns at a time in vectors. The arithmetic, and so every result, is the same.
+ * One member alone (VL = 1) is bound by the instructions it executes, not by arithmetic: a loop over sizes
+ * known only at run time costs more than its few multiply-adds. At VL = 1 these operations therefore also
+ * exist as copies compiled with their sizes as constants, which the compiler unrolls:
+ *
+ *   instruction  copies compiled for                               chosen
+ *   LTI_OUT      n = 1..4 states, 1..2 output rows, no feedthrough  when the program is decoded (sized)
+ *   LTI_UPD      n = 1..4 states, 1..2 input columns                when the program is decoded (sized);
+ *                                                                   the new state held in registers
+ *   SUM          two inputs of width 1                              when the program is decoded (sum_1_2)
+ *   RCO_OUT      one u, n_phi = 1..SMALL regressors                 when the program is decoded (rco_out_sized)
+ *   RCO_UPD      one u, one z, one row, n = n_phi = 1..SMALL        on each step (SMALL_SIZES in FN(rco_upd))
+ *                parameters (one per regressor)
+ *
+ * The sizes stop where a further copy no longer shortens the step (docs/engine.md). The SISO estimator's
+ * update keeps its intermediates in an array of its own (OWN) that the compiler holds in registers, and sums
+ * its Markov filter before storing the step's row where that row is weighed by 0 (rco_upd_n); any estimator
+ * sums its Markov filter 4, then 2 columns at a time in vectors. The arithmetic, and so every result, is the
+ * same in every copy.
  */
 
 #define SMALL 6

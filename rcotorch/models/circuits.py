@@ -26,6 +26,31 @@ def series_rlc(R: float, L: float, C: float, measured: Sequence[str] = ("v_R",),
     (D = 0). Inputs are w, then u. Signals are named as rcotorch's known model expects them: inputs ``w``,
     ``u``; outputs ``y`` (``measured``) and ``y0`` (``sees``), ``[i]`` appended where there are several;
     states ``q`` (charge) and ``i`` (current).
+
+    Parameters
+    ----------
+    R : float
+        Resistance [ohm], > 0.
+    L : float
+        Inductance [H], > 0.
+    C : float
+        Capacitance [F], > 0.
+    measured : Sequence[str], optional
+        The measured outputs (``y``).
+    sees : Sequence[str], optional
+        The outputs the unknown subsystem sees (``y0``).
+    actuation : bool, optional
+        Add the input u of the unknown subsystem.
+
+    Returns
+    -------
+    control.StateSpace
+        Continuous.
+
+    Raises
+    ------
+    ValueError
+        If R, L or C is not positive, or a signal is unknown.
     """
     import control
     R, L, C = float(R), float(L), float(C)

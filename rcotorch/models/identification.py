@@ -44,7 +44,17 @@ from ..lti import LTI
 
 
 def rmse(a, b) -> float:
-    """Root mean square of a - b."""
+    """Root mean square of a - b.
+
+    Parameters
+    ----------
+    a, b : array_like
+        Of the same shape (or broadcastable).
+
+    Returns
+    -------
+    float
+    """
     d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     return float(np.sqrt(np.mean(d * d)))
 
@@ -54,6 +64,24 @@ class DiscreteModel:
     """x(k+1) = A x(k) + B [w(k); u(k)], [y(k); y0(k)] = C x(k) + D [w(k); u(k)] with D[:, 1] = 0.
 
     One input w, one feedback port u, outputs y (measured) and y0 (seen by the unknown subsystem).
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        (n, n).
+    B : numpy.ndarray
+        (n, 2), the columns of w and u.
+    C : numpy.ndarray
+        (2, n), the rows of y and y0.
+    D : numpy.ndarray
+        (2, 2), its u column zero.
+    dt : float
+        Sample time [s].
+
+    Raises
+    ------
+    ConfigError
+        If the shapes do not fit, or u acts on y or y0 at once.
     """
 
     A: np.ndarray
@@ -72,9 +100,28 @@ class DiscreteModel:
 
     def simulate(self, w, x0, feedback: Callable[[float], float] | Polynomial | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Free run from state ``x0`` driven by ``w`` (T,): no measurement is fed back. With ``feedback``,
-        u(k) = feedback(y0(k)) (e.g. ``lambda q: theta * q**3``, or a ``Polynomial``, which runs compiled);
-        without it u = 0. Returns y, y0, u (T,)."""
+        """Free run from a state driven by w: no measurement is fed back.
+
+        Parameters
+        ----------
+        w : array_like
+            (T,), the input.
+        x0 : array_like
+            (n,), the initial state.
+        feedback : callable or Polynomial, optional
+            u(k) = feedback(y0(k)) (e.g. ``lambda q: theta * q**3``, or a ``Polynomial``, which runs compiled);
+            without it u = 0.
+
+        Returns
+        -------
+        y, y0, u : numpy.ndarray
+            (T,) each.
+
+        Raises
+        ------
+        ConfigError
+            If ``x0`` has the wrong number of entries.
+        """
         w = np.asarray(w, dtype=np.float64).reshape(-1)
         x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
         if x0.shape != (self.A.shape[0],):
@@ -108,12 +155,32 @@ class DiscreteModel:
 
 @dataclass(frozen=True)
 class Polynomial:
-    """The feedback u = sum_i coefficients[i] q^powers[i] of the position q the unknown subsystem sees."""
+    """The feedback u = sum_i coefficients[i] q^powers[i] of the position q the unknown subsystem sees.
+
+    Parameters
+    ----------
+    coefficients : tuple of float
+        theta_i.
+    powers : tuple of int
+        The exponents, one per coefficient.
+    """
 
     coefficients: tuple[float, ...]
     powers: tuple[int, ...]
 
     def __call__(self, q):
+        """u for a position q.
+
+        Parameters
+        ----------
+        q : float or numpy.ndarray
+            The position the unknown subsystem sees.
+
+        Returns
+        -------
+        float or numpy.ndarray
+            Of q's shape.
+        """
         return sum(c * q ** p for c, p in zip(self.coefficients, self.powers))
 
 
@@ -191,11 +258,29 @@ def _expm_input(A, b, h, foh=False):
 class MassSpringDamper:
     """Linear second-order model y'' = -a y' - b y + g (w + u) + d0 sampled every ``dt`` seconds.
 
-    Args:
-        a: damping per unit mass [1/s]; b: stiffness per unit mass [1/s^2]; g: input gain [y/(w s^2)];
-        d0: constant force per unit mass [y/s^2]; dt: sample time [s];
-        foh: interpolate w linearly between samples (else hold it); lead: y0 is the position ``lead``
-            samples after t_k (see the module notes).
+    Parameters
+    ----------
+    a : float
+        Damping per unit mass [1/s].
+    b : float
+        Stiffness per unit mass [1/s^2].
+    g : float
+        Input gain [y/(w s^2)].
+    d0 : float, optional
+        Constant force per unit mass [y/s^2].
+    dt : float, optional
+        Sample time [s], > 0.
+    foh : bool, optional
+        Interpolate w linearly between samples (else hold it).
+    lead : float, optional
+        y0 is the position ``lead`` samples after t_k, in [0, 1] (see the module notes).
+    fit_rmse : float, optional
+        The free-run error of the fit that made the model (NaN where it was not fitted).
+
+    Raises
+    ------
+    ConfigError
+        If ``dt`` is not positive, ``lead`` lies outside [0, 1], or a parameter is not finite.
     """
 
     a: float
@@ -222,10 +307,19 @@ class MassSpringDamper:
 
     @property
     def damping_ratio(self) -> float:
+        """a / (2 sqrt(b)), NaN where b <= 0."""
         return self.a / (2 * math.sqrt(self.b)) if self.b > 0 else math.nan
 
     def continuous(self) -> tuple[np.ndarray, np.ndarray]:
-        """Continuous (A, b) with state [y, y', 1]; b is the input vector of w (and of u)."""
+        """The continuous model with state [y, y', 1].
+
+        Returns
+        -------
+        A : numpy.ndarray
+            (3, 3).
+        b : numpy.ndarray
+            (3,), the input vector of w (and of u).
+        """
         A = np.array([[0.0, 1.0, 0.0], [-self.b, -self.a, self.d0], [0.0, 0.0, 0.0]])
         return A, np.array([0.0, self.g, 0.0])
 
@@ -258,28 +352,105 @@ class MassSpringDamper:
         return _expm_input(A, bg, self.dt, foh=True)[2]
 
     def state(self, y: float, v: float, w0: float = 0.0) -> np.ndarray:
-        """The discrete state for position y, velocity v and input w0 at the same instant."""
+        """The discrete state for a position, velocity and input at the same instant.
+
+        Parameters
+        ----------
+        y : float
+            The position.
+        v : float
+            The velocity.
+        w0 : float, optional
+            The input at that instant.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3,), xi = [y, v, 1] - G2 w0.
+        """
         return np.array([y, v, 1.0]) - self.hold_offset * w0
 
     def lti(self, x0=None, name: str = "known", dtype=DEFAULT_DTYPE) -> LTI:
-        """The model as an rcotorch ``LTI`` with inputs w, u and outputs y, y0 (the known model of a
-        refinement). ``x0``: initial discrete state (see ``state``, ``initial_state``); [0, 0, 1] by default."""
+        """The model as an rcotorch ``LTI`` with inputs w, u and outputs y, y0 (the known model of a refinement).
+
+        Parameters
+        ----------
+        x0 : array_like, optional
+            Initial discrete state (see ``state``, ``initial_state``); [0, 0, 1] by default.
+        name : str, optional
+            The block's name.
+        dtype : torch.dtype, optional
+            Floating-point type (float64 by default).
+
+        Returns
+        -------
+        LTI
+            Ports w, u -> y, y0, each of width 1; 3 states.
+        """
         m = self.discrete
         x0 = self.state(0.0, 0.0) if x0 is None else x0
         return LTI(m.A, m.B, m.C, m.D, inputs=["w", "u"], outputs=["y", "y0"], dt=self.dt, name=name, x0=x0,
                    dtype=dtype)
 
     def cubic_coefficient(self, theta):
-        """c in y'' = ... - c y^3 for the identified subsystem u = theta y0^3 (u enters as g u): c = -g theta."""
+        """c in y'' = ... - c y^3 for the identified subsystem u = theta y0^3 (u enters as g u): c = -g theta.
+
+        Parameters
+        ----------
+        theta : float or array_like
+            The identified coefficient(s).
+
+        Returns
+        -------
+        float or array_like
+            c, of theta's type and shape.
+        """
         return -self.g * theta
 
     def simulate(self, w, x0, feedback: Callable[[float], float] | None = None) -> np.ndarray:
-        """Free-run output y (T,) from discrete state ``x0`` (see ``DiscreteModel.simulate``)."""
+        """Free-run output from a discrete state (see ``DiscreteModel.simulate``).
+
+        Parameters
+        ----------
+        w : array_like
+            (T,), the input.
+        x0 : array_like
+            (3,), the initial discrete state.
+        feedback : callable, optional
+            u(k) = feedback(y0(k)); u = 0 without it.
+
+        Returns
+        -------
+        numpy.ndarray
+            y, (T,).
+        """
         return self.discrete.simulate(w, x0, feedback)[0]
 
     def initial_state(self, w, y, feedback: Callable[[float], float] | None = None) -> np.ndarray:
-        """The discrete state at the first sample whose free run best fits ``y`` (least squares over the
-        given samples, e.g. the first 50 of a validation record); the constant state stays 1."""
+        """The discrete state at the first sample whose free run best fits the measured output.
+
+        Least squares over the given samples (e.g. the first 50 of a validation record); the constant state
+        stays 1.
+
+        Parameters
+        ----------
+        w : array_like
+            (T,), the input, T >= 2.
+        y : array_like
+            (T,), the measured output.
+        feedback : callable, optional
+            u(k) = feedback(y0(k)) during the free run; u = 0 without it.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3,).
+
+        Raises
+        ------
+        DataError
+            If w and y differ in length, are too short or hold a non-finite sample.
+        """
         import scipy.optimize
         w, y = _as_signals(w, y, "initial_state", minimum=2)
         base = self.state(0.0, 0.0, w[0])
@@ -305,8 +476,31 @@ class MassSpringDamper:
         A discrete ARX model y(k) = a1 y(k-1) + a2 y(k-2) + b0 w(k) + b1 w(k-1) + b2 w(k-2) + c gives the
         starting point (its poles give a and b, its DC gain g / b, its constant d0 / b); then
         ``scipy.optimize.least_squares`` minimizes the free-run simulation error of this model over the data.
-        ``fit_rmse`` is that error. Raises ``DataError`` when the data do not look like a stable,
-        second-order system.
+        ``fit_rmse`` is that error.
+
+        Parameters
+        ----------
+        w : array_like
+            (T,), the input, T >= 20.
+        y : array_like
+            (T,), the measured output.
+        dt : float
+            Sample time [s].
+        foh : bool, optional
+            Interpolate w linearly between samples (else hold it).
+        lead : float, optional
+            y0 is the position ``lead`` samples after t_k.
+
+        Returns
+        -------
+        MassSpringDamper
+
+        Raises
+        ------
+        ConfigError
+            If ``dt`` is not positive.
+        DataError
+            If the data are malformed, or do not look like a stable, second-order system.
         """
         import scipy.optimize
         w, y = _as_signals(w, y, "fit", minimum=20)
@@ -345,10 +539,33 @@ class MassSpringDamper:
 
 
     def fit_with_spring(self, w, y, powers: tuple[int, ...] = (3,)) -> tuple[MassSpringDamper, Polynomial]:
-        """Offline output-error fit of this linear model and a polynomial spring together: a, b, g, d0, the
-        spring's coefficients (u = sum_i theta_i y0^powers[i], starting from zero) and the initial state,
-        by ``scipy.optimize.least_squares`` on the free-run simulation error over all of ``w``, ``y``,
-        starting from this model. ``fit_rmse`` of the result is that error."""
+        """Offline output-error fit of this linear model and a polynomial spring together.
+
+        a, b, g, d0, the spring's coefficients (u = sum_i theta_i y0^powers[i], starting from zero) and the
+        initial state are fitted by ``scipy.optimize.least_squares`` on the free-run simulation error over all
+        of ``w``, ``y``, starting from this model. ``fit_rmse`` of the result is that error.
+
+        Parameters
+        ----------
+        w : array_like
+            (T,), the input, T >= 20.
+        y : array_like
+            (T,), the measured output.
+        powers : tuple of int, optional
+            The spring's exponents.
+
+        Returns
+        -------
+        model : MassSpringDamper
+            The fitted linear part.
+        spring : Polynomial
+            The fitted spring.
+
+        Raises
+        ------
+        DataError
+            If the data are malformed.
+        """
         import scipy.optimize
         w, y = _as_signals(w, y, "fit_with_spring", minimum=20)
         npw = len(powers)

@@ -28,14 +28,29 @@ Signals = str | int | Sequence[str | int]
 def label_ports(plant, w: Signals, u: Signals, y: Signals, y0: Signals, name: str = "known") -> control.StateSpace:
     """The plant with inputs [w..., u...] and outputs [y..., y0...], named as rcotorch's known model expects.
 
-    Args:
-        plant: a python-control ``StateSpace`` or ``TransferFunction`` (continuous or discrete).
-        w, u: the plant's inputs that carry the measured excitation and the unknown subsystem's action; one
-            input may serve both (a force that the excitation and the unknown spring share).
-        y, y0: the plant's outputs that are measured and that the unknown subsystem sees; one output may be both.
-        name: the system's name (for ``control.interconnect``).
-
     Each of w, u, y, y0 is a signal name, the base name of a vector signal, an index, or a list of them.
+
+    Parameters
+    ----------
+    plant : control.StateSpace or control.TransferFunction
+        The plant (continuous or discrete).
+    w, u : str, int or sequence of them
+        The plant's inputs that carry the measured excitation and the unknown subsystem's action; one input
+        may serve both (a force that the excitation and the unknown spring share).
+    y, y0 : str, int or sequence of them
+        The plant's outputs that are measured and that the unknown subsystem sees; one output may be both.
+    name : str, optional
+        The system's name (for ``control.interconnect``).
+
+    Returns
+    -------
+    control.StateSpace
+        Inputs ``w``/``w[i]``, ``u``/``u[i]``; outputs ``y``/``y[i]``, ``y0``/``y0[i]``; the plant's states.
+
+    Raises
+    ------
+    ConfigError
+        If ``plant`` is of another type, or a signal is unknown, out of range or names nothing.
     """
     import control
     if isinstance(plant, control.TransferFunction):
@@ -53,8 +68,35 @@ def label_ports(plant, w: Signals, u: Signals, y: Signals, y0: Signals, name: st
 
 def known_model(plant, w: Signals, u: Signals, y: Signals, y0: Signals, dt: float | None = None,
                 name: str = "known", x0=None, dtype=DEFAULT_DTYPE) -> LTI:
-    """The known-model block (ports w, u -> y, y0) of a python-control plant (see ``label_ports``); a continuous
-    plant is discretized by zero-order hold at ``dt``."""
+    """The known-model block (ports w, u -> y, y0) of a python-control plant (see ``label_ports``).
+
+    A continuous plant is discretized by zero-order hold at ``dt``.
+
+    Parameters
+    ----------
+    plant : control.StateSpace or control.TransferFunction
+        The plant.
+    w, u, y, y0 : str, int or sequence of them
+        Its signals, as for ``label_ports``.
+    dt : float, optional
+        Sample time [s]; needed for a continuous plant.
+    name : str, optional
+        The block's name.
+    x0 : array_like, optional
+        Initial state (n,) or (B, n); zero by default.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Returns
+    -------
+    LTI
+        Ports ``w``, ``u`` -> ``y``, ``y0``, each as wide as the signals picked for it.
+
+    Raises
+    ------
+    ConfigError
+        As ``label_ports`` and ``LTI.from_control`` do.
+    """
     sys = label_ports(plant, w, u, y, y0, name=name)
     widths = {}
     for label in sys.input_labels + sys.output_labels:

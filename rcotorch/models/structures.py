@@ -27,6 +27,31 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
     The system's signals are named as rcotorch's known model expects them: inputs ``w`` and ``u``, outputs
     ``y`` (the measured ones) and ``y0`` (the seen ones), with ``[i]`` appended where there are several;
     states ``q[i]`` and ``qdot[i]`` (``q``, ``qdot`` for one degree of freedom).
+
+    Parameters
+    ----------
+    M, C, K : array_like
+        Mass, damping and stiffness matrices, (n, n) (a scalar for n = 1).
+    force_w : array_like
+        F_w, (n,) or (n, m_w): how w enters the equations of motion.
+    measured : Sequence[str]
+        The measured outputs (``y``).
+    sees : Sequence[str]
+        The outputs the unknown subsystem sees (``y0``).
+    force_u : array_like, optional
+        F_u, (n, m_u); the identity by default.
+    actuation : bool, optional
+        Add the input u of the unknown subsystem.
+
+    Returns
+    -------
+    control.StateSpace
+        Continuous, 2n states.
+
+    Raises
+    ------
+    ConfigError
+        If a signal name is unknown or its index out of range.
     """
     import control
     M, C, K = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (M, C, K))
@@ -62,20 +87,75 @@ def structure(M, C, K, force_w, measured: Sequence[str], sees: Sequence[str], fo
 
 
 def vector(name: str, width: int) -> list[str]:
-    """python-control names of a signal of ``width`` components: [name] or [name[0], name[1], ...]."""
+    """python-control names of a signal of ``width`` components: [name] or [name[0], name[1], ...].
+
+    Parameters
+    ----------
+    name : str
+        The signal's name.
+    width : int
+        Its number of components.
+
+    Returns
+    -------
+    list of str
+    """
     return [name] if width == 1 else [f"{name}[{i}]" for i in range(width)]
 
 
 def sdof(m: float, c: float, k: float, measured=("velocity",), sees=("position", "velocity"),
          actuation: bool = True) -> control.StateSpace:
-    """Single-degree-of-freedom m x'' + c x' + k x = w + u."""
+    """Single-degree-of-freedom structure m x'' + c x' + k x = w + u (see ``structure``).
+
+    Parameters
+    ----------
+    m, c, k : float
+        Mass, damping and stiffness.
+    measured : Sequence[str], optional
+        The measured outputs, 'position' or 'velocity'.
+    sees : Sequence[str], optional
+        The outputs the unknown subsystem sees.
+    actuation : bool, optional
+        Add the input u of the unknown subsystem.
+
+    Returns
+    -------
+    control.StateSpace
+        Continuous, states [q, qdot].
+    """
     return structure([[m]], [[c]], [[k]], [1.0], measured, sees, actuation=actuation)
 
 
 def sdof_matrices(m, c, k, measured=("velocity",), sees=("position", "velocity"), actuation: bool = True,
                   dtype=torch.float64) -> tuple[torch.Tensor, ...]:
-    """Continuous (A, B, C, D) of ``sdof`` as torch tensors; m, c, k may be per-member tensors (B,), giving
-    (B, rows, cols) matrices for ``LTI.continuous`` (a batch of structures that differ in their parameters)."""
+    """Continuous (A, B, C, D) of ``sdof`` as torch tensors.
+
+    m, c, k may be per-member tensors (B,), giving (B, rows, cols) matrices for ``LTI.continuous`` (a batch of
+    structures that differ in their parameters).
+
+    Parameters
+    ----------
+    m, c, k : float or torch.Tensor
+        Mass, damping and stiffness, scalars or (B,) (broadcast together).
+    measured : Sequence[str], optional
+        The measured outputs, 'position' or 'velocity'.
+    sees : Sequence[str], optional
+        The outputs the unknown subsystem sees.
+    actuation : bool, optional
+        Add the input u of the unknown subsystem.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Returns
+    -------
+    tuple of torch.Tensor
+        A (..., 2, 2), B (..., 2, 1 or 2), C (p, 2), D (p, 1 or 2), ``...`` the broadcast shape of m, c, k.
+
+    Raises
+    ------
+    ValueError
+        If a signal is neither 'position' nor 'velocity'.
+    """
     m, c, k = torch.broadcast_tensors(*(torch.as_tensor(x, dtype=dtype) for x in (m, c, k)))
     zero, one = torch.zeros_like(m), torch.ones_like(m)
     A = torch.stack([torch.stack([zero, one], -1), torch.stack([-k / m, -c / m], -1)], -2)
@@ -104,7 +184,36 @@ def shear_building(masses: Sequence[float], stiffnesses: Sequence[float], dampin
     ``identified``: the storeys whose stiffness change the unknown subsystem supplies. For each, it sees the
     storey drift d_j = x_j - x_(j-1) (output ``y0[i]``) and acts with a force pair u_j: +u_j on floor j and
     -u_j on floor j - 1 (input ``u[i]``), so that u_j = -dk_j d_j is a change dk_j of that storey's
-    stiffness. State [x_1..x_n, x_1'..x_n'] (floor displacements relative to the ground and their rates)."""
+    stiffness. State [x_1..x_n, x_1'..x_n'] (floor displacements relative to the ground and their rates).
+
+    Parameters
+    ----------
+    masses : Sequence[float]
+        The floors' masses, one per storey, > 0.
+    stiffnesses : Sequence[float]
+        The storeys' stiffnesses, > 0.
+    damping_ratio : float, optional
+        The Rayleigh damping ratio of the first two modes.
+    force : 'base' or int, optional
+        Ground acceleration, or the floor a force acts on.
+    measured : Sequence[str], optional
+        'displacement[j]' or 'velocity[j]' of floors (``y``).
+    identified : Sequence[int], optional
+        The storeys whose stiffness change the unknown subsystem supplies (``y0``, ``u``).
+    actuation : bool, optional
+        Add the inputs u of the unknown subsystem.
+
+    Returns
+    -------
+    control.StateSpace
+        Continuous, 2n states.
+
+    Raises
+    ------
+    ConfigError
+        If masses or stiffnesses are missing or not positive, ``force`` is neither 'base' nor a floor, or a
+        storey or a measured signal is out of range or unknown.
+    """
     import control
     m = np.asarray(masses, dtype=float).reshape(-1)
     k = np.asarray(stiffnesses, dtype=float).reshape(-1)

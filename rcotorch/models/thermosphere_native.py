@@ -4,7 +4,7 @@ with NumPy and compiled by numba.
 One copy of the physics per language: the torch ``Column`` (``rcotorch.models.thermosphere``) is the reference
 (any device, autograd, float32 or float64); this module is the CPU engine's copy, in float64. Each function names
 the ``Column`` method it mirrors and computes the same expressions in the same order, for one member, level by
-level (loops, which numba compiles in seconds and runs without temporary arrays). Two things differ in method,
+level (loops, which numba compiles to code that runs without temporary arrays). Two things differ in method,
 not in the equations: the conduction step's tridiagonal system is solved by elimination without pivoting (the
 torch column calls ``torch.linalg.solve``; the matrix is diagonally dominant), and the linearization is the
 tangent of the step written out (the torch column differentiates with autograd). The two agree to rounding
@@ -12,9 +12,10 @@ tangent of the step written out (the torch column differentiates with autograd).
 
 A column's constants and sizes are data, not code: ``pack`` lays a ``Column``'s grid, band tables, profiles and
 switches out in one float64 vector, which the functions take (``unpack``). So the code is compiled once per
-machine for every column, whatever its grid or settings, and numba keeps it on disk (``cache=True``; the first
-compilation takes about 20 s). The engine calls it through C entry points (``entry``), each reading the vector
-from its first input slots, followed by the state and inputs, for each member of its chunk:
+machine for every column, whatever its grid or settings, and numba keeps it on disk (``cache=True``), so only
+the first use on a machine waits for the compilation. The engine calls it through C entry points (``entry``),
+each reading the vector from its first input slots, followed by the state and inputs, for each member of its
+chunk:
 
 * ``step``: ``[params | x | w | u] -> x(k+1)`` (``Column.step``);
 * ``observe``: ``[params | reads | x] -> observations`` (``Column.at`` of the temperature, mass density or NO
