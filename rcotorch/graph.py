@@ -405,9 +405,10 @@ class Graph(nn.Module):
         steps = int(steps)
         if steps <= 0:
             return
-        why = self.native_status()
+        prog = "engine='torch'" if self.engine == "torch" else lowering.program(self)
+        why = prog if isinstance(prog, str) else None
         if why is None:
-            lowering.advance(self, lowering.program(self), steps, accumulate, record, every)
+            lowering.advance(self, prog, steps, accumulate, record, every)
             self._ran("native", None)
             return
         if self.engine == "native":

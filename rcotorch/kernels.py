@@ -89,14 +89,24 @@ def disabled():
         _ALLOWED.reset(token)
 
 
-def threads() -> int:
+#: Work (members times steps of one call) below which a call runs on one thread: starting and joining the other
+#: threads costs more than they give, most of all on a busy machine.
+PARALLEL_WORK = 1 << 16
+PARALLEL_BATCH = 1024
+
+
+def threads(batch: int | None = None, steps: int = 1) -> int:
+    """Threads for a call on ``batch`` members for ``steps`` steps: torch's thread count where the work is
+    large enough to share (``PARALLEL_BATCH`` members and ``PARALLEL_WORK`` member-steps), else one."""
+    if batch is not None and (batch < PARALLEL_BATCH or batch * steps < PARALLEL_WORK):
+        return 1
     return max(1, torch.get_num_threads())
 
 
-def lanes(batch: int) -> int:
+def lanes(batch: int, nthreads: int | None = None) -> int:
     """The lane width for a batch: members run VL at a time; small batches in narrow lanes, so one member does
     not pay for sixteen, and a second thread has chunks to take."""
-    per_thread = max(1, batch // threads())
+    per_thread = max(1, batch // (threads() if nthreads is None else nthreads))
     return max([w for w in LANE_WIDTHS if w <= per_thread] or [1])
 
 
@@ -117,7 +127,7 @@ def run(code: torch.Tensor, consts: torch.Tensor, binds: torch.Tensor, ptrs: tor
     counter tables, all contiguous CPU tensors) for ``steps`` steps of ``batch`` members."""
     _engine.run(code.data_ptr(), code.numel(), consts.data_ptr(), binds.data_ptr(), binds.numel() // len(BIND_FIELD),
                 ptrs.data_ptr(), counters.data_ptr(), obs.data_ptr(), obs.numel() // len(OBS_FIELD), nslots, steps,
-                batch, lanes(batch), threads())
+                batch, lanes(batch, threads(batch, steps)), threads(batch, steps))
 
 
 def rls_(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Tensor, lam, r_inv,

@@ -300,6 +300,34 @@ def _params(graph, state_names: Mapping[str, set[str]]) -> list[torch.Tensor]:
             if key not in state_names.get(name, ())]
 
 
+def _param_places(graph, state_names: Mapping[str, set[str]]) -> list[tuple[dict, tuple[str, ...], int]]:
+    """Where ``_params`` finds its buffers: each module's buffer dictionary and the names in it that count, in
+    the order of ``_params``, so that a check can read them without walking the modules again."""
+    places = []
+    for name, blk in graph.blocks.items():
+        skip = state_names.get(name, ())
+        for prefix, mod in blk.named_modules():
+            keys = tuple(k for k, t in mod._buffers.items()
+                         if t is not None and (f"{prefix}.{k}" if prefix else k) not in skip)
+            places.append((mod._buffers, keys, len(mod._buffers)))
+    return places
+
+
+def _unchanged(places: list[tuple[dict, tuple[str, ...], int]], key: tuple) -> bool:
+    """Whether the buffers at ``places`` are still the tensors of ``key`` (``memo._key``), unmodified, and no
+    buffer was added or removed there."""
+    i = 0
+    for buffers, keys, count in places:
+        if len(buffers) != count:
+            return False
+        for k in keys:
+            t = buffers.get(k)
+            if i >= len(key) or t is not key[i][0] or t._version != key[i][1]:
+                return False
+            i += 1
+    return i == len(key)
+
+
 def _lower(graph) -> Program | str:
     """The program of ``graph``, or why it has none."""
     if not kernels.available():
@@ -326,14 +354,12 @@ def program(graph) -> Program | str:
     """The graph's program (kept until its structure or a parameter changes: a buffer modified in place or
     replaced by another tensor), or why it has none."""
     entry = graph.__dict__.get("_lowered")
-    if entry is not None and entry[0] == _structure(graph):
-        names = entry[3].state_names if isinstance(entry[3], Program) else {}
-        if memo._same(entry[1], memo._key(_params(graph, names))):
-            return entry[3]
+    if entry is not None and entry[0] == _structure(graph) and _unchanged(entry[4], entry[1]):
+        return entry[3]
     prog = _lower(graph)
     names = prog.state_names if isinstance(prog, Program) else {}
     params = _params(graph, names)
-    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), params, prog)
+    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), params, prog, _param_places(graph, names))
     return prog
 
 
