@@ -86,10 +86,10 @@ def snapshot(graph) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in graph.state_dict().items()}
 
 
-def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor):
+def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor, engine: str = "torch"):
     g = copy.deepcopy(graph)
     g.load_state_dict(state)
-    g.engine = "torch"
+    g.engine = engine
     est = g.role("estimator")
     est.set_theta_free(eta)
     est.set_state(P=torch.zeros_like(est.P))          # a zero gain: theta stays where it is
@@ -165,14 +165,22 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     size = eta.abs().amax(1, keepdim=True).expand(B, n)
     size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
     eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))            # (B, n)
+    # The base copy steps here, one step at a time, for its regressors; its outputs, and those of the copies
+    # with each parameter moved and with the initial theta, are recorded over the whole replay by ``advance``
+    # (the native engine where the graph has one), the same engine for all of them.
     base, base_est = _frozen_copy(graph, state, eta)
-    copies = []
-    for j in range(n):
-        e = eta.clone()
-        e[:, j] += eps[:, j]
-        copies.append(_frozen_copy(graph, state, e)[0])
     theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
-    initial = _frozen_copy(graph, state, theta0.index_select(1, est.free_idx.to(theta0.device)))[0]
+    runs = [eta] + [eta + eps[:, j:j + 1] * torch.eye(n, dtype=eta.dtype, device=dev)[j] for j in range(n)]
+    runs.append(theta0.index_select(1, est.free_idx.to(theta0.device)))
+    recorded = []
+    for e in runs:
+        g = _frozen_copy(graph, state, e, engine=graph.engine)[0]
+        signals = [z_sig] + ([] if len(recorded) else [y_sig] + ([w_sig] if w_sig is not None else []))
+        names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
+        rec = g.run(steps, record={name: name for name in names})
+        recorded.append({names[name]: v.to(f64) for name, v in rec.items()})
+        del g
+    zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
     weight = est.r_weight.to(f64)
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
@@ -180,16 +188,16 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     scores = _ScoreSums(B, n, score_lags, dev)
     res = _ResidualSums(B, lags, keep, dev)
     measured = 0
+    first = recorded[0]
     with torch.no_grad():
         for k in range(steps):
-            out = base.step()
-            z = out[z_sig].to(f64)
-            dz = torch.stack([(c.step()[z_sig].to(f64) - z) for c in copies], dim=2)   # (B, n_z, n)
-            z_init = initial.step()[z_sig].to(f64)
+            base.step()
             if k < settle:
                 continue
-            y = out[y_sig].to(f64)
-            res.add(z, None if w_sig is None else out[w_sig].to(f64), y, z_init)
+            z = first[z_sig][k]
+            dz = zs[k] - z.unsqueeze(2)                                                  # (B, n_z, n)
+            z_init = recorded[-1][z_sig][k]
+            res.add(z, None if w_sig is None else first[w_sig][k], first[y_sig][k], z_init)
             psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
             m = base_est.row_scale(psi)
             if m is not None:                                                     # the rows as weighed
