@@ -25,12 +25,14 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
-
-import torch
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .errors import ConfigError
-from .graph import Graph
+
+if TYPE_CHECKING:        # torch and the graph are imported where used: listing scenarios needs neither
+    import torch
+
+    from .graph import Graph
 
 
 @dataclass(frozen=True)
@@ -267,9 +269,11 @@ def _fmt_default(value) -> str:
     return str(value)
 
 
-def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """A setting as a tensor: shape () when shared by the batch, (B,) when it is per member."""
-    return torch.as_tensor(settings[key], dtype=dtype)
+def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """A setting as a tensor (``dtype``, default float64): shape () when shared by the batch, (B,) when it is per
+    member."""
+    import torch
+    return torch.as_tensor(settings[key], dtype=torch.float64 if dtype is None else dtype)
 
 
 def apply_estimator_options(graph: Graph, settings: Mapping[str, Any], options=tuple(ESTIMATOR_OPTIONS)) -> None:
@@ -279,7 +283,7 @@ def apply_estimator_options(graph: Graph, settings: Mapping[str, Any], options=t
     for key in options:
         if key not in settings:
             continue
-        values = member_values(settings, key, dtype=torch.float64)
+        values = member_values(settings, key)
         if bool((values != 0).any()):
             given[key] = values
     if not given:

@@ -66,15 +66,13 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 import rcotorch as rt
-from rcotorch.intervals import member_band
-from rcotorch.models.circuits import series_rlc
 from rcotorch.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
+    import torch
 
 PAPER_L0, PAPER_C0 = 2e-6, 1.0
 
@@ -105,6 +103,8 @@ def true_gains(s) -> dict[str, float]:
 
 def truth_discrete(s) -> control.StateSpace:
     import control
+
+    from rcotorch.models.circuits import series_rlc
     T = series_rlc(s["R"], s["L"], s["C"], measured=["v_R"], sees=[], actuation=False)
     return control.sample_system(T, s["Ts"], method="zoh")
 
@@ -160,6 +160,7 @@ class RlcCircuit(Scenario):
     )
 
     def build(self, s, batch, dtype, device):
+        from rcotorch.models.circuits import series_rlc
         L0, C0, R0 = initial_values(s)
         G = series_rlc(R0, L0, C0, measured=["v_R"], sees=["v_C", "v_R"])
         known = rt.LTI.from_control(G, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")
@@ -198,6 +199,9 @@ class RlcCircuit(Scenario):
         the identified gains, gC_true, gR_true, gw_true: the continuous-time ones (``true_gains``); noise_std:
         the measurement noise std in volts."""
         import control
+        import torch
+
+        from rcotorch.models.circuits import series_rlc
         omega = np.logspace(1, np.log10(np.pi / s["Ts"]), 300)
         zs = np.exp(1j * omega * s["Ts"])
         true = np.asarray(truth_discrete(s)(zs)).reshape(-1)
@@ -220,6 +224,8 @@ class RlcCircuit(Scenario):
 
     def figures(self, g, s):
         from rcotorch.figures import frequency_figure
+        from rcotorch.intervals import member_band
+        from rcotorch.models.circuits import series_rlc
         omega = np.logspace(1, np.log10(np.pi / s["Ts"]), 400)
         L0, C0, R0 = initial_values(s)
         est = {k: float(v[0]) for k, v in self.estimates(g, s).items()}

@@ -13,10 +13,8 @@ dC = -theta_v; nc >= 1 gives a strictly proper controller of order nc and dK, dC
 """
 
 import numpy as np
-import torch
 
 import rcotorch as rt
-from rcotorch.analysis import white_noise_rms
 from rcotorch.scenario import Requirement, Scenario, member_values
 
 NOISE_SEED = 7919       # the measurement noise of member b draws the stream (seed + NOISE_SEED, b)
@@ -25,6 +23,8 @@ NOISE_SEED = 7919       # the measurement noise of member b draws the stream (se
 def noise_std(s, truth_system) -> list[float] | float:
     """Std of the measurement noise: s['noise'] times the rms of y (w of std w_std), per member where a setting
     differs between members (``truth_system(member settings)``: the discrete python-control system w -> y)."""
+    from rcotorch.analysis import white_noise_rms
+
     def std(member) -> float:
         return member["noise"] * float(white_noise_rms(truth_system(member), member["w_std"])[0])
     keys = [k for k, v in s.items() if isinstance(v, list)]
@@ -71,6 +71,7 @@ class SdofStiffness(Scenario):
     )
 
     def build(self, s, batch, dtype, device):
+        import torch
         m, K, C, dK, dC = (member_values(s, key) for key in ("m", "K", "C", "dK", "dC"))
         known = rt.LTI.continuous(*rt.models.sdof_matrices(m, C, K, sees=["position", "velocity"]),
                                   inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=s["Ts"], name="known")

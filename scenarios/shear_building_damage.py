@@ -18,7 +18,6 @@ stiffness 50 periods after it).
 import math
 
 import numpy as np
-import torch
 
 import rcotorch as rt
 from rcotorch.scenario import Requirement, Scenario, member_values
@@ -76,6 +75,7 @@ class ShearBuildingDamage(Scenario):
                     Requirement("metrics.false_alarms", "max", 0.5))
 
     def build(self, s, batch, dtype, device):
+        import torch
         G = building(s)
         n_y = G.noutputs - 3
         if not 1 <= int(s["storey"]) <= 3:
@@ -121,6 +121,7 @@ class ShearBuildingDamage(Scenario):
         return {f"dk{j + 1}": -theta[:, j, j] / s["k"] for j in range(3)}
 
     def metrics(self, g, s):
+        import torch
         det = g.blocks["detector"]
         first = det.first_alarm().to(torch.float64)
         kd = self.change_step(s)

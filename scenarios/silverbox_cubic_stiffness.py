@@ -39,14 +39,18 @@ import math
 import os
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError, DataError
-from rcotorch.models.identification import MassSpringDamper, Polynomial, rmse
 from rcotorch.scenario import Requirement, Scenario
+
+if TYPE_CHECKING:
+    import torch
+
+    from rcotorch.models.identification import MassSpringDamper, Polynomial
 
 SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's SNLS80mV.csv from rt.datasets
 BASES = {"cubic": (3,), "linear+cubic": (1, 3)}      # the powers of y0 the identified subsystem sees
@@ -57,6 +61,7 @@ TEST_SETS = {"multisine": (105712, 127400), "arrow": (100, 40575), "arrow_noextr
 @lru_cache(maxsize=4)
 def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_rows: tuple[int, int],
              foh: bool, lead: float) -> tuple[rt.Recording, MassSpringDamper]:
+    from rcotorch.models.identification import MassSpringDamper
     silverbox = Path(path).name == "SNLS80mV.csv" and (w_col, y_col) == ("V1", "V2")
     rec = rt.load(path, columns=[w_col, y_col], dt=Ts, units={"V1": "V", "V2": "V"} if silverbox else None)
     fit = rec.rows(*fit_rows)
@@ -96,6 +101,7 @@ def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
 
 @lru_cache(maxsize=64)
 def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_init, spring, offline=None):
+    from rcotorch.models.identification import rmse
     rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
     if offline is not None:                  # the offline fit's model and spring, by its estimation rows
         model, spring = _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, offline)
@@ -127,6 +133,7 @@ def _key(s) -> tuple:
 
 def spring(s, theta) -> Polynomial:
     """The identified subsystem u = sum_i theta_i y0^p_i for settings ``s`` and one member's theta."""
+    from rcotorch.models.identification import Polynomial
     return Polynomial(tuple(float(t) for t in np.atleast_1d(np.asarray(theta, dtype=float))),
                       BASES[s["basis"]])
 
@@ -221,6 +228,7 @@ class SilverboxCubicStiffness(Scenario):
         return out
 
     def metrics(self, g, s):
+        import torch
         _, model = prepare(s)
         thetas = self.theta(g).detach().to(torch.float64).cpu().numpy()
         initial = validate(s, np.zeros(thetas.shape[1]))[0]

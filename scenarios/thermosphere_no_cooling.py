@@ -51,23 +51,18 @@ from __future__ import annotations
 import math
 import weakref
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.models.thermosphere import (
-    Column,
-    ColumnBlock,
-    Observation,
-    Record,
-    SpaceWeather,
-    TemperatureFeatures,
-    few_threads,
-    native_here,
-)
 from rcotorch.scenario import Requirement, Scenario, member_values
+
+if TYPE_CHECKING:
+    import torch
+
+    from rcotorch.models.thermosphere import Column, Observation, TemperatureFeatures
 
 EVAL_ALTITUDE = 152e3          # cooling metrics
 DENSITY_ALTITUDE = 407e3       # density_err_ratio
@@ -101,8 +96,13 @@ def interpolation(s) -> str:
     return s["interpolate"]
 
 
-def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
-    """The truth column (with NO cooling) and the known model (without it, with the cooling input u)."""
+def columns(s, dtype: torch.dtype | None = None) -> tuple[Column, Column]:
+    """The truth column (with NO cooling) and the known model (without it, with the cooling input u), in
+    ``dtype`` (default float64)."""
+    import torch
+
+    from rcotorch.models.thermosphere import Column
+    dtype = torch.float64 if dtype is None else dtype
     common = dict(dz=s["dz_km"] * 1e3, latitude=s["latitude"], local_time0=s["local_time0"], dt=s["Ts"],
                   substeps=int(s["substeps"]), dtype=dtype)
     nodes = (s["node1_km"] * 1e3, s["node2_km"] * 1e3, s["node3_km"] * 1e3)
@@ -113,6 +113,9 @@ def columns(s, dtype=torch.float64) -> tuple[Column, Column]:
 @lru_cache(maxsize=8)
 def _spin_up(f107: tuple, days: float, dz_km: float, latitude: float, local_time0: float, Ts: float,
              substeps: int, native: bool) -> torch.Tensor:
+    import torch
+
+    from rcotorch.models.thermosphere import Column
     truth = Column(dz=dz_km * 1e3, latitude=latitude, local_time0=local_time0, dt=Ts, substeps=substeps)
     if not native:
         return truth.spin_up(torch.tensor(f107, dtype=torch.float64), days)
@@ -135,6 +138,7 @@ def replay_settings(s) -> dict:
 
 def densities(column: Column, altitudes) -> Observation:
     """State -> mass densities at ``altitudes`` [1e-12 kg/m^3], (B, len(altitudes))."""
+    from rcotorch.models.thermosphere import Observation
     return Observation(column, "density", altitudes)
 
 
@@ -223,6 +227,16 @@ class ThermosphereNoCooling(Scenario):
 
     def _graph(self, s, batch, dtype, device, frozen: rt.Graph | None = None) -> rt.Graph:
         """The refinement graph; with ``frozen`` (a trained graph) its identified subsystem, held fixed."""
+        import torch
+
+        from rcotorch.models.thermosphere import (
+            ColumnBlock,
+            Observation,
+            Record,
+            SpaceWeather,
+            TemperatureFeatures,
+            native_here,
+        )
         truth, model = columns(s, dtype)
         x0 = initial_state(s, native_here(dtype, device)).to(dtype)
         measured = measured_altitudes(s)
@@ -286,6 +300,7 @@ class ThermosphereNoCooling(Scenario):
     @staticmethod
     def _temperature_estimator(s, features: TemperatureFeatures, model: Column, common) -> rt.RCOEstimator:
         """u_j = sum_i theta_ji f_i(T_j): node j sees only its own features; ``shared`` ties theta_ji across j."""
+        import torch
         n, nt = model.n_nodes, len(features.terms)
         tie = torch.full((n, n * nt), -1, dtype=torch.int64)
         for j in range(n):
@@ -300,6 +315,7 @@ class ThermosphereNoCooling(Scenario):
         """Per member and sample (B, K): the densities of truth, refined and initial model at 407 km and the measured
         altitudes (B, K, 1 + n_z) [1e-12 kg/m^3], the true and estimated NO cooling at 152 km [nW/m^3], the storm
         power [mW/m^2]; the profiles (B, K, n) of true and estimated cooling; the time t [h] (K,)."""
+        import torch
         truth, model = g.role("physical").column, g.role("known").column
         kn, pl = g.role("known").history, g.role("physical").history
         B, K = kn.shape[:2]
@@ -320,6 +336,9 @@ class ThermosphereNoCooling(Scenario):
     def initial_model(self, g, s) -> torch.Tensor:
         """Densities (B, K, 1 + n_z) of the initial model (the known column with u = 0) on the recorded driver, at
         407 km and the measured altitudes."""
+        import torch
+
+        from rcotorch.models.thermosphere import few_threads, native_here
         known = g.role("known")
         m = 1 + len(measured_altitudes(s))
         w = known.history[:, :, m + 3:m + 5]
@@ -345,6 +364,7 @@ class ThermosphereNoCooling(Scenario):
 
     def replay(self, g, s) -> dict[str, torch.Tensor]:
         """Traces of the frozen identified subsystem on the replay's space weather, as many steps as the run."""
+        import torch
         K = g.role("known").history.shape[1]
         cached = self._replays.get(g)
         if cached is not None and cached[0] == K:
@@ -361,6 +381,7 @@ class ThermosphereNoCooling(Scenario):
 
     # --- summary -----------------------------------------------------------------------------------------------
     def estimates(self, g, s):
+        import torch
         ident, model, plant = g.role("estimator"), g.role("known").column, g.role("physical")
         u = ident.u_now.to(torch.float64)
         out = {f"cooling_{int(round(float(z) / 1e3))}km": u[:, j] for j, z in enumerate(model.nodes)}
@@ -372,6 +393,7 @@ class ThermosphereNoCooling(Scenario):
         return {k: v.to(torch.float64) for k, v in out.items()}
 
     def metrics(self, g, s):
+        import torch
         tr = self.traces(g, s)
         K = tr["cooling_true"].shape[1]
         if K == 0:

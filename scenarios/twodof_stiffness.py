@@ -60,11 +60,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.intervals import member_band
 from rcotorch.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
@@ -170,6 +168,7 @@ class TwoDofStiffness(Scenario):
     def metrics(self, g, s):
         """freq_rel_err_max: max over 0.01 rad/s .. Nyquist of |refined - true| / |true| (continuous w -> y),
         from the estimated dk1, dk3 of each member."""
+        import torch
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         est = self.estimates(g, s)
         true = np.asarray(known_model(s, s["dk1"], s["dk3"], actuation=False)(1j * omega)).reshape(-1)
@@ -181,6 +180,7 @@ class TwoDofStiffness(Scenario):
 
     def figures(self, g, s):
         from rcotorch.figures import frequency_figure
+        from rcotorch.intervals import member_band
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         bands = None
         cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals

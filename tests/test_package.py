@@ -1,8 +1,10 @@
 """The package as a user gets it: a wheel built from the checkout, installed (not editable) into a fresh virtual
-environment, and its command line run from another folder; and the scenario cards of ``rcotorch show``."""
+environment, and its command line run from another folder; the scenario cards of ``rcotorch show``; the set-up
+script ``./dev``."""
 
 import json
 import os
+import re
 import shutil
 import site
 import subprocess
@@ -125,3 +127,27 @@ def test_user_scenario_folders(tmp_path, monkeypatch):
     with pytest.raises(scenarios.ConfigError, match=r"clash.py \(from RCOTORCH_SCENARIOS\) fails to load: "
                                                     r"ModuleNotFoundError"):
         scenarios.available()
+
+
+def test_dev_script_parses_and_names_every_command_in_its_usage_and_header():
+    dev = ROOT / "dev"
+    _sh("bash", "-n", dev)
+    text = dev.read_text()
+    commands = re.search(r"^ +([a-z|]+)\) ;;$", text, flags=re.M).group(1).split("|")
+    assert {"run", "list", "show", "sweep", "tune", "test", "lint"} <= set(commands)
+    usage = subprocess.run(["bash", dev], capture_output=True, text=True, timeout=60)       # no command: usage
+    assert usage.returncode == 2 and usage.stdout == ""
+    listed = set(re.findall(r"^  ([a-z]+) ", usage.stderr, flags=re.M))
+    header = set(re.findall(r"^#   \./dev ([a-z]+)", text, flags=re.M))
+    assert listed == set(commands) and header == set(commands), (listed, header, commands)
+    unknown = subprocess.run(["bash", dev, "frobnicate"], capture_output=True, text=True, timeout=60)
+    assert unknown.returncode == 2 and "usage: ./dev COMMAND" in unknown.stderr
+
+
+@pytest.mark.parametrize("args,ray", [(["c.toml", "--backend", "ray"], True), (["c.toml", "--backend=ray"], True),
+                                      (["c.toml", "--backend", "local"], False), (["--out", "ray", "c.toml"], False)])
+def test_dev_adds_ray_for_the_ray_backend_only(args, ray):
+    """``./dev sweep``/``tune`` install the extra ray when the arguments ask for the ray backend."""
+    body = re.search(r"^ray_backend\(\) \{.*?^\}$", (ROOT / "dev").read_text(), flags=re.M | re.S).group(0)
+    done = subprocess.run(["bash", "-c", f"{body}\nray_backend \"$@\"", "dev", *args], timeout=60)
+    assert (done.returncode == 0) == ray
