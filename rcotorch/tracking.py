@@ -37,51 +37,60 @@ from .nonlinear import Nonlinear
 # The detector's state, per member.
 PHASE, TIME, POWER, G, FIRST, LAST, COUNT, PENDING = range(8)
 N_STATE = 8
+# After the reference sums: the settings (start and end of the reference window, the phase after an alarm,
+# drift, threshold, 1 / window).
+N_SETTINGS = 6
 
 
-def _cusum(n_z: int, warmup: int, window: int, holdoff: int, drift: float, threshold: float) -> Callable:
-    """The detector's state map, written with slicing, arithmetic and comparisons times 1.0, which NumPy arrays,
-    numba and torch tensors all accept. The phase counts the steps since the start (from 0) or since the last
-    alarm (from warmup - holdoff, so that the reference window starts holdoff steps after it)."""
-    start, armed_at, restart = float(warmup), float(warmup + window), float(warmup - holdoff)
-    inv_n, inv_window = 1.0 / n_z, 1.0 / window
+def _cusum(n_z: int) -> Callable:
+    """The detector's state map in the components form (``Nonlinear``): x[i] is one entry of the state, each a
+    float per member in compiled code and a (B,) tensor on PyTorch. Written with arithmetic and comparisons
+    times 1.0, which floats, numba and torch tensors all accept. Its settings are entries of the state (``START``
+    onwards, carried unchanged), so one compilation serves every setting. The phase counts the steps since the
+    start (from 0) or since the last alarm (from warmup - holdoff, so that the reference window starts holdoff
+    steps after it)."""
+    inv_n = 1.0 / n_z
+    p = N_STATE + n_z
+    size = p + N_SETTINGS
 
     def step(x, ins):
         z = ins["z"]
-        phase, t = x[:, 0:1], x[:, 1:2] + 1.0
+        phase, t = x[PHASE], x[TIME] + 1.0
+        start, armed_at, restart = x[p], x[p + 1], x[p + 2]
+        drift, threshold, inv_window = x[p + 3], x[p + 4], x[p + 5]
         in_ref = (phase >= start) * (phase < armed_at) * 1.0
         armed = (phase >= armed_at) * 1.0
-        out = x * 0.0
-        s = x[:, 0:1] * 0.0
+        out = [x[i] for i in range(size)]
+        s = phase * 0.0
         for i in range(n_z):
-            zi = z[:, i:i + 1]
-            ref = x[:, 8 + i:9 + i]
+            zi, ref = z[i], x[N_STATE + i]
             sigma2 = ref * inv_window + (ref <= 0.0) * 1.0          # 1 until the reference window has data
             s = s + zi * zi / sigma2 * inv_n
-            out[:, 8 + i:9 + i] = ref + in_ref * zi * zi
-        g = x[:, 3:4] + s - 1.0 - drift
+            out[N_STATE + i] = ref + in_ref * zi * zi
+        g = x[G] + s - 1.0 - drift
         g = armed * g * (g > 0.0)                                    # max(0, g) once armed, else 0
         alarm = (g > threshold) * 1.0
         keep = 1.0 - alarm
-        first = x[:, 4:5]
-        new_first = (first < 0.0) * alarm
-        out[:, 0:1] = (phase + 1.0) * keep + restart * alarm
-        out[:, 1:2] = t
-        out[:, 2:3] = s
-        out[:, 3:4] = g * keep
-        out[:, 4:5] = first + new_first * (t - first)
-        out[:, 5:6] = x[:, 5:6] + alarm * (t - x[:, 5:6])
-        out[:, 6:7] = x[:, 6:7] + alarm
-        out[:, 7:8] = x[:, 7:8] + alarm
+        first = x[FIRST]
+        out[PHASE] = (phase + 1.0) * keep + restart * alarm
+        out[TIME] = t
+        out[POWER] = s
+        out[G] = g * keep
+        out[FIRST] = first + (first < 0.0) * alarm * (t - first)
+        out[LAST] = x[LAST] + alarm * (t - x[LAST])
+        out[COUNT] = x[COUNT] + alarm
+        out[PENDING] = x[PENDING] + alarm
         for i in range(n_z):
-            out[:, 8 + i:9 + i] = out[:, 8 + i:9 + i] * keep
+            out[N_STATE + i] = out[N_STATE + i] * keep
         return out
-
     return step
 
 
 def _statistic(x):
-    return x[:, 3:4]
+    return x[G]
+
+
+_CUSUM: dict[int, Callable] = {}      # the state map of each width of z, made once
 
 
 class ChangeDetector(Nonlinear):
@@ -139,10 +148,13 @@ class ChangeDetector(Nonlinear):
                               f"threshold={threshold}")
         self.n_z, self.warmup, self.window, self.holdoff = n_z, warmup, window, holdoff
         self.drift, self.threshold = float(drift), float(threshold)
-        x0 = torch.zeros(N_STATE + n_z, dtype=dtype)
+        x0 = torch.zeros(N_STATE + n_z + N_SETTINGS, dtype=dtype)
         x0[FIRST] = x0[LAST] = -1.0
-        super().__init__(_cusum(n_z, warmup, window, holdoff, self.drift, self.threshold), _statistic, N_STATE + n_z,
-                         {"z": n_z}, {"g": 1}, dt=dt, x0=x0, name=name, dtype=dtype)
+        x0[N_STATE + n_z:] = torch.tensor([warmup, warmup + window, warmup - holdoff, self.drift, self.threshold,
+                                           1.0 / window], dtype=dtype)
+        super().__init__(_CUSUM[n_z] if n_z in _CUSUM else _CUSUM.setdefault(n_z, _cusum(n_z)), _statistic,
+                         N_STATE + n_z + N_SETTINGS, {"z": n_z}, {"g": 1}, dt=dt, x0=x0, name=name, dtype=dtype,
+                         form="components")
 
     def first_alarm(self) -> torch.Tensor:
         """The step of each member's first alarm.
