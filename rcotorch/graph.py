@@ -120,6 +120,10 @@ class Graph(nn.Module):
                 raise ConfigError(f"graph: {blk!r} is not a rcotorch Block")
             if blk.name in self.blocks:
                 raise ConfigError(f"graph: two blocks are named '{blk.name}'")
+            if hasattr(self.blocks, blk.name) or "." in blk.name or not blk.name:
+                raise ConfigError(f"graph: block '{blk.name}' ({type(blk).__name__}) cannot be named so: the name "
+                                  f"is empty, holds a '.' or is taken by torch's module container (such as "
+                                  f"'to', 'float', 'update', 'keys'); choose another name=")
             self.blocks[blk.name] = blk
         self.sources: dict[Signal, Signal] = {}
         for conn in connections:

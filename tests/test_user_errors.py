@@ -65,3 +65,9 @@ def test_a_uniform_shear_building_has_the_closed_form_frequencies_and_rayleigh_d
     assert np.allclose(closed[Minv_K], damaged.A[Minv_K], rtol=1e-12)
     with pytest.raises(rt.ConfigError, match="floors are 1..3"):
         rt.models.shear_building([m] * n, [k] * n, measured=["velocity[4]"])
+
+
+@pytest.mark.parametrize("name", ["double", "update", "keys", "to"])
+def test_a_block_named_like_a_method_of_the_module_container_is_refused_naming_it(name):
+    with pytest.raises(rt.ConfigError, match=f"block '{name}' \\(Gain\\) cannot be named so"):
+        rt.Graph([rt.Gain(1.0, name=name), rt.WhiteNoise(1, name="w")], [f"w.out -> {name}.in"])
