@@ -207,10 +207,13 @@ class Nonlinear(Block):
         from .compiled import compile_map, compile_step, describe
         n, n_out = self.n_states, sum(self.outputs.values())
         x = b.state("x")
+        m = sum(self.inputs.values())
+        # In the components form the step reads each member's state and inputs before it writes its next state,
+        # so it may read them where they are: the inputs' slots right after the state's.
+        beside = b.scratch(m) if self.form == "components" else None
         h = compile_map(self.h, n, n_out, self.form)
         if isinstance(h, str):
             b.refuse(f"output function h {describe(self.h)} is not compiled: {h}")
-        m = sum(self.inputs.values())
         c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form)
         if isinstance(c, str):
             b.refuse(f"state function f {describe(self.f)} is not compiled: {c}")
@@ -221,8 +224,11 @@ class Nonlinear(Block):
             y = b.scratch(n_out)
             b.emit("CALL", [n, x, n_out, y, b.function(h.address, h)], port=port)
             b.emit("COPY", [sl.stop - sl.start, y + sl.start, b.output(port)], port=port)
-        xu = b.scratch(n + m)
-        b.emit("COPY", [n, x, xu])
+        if beside == x + n:
+            xu = x
+        else:
+            xu = b.scratch(n + m)
+            b.emit("COPY", [n, x, xu])
         at = xu + n
         for port, width in self.inputs.items():
             src = b.input(port)
@@ -230,7 +236,7 @@ class Nonlinear(Block):
                 b.refuse(f"input '{port}' is not connected")
             b.emit("COPY", [width, src, at])
             at += width
-        # x(k + 1) is written over x(k): the function reads the copy in xu
+        # x(k + 1) is written over x(k), read from xu (a copy, or x itself in the components form)
         b.emit("CALL", [n + m, xu, n, x, b.function(c.address, c)])
 
     # --- linearization ------------------------------------------------------------------------------------
