@@ -11,9 +11,9 @@ Cadences, fixed when a run is created and kept by a resume:
   SIGTERM, SIGHUP).
 
 What a run keeps grows with the batch, not with the steps: the per-member statistics of the health checks,
-and a history of the logged values of the first ``HISTORY_MEMBERS`` members, the ones the figures draw (at most
-``2 * HISTORY_MAX`` points, thinned by two when full), so a checkpoint's size does not depend on how long the
-run is.
+and a history of the logged values of the traced members (``rcotorch.monitor.traced_members``, at most
+``HISTORY_MEMBERS``), the ones the figures draw (at most ``2 * HISTORY_MAX`` points, thinned by two when full),
+so a checkpoint's size does not depend on how long the run is.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from . import intervals as ci
 from . import scenario as scenarios
 from .errors import CheckpointError, ConfigError, RcoError
 from .health import STATUSES, Criteria, Health, check_every, finite_list
-from .monitor import Monitor
+from .monitor import Monitor, traced_members
 from .outputs import OutputFolder, load_checkpoint, save_checkpoint, write_text
 from .tracking import change_report
 
@@ -43,7 +43,7 @@ CHECKPOINT_FORMAT = 4   # the layout of checkpoint.pt (4: the graph's state at t
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
 HISTORY_MAX = 1000
-HISTORY_MEMBERS = 8      # members kept in the history (the figures draw the first eight)
+HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
 RESUME_CHANGEABLE = ("--steps", "--device", "--out", "--overwrite", "--checkpoint-every", "--threads", "--engine",
                      "--quiet", "--no-figures")
@@ -112,7 +112,8 @@ class Run:
         members: per-member settings (one dict each, e.g. {'dK': 0.3, 'seed': 7}); the batch is then
             ``len(members)`` and member b equals a batch-of-one run with ``members[b]`` as overrides.
         log_every: steps between logs (default ``default_log_every``).
-        trace: members logged individually in TensorBoard when the batch is larger than 8.
+        trace: members logged individually in TensorBoard and drawn in the figures (at most 8; default the
+            first 8).
         health: thresholds of the member health checks (``rcotorch.health.Criteria``).
         overwrite: replace the run that ``out`` holds (only the files its manifest lists).
         intervals: compute confidence intervals of the estimates at the end (``rcotorch.intervals``: a replay
@@ -172,11 +173,12 @@ class Run:
                      for k in ("z", "y", "log_z", "mark_z", "z_rms_last")}
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
-        self.history_members = list(range(min(self.batch, HISTORY_MEMBERS)))
+        self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
         self.monitor: Monitor | None = None
         self.hparams_session = True
+        self.tb_origin: float | None = None    # TensorBoard's wall time at step 0 (``Monitor.wall``)
 
     @property
     def k(self) -> int:
@@ -198,7 +200,7 @@ class Run:
         TensorBoard writer fails."""
         try:
             if self.monitor is not None:
-                self.monitor.writer.flush()
+                self.monitor.flush()
         finally:
             self.folder.close()
 
@@ -317,6 +319,7 @@ class Run:
             "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
             "snapshot": None if self.snapshot is None else {k: v.cpu() for k, v in self.snapshot.items()},
             "intervals": self.intervals_on, "level": self.level, "validation": self.validation_on,
+            "tb_origin": self.tb_origin,
         }
         save_checkpoint(path, state)
         self.folder.register()
@@ -384,6 +387,7 @@ class Run:
         run.history = {k: list(v.unbind(0)) if isinstance(v, torch.Tensor) else list(v)
                        for k, v in state["history"].items()}
         run.history_members = list(state["history_members"])
+        run.tb_origin = state.get("tb_origin")
         run.counters = {k: int(v) for k, v in state["counters"].items()}
         run.sums = {k: v.to(run.device) for k, v in state["sums"].items()}
         run.health.load_state_dict(state["health"])
@@ -539,12 +543,7 @@ class Run:
         self.save()
         if figures:
             self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
-        found = self.intervals()
-        if found is not None:
-            self.monitor.intervals(found, sorted({*self.history["step"], self.k}))
-        for status, count in summary["health"]["counts"].items():
-            if count or status != "undetermined":
-                self.monitor.writer.add_scalar(f"health/{status}", count, self.k)
+        self.monitor.final_intervals(self.intervals(), sorted({*self.history["step"], self.k}))
         self.monitor.close(summary)
         self.folder.register()
         if close:

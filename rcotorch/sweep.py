@@ -383,6 +383,9 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         folder.check()
         write_table(rows, out)
         write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
+        from .monitor import write_sweep_figures
+        write_sweep_figures(out, rows, list(sweep.grid) + list(sweep.random) or ["seed"], sc)
+        folder.register()
     except RcoError:
         folder.discard()
         raise
@@ -510,16 +513,17 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     from torch.utils.tensorboard import SummaryWriter
 
     from .monitor import final_values, setting_text, write_session
+    sc = scenarios.get(sweep.scenario)
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
-        settings = set(scenarios.get(sweep.scenario).settings)
+        settings = set(sc.settings)
         for r in rows:
             summary = _member_summary(r, settings)
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
-            hp.update(scenario=sweep.scenario_name, shard=r["shard"])
+            hp.update(scenario=sweep.scenario_name, shard=r["shard"], member=r["member"])
             with SummaryWriter(str(out / "members" / f"member_{r['member']:06d}")) as w:
-                write_session(w, hp, summary)
-                for tag, value in final_values(summary).items():
+                write_session(w, hp, summary, scenario=sc)
+                for tag, value in final_values(summary, scenario=sc).items():
                     w.add_scalar(tag, value, 0)
         return
     note = (f"This sweep has {len(rows)} members. TensorBoard leaves every run unselected once a logdir holds "
@@ -536,8 +540,8 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
               for k, v in summary["settings"].items()}
         hp.update(scenario=sweep.scenario_name, members=f"{part[0]['member']}..{part[-1]['member']}")
         with SummaryWriter(str(folder)) as w:
-            write_session(w, hp, summary)
-            for tag, value in final_values(summary).items():
+            write_session(w, hp, summary, scenario=sc)
+            for tag, value in final_values(summary, logged=True).items():
                 w.add_scalar(tag, value, summary["steps"])
             w.add_text("sweep", note, 0)
 

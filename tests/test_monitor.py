@@ -1,23 +1,29 @@
 """TensorBoard as written by runs and sweeps, read back with TensorBoard's own event readers (and, in one test,
-served by TensorBoard and queried through its HParams API): one run per run, tag counts, values, Custom Scalars
-layout and HParams sessions."""
+served by TensorBoard and queried through its HParams API): the run and its sibling runs (truth, batch
+quantiles), tags in engineering notation, wall times that read simulated seconds, Custom Scalars patterns,
+HParams sessions, and the event files' checksum."""
 
 import json
+import re
 import socket
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
 
+import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.plugin_event_multiplexer import EventMultiplexer
+from tensorboard.compat.tensorflow_stub.pywrap_tensorflow import masked_crc32c as tensorboards_crc
 from tensorboard.plugins.custom_scalar import layout_pb2
 from tensorboard.plugins.hparams import metadata as hp_metadata
 from tensorboard.util import tensor_util
 
 from rcotorch import monitor
 from rcotorch import sweep as sweeps
+from rcotorch.outputs import load_checkpoint
 from rcotorch.runner import Run
 
 
@@ -37,6 +43,10 @@ def _run(tmp_path, name="sdof-stiffness", **kw) -> tuple[Run, dict, EventMultipl
 
 def _tags(mux, run, plugin="scalars") -> set:
     return set(mux.PluginRunToTagToContent(plugin).get(run, {}))
+
+
+def _events(mux, run, tag) -> list:
+    return list(mux.Tensors(run, tag))
 
 
 def _values(mux, run, tag) -> list[tuple[int, float]]:
@@ -63,6 +73,10 @@ def _layout(mux, run) -> layout_pb2.Layout:
     return layout_pb2.Layout.FromString(event.tensor_proto.string_val[0])
 
 
+def _matching(pattern: str, tags: set) -> set:
+    return {t for t in tags if re.search(pattern, t)}
+
+
 HPARAMS_SHOWN = 5     # TensorBoard's HParams table shows the first five hyperparameters of its list at first
 
 
@@ -76,115 +90,144 @@ def _hparams_order(mux) -> list[str]:
     return [h.name for h in experiment.hparam_infos]
 
 
-def test_a_single_run_is_one_run_with_estimates_beside_truth(tmp_path):
+# --- engineering notation and the checksum ------------------------------------------------------------------
+def test_engineering_notation_puts_the_size_in_one_to_a_thousand():
+    E, S = monitor.engineering, monitor.Scaled
+    assert E(23.5e-6, "F") == S(1e-6, "uF") and E(0.055, "H") == S(1e-3, "mH") and E(250.0, "ohm") == S(1.0, "ohm")
+    assert E(4.2e3, "N/m") == S(1e3, "kN/m") and E(0.5, "N s/m") == S(1e-3, "mN s/m")
+    assert E(2e-3, "m/(N s)") == S(1e-3, "mm/(N s)") and E(1000.0, "V") == S(1e3, "kV")
+    assert E(999.9, "V") == S(1.0, "V") and E(1e-3, "V") == S(1e-3, "mV") and E(0.99e-3, "V") == S(1e-6, "uV")
+    # a unit that takes no prefix (a power, an already prefixed unit, none) gets a power of ten
+    assert E(2e-3, "1/s^2") == S(1e-3, "1e-3 1/s^2") and E(5e-3, "m^2") == S(1e-3, "1e-3 m^2")
+    assert E(4e3, "kg") == S(1e3, "1e3 kg") and E(0.2, "") == S(1e-3, "1e-3")
+    for size in (0.0, None, float("nan")):
+        assert E(size, "N") == S(1.0, "N")
+    assert S(1.0, "").label == "[-]" and S(1e-6, "uF").label == "[uF]"
+
+
+def test_each_estimate_is_sized_by_its_scenario_so_every_run_writes_the_same_tags():
+    import rcotorch.scenario as scenarios
+    rlc = monitor.estimate_scales(scenarios.get("rlc-circuit"), ["L", "C", "R"], {"C": 1e-3})
+    assert {k: s.unit for k, s in rlc.items()} == {"L": "mH", "C": "uF", "R": "ohm"}   # the defaults' truths
+    sdof = monitor.estimate_scales(scenarios.get("sdof-stiffness"), ["dK", "dC"])
+    assert {k: s.unit for k, s in sdof.items()} == {"dK": "mN/m", "dC": "mN s/m"}       # its scales: K, C
+
+
+def test_the_event_checksum_is_tensorboards_crc32c():
+    assert monitor.crc32c(b"123456789") == 0xE3069283                 # the CRC-32C check value
+    rng = np.random.default_rng(0)
+    for n in [*range(0, 40), 300, 1023, 1024, 1025, 1040, 2049, 100_000]:
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        assert monitor.masked_crc32c(data) == tensorboards_crc(data), n
+
+
+# --- a single run ------------------------------------------------------------------------------------------
+def test_a_single_run_draws_estimate_and_truth_under_one_tag_in_simulated_seconds(tmp_path):
     run, summary, mux = _run(tmp_path, steps=600, log_every=50)
-    assert list(mux.Runs()) == ["sdof-stiffness"]                 # no second run for HParams
-    tags = _tags(mux, "sdof-stiffness")
-    assert {"Estimates/dK", "Estimates/dK truth", "Estimates/dC", "Estimates/dC truth", "Model error/z rms",
-            "errors/dK", "theta/y0[0](k)", "theta/y0[1](k)", "health/diverged", "final/z_rms_final", "final/dK",
-            "final/|error| dK", "final/diverged"} <= tags
-    assert not any(t.startswith(("members/", "quantiles/")) for t in tags)
-    # the final interval as a band over the logged steps, and its margin chart
-    lower = _values(mux, "sdof-stiffness", "intervals/dK lower")
-    assert [st for st, _ in lower] == list(range(50, 601, 50))
-    assert all(v == pytest.approx(summary["intervals"]["dK"]["lower"]) for _, v in lower)
-    assert _last(mux, "sdof-stiffness", "intervals/dK upper") == pytest.approx(summary["intervals"]["dK"]["upper"])
-    margins = {c.title: c.margin.series[0] for c in _layout(mux, "sdof-stiffness").category[0].chart
-               if c.HasField("margin")}
-    band = margins["dK: estimate within its final 95% interval"]
-    assert (band.value, band.lower, band.upper) == ("Estimates/dK", "intervals/dK lower", "intervals/dK upper")
+    name = "sdof-stiffness"
+    assert sorted(mux.Runs()) == [name, f"{name}/truth"]                 # the truth is a sibling run
+    tags = _tags(mux, name)
+    assert {"Estimates/dK [mN/m]", "Estimates/dK |error| [mN/m]", "Estimates/dC [mN s/m]",
+            "Estimates/dC |error| [mN s/m]", "Model error/z rms [m/s]", "theta/y0[0](k)", "theta/y0[1](k)",
+            "final/z_rms_final", "final/diverged", "final/requirements passed"} <= tags
+    assert not any(t.startswith(("members/", "quantiles/", "health/")) for t in tags)
+    assert _tags(mux, f"{name}/truth") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]"}
     # the first two groups in TensorBoard's order (capitals first) are the estimates and the model error
     assert sorted({t.split("/")[0] for t in tags})[:2] == ["Estimates", "Model error"]
-    truth = _values(mux, "sdof-stiffness", "Estimates/dK truth")
-    assert [step for step, _ in truth] == list(range(50, 601, 50)) and all(v == 0.5 for _, v in truth)
-    assert _last(mux, "sdof-stiffness", "Estimates/dK") == pytest.approx(summary["estimates"]["dK"])
-    th = _last(mux, "sdof-stiffness", "theta/y0[1](k)")
+    steps = list(range(0, 601, 50))                                     # the initial model at step 0, then logs
+    truth = _values(mux, f"{name}/truth", "Estimates/dK [mN/m]")
+    assert [s for s, _ in truth] == steps and all(v == 500.0 for _, v in truth)
+    est = _values(mux, name, "Estimates/dK [mN/m]")
+    assert [s for s, _ in est] == steps and est[0][1] == 0.0             # theta starts at zero: dK = 0
+    # the scaled value times its scale is the estimate; the error is |estimate - truth| in the same unit
+    assert est[-1][1] * 1e-3 == pytest.approx(summary["estimates"]["dK"], rel=1e-6)
+    err = _last(mux, name, "Estimates/dK |error| [mN/m]")
+    assert err * 1e-3 == pytest.approx(abs(summary["estimates"]["dK"] - 0.5), rel=1e-5, abs=1e-9)
+    assert _last(mux, name, "Estimates/dC [mN s/m]") * 1e-3 == pytest.approx(summary["estimates"]["dC"], rel=1e-5)
+    th = _last(mux, name, "theta/y0[1](k)")
     assert th == pytest.approx(float(run.graph.blocks["identified"].theta[0, 0, 1]))
-    assert "figures/estimates" in _tags(mux, "sdof-stiffness", "images")
-    hp = _sessions(mux)["sdof-stiffness"]
-    assert hp["scenario"] == "sdof-stiffness" and hp["p0"] == 1000.0
-    assert summary["health"]["status"] in ("converged", "not_converged")
+    # wall time = origin + k dt for the run and its truth: TensorBoard's Relative axis reads simulated seconds
+    origin = load_checkpoint(tmp_path / "runs" / name / "checkpoint.pt")["tb_origin"]
+    for run_name in (name, f"{name}/truth"):
+        for e in _events(mux, run_name, "Estimates/dK [mN/m]"):
+            assert e.wall_time - origin == pytest.approx(e.step * 0.01, abs=1e-5)
+    # the final interval as a band over the logged steps (the same steps as the estimate: a margin chart needs them)
+    lower = _values(mux, name, "intervals/dK lower [mN/m]")
+    assert [s for s, _ in lower] == steps
+    assert all(v * 1e-3 == pytest.approx(summary["intervals"]["dK"]["lower"], rel=1e-6) for _, v in lower)
+    assert "figures/estimates" in _tags(mux, name, "images")
+    hp = _sessions(mux)[name]
+    assert hp["scenario"] == name and hp["p0"] == 1000.0 and hp["dK [N/m]"] == 0.5 and hp["Ts [s]"] == 0.01
     passed = all(c["pass"] for c in summary["requirements"].values())
-    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"] + (", requirements pass" if passed else
-                                                                       ", requirements FAIL")
-    charts = {c.title: list(c.multiline.tag) for c in _layout(mux, "sdof-stiffness").category[0].chart}
-    assert charts["dK"] == ["Estimates/dK", "Estimates/dK truth"]
+    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"]
+    assert hp[monitor.REQUIREMENTS_HPARAM] == ("pass" if passed else "FAIL")
 
 
-def test_the_status_is_among_the_hparams_columns_shown_by_default(tmp_path):
-    """TensorBoard shows the first five hyperparameters of its list until others are ticked. The status leads
-    the list: in a run whose settings have capital names (rlc-circuit: C, C0_rel, L, L0_rel, R, R0_rel, which
-    sort before a lower-case 'status'), and beside runs of other scenarios with a status that differs."""
+def test_custom_scalars_patterns_are_anchored_and_each_draws_only_its_own_tags(tmp_path):
+    _run(tmp_path, steps=300, log_every=50)
+    _run(tmp_path, "twodof-stiffness", steps=200, batch=4, log_every=50)
+    mux = _mux(tmp_path / "runs")
+    every = set().union(*(_tags(mux, r) for r in mux.Runs()))
+    layout = _layout(mux, "sdof-stiffness")
+    assert [c.title for c in layout.category] == ["sdof-stiffness: estimates vs truth",
+                                                  "sdof-stiffness: model error z = y - y_hat"]
+    charts = {c.title: c for c in layout.category[0].chart}
+    assert list(charts["dK [mN/m]"].multiline.tag) == [r"^Estimates/dK\ \[mN/m\]$"]
+    assert _matching(charts["dK [mN/m]"].multiline.tag[0], every) == {"Estimates/dK [mN/m]"}
+    assert _matching(charts["dK: |estimate - truth|"].multiline.tag[0], every) == {"Estimates/dK |error| [mN/m]"}
+    # which runs hold the one tag: the estimate and its truth, two series in two colours
+    assert {r for r in mux.Runs() if "Estimates/dK [mN/m]" in _tags(mux, r)} == {"sdof-stiffness",
+                                                                              "sdof-stiffness/truth"}
+    margin = charts["dK: estimate within truth ± 10 mN/m"].margin.series[0]
+    assert (margin.value, margin.lower, margin.upper) == ("Estimates/dK [mN/m]", "bands/dK low [mN/m]",
+                                                          "bands/dK high [mN/m]")
+    assert _values(mux, "sdof-stiffness", "bands/dK low [mN/m]")[-1][1] == pytest.approx(490.0)
+    batch = {c.title: c for c in _layout(mux, "twodof-stiffness").category[0].chart}
+    pattern, members = batch["dk1 [mN/m]"].multiline.tag
+    assert _matching(pattern, every) == {"Estimates/dk1 [mN/m]"}
+    assert _matching(members, every) == {f"members/dk1 m{b} [mN/m]" for b in range(4)}
+    for category in layout.category:
+        for chart in category.chart:
+            for p in chart.multiline.tag:
+                assert p.startswith("^") and p.endswith("$"), p
+
+
+def test_a_resumed_run_continues_the_same_time_axis(tmp_path):
+    out = tmp_path / "runs" / "r"
+    run = Run("sdof-stiffness", steps=300, out=out, log_every=50)
+    run.advance(until=150, progress=False)
+    run.save()
+    run.close()
+    origin = load_checkpoint(out / "checkpoint.pt")["tb_origin"]
+    again = Run.resume(out, steps=300)
+    again.advance(progress=False)
+    again.finish(figures=False)
+    mux = _mux(tmp_path / "runs")
+    for name in ("r", "r/truth"):
+        events = sorted(_events(mux, name, "Estimates/dK [mN/m]"), key=lambda e: e.step)   # files in name order
+        assert [e.step for e in events] == list(range(0, 301, 50))
+        assert all(e.wall_time - origin == pytest.approx(e.step * 0.01, abs=1e-5) for e in events)
+
+
+# --- HParams ---------------------------------------------------------------------------------------------------
+def test_requirements_and_status_lead_the_hparams_columns_and_settings_carry_units(tmp_path):
+    """TensorBoard shows the first five hyperparameters of its list until others are ticked. The requirements
+    and the status lead it: in a run whose settings have capital names (rlc-circuit: C, L, R, ... sort before
+    lower case), and beside runs of other scenarios with a status that differs. Settings that share a name and
+    not a unit (C: farads, N s/m) are separate columns."""
     _run(tmp_path, "rlc-circuit", steps=200, log_every=50)
     order = _hparams_order(_mux(tmp_path / "runs"))
-    assert order[0] == monitor.STATUS_HPARAM, order[:HPARAMS_SHOWN]
-    assert sorted(order[1:HPARAMS_SHOWN]) == ["C", "C0_rel", "L", "L0_rel"]       # a plain 'status' came later
+    assert order[:2] == [monitor.REQUIREMENTS_HPARAM, monitor.STATUS_HPARAM], order[:HPARAMS_SHOWN]
+    assert {"C [F]", "L [H]", "R [ohm]", "Ts [s]"} <= set(order)
     _run(tmp_path, "sdof-stiffness", steps=2000, members=[{"p0": 1e6}, {"p0": 1e-5}])    # one not converged
     mux = _mux(tmp_path / "runs")
     statuses = {hp[monitor.STATUS_HPARAM] for hp in _sessions(mux).values()}
     assert len(statuses) == 2, statuses
-    assert _hparams_order(mux)[0] == monitor.STATUS_HPARAM
+    assert _hparams_order(mux)[:2] == [monitor.REQUIREMENTS_HPARAM, monitor.STATUS_HPARAM]
+    assert {"C [F]", "C [N s/m]"} <= set(_hparams_order(mux))
 
 
-def test_a_batch_logs_aggregates_and_a_few_members(tmp_path):
-    _, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
-    tags = _tags(mux, "sdof-stiffness")
-    checks = {f"final/{k}" for k in ("fit_percent", "fit_percent_initial", "z_autocorr_max", "z_whiteness_p",
-                                     "z_w_xcorr_max", "residual_bound", "dK lower", "dK upper", "dC lower",
-                                     "dC upper", "requirements passed", "validation_rmse",
-                                     "validation_rmse_initial", "validation_fit_percent",
-                                     "validation_fit_percent_initial")}
-    bands = {f"intervals/{k} {side}" for k in ("dK", "dC") for side in ("lower", "upper")}
-    assert len(tags - checks - bands) <= 40, sorted(tags)   # residual checks, validation, intervals on top
-    members = sorted(t for t in tags if t.startswith("members/"))
-    assert members == sorted(f"members/{k} m{b}" for k in ("dK", "dC", "z rms") for b in range(3))
-    assert {"Estimates/dK mean", "Estimates/dK truth", "quantiles/dK q10", "quantiles/dK q50", "quantiles/dK q90",
-            "quantiles/z rms q50", "Model error/z rms"} <= tags
-    dK = torch.tensor(summary["estimates"]["dK"], dtype=torch.float64)
-    assert _last(mux, "sdof-stiffness", "quantiles/dK q50") == pytest.approx(float(dK.quantile(0.5)))
-    assert _last(mux, "sdof-stiffness", "Estimates/dK mean") == pytest.approx(float(dK.mean()))
-    assert _last(mux, "sdof-stiffness", "members/dK m2") == pytest.approx(float(dK[2]))
-    layout = _layout(mux, "sdof-stiffness")
-    charts = {c.title: c for c in layout.category[0].chart}
-    assert list(charts["dK"].multiline.tag) == ["Estimates/dK mean", "quantiles/dK q10", "quantiles/dK q50",
-                                                 "quantiles/dK q90", "Estimates/dK truth", "members/dK m0",
-                                                 "members/dK m1", "members/dK m2"]
-    band = charts["dK: mean within the 10-90% band"].margin.series[0]
-    assert (band.value, band.lower, band.upper) == ("Estimates/dK mean", "quantiles/dK q10", "quantiles/dK q90")
-    counts = summary["health"]["counts"]
-    expected = ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if n)
-    per = [all(m) for m in zip(*(c["member_pass"] for c in summary["requirements"].values()))]
-    expected += f"; requirements pass {sum(per)} of {len(per)}"
-    assert _sessions(mux)["sdof-stiffness"][monitor.STATUS_HPARAM] == expected
-
-
-def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
-    _, summary, mux = _run(tmp_path, steps=100, batch=20, log_every=10, trace=[4, 11])
-    tags = _tags(mux, "sdof-stiffness")
-    assert {t for t in tags if t.startswith("members/z rms")} == {"members/z rms m4", "members/z rms m11"}
-    assert _last(mux, "sdof-stiffness", "members/dK m11") == pytest.approx(summary["estimates"]["dK"][11])
-    buckets = tensor_util.make_ndarray(mux.Tensors("sdof-stiffness", "spread/dK")[-1].tensor_proto)
-    assert buckets[:, 2].sum() == 20 and "spread/z rms" in _tags(mux, "sdof-stiffness", "histograms")
-
-
-def test_a_truth_per_member_puts_the_error_beside_the_estimate(tmp_path):
-    run = Run("sdof-stiffness", steps=200, out=tmp_path / "r", log_every=50,
-              members=[{"dK": 0.2}, {"dK": 0.4}, {"dK": 0.6}])
-    run.advance(progress=False)
-    summary = run.finish(figures=False)
-    tags = _tags(_mux(tmp_path / "r"), ".")
-    assert "Estimates/dK |error| mean" in tags and "Estimates/dK truth" not in tags and "Estimates/dC truth" in tags
-    err = sum(abs(e - t) for e, t in zip(summary["estimates"]["dK"], (0.2, 0.4, 0.6))) / 3
-    assert _last(_mux(tmp_path / "r"), ".", "errors/dK") == pytest.approx(err)
-
-
-def test_setting_text_summarizes_long_per_member_lists():
-    assert monitor.setting_text([0.1, 0.2]) == "[0.1, 0.2]" and monitor.setting_text(0.5) == "0.5"
-    assert monitor.setting_text([3, 1, 2, 5, 4]) == "per member (1..5, 5 values)"
-    assert monitor.setting_text(["a"] * 6) == "per member (6 values)"
-
-
-def test_member_status_from_the_summary():
+def test_status_and_requirements_texts():
     assert monitor.member_status({"batch": 2, "diverged": [{"member": 1, "step": 9}]}) == ["finished", "diverged"]
     assert monitor.member_status({"batch": 2, "status": ["converged", "not_converged"]}) == ["converged",
                                                                                            "not_converged"]
@@ -193,14 +236,78 @@ def test_member_status_from_the_summary():
         "converged 2, diverged 1"
     with_checks = {"batch": 2, "status": ["converged", "undetermined"],
                    "requirements": {"estimates.dK": {"pass": False, "member_pass": [True, False]}}}
-    assert monitor.status_text(with_checks) == "converged 1, undetermined 1; requirements pass 1 of 2"
-    assert monitor.status_text({"batch": 1, "status": "converged", "requirements": {"a": {"pass": True}}}) == \
-        "converged, requirements pass"
+    assert monitor.requirements_text(with_checks) == "pass 1 of 2"
+    assert monitor.requirements_text({"batch": 1, "requirements": {"a": {"pass": True}}}) == "pass"
+    assert monitor.requirements_text({"batch": 1, "requirements": {"a": {"pass": False}}}) == "FAIL"
+    assert monitor.requirements_text({"batch": 1}) == "none"
     assert monitor.session_status({"batch": 2, "status": ["converged", "converged"]}) == "STATUS_SUCCESS"
     assert monitor.session_status({"batch": 2, "status": ["converged", "diverged"]}) == "STATUS_FAILURE"
     assert monitor.session_status({"batch": 1, "status": "not_converged"}) == "STATUS_UNKNOWN"
 
 
+def test_setting_text_summarizes_long_per_member_lists():
+    assert monitor.setting_text([0.1, 0.2]) == "[0.1, 0.2]" and monitor.setting_text(0.5) == "0.5"
+    assert monitor.setting_text([3, 1, 2, 5, 4]) == "per member (1..5, 5 values)"
+    assert monitor.setting_text(["a"] * 6) == "per member (6 values)"
+
+
+# --- batches -------------------------------------------------------------------------------------------------
+def test_a_batch_draws_mean_band_and_truth_under_one_tag(tmp_path):
+    _, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
+    name = "sdof-stiffness"
+    assert sorted(mux.Runs()) == [name, f"{name}/q10", f"{name}/q90", f"{name}/truth"]
+    for sibling in ("q10", "q90"):
+        assert _tags(mux, f"{name}/{sibling}") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]",
+                                                   "Model error/z rms [m/s]"}
+    tags = _tags(mux, name)
+    members = sorted(t for t in tags if t.startswith("members/"))
+    assert members == sorted([f"members/dK m{b} [mN/m]" for b in range(8)] + [f"members/dC m{b} [mN s/m]"
+                                                                               for b in range(8)]
+                             + [f"members/z rms m{b} [m/s]" for b in range(8)])   # the members the PNG draws
+    dK = np.array(summary["estimates"]["dK"])
+    assert _last(mux, name, "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(dK.mean(), rel=1e-6)
+    assert _last(mux, f"{name}/q10", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.1), rel=1e-6)
+    assert _last(mux, f"{name}/q90", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.9), rel=1e-6)
+    assert _last(mux, name, "members/dK m2 [mN/m]") * 1e-3 == pytest.approx(dK[2], rel=1e-6)
+    assert _last(mux, name, "Estimates/dK |error| [mN/m]") * 1e-3 == pytest.approx(np.abs(dK - 0.5).mean(),
+                                                                                    rel=1e-5, abs=1e-9)
+    counts = summary["health"]["counts"]
+    for status, n in counts.items():
+        if n or status != "undetermined":
+            assert _last(mux, name, f"health/{status}") == n
+    per = [all(m) for m in zip(*(c["member_pass"] for c in summary["requirements"].values()))]
+    hp = _sessions(mux)[name]
+    assert hp[monitor.STATUS_HPARAM] == ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if n)
+    assert hp[monitor.REQUIREMENTS_HPARAM] == f"pass {sum(per)} of {len(per)}"
+
+
+def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
+    run, summary, mux = _run(tmp_path, steps=100, batch=20, log_every=10, trace=[4, 11])
+    tags = _tags(mux, "sdof-stiffness")
+    assert {t for t in tags if t.startswith("members/z rms")} == {"members/z rms m4 [m/s]", "members/z rms m11 [m/s]"}
+    assert _last(mux, "sdof-stiffness", "members/dK m11 [mN/m]") * 1e-3 == pytest.approx(summary["estimates"]["dK"][11],
+                                                                                          rel=1e-6)
+    assert run.history_members == [4, 11]                           # the figures draw the traced members
+    (first,) = mux.Tensors("sdof-stiffness", "spread/dK [mN/m]")                 # every tenth log: the first
+    buckets = tensor_util.make_ndarray(first.tensor_proto)
+    assert buckets[:, 2].sum() == 20 and "spread/z rms [m/s]" in _tags(mux, "sdof-stiffness", "histograms")
+    for b in (4, 11):                                 # the histogram spans the members' values, in the same unit
+        value = dict(_values(mux, "sdof-stiffness", f"members/dK m{b} [mN/m]"))[first.step]
+        assert buckets[0, 0] <= value <= buckets[-1, 1]
+
+
+def test_a_truth_per_member_puts_the_mean_error_beside_the_estimate(tmp_path):
+    run = Run("sdof-stiffness", steps=200, out=tmp_path / "r", log_every=50,
+              members=[{"dK": 0.2}, {"dK": 0.4}, {"dK": 0.6}])
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    mux = _mux(tmp_path)
+    assert _tags(mux, "r/truth") == {"Estimates/dC [mN s/m]"}       # dK has no single truth to draw
+    err = sum(abs(e - t) for e, t in zip(summary["estimates"]["dK"], (0.2, 0.4, 0.6))) / 3
+    assert _last(mux, "r", "Estimates/dK |error| [mN/m]") * 1e-3 == pytest.approx(err, rel=1e-5)
+
+
+# --- sweeps --------------------------------------------------------------------------------------------------
 SWEEP = dict(scenario="sdof-stiffness", steps=200, seeds=2, grid={"dK": [0.3, 0.5, 0.7]}, fixed={"nu": 10},
              shard_size=4)
 
@@ -208,40 +315,75 @@ SWEEP = dict(scenario="sdof-stiffness", steps=200, seeds=2, grid={"dK": [0.3, 0.
 def test_a_sweep_writes_one_session_per_member(tmp_path):
     rows = sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "sw", progress=False)
     mux = _mux(tmp_path / "sw")
-    assert sorted(mux.Runs()) == [f"members/member_{m:06d}" for m in range(6)] + ["shard_0000", "shard_0001"]
+    members = [f"members/member_{m:06d}" for m in range(6)]
+    shards = [f"shard_{s:04d}{sub}" for s in range(2) for sub in ("", "/q10", "/q90", "/truth")]
+    # the sweep's own folder is a run too: its figures (estimates and errors against the swept settings)
+    assert sorted(mux.Runs()) == sorted(members + shards + ["."])
+    assert _tags(mux, ".", "images") == {"figures/sweep_dK"}
     sessions = _sessions(mux)
-    assert sorted(sessions) == [f"members/member_{m:06d}" for m in range(6)]      # the shards are not rows
+    assert sorted(sessions) == members                              # the shards are not rows
     for r in rows:
         run = f"members/member_{r['member']:06d}"
-        assert sessions[run]["dK"] == r["dK"] and sessions[run]["seed"] == r["seed"]
+        assert sessions[run]["dK [N/m]"] == r["dK"] and sessions[run]["seed"] == r["seed"]
         passed = all(v for k, v in r.items() if k.startswith("pass_"))
         assert r["status"] in ("converged", "undetermined", "not_converged")   # never diverged
-        assert sessions[run][monitor.STATUS_HPARAM] == r["status"] + (", requirements pass" if passed else
-                                                                      ", requirements FAIL")
-        assert _last(mux, run, "final/dK") == pytest.approx(r["est_dK"])
-        assert _last(mux, run, "final/|error| dK") == pytest.approx(abs(r["err_dK"]))
+        assert sessions[run][monitor.STATUS_HPARAM] == r["status"]
+        assert sessions[run][monitor.REQUIREMENTS_HPARAM] == ("pass" if passed else "FAIL")
+        tags = _tags(mux, run)
+        (est,) = [t for t in tags if t.startswith("Estimates/dK [")]     # dK of sdof-stiffness in thousandths
+        assert _last(mux, run, est) * 1e-3 == pytest.approx(r["est_dK"], rel=1e-6)
+        (err,) = [t for t in tags if t.startswith("Estimates/dK |error| [")]
+        assert _last(mux, run, err) * 1e-3 == pytest.approx(abs(r["err_dK"]), rel=1e-5, abs=1e-9)
         assert _last(mux, run, "final/z_rms_final") == pytest.approx(r["z_rms_final"])
-        assert _last(mux, run, "final/diverged") == 0.0 and "final/Ts" not in _tags(mux, run)
+        assert _last(mux, run, "final/diverged") == 0.0 and "final/Ts" not in tags
+
+
+def test_a_member_session_given_its_scenario_has_the_columns_of_a_run(tmp_path):
+    _, summary, mux = _run(tmp_path, steps=200, log_every=50)
+    member = {"batch": 1, "estimates": summary["estimates"], "truth": summary["truth"], "metrics": {},
+              "intervals": summary["intervals"], "status": summary["status"]}
+    values = monitor.final_values(member, scenario="sdof-stiffness")
+    logged = _tags(mux, "sdof-stiffness")
+    assert {"Estimates/dK [mN/m]", "Estimates/dK |error| [mN/m]", "intervals/dK lower [mN/m]"} <= set(values)
+    assert {k for k in values if not k.startswith("final/")} <= logged
+    assert values["Estimates/dK [mN/m]"] == pytest.approx(_last(mux, "sdof-stiffness", "Estimates/dK [mN/m]"))
+    # a run's own final values leave out what its logs hold
+    assert all(k.startswith("final/") for k in monitor.final_values(summary, logged=True))
 
 
 def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkeypatch):
     monkeypatch.setattr(sweeps, "HPARAMS_MEMBERS_MAX", 5)
     rows = sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "sw", progress=False)
     mux = _mux(tmp_path / "sw")
-    assert sorted(mux.Runs()) == ["shard_0000", "shard_0001"]
+    assert sorted(r for r in mux.Runs() if "/" not in r) == [".", "shard_0000", "shard_0001"]
     sessions = _sessions(mux)
     last = [r["status"] for r in rows if r["shard"] == 1]
     assert sessions["shard_0000"]["members"] == "0..3" and len(last) == 2
     passed = sum(all(v for k, v in r.items() if k.startswith("pass_")) for r in rows if r["shard"] == 1)
     assert sessions["shard_0001"][monitor.STATUS_HPARAM] == \
-        ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last))) + f"; requirements pass {passed} of 2"
-    assert sessions["shard_0000"]["Ts"] == 0.01 and sessions["shard_0000"]["nu"] == 10
-    assert sessions["shard_0000"]["dK"] == "[0.3, 0.3, 0.5, 0.5]"             # per member, short: as it is
-    assert "final/dK" in _tags(mux, "shard_0000")
+        ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last)))
+    assert sessions["shard_0001"][monitor.REQUIREMENTS_HPARAM] == f"pass {passed} of 2"
+    assert sessions["shard_0000"]["Ts [s]"] == 0.01 and sessions["shard_0000"]["nu"] == 10
+    assert sessions["shard_0000"]["dK [N/m]"] == "[0.3, 0.3, 0.5, 0.5]"      # per member, short: as it is
+    assert "final/z_rms_final" in _tags(mux, "shard_0000")
     note = mux.Tensors("shard_0000", "sweep/text_summary")[0].tensor_proto.string_val[0].decode()
     assert "6 members" in note and "sweep.csv" in note and "500 runs" in note
+    # the shards of a sweep share one Custom Scalars category, named after the sweep
+    assert _layout(mux, "shard_0001").category[0].title == "sw (shards): estimates vs truth"
 
 
+def test_sweep_figures_are_written_as_png_and_tensorboard_images(tmp_path):
+    rows = [{"member": m, "dK": dK, "p0": p0, "est_dK": dK + 0.01 * m, "truth_dK": dK, "err_dK": 0.01 * m,
+             "status": "converged" if m % 2 else "not_converged"}
+            for m, (dK, p0) in enumerate([(0.3, 1e1), (0.5, 1e3), (0.7, 1e5), (0.3, 1e5)])]
+    written = monitor.write_sweep_figures(tmp_path, rows, ["dK", "p0"], "sdof-stiffness")
+    assert sorted(p.name for p in written) == ["sweep_dK.png", "sweep_p0.png"]
+    assert all(p.read_bytes().startswith(b"\x89PNG\r\n\x1a\n") for p in written)
+    mux = _mux(tmp_path)
+    assert _tags(mux, ".", "images") == {"figures/sweep_dK", "figures/sweep_p0"}
+
+
+# --- what TensorBoard serves ---------------------------------------------------------------------------------
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -256,10 +398,11 @@ def _post(url: str, body: dict) -> dict:
 
 
 @pytest.mark.slow
-def test_tensorboard_serves_one_run_per_run_and_every_member_in_hparams(tmp_path):
+def test_tensorboard_serves_the_runs_their_siblings_and_every_member_in_hparams(tmp_path):
     """A real TensorBoard on 127.0.0.1 over a mixed folder: a single run, a batch run and a sweep of 6 members.
-    Its run list holds each run once; its HParams table holds the two runs and the six members, with the
-    settings of both scenarios (the union) and the final estimates as metrics."""
+    Its run list holds each run and its sibling runs; its HParams table holds the two runs and the six members,
+    with the settings of both scenarios (the union) and the estimates, truths and errors as metrics; the
+    scalars of a run read simulated seconds as their time since the first."""
     _run(tmp_path, steps=200, log_every=50)
     _run(tmp_path, "sdof-dynamic-impedance", steps=200, batch=2, log_every=50)
     sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "runs" / "sweep", progress=False)
@@ -286,58 +429,35 @@ def test_tensorboard_serves_one_run_per_run_and_every_member_in_hparams(tmp_path
         assert sessions == expected
         with urllib.request.urlopen(f"{base}/data/runs", timeout=5) as r:
             runs = json.loads(r.read())
-        assert sorted(runs) == sorted(expected + ["sweep/shard_0000", "sweep/shard_0001"])
+        siblings = ["sdof-stiffness/truth", "sdof-dynamic-impedance/truth", "sdof-dynamic-impedance/q10",
+                    "sdof-dynamic-impedance/q90"] + [f"sweep/shard_000{s}/{sub}" for s in range(2)
+                                                     for sub in ("q10", "q90", "truth")]
+        assert sorted(runs) == sorted(expected + ["sweep", "sweep/shard_0000", "sweep/shard_0001"] + siblings)
         experiment = _post(f"{base}/data/plugin/hparams/experiment", {"experimentName": ""})
-        hparams = {h["name"] for h in experiment["hparamInfos"]}
-        assert {"scenario", monitor.STATUS_HPARAM, "p0", "dK", "gain", "seed"} <= hparams, ", ".join(sorted(hparams))
-        shown = [h["name"] for h in experiment["hparamInfos"]][:HPARAMS_SHOWN]      # the columns shown at first
-        assert monitor.STATUS_HPARAM in shown, shown
-        metrics = {m["name"]["tag"] for m in experiment["metricInfos"]}
-        assert {"final/dK", "final/dc_gain", "final/|error| dK", "final/freq_rel_err_max"} <= metrics
+        hparams = [h["name"] for h in experiment["hparamInfos"]]
+        assert {"scenario", "p0", "dK [N/m]", "gain [N/m]", "seed"} <= set(hparams), ", ".join(hparams)
+        assert hparams[:2] == [monitor.REQUIREMENTS_HPARAM, monitor.STATUS_HPARAM]   # shown without ticking
+        metrics = {(m["name"]["group"], m["name"]["tag"]) for m in experiment["metricInfos"]}
+        assert {("", "Estimates/dK [mN/m]"), ("truth", "Estimates/dK [mN/m]"), ("", "Estimates/dK |error| [mN/m]"),
+                ("", "Estimates/dc_gain [N s/m]"), ("", "final/freq_rel_err_max")} <= metrics
+        query = urllib.parse.urlencode({"run": "sdof-stiffness", "tag": "Estimates/dK [mN/m]"})
+        with urllib.request.urlopen(f"{base}/data/plugin/scalars/scalars?{query}", timeout=5) as r:
+            points = json.loads(r.read())                            # [wall time, step, value]
+        assert [p[1] for p in points] == [0, 50, 100, 150, 200]
+        assert [p[0] - points[0][0] for p in points] == pytest.approx([0.0, 0.5, 1.0, 1.5, 2.0], abs=1e-5)
     finally:
         server.terminate()
         server.wait(timeout=30)
 
 
-def test_run_figures_carry_units_and_legends(tmp_path):
-    from rcotorch.figures import run_figures
-    run = Run("sdof-stiffness", steps=200, out=tmp_path / "r", log_every=20)
-    run.advance(progress=False)
-    figs = run_figures(run)
-    axes = figs["estimates"].axes[::2]                  # the left column: the whole run (right: the window)
-    assert [a.get_ylabel() for a in axes] == ["dK [N/m]", "dC [N s/m]"] and axes[-1].get_xlabel() == "time [s]"
-    assert figs["estimates"].axes[-1].get_xlabel() == "time [s]" and len(figs["estimates"].axes) == 4
-    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["estimate", "truth", "initial model",
-                                                                       "95% interval at the end"]
-    initial = [ln for ln in axes[0].get_lines() if ln.get_label() == "initial model"][0]
-    assert initial.get_ydata()[0] == 0.0                                     # theta starts at zero: dK = 0
-    assert figs["model_error"].axes[0].get_ylabel() == "rms of z = y - y_hat [m/s]"
-    batch = Run("sdof-stiffness", steps=100, batch=3, out=tmp_path / "b", log_every=20)
-    batch.advance(progress=False)
-    labels = [t.get_text() for t in run_figures(batch)["estimates"].axes[0].get_legend().get_texts()]
-    assert labels == ["member 0", "member 1", "member 2", "truth", "initial model",
-                      "95% interval at the end"]
-
-
-def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(tmp_path):
-    import threading
-
-    from rcotorch.figures import draw_meanwhile, pngs, run_figures
-    run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
-    run.advance(progress=False)
-    threads = []
-
-    def make():
-        threads.append(threading.current_thread())
-        return run_figures(run)
-    drawn = draw_meanwhile(make)()
-    assert threads[0] is not threading.main_thread()
-    assert drawn == pngs(run_figures(run)) and set(drawn) == {"estimates", "model_error", "residuals",
-                                                                            "output_fit"}
-    assert all(png.startswith(b"\x89PNG\r\n\x1a\n") for png in drawn.values())
-
-    def broken():
-        raise ValueError("no history to draw")
-    with pytest.raises(ValueError, match="no history to draw"):
-        draw_meanwhile(broken)()
+def test_a_log_writes_one_event_per_writer(tmp_path, monkeypatch):
+    """A log is one event in the run and one in each sibling run, whatever the number of tags."""
+    run = Run("sdof-stiffness", steps=100, batch=4, out=tmp_path / "r", log_every=50)
+    run.advance(until=50, progress=False)
+    calls = []
+    monkeypatch.setattr(monitor, "_scalars", lambda writer, step, wall, values: calls.append(writer))
+    monkeypatch.setattr(monitor.EventFile, "scalars", lambda self, step, wall, values: calls.append(self))
+    est = {k: v.detach().to(torch.float64).cpu() for k, v in run.scenario.estimates(run.graph, run.settings).items()}
+    run.monitor.log(60, torch.ones(4, dtype=torch.float64), est)
+    assert len(calls) == 4 and len(set(map(id, calls))) == 4          # the run, truth, q10, q90
     run.close()

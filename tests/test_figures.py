@@ -1,0 +1,185 @@
+"""The figures of runs and sweeps: units, the truth drawn on top, legends that list what is drawn and sit outside
+the axes, a logarithmic time axis where the estimates settle early, the initial model's error beside the refined
+one's, a sweep's estimates and errors against its swept settings."""
+
+import threading
+
+import numpy as np
+import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_rgba
+
+from rcotorch.figures import draw_meanwhile, frequency_figure, log_time_axis, pngs, run_figures, sweep_figures
+from rcotorch.runner import Run
+
+
+def _overlaps(a, b) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+def _legends_clear_of_axes(fig) -> None:
+    """Every legend of the figure lies outside every axes' plotting area (after a drawing laid them out)."""
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    assert legends
+    for legend in legends:
+        box = legend.get_window_extent(renderer)
+        for ax in fig.axes:
+            assert not _overlaps(box, ax.get_window_extent(renderer)), (legend, ax)
+
+
+@pytest.fixture(scope="module")
+def single(tmp_path_factory):
+    run = Run("sdof-stiffness", steps=2000, out=tmp_path_factory.mktemp("r") / "r", log_every=20)
+    run.advance(progress=False)
+    summary = run.summary()
+    yield run, summary, run_figures(run)
+    run.close()
+
+
+def test_run_figures_carry_units_legends_and_the_truth_on_top(single):
+    run, _, figs = single
+    fig = figs["estimates"]
+    left = fig.axes[::2]                                   # the left column: the whole run (right: the window)
+    assert [a.get_ylabel() for a in left] == ["dK [N/m]", "dC [N s/m]"] and len(fig.axes) == 4
+    assert left[-1].get_xlabel().startswith("time [s]")
+    (legend,) = fig.legends                               # one legend for the figure, below the axes
+    assert [t.get_text() for t in legend.get_texts()] == ["estimate", "truth", "initial model",
+                                                          "95% interval at the end"]
+    for ax in fig.axes:
+        lines = {ln.get_label(): ln for ln in ax.get_lines()}
+        truth = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--" and to_rgba(ln.get_color()) == to_rgba("k")]
+        assert truth, ax                                   # the truth: dashed, black, in every panel
+        estimates = [ln for ln in ax.get_lines() if ln not in truth and ln.get_label() != "initial model"]
+        assert min(t.get_zorder() for t in truth) > max(ln.get_zorder() for ln in estimates)   # drawn above them
+        if "initial model" in lines:
+            assert lines["initial model"].get_ydata()[0] == 0.0          # theta starts at zero: dK = 0
+    _legends_clear_of_axes(fig)
+
+
+def test_the_model_error_figure_sets_the_initial_model_beside_the_refined_one(single):
+    run, summary, figs = single
+    fig = figs["model_error"]
+    top, bottom = fig.axes[:2]
+    assert top.get_ylabel() == "rms of z = y - y_hat [m/s]" and bottom.get_ylabel() == "z = y - y_hat [m/s]"
+    labels = [ln.get_label() for ln in top.get_lines()]
+    assert labels == ["refined model, during the run", "initial model, held-out data (member 0)",
+                      "refined model, held-out data (member 0)"]
+    held = {ln.get_label(): ln.get_ydata()[0] for ln in top.get_lines()[1:]}
+    metrics = summary["metrics"]
+    assert held["initial model, held-out data (member 0)"] == pytest.approx(metrics["validation_rmse_initial"])
+    assert held["refined model, held-out data (member 0)"] == pytest.approx(metrics["validation_rmse"])
+    initial, refined = bottom.get_lines()
+    # the plotted z of each model on the held-out data has the rms the validation reports
+    for line, key in ((initial, "validation_rmse_initial"), (refined, "validation_rmse")):
+        assert np.sqrt(np.mean(line.get_ydata() ** 2)) == pytest.approx(summary["metrics"][key], rel=1e-9)
+        assert f"rms {summary['metrics'][key]:.3g} m/s" in line.get_label()
+    _legends_clear_of_axes(fig)
+
+
+def test_a_log_time_axis_where_the_estimates_settle_early_and_not_where_they_change_late():
+    t = np.arange(1, 1001) * 0.1
+    settle = 1 - np.exp(-t / 2.0)                          # settled within 10% of the run
+    late = np.where(t > 60, 1.0, 0.0) + 0.01 * np.sin(t)   # a change in the second half (tracking)
+    assert log_time_axis(t, [settle[:, None]])
+    assert not log_time_axis(t, [settle[:, None], late[:, None]])
+    assert not log_time_axis(t[-10:], [settle[-10:, None]])          # less than two decades of time
+    assert not log_time_axis(np.arange(0, 1000) * 0.1, [settle])     # starts at 0
+
+
+def test_a_run_whose_estimates_settle_early_is_drawn_on_a_log_time_axis(single):
+    run, _, figs = single
+    h = run.history
+    series = [np.stack([v.numpy() for v in h[k]]) for k in ("dK", "dC")]
+    t = np.asarray(h["step"], dtype=float) * 0.01
+    expected = "log" if log_time_axis(t, series) else "linear"
+    assert figs["estimates"].axes[0].get_xscale() == expected == figs["model_error"].axes[0].get_xscale()
+
+
+def test_a_batch_figure_draws_the_traced_members(tmp_path):
+    batch = Run("sdof-stiffness", steps=100, batch=12, out=tmp_path / "b", log_every=20, trace=[2, 5, 9])
+    batch.advance(progress=False)
+    fig = run_figures(batch)["estimates"]
+    assert [t.get_text() for t in fig.legends[0].get_texts()][:3] == ["member 2", "member 5", "member 9"]
+    assert "(3 of 12 members)" in fig.axes[0].get_title()
+    batch.close()
+
+
+def test_frequency_figures_draw_the_truth_dashed_on_top_and_the_legend_below():
+    omega = np.logspace(-1, 2, 50)
+    true = 1 / (1j * omega + 1)
+    fig = frequency_figure(omega, {"initial model": 0.8 * true, "true system": true, "refined model": true,
+                                   "true system, sampled": 1.01 * true}, "test", nyquist=50.0, unit="V/V",
+                           bands={"95% band": (0.9 * np.abs(true), 1.1 * np.abs(true))})
+    mag = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in mag.get_lines()}
+    trues = [lines["true system"], lines["true system, sampled"]]
+    others = [lines["initial model"], lines["refined model"]]
+    assert min(t.get_zorder() for t in trues) > max(o.get_zorder() for o in others)
+    assert to_rgba(lines["true system"].get_color()) == to_rgba("k")
+    assert all(t.get_linestyle() == "--" for t in trues)
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["95% band", "initial model", "true system",
+                                                                  "refined model", "true system, sampled",
+                                                                  "Nyquist frequency"]
+    _legends_clear_of_axes(fig)
+
+
+def _rows():
+    rows = []
+    for m, (dK, p0, basis) in enumerate([(0.3, 1e1, "a"), (0.5, 1e3, "b"), (0.7, 1e5, "a"), (0.3, 1e5, "b")]):
+        est = dK + 0.01 * (m + 1)
+        rows.append({"member": m, "dK": dK, "p0": p0, "basis": basis, "seed": m, "est_dK": est, "truth_dK": dK,
+                     "err_dK": est - dK, "est_dC": 0.1, "truth_dC": 0.0, "err_dC": 0.1,
+                     "status": ["converged", "not_converged", "diverged", "converged"][m]})
+    return rows
+
+
+def test_sweep_figures_draw_each_estimate_and_error_against_each_swept_setting():
+    rows = _rows()
+    figs = sweep_figures(rows, ["dK", "p0", "basis"], "sdof-stiffness")
+    assert sorted(figs) == ["sweep_basis", "sweep_dK", "sweep_p0"]
+    fig = figs["sweep_p0"]
+    axes = fig.axes
+    assert [a.get_ylabel() for a in axes] == ["dK [N/m]", "|error| of dK [N/m]", "dC [N s/m]", "|error| of dC [N s/m]"]
+    assert axes[-1].get_xlabel() == "p0" and axes[-1].get_xscale() == "log"        # four decades of p0
+    # each member's estimate against its p0, coloured by its status; the truth as black crosses on top
+    points = {}
+    for coll in axes[0].collections:
+        for (x, y) in coll.get_offsets():
+            points.setdefault(coll.get_label(), []).append((x, y))
+    assert sorted(points["truth"]) == sorted((r["p0"], r["truth_dK"]) for r in rows)
+    assert sorted(points["converged"]) == sorted((r["p0"], r["est_dK"]) for r in rows if r["status"] == "converged")
+    assert sorted(points["not converged"]) == [(1e3, rows[1]["est_dK"])]
+    truth = [c for c in axes[0].collections if c.get_label() == "truth"][0]
+    assert truth.get_zorder() > max(c.get_zorder() for c in axes[0].collections if c is not truth)
+    errors = sorted(y for c in axes[1].collections for _, y in c.get_offsets())
+    assert errors == pytest.approx(sorted(abs(r["err_dK"]) for r in rows))
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["converged", "not converged", "diverged", "truth"]
+    # a setting of words is drawn as categories
+    basis = figs["sweep_basis"].axes[-1]
+    assert [t.get_text() for t in basis.get_xticklabels()] == ["a", "b"]
+    _legends_clear_of_axes(fig)
+    assert sweep_figures(rows, ["no_such_column"]) == {} and sweep_figures([], ["dK"]) == {}
+
+
+def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(tmp_path):
+    run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
+    run.advance(progress=False)
+    threads = []
+
+    def make():
+        threads.append(threading.current_thread())
+        return run_figures(run)
+    drawn = draw_meanwhile(make)()
+    assert threads[0] is not threading.main_thread()
+    assert drawn == pngs(run_figures(run)) and set(drawn) == {"estimates", "model_error", "residuals",
+                                                                            "output_fit"}
+    assert all(data.startswith(b"\x89PNG\r\n\x1a\n") for data in drawn.values())
+
+    def broken():
+        raise ValueError("no history to draw")
+    with pytest.raises(ValueError, match="no history to draw"):
+        draw_meanwhile(broken)()
+    run.close()
