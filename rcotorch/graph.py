@@ -139,7 +139,8 @@ class Graph(nn.Module):
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self.to(device=device, dtype=dtype)
         self.reset(batch_size)
-        self.last: dict[Signal, torch.Tensor] = {}
+        self._last: dict[Signal, torch.Tensor] = {}
+        self._last_native: tuple | None = None      # (signals, order) a native call left, copied when read
         self.hooks: list[Callable[[Graph], object]] = []
         self.ran_engine: str | None = None     # the engine of the last ``advance``
         self.engine_reason: str | None = None  # why it was not the native engine (None when it was)
@@ -357,6 +358,18 @@ class Graph(nn.Module):
         for hook in self.hooks:
             hook(self)
         return signals
+
+    @property
+    def last(self) -> dict[Signal, torch.Tensor]:
+        """The signals of the last step, {(block, port): (B, width)}."""
+        if self._last_native is not None:
+            signals, order = self._last_native
+            self._last, self._last_native = {sig: signals[sig].clone() for sig in order}, None
+        return self._last
+
+    @last.setter
+    def last(self, value: dict[Signal, torch.Tensor]) -> None:
+        self._last, self._last_native = value, None
 
     @property
     def engine(self) -> str:

@@ -118,10 +118,13 @@ def finite_list(t: torch.Tensor) -> list:
     return [x if math.isfinite(x) else None for x in values]
 
 
+CHECK_MAX = 20_000      # steps between checks at most: long runs are checked about 50 times in the window
+
+
 def check_every(steps: int) -> int:
     """Steps between health checks in the convergence window of a run of ``steps`` steps (2% of the run, at
-    most 1000); twice as many between the checks before the window (``Health.is_check``)."""
-    return min(1000, max(1, steps // 50))
+    most CHECK_MAX); twice as many between the checks before the window (``Health.is_check``)."""
+    return min(CHECK_MAX, max(1, steps // 50))
 
 
 class Health:

@@ -421,7 +421,7 @@ def advance(graph, prog: Program, steps: int, accumulate: Mapping[Signal, torch.
             blk.k += T
         graph.k += T
         done += T
-        graph.last = {sig: prog.signals[sig].clone() for sig in graph.order}    # of the program that ran
+        graph._last_native = (prog.signals, graph.order)    # of the program that ran, copied when read
         if periods and any(int(graph.k) % p == 0 for p in periods):
             for hook in graph.hooks:
                 hook(graph)

@@ -42,6 +42,10 @@ CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = 4   # the layout of checkpoint.pt (4: the graph's state at the window's start, for intervals)
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
+# The logs of a run may take about LOG_SHARE of the engine's time: a log (with the stop of the engine before
+# it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a member-step of the native engine at least
+# ENGINE_NS nanoseconds (docs/engine.md).
+LOG_SHARE, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.2, 250.0, 0.5, 30.0
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
@@ -80,13 +84,17 @@ def _positive_int(value, what: str) -> int:
 
 
 def default_log_every(steps: int, batch: int) -> int:
-    """Steps between logs: about MAX_LOGS logs per run, and at most LOG_BUDGET member-values in all (but at
-    least MIN_LOGS logs), since a log reads every member. An interval longer than the health checks' (in the
-    convergence window) is the nearest multiple of twice theirs (their spacing before the window), so that
-    logs fall on check steps: every stop of the engine costs a pass over the whole batch's state."""
-    logs = min(MAX_LOGS, max(MIN_LOGS, LOG_BUDGET // batch))
+    """Steps between logs: as many logs as take about LOG_SHARE of the engine's time, at most MAX_LOGS and
+    LOG_BUDGET member-values in all (since a log reads every member), but at least MIN_LOGS. An interval
+    longer than the health checks' (in the convergence window) is the nearest multiple of twice theirs (their
+    spacing before the window), and one more than half theirs is theirs, so that logs fall on check steps:
+    every stop of the engine costs a pass over the whole batch's state."""
+    affordable = LOG_SHARE * steps * batch * ENGINE_NS * 1e-3 / (LOG_US + LOG_US_PER_MEMBER * batch)
+    logs = min(MAX_LOGS, max(MIN_LOGS, min(int(affordable), LOG_BUDGET // batch)))
     every, check = max(1, math.ceil(steps / logs)), check_every(steps)
-    return 2 * check * max(1, round(every / (2 * check))) if every > check else every
+    if every > check:
+        return 2 * check * max(1, round(every / (2 * check)))
+    return check if 2 * every > check else every
 
 
 def default_out(name: str) -> Path:

@@ -91,10 +91,10 @@ def test_covariance_windup_without_excitation_matches_the_closed_form(tmp_path):
 
 
 @pytest.mark.parametrize("steps, every, start", [(2000, 40, 1600), (4000, 80, 3200), (202, 4, 164),
-                                                 (100_000, 1000, 80_000)])
+                                                 (100_000, 2000, 80_000), (2_000_000, 20_000, 1_600_000)])
 def test_checks_are_every_second_step_of_the_cadence_before_the_window_and_every_one_in_it(tmp_path, steps,
                                                                                          every, start):
-    """The checks of a run: 2% of the run apart (at most 1000 steps) from the convergence window's start on
+    """The checks of a run: 2% of the run apart (at most 20,000 steps) from the convergence window's start on
     (the last fifth of the run, from a multiple of that), twice that apart before it; each one stops the engine
     once, and the logs (here every 2 * every steps) fall on check steps."""
     run = Run("sdof-stiffness", steps=steps, out=tmp_path, log_every=2 * every)
