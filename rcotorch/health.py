@@ -118,7 +118,7 @@ def finite_list(t: torch.Tensor) -> list:
     return [x if math.isfinite(x) else None for x in values]
 
 
-CHECK_MAX = 20_000      # steps between checks at most: long runs are checked about 50 times in the window
+CHECK_MAX = 50_000      # steps between checks at most: runs up to 2.5M steps are checked 10 times in the window
 
 
 def check_every(steps: int) -> int:

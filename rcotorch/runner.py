@@ -42,10 +42,10 @@ CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = 4   # the layout of checkpoint.pt (4: the graph's state at the window's start, for intervals)
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
-# The logs of a run may take about LOG_SHARE of the engine's time: a log (with the stop of the engine before
-# it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a member-step of the native engine at least
-# ENGINE_NS nanoseconds (docs/engine.md).
-LOG_SHARE, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.2, 250.0, 0.5, 30.0
+# The logs of a run may take about LOG_SHARE of the engine's time, or LOG_FREE_S seconds where that is more: a
+# log (with the stop of the engine before it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a
+# member-step of the native engine at least ENGINE_NS nanoseconds (docs/cli.md).
+LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.01, 250.0, 0.7, 30.0
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
@@ -84,17 +84,21 @@ def _positive_int(value, what: str) -> int:
 
 
 def default_log_every(steps: int, batch: int) -> int:
-    """Steps between logs: as many logs as take about LOG_SHARE of the engine's time, at most MAX_LOGS and
-    LOG_BUDGET member-values in all (since a log reads every member), but at least MIN_LOGS. An interval
+    """Steps between logs: as many logs as take about LOG_SHARE of the engine's time (or LOG_FREE_S), at most
+    MAX_LOGS and LOG_BUDGET member-values in all (since a log reads every member), but at least MIN_LOGS. An interval
     longer than the health checks' (in the convergence window) is the nearest multiple of twice theirs (their
-    spacing before the window), and one more than half theirs is theirs, so that logs fall on check steps:
-    every stop of the engine costs a pass over the whole batch's state."""
-    affordable = LOG_SHARE * steps * batch * ENGINE_NS * 1e-3 / (LOG_US + LOG_US_PER_MEMBER * batch)
+    spacing before the window), a shorter one a divisor of theirs near it, so that logs fall on check steps or
+    checks on log steps: every stop of the engine costs a pass over the whole batch's state."""
+    budget_us = max(LOG_SHARE * steps * batch * ENGINE_NS * 1e-3, LOG_FREE_S * 1e6)
+    affordable = budget_us / (LOG_US + LOG_US_PER_MEMBER * batch)
     logs = min(MAX_LOGS, max(MIN_LOGS, min(int(affordable), LOG_BUDGET // batch)))
     every, check = max(1, math.ceil(steps / logs)), check_every(steps)
     if every > check:
         return 2 * check * max(1, round(every / (2 * check)))
-    return check if 2 * every > check else every
+    n = max(1, check // every)                  # a divisor of the checks' spacing, no shorter: checks fall on logs
+    while check % n:
+        n += 1
+    return check // n
 
 
 def default_out(name: str) -> Path:
@@ -243,7 +247,7 @@ class Run:
             self._take_snapshot()
             while self.k < until:
                 k = self.k
-                end = min(until, _next(k, self.log_every), self.health.next_check(k),
+                end = min(until, _next_log(k, self.log_every), self.health.next_check(k),
                           _next(k, checkpoint_every) if checkpoint_every else until)
                 self.graph.advance(end - k, accumulate=acc)
                 self.counters["acc"] += end - k
@@ -251,7 +255,7 @@ class Run:
                     self._check()
                 self._take_snapshot()
                 self.folder.check()
-                if end % self.log_every == 0:
+                if _is_log(end, self.log_every):
                     self._log()
                 if checkpoint_every and end % checkpoint_every == 0:
                     self.save()
@@ -602,6 +606,25 @@ def residual_metrics(res: ci.Residuals) -> dict[str, torch.Tensor]:
 def _next(k: int, every: int) -> int:
     """The first multiple of ``every`` after ``k``."""
     return (k // every + 1) * every
+
+
+def _is_log(k: int, every: int) -> bool:
+    """Whether a run logs after step k: every ``every`` steps, and before the first of those at every / 2,
+    every / 4, ... (integer halves down to step 1), so that the start of a run, where estimates move most, is
+    seen on a log time axis too."""
+    if k % every == 0:
+        return True
+    return 0 < k < every and any(every >> j == k for j in range(1, every.bit_length()))
+
+
+def _next_log(k: int, every: int) -> int:
+    """The first log step after step k (``_is_log``)."""
+    if k < every:
+        for j in range(every.bit_length(), 0, -1):
+            step = every >> j
+            if step > k:
+                return step
+    return _next(k, every)
 
 
 def _check_resume(path: Path, state: Mapping[str, Any], expect: Mapping[str, Any]) -> None:

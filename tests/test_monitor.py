@@ -27,6 +27,13 @@ from rcotorch.outputs import load_checkpoint
 from rcotorch.runner import Run
 
 
+def _log_steps(every: int, last: int) -> list[int]:
+    """The steps a run logs at (the initial model at 0): every / 2^j before the first interval (integer halves),
+    then every ``every`` steps, up to ``last``."""
+    early = sorted({every >> j for j in range(1, every.bit_length())} - {0})
+    return [0] + early + list(range(every, last + 1, every))
+
+
 def _mux(logdir) -> EventMultiplexer:
     mux = EventMultiplexer(size_guidance={"scalars": 0, "histograms": 0, "images": 0, "tensors": 0})
     mux.AddRunsFromDirectory(str(logdir))
@@ -134,7 +141,7 @@ def test_a_single_run_draws_estimate_and_truth_under_one_tag_in_simulated_second
     assert _tags(mux, f"{name}/truth") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]"}
     # the first two groups in TensorBoard's order (capitals first) are the estimates and the model error
     assert sorted({t.split("/")[0] for t in tags})[:2] == ["Estimates", "Model error"]
-    steps = list(range(0, 601, 50))                                     # the initial model at step 0, then logs
+    steps = _log_steps(50, 600)                                         # the initial model at step 0, then logs
     truth = _values(mux, f"{name}/truth", "Estimates/dK [mN/m]")
     assert [s for s, _ in truth] == steps and all(v == 500.0 for _, v in truth)
     est = _values(mux, name, "Estimates/dK [mN/m]")
@@ -205,7 +212,7 @@ def test_a_resumed_run_continues_the_same_time_axis(tmp_path):
     mux = _mux(tmp_path / "runs")
     for name in ("r", "r/truth"):
         events = sorted(_events(mux, name, "Estimates/dK [mN/m]"), key=lambda e: e.step)   # files in name order
-        assert [e.step for e in events] == list(range(0, 301, 50))
+        assert [e.step for e in events] == _log_steps(50, 300)
         assert all(e.wall_time - origin == pytest.approx(e.step * 0.01, abs=1e-5) for e in events)
 
 
@@ -288,7 +295,9 @@ def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
     assert _last(mux, "sdof-stiffness", "members/dK m11 [mN/m]") * 1e-3 == pytest.approx(summary["estimates"]["dK"][11],
                                                                                           rel=1e-6)
     assert run.history_members == [4, 11]                           # the figures draw the traced members
-    (first,) = mux.Tensors("sdof-stiffness", "spread/dK [mN/m]")                 # every tenth log: the first
+    spread = sorted(mux.Tensors("sdof-stiffness", "spread/dK [mN/m]"), key=lambda e: e.step)
+    assert len(spread) == 2                          # every tenth log: 13 logs (steps 1, 2, 5, then every 10)
+    first = spread[0]
     buckets = tensor_util.make_ndarray(first.tensor_proto)
     assert buckets[:, 2].sum() == 20 and "spread/z rms [m/s]" in _tags(mux, "sdof-stiffness", "histograms")
     for b in (4, 11):                                 # the histogram spans the members' values, in the same unit
@@ -443,8 +452,9 @@ def test_tensorboard_serves_the_runs_their_siblings_and_every_member_in_hparams(
         query = urllib.parse.urlencode({"run": "sdof-stiffness", "tag": "Estimates/dK [mN/m]"})
         with urllib.request.urlopen(f"{base}/data/plugin/scalars/scalars?{query}", timeout=5) as r:
             points = json.loads(r.read())                            # [wall time, step, value]
-        assert [p[1] for p in points] == [0, 50, 100, 150, 200]
-        assert [p[0] - points[0][0] for p in points] == pytest.approx([0.0, 0.5, 1.0, 1.5, 2.0], abs=1e-5)
+        assert [p[1] for p in points] == _log_steps(50, 200)
+        assert [p[0] - points[0][0] for p in points] == pytest.approx([k * 0.01 for k in _log_steps(50, 200)],
+                                                                      abs=1e-5)
     finally:
         server.terminate()
         server.wait(timeout=30)
