@@ -608,23 +608,24 @@ def _next(k: int, every: int) -> int:
     return (k // every + 1) * every
 
 
+EARLY_LOGS = 4          # logs before the first interval: at its halves every / 2, every / 4, ...
+
+
+def _early(every: int) -> list[int]:
+    """The steps of the logs before the first interval, in order (integer halves, at least step 1)."""
+    return sorted({every >> j for j in range(1, EARLY_LOGS + 1)} - {0})
+
+
 def _is_log(k: int, every: int) -> bool:
     """Whether a run logs after step k: every ``every`` steps, and before the first of those at every / 2,
-    every / 4, ... (integer halves down to step 1), so that the start of a run, where estimates move most, is
-    seen on a log time axis too."""
-    if k % every == 0:
-        return True
-    return 0 < k < every and any(every >> j == k for j in range(1, every.bit_length()))
+    every / 4, ... (``EARLY_LOGS`` of them), so that the start of a run, where estimates move most, is seen on
+    a log time axis too, while the logs at the regular interval stay the most."""
+    return k % every == 0 or (0 < k < every and k in _early(every))
 
 
 def _next_log(k: int, every: int) -> int:
     """The first log step after step k (``_is_log``)."""
-    if k < every:
-        for j in range(every.bit_length(), 0, -1):
-            step = every >> j
-            if step > k:
-                return step
-    return _next(k, every)
+    return next((step for step in _early(every) if step > k), None) or _next(k, every)
 
 
 def _check_resume(path: Path, state: Mapping[str, Any], expect: Mapping[str, Any]) -> None:

@@ -28,9 +28,9 @@ from rcotorch.runner import Run
 
 
 def _log_steps(every: int, last: int) -> list[int]:
-    """The steps a run logs at (the initial model at 0): every / 2^j before the first interval (integer halves),
-    then every ``every`` steps, up to ``last``."""
-    early = sorted({every >> j for j in range(1, every.bit_length())} - {0})
+    """The steps a run logs at (the initial model at 0): every / 2, / 4, / 8, / 16 before the first interval
+    (integer halves, at least 1), then every ``every`` steps, up to ``last``."""
+    early = sorted({every >> j for j in range(1, 5)} - {0})
     return [0] + early + list(range(every, last + 1, every))
 
 

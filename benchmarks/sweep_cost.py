@@ -1,0 +1,65 @@
+"""What a sweep costs per shard: 64 members of sdof-stiffness over a grid of 16 values of nu (a setting that fixes
+the graph's structure, so each value is a shard of its own) with 4 seeds each, 2000 steps, as
+``rcotorch sweep`` runs it (shards in this process, one after another).
+
+    python benchmarks/sweep_cost.py --threads 1          # about half a minute
+
+Reports the whole sweep's wall time (goal: under 15 s on a 2-core machine), each shard's time and its parts as
+the sweep logs them, and the engine's share: the same 16 graphs advanced alone. Writes
+benchmarks/results/sweep_cost.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from common import add_common_args, machine, setup, table, write_json
+
+from rcotorch import scenario as scenarios
+from rcotorch.sweep import Sweep, run_sweep
+
+NAME = "sdof-stiffness"
+GOAL_S = 15.0
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_args(ap)
+    args = ap.parse_args(argv)
+    dev = setup(args)
+    if dev is None or dev.type != "cpu":
+        print("the sweep's cost is measured on the CPU; nothing to measure on", args.device)
+        return {}
+    torch.set_num_threads(args.threads or 1)
+    values = list(range(5, 21))[: 4 if args.quick else 16]
+    steps = 2000
+    spec = {"scenario": NAME, "steps": steps, "seeds": 4, "grid": {"nu": values}}
+    sc = scenarios.get(NAME)
+    sc.build(sc.resolve({"nu": values[0]}), 4, torch.float64, "cpu").advance(10)     # imports and compilation
+    with tempfile.TemporaryDirectory() as folder:
+        t = time.perf_counter()
+        rows = run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False)
+        total = time.perf_counter() - t
+    t = time.perf_counter()
+    for nu in values:
+        g = sc.build(sc.resolve({"nu": nu}), 4, torch.float64, "cpu")
+        g.advance(steps)
+    engine = time.perf_counter() - t
+    shards = len(values)
+    result = {"benchmark": "sweep_cost", "machine": machine(dev), "scenario": NAME, "members": len(rows),
+              "shards": shards, "steps": steps, "sweep_s": total, "per_shard_s": total / shards,
+              "engine_s": engine, "engine_per_shard_s": engine / shards, "goal_s": GOAL_S,
+              "met": total <= GOAL_S or args.quick}
+    print(table([[len(rows), shards, f"{total:.1f}", f"{total / shards:.2f}", f"{engine / shards:.3f}",
+                  "yes" if total <= GOAL_S else "NO"]],
+                ["members", "shards", "sweep s", "per shard s", "engine per shard s", f"<= {GOAL_S:.0f} s"]))
+    print("->", write_json(result, "sweep_cost", args.out))
+    return result
+
+
+if __name__ == "__main__":
+    main()
