@@ -13,7 +13,12 @@ Three variants, each compiled once (``numba.njit``, not cached):
 * ``refine_lanes``: B members in chunks of 16 lanes (state as (…, 16) arrays, every operation a loop over the
   lanes, which LLVM vectorizes), ``prange`` over chunks.
 
-``tests/test_numba_peer.py`` checks every variant against the NumPy loop to 1e-9 (skipped without numba).
+Each variant also draws its normals two at a time (``pairs=True``: one log and one square root, a cosine and a
+sine for two steps, from the same counter-based hash keyed by the pair), as a user writing for speed would;
+that is another stream than rcotorch's, so those runs are compared for cost, not for numbers.
+
+``tests/test_numba_peer.py`` checks every variant against the NumPy loop to 1e-9, the paired variants against
+each other and their normals against N(0, 1) (skipped without numba).
 Needs the ``bench`` extra (``pip install -e .[bench]``): numba is not a dependency of rcotorch.
 """
 
@@ -78,8 +83,22 @@ def _normal(h0, k):
 
 
 @numba.njit(inline="always")
-def _member(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out):
-    """One refinement (nc = 1: phi = [x(k-1), x'(k-1), u(k-1)]), the NumPy loop's equations."""
+def _normal_pair(h0, p):
+    """Two normals from one pair of uniforms (Box-Muller, cos and sin): the pair p of a stream whose normals are
+    drawn two at a time, steps 2p and 2p + 1 (the same hash chain as ``_normal``, keyed by p)."""
+    h = _mix(_mix(h0 ^ _mix_key(U32(p & 0xFFFFFFFF))) ^ _mix_key(U32(0)))
+    c1, c2 = _mix_key(U32(0x1B873593)), _mix_key(U32(0x5BD1E995))
+    u1 = _uniform(_mix(h ^ _mix_key(U32(1))), c1, c2)
+    u2 = _uniform(_mix(h ^ _mix_key(U32(2))), c1, c2)
+    r = math.sqrt(-2.0 * math.log(u1))
+    return r * math.cos(2.0 * math.pi * u2), r * math.sin(2.0 * math.pi * u2)
+
+
+@numba.njit(inline="always")
+def _member(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs=False):
+    """One refinement (nc = 1: phi = [x(k-1), x'(k-1), u(k-1)]), the NumPy loop's equations. With ``pairs`` the
+    excitation draws its normals two at a time (``_normal_pair``), as a user writing for speed would: another
+    stream than rcotorch's, the same cost per step otherwise."""
     nu = beta.shape[0]
     W = nu + 1
     theta = np.zeros(3)
@@ -93,8 +112,15 @@ def _member(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_
     psi = np.zeros(3)
     inv_lam = 1.0 / lam
     r = 0                                                # k mod W
+    spare = 0.0
     for k in range(steps):
-        w = w_std * _normal(h0, k)
+        if not pairs:
+            w = w_std * _normal(h0, k)
+        elif k % 2 == 0:
+            first, spare = _normal_pair(h0, k // 2)
+            w = w_std * first
+        else:
+            w = w_std * spare
         y_hat = xm1
         u = theta[0] * py0 + theta[1] * py1 + theta[2] * pu
         z = xt1 - y_hat
@@ -134,19 +160,20 @@ def _member(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_
 
 
 @numba.njit
-def refine_one(steps, seed, member, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out):
-    _member(steps, _stream(seed, member), w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out)
+def refine_one(steps, seed, member, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs=False):
+    _member(steps, _stream(seed, member), w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs)
 
 
 @numba.njit(parallel=True)
-def refine_prange(steps, seeds, members, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out):
+def refine_prange(steps, seeds, members, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out,
+                  pairs=False):
     for b in prange(seeds.shape[0]):
         _member(steps, _stream(seeds[b], members[b]), w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out[b],
-                P_out[b])
+                P_out[b], pairs)
 
 
 @numba.njit(inline="always")
-def _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out):
+def _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs=False):
     """LANES members at once: every quantity a (LANES,) vector, every operation a loop over the lanes."""
     L = LANES
     nu = beta.shape[0]
@@ -162,9 +189,19 @@ def _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_o
                                 np.zeros(L), np.zeros(L))
     inv_lam = 1.0 / lam
     r = 0
+    spare = np.zeros(L)
     for k in range(steps):
+        if pairs and k % 2 == 0:
+            for l in range(L):
+                first, spare[l] = _normal_pair(h0[l], k // 2)
+                w[l] = w_std * first
+        elif pairs:
+            for l in range(L):
+                w[l] = w_std * spare[l]
+        else:
+            for l in range(L):
+                w[l] = w_std * _normal(h0[l], k)
         for l in range(L):
-            w[l] = w_std * _normal(h0[l], k)
             u[l] = theta[0, l] * py0[l] + theta[1, l] * py1[l] + theta[2, l] * pu[l]
             hist[r, 0, l], hist[r, 1, l], hist[r, 2, l], hist[r, 3, l] = py0[l], py1[l], pu[l], u[l]
             psi[0, l] = psi[1, l] = psi[2, l] = f3[l] = 0.0
@@ -211,7 +248,7 @@ def _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_o
 
 
 @numba.njit(parallel=True)
-def refine_lanes(steps, seeds, members, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out):
+def refine_lanes(steps, seeds, members, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs=False):
     B = seeds.shape[0]
     nchunks = (B + LANES - 1) // LANES
     for c in prange(nchunks):
@@ -221,7 +258,7 @@ def refine_lanes(steps, seeds, members, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, l
             h0[l] = _stream(seeds[b], members[b])
         th = np.empty((LANES, 3))
         Pc = np.empty((LANES, 3, 3))
-        _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, th, Pc)
+        _chunk(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, th, Pc, pairs)
         for l in range(min(LANES, B - c * LANES)):
             theta_out[c * LANES + l] = th[l]
             P_out[c * LANES + l] = Pc[l]
@@ -255,8 +292,10 @@ def streams(B: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return np.full(B, seed, dtype=np.int64), (np.arange(B, dtype=np.int64) if B > 1 else np.zeros(1, np.int64))
 
 
-def run(variant: str, steps: int, B: int = 1, settings: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Final theta (B, 3) and P (B, 3, 3) of ``variant`` ('one', 'prange', 'lanes') for B members."""
+def run(variant: str, steps: int, B: int = 1, settings: dict | None = None,
+        pairs: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Final theta (B, 3) and P (B, 3, 3) of ``variant`` ('one', 'prange', 'lanes') for B members; ``pairs``:
+    normals drawn two at a time (another stream)."""
     m = model(settings)
     seed = m.pop("seed")
     args = [m[k] for k in ("w_std", "Ad", "Bw", "Bu", "Atd", "Btd", "beta", "p0", "lam")]
@@ -264,10 +303,10 @@ def run(variant: str, steps: int, B: int = 1, settings: dict | None = None) -> t
     seeds, members = streams(B, seed)
     if variant == "one":
         for b in range(B):
-            refine_one(steps, seeds[b], members[b], *args, theta[b], P[b])
+            refine_one(steps, seeds[b], members[b], *args, theta[b], P[b], pairs)
     else:
         fn = {"prange": refine_prange, "lanes": refine_lanes}[variant]
-        fn(steps, seeds, members, *args, theta, P)
+        fn(steps, seeds, members, *args, theta, P, pairs)
     return theta, P
 
 

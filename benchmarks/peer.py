@@ -10,6 +10,8 @@ which the native engine uses; numba: ``numba.set_num_threads``) and batch B, the
 * numba ``one``: the single-member jitted loop, called once per member (B = 1 only: it has no threads);
 * numba ``prange``: members in parallel, each its own loop;
 * numba ``lanes``: 16-lane chunks (vectorized), chunks in parallel;
+* each numba variant also with its normals drawn two at a time (``pairs``: another stream, the same cost
+  otherwise);
 
 the numba variants called on precomputed matrices (the scipy discretization outside the timing), each call a
 whole refinement from step 0. The sides are interleaved, best of 3 rounds. Goal: rcotorch at least as fast as
@@ -31,19 +33,21 @@ from common import machine, setup, table, write_json
 from rcotorch import scenario as scenarios
 
 NAME = "sdof-stiffness-damping"
+VARIANTS = ("numba one", "numba one pairs", "numba prange", "numba prange pairs", "numba lanes", "numba lanes pairs")
 
 
-def _numba_call(variant: str, B: int):
-    """A zero-argument call of the variant for B members, compiled, on precomputed arguments."""
+def _numba_call(variant: str, B: int, pairs: bool = False):
+    """A call of the variant for B members (its argument: the steps), on precomputed arguments; ``pairs``: normals
+    drawn two at a time."""
     m = numba_peer.model()
     seed = m.pop("seed")
     args = [m[k] for k in ("w_std", "Ad", "Bw", "Bu", "Atd", "Btd", "beta", "p0", "lam")]
     seeds, members = numba_peer.streams(B, seed)
     theta, P = np.empty((B, 3)), np.empty((B, 3, 3))
     if variant == "one":
-        return lambda steps: numba_peer.refine_one(steps, seeds[0], members[0], *args, theta[0], P[0])
+        return lambda steps: numba_peer.refine_one(steps, seeds[0], members[0], *args, theta[0], P[0], pairs)
     fn = {"prange": numba_peer.refine_prange, "lanes": numba_peer.refine_lanes}[variant]
-    return lambda steps: fn(steps, seeds, members, *args, theta, P)
+    return lambda steps: fn(steps, seeds, members, *args, theta, P, pairs)
 
 
 def _steps_for(fn, B: int, seconds: float) -> int:
@@ -68,8 +72,10 @@ def measure(B: int, threads: int, seconds: float, rounds: int) -> dict:
     g.advance(64)
     fns = {"rcotorch": g.advance}
     for variant in (("one", "prange", "lanes") if B == 1 else ("prange", "lanes")):
-        fns[f"numba {variant}"] = _numba_call(variant, B)
-        fns[f"numba {variant}"](4)                              # compiled (first call)
+        for pairs in (False, True):
+            key = f"numba {variant}{' pairs' if pairs else ''}"
+            fns[key] = _numba_call(variant, B, pairs)
+            fns[key](4)                                         # compiled (first call)
     steps = {key: _steps_for(fn, B, seconds) for key, fn in fns.items()}
     best = dict.fromkeys(fns, float("inf"))
     for _ in range(rounds):
@@ -106,16 +112,15 @@ def main(argv=None) -> None:
             results.append(r)
             ns = r["ns_per_member_step"]
             rows.append([threads, B, f"{ns['rcotorch']:.1f}",
-                         *(f"{ns[k]:.1f}" if k in ns else "-" for k in ("numba one", "numba prange", "numba lanes")),
-                         f"{r['x_best_numba']:.2f}", "yes" if r["met"] else "NO"])
+                         *(f"{ns[k]:.1f}" if k in ns else "-" for k in VARIANTS),
+                         r["best_numba"], f"{r['x_best_numba']:.2f}", "yes" if r["met"] else "NO"])
     out = {"benchmark": "peer", "scenario": NAME, "machine": machine(dev), "load_average_before": list(load_before),
            "numba": numba.__version__, "numba_threading_layer": numba.threading_layer(),
            "numba_compile_seconds": compile_s, "wall_seconds": time.perf_counter() - t0,
            "definition": "seconds per member-step (B members x steps / seconds), best of interleaved rounds; "
                          "x_best_numba = best numba variant's time / rcotorch's time (> 1: rcotorch ahead)",
            "results": results}
-    print(table(rows, ["threads", "B", "rcotorch ns", "numba one", "numba prange", "numba lanes", "x best numba",
-                       "met"]))
+    print(table(rows, ["threads", "B", "rcotorch ns", *VARIANTS, "best numba", "x best numba", "met"]))
     print("wrote", write_json(out, "peer", args.out))
 
 

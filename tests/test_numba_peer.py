@@ -40,3 +40,18 @@ def test_other_settings_reach_the_loop():
 def test_nc_other_than_one_is_refused():
     with pytest.raises(ValueError, match="nc = 1"):
         numba_peer.model({"nc": 2})
+
+
+def test_the_paired_variants_agree_and_draw_standard_normals():
+    """Normals drawn two at a time: every variant computes the same refinement from that stream, and the stream's
+    samples have the moments of N(0, 1) (200,000 draws: mean and variance within 5 standard errors)."""
+    ref, _ = numba_peer.run("one", STEPS, 19, pairs=True)
+    for variant in ("prange", "lanes"):
+        theta, _ = numba_peer.run(variant, STEPS, 19, pairs=True)
+        np.testing.assert_allclose(theta, ref, rtol=1e-9, atol=0)
+    plain, _ = numba_peer.run("one", STEPS, 1)
+    assert not np.allclose(ref[0], plain[0], rtol=1e-6)            # another stream than rcotorch's
+    h0 = numba_peer._stream(1, 0)
+    z = np.array([v for p in range(100_000) for v in numba_peer._normal_pair(h0, p)])
+    n = len(z)
+    assert abs(z.mean()) < 5 / np.sqrt(n) and abs(z.var() - 1.0) < 5 * np.sqrt(2.0 / n)
