@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numba
 import torch
-from common import add_common_args, machine, setup, table, write_json
+from common import add_common_args, machine, setup_cpu, table, write_json
 from peer import _numba_call
 
 from rcotorch.runner import Run
@@ -77,9 +77,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_args(ap)
     args = ap.parse_args(argv)
-    dev = setup(args)
-    if dev is None or dev.type != "cpu":
-        print("the command line's cost is measured on the CPU; nothing to measure on", args.device)
+    dev = setup_cpu(args, "the command line's cost is measured on the CPU")
+    if dev is None:
         return {}
     cases = [(1, 200_000), (4096, 2_000)] if args.quick else [(1, 2_000_000), (4096, 20_000)]
     results = [measure(B, steps, args.threads or 1) for B, steps in cases]

@@ -33,6 +33,15 @@ def setup(args) -> torch.device | None:
     return dev
 
 
+def setup_cpu(args, why: str = "the native engine runs on the CPU") -> torch.device | None:
+    """``setup`` for a measurement that only the CPU makes: None (after printing ``why``) on another device."""
+    dev = setup(args)
+    if dev is not None and dev.type != "cpu":
+        print(f"{why}; nothing to measure on", args.device)
+        return None
+    return dev
+
+
 def sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import add_common_args, machine, setup, table, write_json
+from common import add_common_args, machine, setup_cpu, table, write_json
 
 from rcotorch import scenario as scenarios
 from rcotorch.sweep import Sweep, run_sweep
@@ -30,9 +30,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_args(ap)
     args = ap.parse_args(argv)
-    dev = setup(args)
-    if dev is None or dev.type != "cpu":
-        print("the sweep's cost is measured on the CPU; nothing to measure on", args.device)
+    dev = setup_cpu(args, "the sweep's cost is measured on the CPU")
+    if dev is None:
         return {}
     torch.set_num_threads(args.threads or 1)
     values = list(range(5, 21))[: 4 if args.quick else 16]

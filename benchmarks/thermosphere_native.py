@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import add_common_args, machine, setup, table, write_json
+from common import add_common_args, machine, setup_cpu, table, write_json
 
 NAME = "thermosphere-no-cooling"
 
@@ -86,9 +86,8 @@ def main(argv=None) -> dict:
     if args.child:
         child(args)
         return {}
-    dev = setup(args)
-    if dev is None or dev.type != "cpu":
-        print("the native engine runs on the CPU; nothing to measure on", args.device)
+    dev = setup_cpu(args)
+    if dev is None:
         return {}
     if args.quick:
         args.steps, args.repeats = args.steps or 48, 0
