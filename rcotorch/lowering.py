@@ -294,15 +294,10 @@ def _structure(graph) -> tuple:
             tuple((n, id(b)) for n, b in graph.blocks.items()), tuple(map(id, graph.hooks)))
 
 
-def _params(graph, state_names: Mapping[str, set[str]]) -> list[torch.Tensor]:
-    """Every buffer the engine does not write: the program stays valid while none of them changes."""
-    return [t for name, blk in graph.blocks.items() for key, t in blk.named_buffers()
-            if key not in state_names.get(name, ())]
-
-
 def _param_places(graph, state_names: Mapping[str, set[str]]) -> list[tuple[dict, tuple[str, ...], int]]:
-    """Where ``_params`` finds its buffers: each module's buffer dictionary and the names in it that count, in
-    the order of ``_params``, so that a check can read them without walking the modules again."""
+    """Where the program's parameters are: every buffer the engine does not write, as each module's buffer
+    dictionary, the names in it that count and how many buffers it holds, so that a check reads them without
+    walking the modules again. The program stays valid while none of them changes."""
     places = []
     for name, blk in graph.blocks.items():
         skip = state_names.get(name, ())
@@ -354,12 +349,12 @@ def program(graph) -> Program | str:
     """The graph's program (kept until its structure or a parameter changes: a buffer modified in place or
     replaced by another tensor), or why it has none."""
     entry = graph.__dict__.get("_lowered")
-    if entry is not None and entry[0] == _structure(graph) and _unchanged(entry[4], entry[1]):
-        return entry[3]
+    if entry is not None and entry[0] == _structure(graph) and _unchanged(entry[3], entry[1]):
+        return entry[2]
     prog = _lower(graph)
-    names = prog.state_names if isinstance(prog, Program) else {}
-    params = _params(graph, names)
-    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), params, prog, _param_places(graph, names))
+    places = _param_places(graph, prog.state_names if isinstance(prog, Program) else {})
+    params = [buffers[k] for buffers, keys, _ in places for k in keys]
+    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), prog, places)
     return prog
 
 
