@@ -26,6 +26,7 @@ checked like a fresh compilation, and compiled afresh if it does not reproduce t
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.util
 import os
@@ -223,29 +224,24 @@ def _item(r, i: int):
     return r
 
 
-_item_jit = None
-
-
+@functools.cache
 def _numba_item():
     """``_item`` for numba: typed by what the user's function returns (a float, a tuple or an array)."""
-    global _item_jit
-    if _item_jit is None:
-        numba = _numba()
-        from numba import types as nt
-        from numba.extending import overload
+    numba = _numba()
+    from numba import types as nt
+    from numba.extending import overload
 
-        def item(r, i):
-            pass
+    def item(r, i):
+        pass
 
-        @overload(item, inline="always")
-        def _ov(r, i):
-            if isinstance(r, (nt.Float, nt.Integer, nt.Boolean)):
-                return lambda r, i: float(r)
-            if isinstance(r, nt.Array) and r.ndim == 0:
-                return lambda r, i: float(r[()])
-            return lambda r, i: float(r[i])
-        _item_jit = numba.njit(inline="always")(lambda r, i: item(r, i))
-    return _item_jit
+    @overload(item, inline="always")
+    def _ov(r, i):
+        if isinstance(r, (nt.Float, nt.Integer, nt.Boolean)):
+            return lambda r, i: float(r)
+        if isinstance(r, nt.Array) and r.ndim == 0:
+            return lambda r, i: float(r[()])
+        return lambda r, i: float(r[i])
+    return numba.njit(inline="always")(lambda r, i: item(r, i))
 
 
 def _numba():

@@ -25,6 +25,7 @@ a function once, at one step (a simulated change of the truth).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -42,13 +43,14 @@ N_STATE = 8
 N_SETTINGS = 6
 
 
+@functools.cache
 def _cusum(n_z: int) -> Callable:
-    """The detector's state map in the components form (``Nonlinear``): x[i] is one entry of the state, each a
-    float per member in compiled code and a (B,) tensor on PyTorch. Written with arithmetic and comparisons
-    times 1.0, which floats, numba and torch tensors all accept. Its settings are entries of the state (``START``
-    onwards, carried unchanged), so one compilation serves every setting. The phase counts the steps since the
-    start (from 0) or since the last alarm (from warmup - holdoff, so that the reference window starts holdoff
-    steps after it)."""
+    """The detector's state map in the components form (``Nonlinear``), made once for each width of z: x[i] is
+    one entry of the state, each a float per member in compiled code and a (B,) tensor on PyTorch. Written with
+    arithmetic and comparisons times 1.0, which floats, numba and torch tensors all accept. Its settings are
+    entries of the state (the ``N_SETTINGS`` after the reference sums, carried unchanged), so one compilation
+    serves every setting. The phase counts the steps since the start (from 0) or since the last alarm (from
+    warmup - holdoff, so that the reference window starts holdoff steps after it)."""
     inv_n = 1.0 / n_z
     p = N_STATE + n_z
     size = p + N_SETTINGS
@@ -89,8 +91,6 @@ def _cusum(n_z: int) -> Callable:
 def _statistic(x):
     return x[G]
 
-
-_CUSUM: dict[int, Callable] = {}      # the state map of each width of z, made once
 
 
 class ChangeDetector(Nonlinear):
@@ -152,9 +152,8 @@ class ChangeDetector(Nonlinear):
         x0[FIRST] = x0[LAST] = -1.0
         x0[N_STATE + n_z:] = torch.tensor([warmup, warmup + window, warmup - holdoff, self.drift, self.threshold,
                                            1.0 / window], dtype=dtype)
-        super().__init__(_CUSUM[n_z] if n_z in _CUSUM else _CUSUM.setdefault(n_z, _cusum(n_z)), _statistic,
-                         N_STATE + n_z + N_SETTINGS, {"z": n_z}, {"g": 1}, dt=dt, x0=x0, name=name, dtype=dtype,
-                         form="components")
+        super().__init__(_cusum(n_z), _statistic, N_STATE + n_z + N_SETTINGS, {"z": n_z}, {"g": 1}, dt=dt, x0=x0,
+                         name=name, dtype=dtype, form="components")
 
     def first_alarm(self) -> torch.Tensor:
         """The step of each member's first alarm.
