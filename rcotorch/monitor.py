@@ -671,46 +671,12 @@ def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], summary: Ma
 
 # --- the event files' checksum ---------------------------------------------------------------------------------
 # TensorBoard's event writer checksums every record (its length and its bytes) with CRC-32C, computed in pure
-# Python a byte at a time (about 0.1 us per byte: most of the cost of a log). The same checksum, computed a
-# block of bytes at a time with numpy tables, replaces it in TensorBoard's record writer.
-_CRC_POLY = 0x82F63B78      # CRC-32C (Castagnoli), reflected
-_CRC_BLOCK = 1024
-_crc_tables: tuple | None = None
-
-
-def _crc_setup() -> tuple:
-    """The byte table, and for each byte value its effect on the register followed by j zero bytes (j below
-    ``_CRC_BLOCK``), flattened as [j * 256 + byte]; offsets j * 256 from the block's end."""
-    global _crc_tables
-    if _crc_tables is None:
-        t = np.arange(256, dtype=np.uint32)
-        for _ in range(8):
-            t = np.where(t & 1, (t >> 1) ^ np.uint32(_CRC_POLY), t >> 1).astype(np.uint32)
-        shifted = np.empty((_CRC_BLOCK, 256), dtype=np.uint32)
-        shifted[0] = t
-        for j in range(1, _CRC_BLOCK):
-            prev = shifted[j - 1]
-            shifted[j] = t[prev & 0xFF] ^ (prev >> 8)
-        offsets = np.arange(_CRC_BLOCK - 1, -1, -1, dtype=np.intp) * 256
-        _crc_tables = (t.tolist(), shifted.reshape(-1), offsets)
-    return _crc_tables
-
-
+# Python a byte at a time, which dominated the cost of a log. google-crc32c computes the same checksum in C; it
+# replaces TensorBoard's in its record writer and checksums the records written here.
 def crc32c(data: bytes) -> int:
-    """The CRC-32C of ``data``. Processing a byte b maps the register r to T[(r ^ b) & 255] ^ (r >> 8), linear
-    in r and b; so a block's register is the XOR over its bytes of each byte's effect shifted through the bytes
-    after it, with the register entering the block XORed into its first four bytes."""
-    table, shifted, offsets = _crc_setup()
-    reg, n, start = 0xFFFFFFFF, len(data), 0
-    while n - start >= 16:
-        m = min(_CRC_BLOCK, n - start)
-        block = np.frombuffer(data, np.uint8, m, start).copy()
-        block[:4] ^= np.frombuffer(reg.to_bytes(4, "little"), np.uint8)
-        reg = int(np.bitwise_xor.reduce(shifted[offsets[_CRC_BLOCK - m:] + block]))
-        start += m
-    for b in data[start:]:
-        reg = table[(reg ^ b) & 0xFF] ^ (reg >> 8)
-    return reg ^ 0xFFFFFFFF
+    """The CRC-32C (Castagnoli) of ``data``."""
+    import google_crc32c
+    return google_crc32c.value(data)
 
 
 def masked_crc32c(data: bytes) -> int:
