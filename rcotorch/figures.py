@@ -25,10 +25,15 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from .scenario import truth_at  # noqa: E402
+from .tracking import change_report  # noqa: E402
+
 MAX_LINES = 8
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
 INITIAL_STYLE = dict(color="tab:gray", ls=":", lw=1.3, zorder=1.5)     # below the estimates
+CHANGE_STYLE = dict(color="tab:brown", ls="-.", lw=1.2, zorder=5)       # a change of the truth
+DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.2, zorder=5)       # a change detector's first alarm
 LATE_MOVE = 0.2        # the estimates settled early: they move less than this share of their range in the 2nd half
 STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "not_converged": "tab:orange",
                   "diverged": "tab:red", "finished": "tab:gray"}
@@ -108,6 +113,7 @@ def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: l
     z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
     labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in members[:z.shape[1]]]
     ax.semilogy(t, z, lw=1, label=labels)
+    _change_marks(ax, run, t, members)
     held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
     if held is not None:
         ax.axhline(float(held.rmse_initial[0]), **INITIAL_STYLE, label="initial model, held-out data (member 0)")
@@ -222,18 +228,45 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
         ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
                     zorder=4, label=f"{found.level:.0%} interval at the end")
     truth = run.truth.get(key)
-    if truth is not None:
+    history = (getattr(run, "truth_history", None) or {}).get(key)
+    if history and len(t):                      # a truth that changes: as it was at each time
+        times = [x for x, _ in history if t[0] < x < t[-1]]
+        xs = np.r_[t[0], times, t[-1]]
+        ys = [truth_at(history, x) for x in xs]
+        ax.step(xs, ys, where="post", **TRUTH_STYLE, label="truth")
+    elif truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
         if values.size > 1:
             values = values[[b for b in members if b < values.size]]
         for i, tv in enumerate(np.unique(values[np.isfinite(values)])[:MAX_LINES]):
             ax.axhline(tv, **TRUTH_STYLE, label="truth" if i == 0 else None)
+    _change_marks(ax, run, t, members)
     initial = (run.monitor.initial or {}).get(key) if getattr(run, "monitor", None) is not None else None
     if initial is not None:
         for i, iv in enumerate(np.unique(initial.numpy()[members])[:MAX_LINES]):
             ax.axhline(iv, **INITIAL_STYLE, label="initial model" if i == 0 else None)
     ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
     ax.grid(alpha=0.3, which="both")
+
+
+def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
+    """Vertical lines at each change of a truth (``Scenario.truth_history``) and at each drawn member's first
+    alarm of a change detector (``rcotorch.tracking.change_report``), within the plotted times."""
+    if not len(t):
+        return
+    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    changes = sorted({x for pairs in (getattr(run, "truth_history", None) or {}).values() for x, _ in pairs[1:]})
+    for i, x in enumerate(c for c in changes if t[0] <= c <= t[-1]):
+        ax.axvline(x, **CHANGE_STYLE, label="change" if i == 0 else None)
+    labelled = False
+    for name, found in change_report(run.graph).items():
+        first = found["first_alarm_step"].numpy()
+        for b in members[:MAX_LINES]:
+            if b < len(first) and first[b] >= 0:
+                x = first[b] * (dt or 1.0)
+                if t[0] <= x <= t[-1]:
+                    ax.axvline(x, **DETECTION_STYLE, label=None if labelled else f"{name}: first alarm")
+                    labelled = True
 
 
 def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> None:

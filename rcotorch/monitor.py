@@ -53,6 +53,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from .scenario import truth_at
+from .tracking import change_report
+
 if TYPE_CHECKING:
     from torch.utils.tensorboard import SummaryWriter
 
@@ -159,6 +162,7 @@ class Monitor:
         self.shared_truth = {k: float(v) for k, v in run.truth.items() if isinstance(v, (int, float))}
         self.truth = {k: np.asarray(v if isinstance(v, (list, tuple)) else [v] * run.batch, dtype=np.float64)
                       for k, v in run.truth.items() if v is not None}
+        self.history = dict(getattr(run, "truth_history", None) or {})     # truths that change during the run
         # The initial model's estimates (theta at its start), drawn in the figures; unknown for a resumed run.
         self.initial = None if run.k else {k: v.detach().to(torch.float64).cpu() for k, v in
                                            run.scenario.estimates(run.graph, run.settings).items()}
@@ -272,6 +276,9 @@ class Monitor:
         main += zip(self.theta_tags, (theta[0] if self.batch == 1 else _column_means(theta)).tolist())
         if self.batch > 1:
             main.append(("health/diverged", float((~ident.alive).sum())))
+        for name, found in change_report(self.run.graph).items():
+            alarmed = found["first_alarm_step"] >= 0
+            main.append((f"detection/{name} alarmed members [%]", 100.0 * float(alarmed.double().mean())))
         self._log_estimates(step, estimates, main, band)
         self.logged.append(step)
         if self.batch >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
@@ -286,18 +293,21 @@ class Monitor:
         if band is None and self.batch > 1:
             band = {name: [] for name in BAND}
         truth_run = []
+        now = step * self.dt if self.dt else float(step)
         for key, v in estimates.items():
             t = self.tags(key)
             scale = t.scaled.scale
             a = v.numpy()
             ok = a if self.batch == 1 else a[np.isfinite(a)]
             main.append((t.estimate, float(ok.mean()) / scale if ok.size else math.nan))
-            truth = self.truth.get(key)
+            truth, shared = self.truth.get(key), self.shared_truth.get(key)
+            if key in self.history:                   # a truth that changes: its value at this step
+                shared = truth_at(self.history[key], now)
+                truth = np.full(self.batch, shared)
             if truth is not None:
                 err = np.abs(a - truth)
                 err = err if self.batch == 1 else err[np.isfinite(err)]
                 main.append((t.error, float(err.mean()) / scale if err.size else math.nan))
-            shared = self.shared_truth.get(key)
             if shared is not None:
                 truth_run.append((t.estimate, shared / scale))
                 tol = t.tolerance

@@ -44,7 +44,8 @@ class GraphScenario(Scenario):
                  truth: Mapping[str, float | Sequence[float]] | None = None,
                  requirements: Sequence[Requirement] = (), scales: Mapping[str, float] | None = None,
                  units: Mapping[str, str] | None = None, name: str = "refinement", metrics=None,
-                 steps: int = 10000, validation: Mapping[str, Any] | None = None):
+                 steps: int = 10000, validation: Mapping[str, Any] | None = None,
+                 truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None):
         if not isinstance(graph, Graph):
             raise ConfigError(f"refine: expected an rcotorch Graph, got {type(graph).__name__}")
         if "estimator" not in graph.roles or "error" not in graph.roles:
@@ -55,12 +56,16 @@ class GraphScenario(Scenario):
         self.description = f"a graph built in Python ({len(graph.blocks)} blocks)"
         self._estimates = dict(estimates) if estimates is not None else None
         self._truth = dict(truth or {})
+        self._history = dict(truth_history or {})
+        for key, pairs in self._history.items():         # the truth at the end: the history's last value
+            if key not in self._truth and pairs:
+                self._truth[key] = list(pairs)[-1][1]
         self._metrics = metrics
         self.requirements = tuple(requirements)
         self._scales = dict(scales or {})
         self.units = dict(units or {})
         known = set(self.estimates(graph, {}))
-        for key in list(self._truth) + list(self._scales):
+        for key in list(self._truth) + list(self._scales) + list(self._history):
             if key not in known:
                 raise ConfigError(f"refine: truth or scale given for {key!r}, which is not an estimate; the "
                                   f"estimates are {sorted(known)}")
@@ -78,6 +83,9 @@ class GraphScenario(Scenario):
 
     def truth(self, settings) -> dict[str, Any]:
         return dict(self._truth)
+
+    def truth_history(self, settings) -> dict[str, list[tuple[float, float]]]:
+        return {k: list(v) for k, v in self._history.items()}
 
     def validation(self, graph: Graph, settings) -> dict[str, Any] | None:
         if self._validation is not None:
@@ -185,7 +193,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
            out: str | Path | None = None, overwrite: bool = False, level: float = ci.LEVEL,
            intervals: bool = True, figures: bool = True, progress: bool | None = None,
            checkpoint_every: int | None = None, health: Criteria | None = None,
-           validation: bool | Mapping[str, Any] = True) -> RefinementResult:
+           validation: bool | Mapping[str, Any] = True,
+           truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> RefinementResult:
     """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
     for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
 
@@ -220,6 +229,11 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
         ``validation_rmse``, ``validation_fit_percent`` and the initial model's): True for 2000 steps of a
         fresh excitation of a simulated physical system, or the arguments of ``rcotorch.validate``, e.g.
         ``{'rows': (20000, 30000)}`` for a later window of recorded data; False for none.
+    truth_history : {name: [(time, value), ...]}, optional
+        A truth that changes during the run (a simulated fault): the value from each time on, in time order
+        (seconds where the graph has a sample time, else steps), e.g. ``{'dk2': [(0, 0.0), (60, -0.2)]}``. Its
+        last value is the truth at the end; TensorBoard and the figures draw it as it was at each time and mark
+        each change (and each change detector's alarms).
 
     Returns
     -------
@@ -237,7 +251,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
                           "graph.reset())")
     sc = GraphScenario(graph, estimates, truth=truth, requirements=requirements, scales=scales, units=units,
                        name=name, metrics=metrics, steps=steps,
-                       validation=validation if isinstance(validation, Mapping) else None)
+                       validation=validation if isinstance(validation, Mapping) else None,
+                       truth_history=truth_history)
     dtype = _dtype_name(graph)
     device = str(graph.k.device)
     run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,

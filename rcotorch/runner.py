@@ -177,6 +177,8 @@ class Run:
         self.graph = self.scenario.build(self.settings, self.batch, DTYPES[dtype], self.device)
         self.graph.check_steps(self.steps)
         self.truth = self.scenario.truth(self.settings)
+        self.truth_history = scenarios.check_truth_history(self.scenario.truth_history(self.settings), self.truth,
+                                                 f"scenario '{self.scenario.name}'")
         self.health = Health(self.graph, self.steps, health)
         self.z_sig = self.graph.role_signal("error")
         self.y_sig = self.graph.role_signal("measured") if "measured" in self.graph.roles else None

@@ -22,7 +22,7 @@ import math
 import os
 import pkgutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -210,6 +210,15 @@ class Scenario:
         raise NotImplementedError
 
     def truth(self, settings: Mapping[str, Any]) -> dict[str, float]:
+        """The true values of the estimates where they are known (one value, or one per member), at the end of
+        a run: what the requirements are checked against."""
+        return {}
+
+    def truth_history(self, settings: Mapping[str, Any]) -> dict[str, list[tuple[float, float]]]:
+        """The truths that change during a run: key -> [(time, value from that time on), ...] in time order
+        (time in seconds where the graph has a sample time, else in steps), the last value the one ``truth``
+        gives. TensorBoard and the figures draw such a truth as it was at each time and mark its changes. By
+        default nothing changes."""
         return {}
 
     def estimates(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, torch.Tensor]:
@@ -267,6 +276,56 @@ def _fmt_default(value) -> str:
     if isinstance(value, float):
         return f"{value:g}"
     return str(value)
+
+
+def check_truth_history(history: Mapping[str, Any], truth: Mapping[str, Any], where: str) -> dict:
+    """``history`` (see ``Scenario.truth_history``) as {key: [(time, value), ...]} of floats, checked.
+
+    Parameters
+    ----------
+    history : Mapping[str, Sequence[tuple[float, float]]]
+        Key -> (time, value) pairs.
+    truth : Mapping[str, Any]
+        The final truths; a key of ``history`` must have a shared (single) truth equal to its last value.
+    where : str
+        What to name in an error (the scenario).
+
+    Returns
+    -------
+    dict[str, list[tuple[float, float]]]
+
+    Raises
+    ------
+    ConfigError
+        If a key's history is empty, not (time, value) pairs of numbers, not in time order, or ends on another
+        value than its truth.
+    """
+    out = {}
+    for key, pairs in history.items():
+        try:
+            pairs = [(float(t), float(v)) for t, v in pairs]
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: truth history of {key!r} must be (time, value) pairs of numbers, got "
+                              f"{pairs!r}") from None
+        if not pairs or any(b[0] < a[0] for a, b in zip(pairs, pairs[1:])):
+            raise ConfigError(f"{where}: truth history of {key!r} must be a non-empty list of (time, value) pairs "
+                              f"in time order, got {pairs!r}")
+        final = truth.get(key)
+        if not isinstance(final, (int, float)) or float(final) != pairs[-1][1]:
+            raise ConfigError(f"{where}: the truth history of {key!r} ends at {pairs[-1][1]!r}, but its truth is "
+                              f"{final!r}; give one truth for it, equal to the history's last value")
+        out[key] = pairs
+    return out
+
+
+def truth_at(pairs: Sequence[tuple[float, float]], time: float) -> float:
+    """The value of a truth history (``check_truth_history``) at ``time``: the last one whose time is at or
+    before it (the first before them all)."""
+    value = pairs[0][1]
+    for t, v in pairs:
+        if t <= time:
+            value = v
+    return value
 
 
 def member_values(settings: Mapping[str, Any], key: str, dtype: torch.dtype | None = None) -> torch.Tensor:

@@ -116,7 +116,8 @@ class ChangeDetector(Nonlinear):
     threshold : float, optional
         Alarm level of g; the mean time between false alarms grows about exponentially with it.
     dt : float, optional
-        Sample time [s] (for times in seconds).
+        Sample time [s] (for times in seconds); by default the sample time of the graph's known model
+        (``change_report``), else one step.
     name : str, optional
         The block's name.
     dtype : torch.dtype, optional
@@ -136,7 +137,7 @@ class ChangeDetector(Nonlinear):
     """
 
     def __init__(self, n_z: int = 1, warmup: int = 200, window: int = 200, holdoff: int | None = None,
-                 drift: float = 1.0, threshold: float = 50.0, dt: float = 1.0, name: str = "detector",
+                 drift: float = 1.0, threshold: float = 50.0, dt: float | None = None, name: str = "detector",
                  dtype=DEFAULT_DTYPE):
         n_z, warmup, window = int(n_z), int(warmup), int(window)
         holdoff = warmup if holdoff is None else int(holdoff)
@@ -148,11 +149,12 @@ class ChangeDetector(Nonlinear):
                               f"threshold={threshold}")
         self.n_z, self.warmup, self.window, self.holdoff = n_z, warmup, window, holdoff
         self.drift, self.threshold = float(drift), float(threshold)
+        self.sample_time = None if dt is None else float(dt)       # None: the known model's (change_report)
         x0 = torch.zeros(N_STATE + n_z + N_SETTINGS, dtype=dtype)
         x0[FIRST] = x0[LAST] = -1.0
         x0[N_STATE + n_z:] = torch.tensor([warmup, warmup + window, warmup - holdoff, self.drift, self.threshold,
                                            1.0 / window], dtype=dtype)
-        super().__init__(_cusum(n_z), _statistic, N_STATE + n_z + N_SETTINGS, {"z": n_z}, {"g": 1}, dt=dt, x0=x0,
+        super().__init__(_cusum(n_z), _statistic, N_STATE + n_z + N_SETTINGS, {"z": n_z}, {"g": 1}, dt=dt or 1.0, x0=x0,
                          name=name, dtype=dtype, form="components")
 
     def first_alarm(self) -> torch.Tensor:
@@ -335,10 +337,12 @@ def change_report(graph) -> dict[str, dict[str, torch.Tensor]]:
         and time [s] of its first and last alarm (-1 / NaN: none) and the number of alarms.
     """
     out = {}
+    known = graph.blocks[graph.roles["known"]] if "known" in getattr(graph, "roles", {}) else None
     for name, blk in graph.blocks.items():
         if isinstance(blk, ChangeDetector) and blk.x.shape[0]:
+            dt = blk.sample_time or getattr(known, "dt", None) or 1.0
             first, last = blk.x[:, FIRST].round(), blk.x[:, LAST].round()
             nan = torch.full_like(first, math.nan)
-            out[name] = {"first_alarm_step": first, "first_alarm_s": torch.where(first >= 0, first * blk.dt, nan),
+            out[name] = {"first_alarm_step": first, "first_alarm_s": torch.where(first >= 0, first * dt, nan),
                          "last_alarm_step": last, "alarms": blk.x[:, COUNT].round()}
     return out

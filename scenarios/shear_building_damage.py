@@ -113,6 +113,10 @@ class ShearBuildingDamage(Scenario):
         out[f"dk{int(s['storey'])}"] = s["change"]
         return out
 
+    def truth_history(self, s):
+        """The changing storey's stiffness change: 0 until the change step, then ``change``."""
+        return {f"dk{int(s['storey'])}": [(0.0, 0.0), (self.change_step(s) * s["Ts"], s["change"])]}
+
     def scales(self, s):
         return {f"dk{j}": 1.0 for j in (1, 2, 3)}
 

@@ -185,3 +185,75 @@ def test_a_resumed_damage_run_is_bitwise_the_same(tmp_path):
     resumed.advance(progress=False)
     a, b = full.graph.state_dict(), resumed.graph.state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+
+
+def _stiffness_change_graph(batch=2):
+    """A mass on a spring (m = 1, k = 0.6, c = 0.8, Ts = 0.01 s) whose stiffness rises by 0.5 at t = 20 s, a
+    static gain on position and velocity that tracks it with forgetting, and a change detector on z."""
+    known = rt.LTI.continuous([[0, 1], [-0.6, -0.8]], [[0, 0], [1, 1]], [[0, 1], [1, 0], [0, 1]], np.zeros((3, 2)),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=0.01, name="known")
+    truth = rt.Gain(np.zeros((1, 2)), name="unknown")
+    ident = rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, lam=0.998)
+    det = rt.ChangeDetector(1, warmup=1000, window=500, holdoff=1000, threshold=30.0)
+    g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, seed=3), nu=15, batch_size=batch,
+                      noise=rt.WhiteNoise(1, std=0.005, seed=4), blocks=[det],
+                      connections=[("error.out", "detector.z")])
+    g.add_hook(rt.at_step(2000, lambda gr: gr.blocks["unknown"].K.copy_(torch.tensor([[-0.5, 0.0]]))))
+    return g
+
+
+def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
+    """A graph built in Python with ``truth_history``: TensorBoard's truth run holds the value in effect at each
+    logged step, the |error| is against it, the detector's share of alarmed members is logged, and the
+    estimate figure draws the truth as a step with a change line at 20 s and the first alarm after it."""
+    from tensorboard.backend.event_processing.plugin_event_multiplexer import EventMultiplexer
+    from tensorboard.util import tensor_util
+
+    g = _stiffness_change_graph()
+    result = rt.refine(g, 4000, {"dK": lambda gr: -gr.role("estimator").theta[:, 0, 0]},
+                       truth_history={"dK": [(0.0, 0.0), (20.0, 0.5)]}, scales={"dK": 1.0}, out=tmp_path / "run",
+                       intervals=False, validation=False, progress=False)
+    assert result.summary["truth"] == {"dK": 0.5}
+    change = result.summary["changes"]["detector"]
+    first = change["first_alarm_step"]
+    assert all(2000 < f < 2500 for f in first), first
+    assert change["first_alarm_s"] == pytest.approx([f * 0.01 for f in first])     # the known model's Ts
+    mux = EventMultiplexer(size_guidance={"scalars": 0, "tensors": 0})
+    mux.AddRunsFromDirectory(str(tmp_path / "run"))
+    mux.Reload()
+
+    def values(run, tag):
+        return {e.step: float(tensor_util.make_ndarray(e.tensor_proto)) for e in mux.Tensors(run, tag)}
+
+    truth = values("truth", "Estimates/dK [-]")
+    assert truth and all(v == (0.5 if k >= 2000 else 0.0) for k, v in truth.items())
+    assert min(truth) < 2000 <= max(truth)
+    est, err = values(".", "Estimates/dK [-]"), values(".", "Estimates/dK |error| [-]")
+    for k in est:                                              # |error| against the truth of its step (B = 2)
+        assert err[k] == pytest.approx(abs(est[k] - truth[k]), abs=0.5)
+    before = [k for k in est if 1000 < k < 2000]
+    assert before and all(err[k] < 0.05 for k in before)       # it tracked 0 before the change
+    alarmed = values(".", "detection/detector alarmed members [%]")
+    assert all(v == 0.0 for k, v in alarmed.items() if k <= 2000) and alarmed[max(alarmed)] == 100.0
+
+    from rcotorch.figures import run_figures
+    figs = run_figures(result.run)
+    ax = figs["estimates"].axes[0]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    xs, ys = lines["truth"].get_data()
+    assert list(ys) == [0.0, 0.5, 0.5] and xs[1] == pytest.approx(20.0)
+    assert lines["change"].get_xdata()[0] == pytest.approx(20.0)
+    assert lines["detector: first alarm"].get_xdata()[0] == pytest.approx(first[0] * 0.01)
+
+
+def test_a_truth_history_that_disagrees_with_the_truth_is_refused():
+    g = _stiffness_change_graph(1)
+    with pytest.raises(rt.ConfigError, match="ends at 0.4, but its truth is 0.5"):
+        rt.refine(g, 10, {"dK": lambda gr: gr.role("estimator").theta[:, 0, 0]}, truth={"dK": 0.5},
+                  truth_history={"dK": [(0.0, 0.0), (20.0, 0.4)]}, progress=False, intervals=False)
+    with pytest.raises(rt.ConfigError, match="in time order"):
+        rt.refine(g, 10, {"dK": lambda gr: gr.role("estimator").theta[:, 0, 0]},
+                  truth_history={"dK": [(20.0, 0.0), (0.0, 0.5)]}, progress=False, intervals=False)
+    with pytest.raises(rt.ConfigError, match="not an estimate"):
+        rt.refine(g, 10, {"dK": lambda gr: gr.role("estimator").theta[:, 0, 0]},
+                  truth_history={"dC": [(0.0, 0.0)]}, progress=False, intervals=False)
