@@ -9,13 +9,20 @@ fs = 1e7 / 2^14 Hz.
    error to the benchmark's estimation rows, [fit_start, fit_stop) (``rcotorch.models.identification.
    MassSpringDamper.fit``): the best linear model of data that hold the nonlinearity. w is interpolated
    linearly between samples (FOH).
-2. Unknown subsystem: the cubic hardening spring, and (``basis=linear+cubic``, the default) the linear
-   stiffness the linear fit got wrong while it absorbed part of the cubic one. The identified subsystem is the
-   static basis regressor u(k) = theta_1 y0(k) + theta_3 y0(k)^3 (``basis=cubic``: theta_3 y0^3 alone), where
-   y0 is the position the known model predicts half a sample after t_k (setting ``lead``; u is held over the
-   sample, so this is the midpoint rule of the continuous spring force). u enters as g u, like the input, so
+2. Unknown subsystem: the cubic hardening spring, and what the linear fit got wrong while it absorbed the
+   cubic spring. The identified subsystem is a static basis regressor, linear in theta (setting ``basis``):
 
-       k3_over_m = c = -g theta_3,   k1_over_m = b - g theta_1     (of y'' = -a y' - k1 y - c y^3 + g w + d0).
+       all (default):  u(k) = theta_q q + theta_3 q^3 + theta_v v + theta_w w(k) + theta_1
+       linear+cubic:   u(k) = theta_q q + theta_3 q^3
+       cubic:          u(k) = theta_3 q^3
+
+   where q and v are the position and velocity the known model predicts half a sample after t_k (setting
+   ``lead``; u is held over the sample, so this is the midpoint rule of the continuous forces). ``all`` is the
+   structure of the offline fit below: every coefficient of the linear model and the cubic spring. u enters
+   as g u, like the input, so the refined model is y'' = -a' y' - k1 y - c y^3 + g' w + d0' with
+
+       c = k3_over_m = -g theta_3,  k1 = k1_over_m = b - g theta_q,  a' = damping = a - g theta_v,
+       g' = gain = g (1 + theta_w),  d0' = offset = d0 + g theta_1.
 
 3. Refinement: the recorded estimation multisine, rows [est_start, est_stop), is played back through
    ``rt.refinement(known, identified, data=rt.Recorded(...))``; the known model starts from the state fitted
@@ -53,7 +60,12 @@ if TYPE_CHECKING:
     from rcotorch.models.identification import MassSpringDamper, Polynomial
 
 SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's SNLS80mV.csv from rt.datasets
-BASES = {"cubic": (3,), "linear+cubic": (1, 3)}      # the powers of y0 the identified subsystem sees
+# The identified subsystem's terms per setting ``basis``: u = sum_i theta_i phi_i with phi_i among
+#   stiffness q, cubic q^3 (q the position lead samples after t_k), damping v (the velocity there),
+#   gain w(k), offset 1.
+BASES = {"cubic": ("cubic",), "linear+cubic": ("stiffness", "cubic"),
+         "all": ("stiffness", "cubic", "damping", "gain", "offset")}
+POWERS = {"stiffness": 1, "cubic": 3}      # the terms that are powers of the position
 # The benchmark's test sets (rows of SNLS80mV.csv): the first 50 outputs of each fix the initial state.
 TEST_SETS = {"multisine": (105712, 127400), "arrow": (100, 40575), "arrow_noextrap": (100, 32100)}
 
@@ -131,11 +143,31 @@ def _key(s) -> tuple:
             (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
 
 
+def sees(s) -> tuple[str, ...]:
+    """The channels of y0 (``MassSpringDamper.lti``) the identified subsystem of settings ``s`` needs."""
+    terms = BASES[s["basis"]]
+    return ("position", "velocity", "input") if any(t not in POWERS for t in terms) else ("position",)
+
+
+def features(s) -> list:
+    """The regressor of settings ``s``: one ``rt.features`` term per entry of ``BASES[basis]``."""
+    f = rt.features
+    one = len(sees(s)) == 1
+    q = "y0" if one else "y0[0]"
+    made = {"stiffness": lambda: f.port(q), "cubic": lambda: f.power(q, 3), "damping": lambda: f.port("y0[1]"),
+            "gain": lambda: f.port("y0[2]"), "offset": lambda: f.constant()}
+    return [made[t]() for t in BASES[s["basis"]]]
+
+
 def spring(s, theta) -> Polynomial:
-    """The identified subsystem u = sum_i theta_i y0^p_i for settings ``s`` and one member's theta."""
+    """The identified subsystem u = sum_i theta_i y0^p_i for settings ``s`` whose basis holds powers of the
+    position only, and one member's theta."""
     from rcotorch.models.identification import Polynomial
+    terms = BASES[s["basis"]]
+    if any(t not in POWERS for t in terms):
+        raise ConfigError(f"scenario 'silverbox-cubic-stiffness': basis {s['basis']!r} is not a polynomial spring")
     return Polynomial(tuple(float(t) for t in np.atleast_1d(np.asarray(theta, dtype=float))),
-                      BASES[s["basis"]])
+                      tuple(POWERS[t] for t in terms))
 
 
 def validate(s, theta, rows: tuple[int, int] | None = None, offline: bool = False) -> tuple[float, np.ndarray]:
@@ -161,14 +193,15 @@ class SilverboxCubicStiffness(Scenario):
     steps = 105712 - 40650          # the whole estimation multisine
     settings = dict(data=SILVERBOX, w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
                     fit_start=40650, fit_stop=105712, est_start=40650, est_stop=105712, val_start=105712,
-                    val_stop=127400, n_init=50, foh=True, lead=0.5, basis="linear+cubic", p0=1e4, lam=1.0,
+                    val_stop=127400, n_init=50, foh=True, lead=0.5, basis="all", p0=1e4, lam=1.0,
                     nu=100, test_sets=True)
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
-    units = {"k3_over_m": "1/(V^2 s^2)", "k1_over_m": "1/s^2", "y": "V", "val_rmse_initial": "V",
-             "val_rmse_refined": "V", **{f"test_{t}_rmse_mv{x}": "mV" for t in TEST_SETS
-                                         for x in ("", "_linear", "_offline")}}
+    units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k1_over_m", "1/s^2"), ("damping", "1/s"),
+                                         ("gain", "1/s^2"), ("offset", "V/s^2")) for x in ("", "offline_")},
+             "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V",
+             **{f"test_{t}_rmse_mv{x}": "mV" for t in TEST_SETS for x in ("", "_linear", "_offline")}}
     about = dict(
         data=("", "'silverbox' (the benchmark, downloaded once or from $RCOTORCH_SILVERBOX) or a CSV/NPZ/.mat file"),
         w_column=("", "column of the input w (volts for the Silverbox)"),
@@ -183,8 +216,9 @@ class SilverboxCubicStiffness(Scenario):
         n_init=("samples", "samples used to fit the initial state before refinement and validation"),
         foh=("", "interpolate the input linearly between samples (first-order hold) in the model"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
-        basis=("", "what the identified subsystem is: theta_1 y0 + theta_3 y0^3 (the linear stiffness refined "
-                   "too), or theta_3 y0^3 alone", tuple(BASES)),
+        basis=("", "what the identified subsystem refines: 'all' (stiffness, cubic spring, damping, input gain "
+                   "and offset: the structure of the offline fit), 'linear+cubic' (theta_1 y0 + theta_3 y0^3), or "
+                   "'cubic' (theta_3 y0^3 alone)", tuple(BASES)),
         test_sets=("", "score the benchmark's test sets (multisine, arrow, arrow without extrapolation) against "
                        "the linear model and an offline output-error fit of the same structure (Silverbox data)"),
     )
@@ -193,9 +227,8 @@ class SilverboxCubicStiffness(Scenario):
         rec, model = prepare(s)
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
         w, y, n = est.column(s["w_column"]), est.column(s["y_column"]), int(s["n_init"])
-        known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype)
-        ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.power("y0", p) for p in
-                                                                 BASES[s["basis"]]], p0=s["p0"], lam=s["lam"],
+        known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype, sees=sees(s))
+        ident = rt.RCOEstimator.static_gain({"y0": len(sees(s))}, features=features(s), p0=s["p0"], lam=s["lam"],
                                             dtype=dtype)
         data = rt.Recorded(est, {"w": s["w_column"], "y": s["y_column"]}, name="data", dtype=dtype)
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
@@ -221,46 +254,70 @@ class SilverboxCubicStiffness(Scenario):
         return graph.role("estimator").theta[:, 0, :]
 
     def estimates(self, g, s):
+        """k3/m and, by basis, the refined model's k1/m, damping a, input gain g and offset d0 (u enters as
+        g u: y'' = -(a - g theta_v) y' - (b - g theta_q) y + g theta_3 y^3 + g (1 + theta_w) w + d0 + g theta_1)."""
         model, theta = prepare(s)[1], self.theta(g)
-        out = {"k3_over_m": model.cubic_coefficient(theta[:, -1])}
-        if BASES[s["basis"]][0] == 1:
-            out["k1_over_m"] = model.b - model.g * theta[:, 0]
+        terms = BASES[s["basis"]]
+        th = {name: theta[:, i] for i, name in enumerate(terms)}
+        out = {"k3_over_m": model.cubic_coefficient(th["cubic"])}
+        if "stiffness" in th:
+            out["k1_over_m"] = model.b - model.g * th["stiffness"]
+        if "damping" in th:
+            out["damping"] = model.a - model.g * th["damping"]
+        if "gain" in th:
+            out["gain"] = model.g * (1 + th["gain"])
+        if "offset" in th:
+            out["offset"] = model.d0 + model.g * th["offset"]
         return out
+
+    @staticmethod
+    def held_out(g, s, rows: tuple[int, int]):
+        """``rt.validate`` of the refined graph on the recording's ``rows``: the refined model (theta frozen)
+        and the initial linear model, free run from the state fitted to the first n_init outputs."""
+        rec, _ = prepare(s)
+        data = rt.Recorded(rec.rows(*rows), {"w": s["w_column"], "y": s["y_column"]}, name="held_out",
+                           dtype=g.role("estimator").theta.dtype)
+        return rt.validate(g, data=data, fit_steps=int(s["n_init"]))
 
     def metrics(self, g, s):
         import torch
         _, model = prepare(s)
-        thetas = self.theta(g).detach().to(torch.float64).cpu().numpy()
-        initial = validate(s, np.zeros(thetas.shape[1]))[0]
-        refined = torch.tensor([validate(s, t)[0] for t in thetas], dtype=torch.float64)
-        B = len(thetas)
+        B = g.batch_size
+        scored = {}
+
+        def score(rows):
+            if rows not in scored:
+                v = self.held_out(g, s, rows)
+                scored[rows] = (v.rmse.detach().to(torch.float64).cpu(), float(v.rmse_initial[0]))
+            return scored[rows]
 
         def full(v):
             return torch.full((B,), float(v), dtype=torch.float64)
 
+        refined, initial = score((int(s["val_start"]), int(s["val_stop"])))
         out = {"val_rmse_initial": full(initial), "val_rmse_refined": refined,
                "val_rmse_ratio": refined / initial, "linear_a": full(model.a), "linear_b": full(model.b),
                "linear_g": full(model.g), "linear_d0": full(model.d0), "linear_f0_hz": full(model.f0),
                "linear_fit_rmse": full(model.fit_rmse)}
         if s["test_sets"] and s["data"] == SILVERBOX:
-            for name, rows in TEST_SETS.items():
-                out[f"test_{name}_rmse_mv"] = torch.tensor([1e3 * validate(s, t, rows)[0] for t in thetas],
-                                                           dtype=torch.float64)
-                out[f"test_{name}_rmse_mv_linear"] = full(1e3 * validate(s, np.zeros(thetas.shape[1]), rows)[0])
-                out[f"test_{name}_rmse_mv_offline"] = full(1e3 * validate(s, None, rows, offline=True)[0])
             off, spring_off = offline_fit(s)
+            for name, rows in TEST_SETS.items():
+                refined, initial = score(rows)
+                out[f"test_{name}_rmse_mv"] = 1e3 * refined
+                out[f"test_{name}_rmse_mv_linear"] = full(1e3 * initial)
+                out[f"test_{name}_rmse_mv_offline"] = full(1e3 * validate(s, None, rows, offline=True)[0])
             out["offline_k3_over_m"] = full(off.cubic_coefficient(spring_off.coefficients[0]))
+            out["offline_k1_over_m"], out["offline_damping"] = full(off.b), full(off.a)
+            out["offline_gain"], out["offline_offset"] = full(off.g), full(off.d0)
         return out
 
     def figures(self, g, s):
         import matplotlib.pyplot as plt
 
-        rec, _ = prepare(s)
-        val = rec.rows(int(s["val_start"]), int(s["val_stop"]))
-        y = val.column(s["y_column"])
-        theta = self.theta(g)[0].detach().cpu().numpy()
-        e0, y0 = validate(s, np.zeros_like(theta))
-        e1, y1 = validate(s, theta)
+        v = self.held_out(g, s, (int(s["val_start"]), int(s["val_stop"])))
+        y = v.measured[:, 0, 0].cpu().numpy()
+        y0, y1 = v.initial[:, 0, 0].cpu().numpy(), v.refined[:, 0, 0].cpu().numpy()
+        e0, e1 = float(v.rmse_initial[0]), float(v.rmse[0])
         n = int(s["n_init"])
         centre = n + int(np.argmax(np.abs(y[n:])))           # the largest swing: where the cubic term matters
         lo = max(n, centre - 150)

@@ -59,6 +59,9 @@ def rmse(a, b) -> float:
     return float(np.sqrt(np.mean(d * d)))
 
 
+SEES = ("position", "velocity", "input")        # the channels y0 may hold (MassSpringDamper.lti)
+
+
 @dataclass(frozen=True, eq=False)
 class DiscreteModel:
     """x(k+1) = A x(k) + B [w(k); u(k)], [y(k); y0(k)] = C x(k) + D [w(k); u(k)] with D[:, 1] = 0.
@@ -370,7 +373,7 @@ class MassSpringDamper:
         """
         return np.array([y, v, 1.0]) - self.hold_offset * w0
 
-    def lti(self, x0=None, name: str = "known", dtype=DEFAULT_DTYPE) -> LTI:
+    def lti(self, x0=None, name: str = "known", dtype=DEFAULT_DTYPE, sees: tuple[str, ...] = ("position",)) -> LTI:
         """The model as an rcotorch ``LTI`` with inputs w, u and outputs y, y0 (the known model of a refinement).
 
         Parameters
@@ -381,16 +384,48 @@ class MassSpringDamper:
             The block's name.
         dtype : torch.dtype, optional
             Floating-point type (float64 by default).
+        sees : tuple of str, optional
+            The channels of y0, in order: 'position' (the position ``lead`` samples after t_k), 'velocity' (the
+            velocity at the same instant), 'input' (w(k)). A subsystem that sees the velocity and the input can
+            refine the damping and the input gain as well as the spring.
 
         Returns
         -------
         LTI
-            Ports w, u -> y, y0, each of width 1; 3 states.
+            Ports w, u -> y (width 1), y0 (width ``len(sees)``); 3 states.
+
+        Raises
+        ------
+        ConfigError
+            If ``sees`` is empty or names another channel.
         """
         m = self.discrete
+        if not sees or any(c not in SEES for c in sees):
+            raise ConfigError(f"MassSpringDamper.lti: sees must name channels among {SEES}, got {sees!r}")
+        rows, feed = [], []
+        for channel in sees:
+            c, d = self._seen(channel)
+            rows.append(c)
+            feed.append(d)
+        C = np.vstack([m.C[0], *rows])
+        D = np.zeros((1 + len(sees), 2))
+        D[0, 0], D[1:, 0] = m.D[0, 0], feed
         x0 = self.state(0.0, 0.0) if x0 is None else x0
-        return LTI(m.A, m.B, m.C, m.D, inputs=["w", "u"], outputs=["y", "y0"], dt=self.dt, name=name, x0=x0,
-                   dtype=dtype)
+        return LTI(m.A, m.B, C, D, inputs=["w", "u"], outputs={"y": 1, "y0": len(sees)}, dt=self.dt, name=name,
+                   x0=x0, dtype=dtype)
+
+    def _seen(self, channel: str) -> tuple[np.ndarray, float]:
+        """The row of C and the entry of D's w column of one channel of y0 (see ``lti``)."""
+        m = self.discrete
+        if channel == "position":
+            return m.C[1], float(m.D[1, 0])
+        if channel == "input":
+            return np.zeros(3), 1.0
+        A, bg = self.continuous()
+        if self.lead > 0:                     # x(t_k + lead dt) = Ph x(t_k) + Gh w(k), x(t_k) = xi + G2 w(k)
+            Ph, Gh = _expm_input(A, bg, self.lead * self.dt)
+            return Ph[1], float(Ph[1] @ self.hold_offset + Gh[1])
+        return np.array([0.0, 1.0, 0.0]), float(self.hold_offset[1])
 
     def cubic_coefficient(self, theta):
         """c in y'' = ... - c y^3 for the identified subsystem u = theta y0^3 (u enters as g u): c = -g theta.
