@@ -160,7 +160,6 @@ class Run:
         if dtype not in DTYPES:
             raise ConfigError(f"dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
         self.batch = _positive_int(batch, "batch")
-        self.steps = _positive_int(steps if steps is not None else self.scenario.steps, "steps")
         self.dtype_name, self.device = dtype, _device(device)
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
             raise ConfigError(f"seed must be an integer, got {seed!r}")
@@ -169,6 +168,8 @@ class Run:
                                                                                   {"seed": seed})), members)
         else:
             self.settings = self.scenario.resolve(overrides, seed)
+        self.steps = _positive_int(steps if steps is not None else self.scenario.default_steps(self.settings),
+                                   "steps")
         self.out = Path(out) if out else default_out(self.scenario.name)
         self.folder = OutputFolder(self.out, "run")
         self._mode = "overwrite" if overwrite else "new"

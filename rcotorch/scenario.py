@@ -209,6 +209,11 @@ class Scenario:
         (``member_values`` turns it into a tensor)."""
         raise NotImplementedError
 
+    def default_steps(self, settings: Mapping[str, Any]) -> int:
+        """The steps of a run of these settings when the run names none: ``steps`` (a scenario of recorded
+        data may give the length of the rows its settings choose)."""
+        return self.steps
+
     def truth(self, settings: Mapping[str, Any]) -> dict[str, float]:
         """The true values of the estimates where they are known (one value, or one per member), at the end of
         a run: what the requirements are checked against."""

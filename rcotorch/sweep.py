@@ -154,7 +154,14 @@ class Sweep:
             raise ConfigError(f"sweep: shard_size must be positive, got {self.shard_size}")
         draws = self._draws()
         points = [dict(zip(self.grid, combo)) for combo in itertools.product(*self.grid.values())] or [{}]
-        members = [dict(point, **draw, seed=seed) for point in points for draw in draws for seed in self.seed_list()]
+        seeds = self.seed_list()
+        if "seed" in known:
+            members = [dict(point, **draw, seed=seed) for point in points for draw in draws for seed in seeds]
+        elif len(seeds) > 1:
+            raise ConfigError(f"sweep: scenario '{sc.name}' has no setting 'seed' (its runs do not draw random "
+                              f"numbers), so more than one seed repeats the same run; set seeds = 1")
+        else:
+            members = [dict(point, **draw) for point in points for draw in draws]
         for i, m in enumerate(members):  # every member's values go through the scenario's own checks
             try:
                 sc.resolve(dict(self.fixed, **m))
@@ -277,7 +284,9 @@ def run_shard(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], step
         done = folder / "summary.json"
         if done.is_file():
             summary = json.loads(done.read_text())
-            if summary["steps"] == (steps or scenarios.get(scenario).steps):
+            sc = scenarios.get(scenario)
+            expected = steps or sc.default_steps(sc.resolve(shard["common"]))
+            if summary["steps"] == expected:
                 return shard_rows(shard, summary)
         if (folder / CHECKPOINT).is_file():
             run = Run.resume(folder, scenario=None if isinstance(scenario, str) else scenario)
@@ -354,7 +363,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         raise ConfigError("choose one of --overwrite and --resume")
     shards = sweep.shards()  # validates everything before any work
     sc = scenarios.get(sweep.scenario)
-    steps = sweep.steps or sc.steps
+    steps = sweep.steps                  # None: each shard's scenario default for its settings
     own = folder is None
     folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     shard_out = [str(folder.path / f"shard_{s['index']:04d}") for s in shards]

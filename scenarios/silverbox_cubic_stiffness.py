@@ -223,6 +223,10 @@ class SilverboxCubicStiffness(Scenario):
                        "the linear model and an offline output-error fit of the same structure (Silverbox data)"),
     )
 
+    def default_steps(self, s) -> int:
+        """The whole refinement rows, [est_start, est_stop)."""
+        return int(s["est_stop"]) - int(s["est_start"])
+
     def build(self, s, batch, dtype, device):
         rec, model = prepare(s)
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))

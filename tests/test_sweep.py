@@ -153,3 +153,56 @@ def test_a_sweep_never_deletes_what_it_did_not_write_and_never_merges_old_shards
     rows = list(csv.DictReader(open(out / "sweep.csv")))
     assert len(rows) == 1 and rows[0]["status"] in ("converged", "undetermined", "not_converged")
     assert sorted(p.name for p in (out / "members").iterdir()) == ["member_000000"]
+
+
+class _Deterministic:
+    """A scenario without a seed setting (recorded data: nothing random), whose default steps follow a setting."""
+
+    @staticmethod
+    def make():
+        import numpy as np
+
+        import rcotorch as rt
+        from rcotorch.scenario import Scenario
+
+        class Replay(Scenario):
+            name = "replay-gain"
+            steps = 999
+            settings = dict(rows=300, p0=1e3)
+            per_member = frozenset({"p0"})
+            estimator_options = ()
+
+            def default_steps(self, s):
+                return int(s["rows"])
+
+            def build(self, s, batch, dtype, device):
+                t = np.arange(400) * 0.01
+                w = np.sin(3 * t) + 0.5 * np.sin(11 * t)
+                known = rt.LTI.continuous([[-1.0]], [[1.0, 1.0]], [[1.0], [1.0]], [[0, 0], [0, 0]],
+                                          inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.01, name="known")
+                a = np.exp(-1.5 * 0.01)                         # the true system: pole at -1.5, ZOH
+                y = np.zeros_like(w)
+                for k in range(len(w) - 1):
+                    y[k + 1] = a * y[k] + (1 - a) / 1.5 * w[k]
+                data = rt.Recorded(np.c_[w, y][: int(s["rows"])], {"w": 0, "y": 1}, name="data")
+                ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=s["p0"])
+                return rt.refinement(known, ident, data=data, nu=20, batch_size=batch, dtype=dtype, device=device)
+
+            def estimates(self, g, s):
+                return {"dk": -g.role("estimator").theta[:, 0, 0]}
+
+        return Replay()
+
+
+def test_a_scenario_without_seeds_sweeps_without_them(tmp_path):
+    sc = _Deterministic.make()
+    with pytest.raises(ConfigError, match="no setting 'seed'.*set seeds = 1"):
+        Sweep(scenario=sc, grid={"p0": [1e2, 1e4]}, seeds=2).members()
+    sweep = Sweep(scenario=sc, grid={"p0": [1e2, 1e4]}, seeds=1, fixed={"rows": 250})
+    assert sweep.members() == [{"p0": 1e2}, {"p0": 1e4}]
+    rows = run_sweep(sweep, out=tmp_path, progress=False)
+    assert [r["p0"] for r in rows] == [1e2, 1e4] and all("seed" not in r or r["seed"] is None for r in rows)
+    summary = json.loads((tmp_path / "shard_0000" / "summary.json").read_text())
+    assert summary["steps"] == 250                        # the scenario's default for rows = 250, not its 999
+    run = Run(sc, out=tmp_path / "one")
+    assert run.steps == 300
