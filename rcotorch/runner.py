@@ -572,13 +572,16 @@ PRIOR_SHARE = 0.5     # P_ii / p0 above this at the end: the data did less than 
 def tuning_warnings(graph) -> list[str]:
     """Settings far off for the data, judged at the end of a run: a p0 so small against the regressors that
     the data barely moved P from p0 I (P_ii / p0 > ``PRIOR_SHARE``; with P^-1 = I / p0 + sum Psi Psi^T that
-    means p0 sum psi_i^2 < 1, so theta stays near its initial value)."""
+    means p0 sum psi_i^2 < 1, so theta stays near its initial value). Members that forget (lam < 1) are not
+    judged: their P is renewed from the data, and p0 matters little."""
     est = graph.role("estimator") if "estimator" in graph.roles else None
     if est is None or not hasattr(est, "P") or est.P.shape[0] == 0:
         return []
-    p0 = est.p0.to(torch.float64).reshape(-1, 1).expand(est.P.shape[0], 1)
+    B = est.P.shape[0]
+    p0 = est.p0.to(torch.float64).reshape(-1, 1).expand(B, 1)
+    lam = torch.as_tensor(est.lam, dtype=torch.float64).reshape(-1, 1).expand(B, 1).to(p0.device)
     share = torch.diagonal(est.P.to(torch.float64), dim1=1, dim2=2) / p0              # (B, n_eta)
-    stuck = share > PRIOR_SHARE
+    stuck = (share > PRIOR_SHARE) & (lam >= 1.0)
     if not bool(stuck.any()):
         return []
     members = stuck.any(1).nonzero().flatten().tolist()

@@ -156,3 +156,19 @@ def test_a_checkpoint_of_another_format_is_refused_with_exit_2(tmp_path, capsys)
     assert main(["run", "--resume", str(tmp_path / "old"), "--quiet"]) == 2
     assert "format 2" in capsys.readouterr().err
     assert path.read_bytes() == before
+
+
+def test_no_p0_warning_for_members_that_forget(tmp_path):
+    """With lam < 1 P is renewed from the data, so P_ii / p0 says nothing about p0: a run with p0 = 1 and
+    lam = 0.98 whose P ends above p0 is not told that p0 is small; with lam = 1 the same p0 is (P stays near p0 I
+    when p0 sum psi^2 < 1)."""
+    forgetting = Run("sdof-stiffness", steps=3000, out=tmp_path / "a", overrides={"p0": 1.0, "lam": 0.98},
+                     intervals=False, validation=False)
+    forgetting.advance(progress=False)
+    P = forgetting.graph.role("estimator").P
+    assert float(torch.diagonal(P[0]).max()) > 0.5             # the share the check would have flagged
+    assert forgetting.summary()["warnings"] == []
+    remembering = Run("sdof-stiffness", steps=3000, out=tmp_path / "b", overrides={"p0": 1e-6, "lam": 1.0},
+                      intervals=False, validation=False)
+    remembering.advance(progress=False)
+    assert "p0 = 1e-06 is small" in remembering.summary()["warnings"][0]
