@@ -53,6 +53,7 @@ KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
+OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
 
 
 @dataclass
@@ -66,6 +67,8 @@ class ParameterCovariance:
         settles: (B,) bool, whether every eigenvalue of A has a real part above ``EXCITED`` (every direction of
             the parameters was excited by the data).
         replayed: steps replayed; ``measured`` of them entered the statistics.
+        offset: (B, n) the Gauss-Newton step of the window's output error from eta,
+            -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
     """
 
     cov: torch.Tensor
@@ -74,6 +77,7 @@ class ParameterCovariance:
     settles: torch.Tensor
     replayed: int
     measured: int
+    offset: torch.Tensor | None = None
 
     @property
     def std(self) -> torch.Tensor:
@@ -184,6 +188,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     weight = est.r_weight.to(f64)
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
+    jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
+    jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
     scores = _ScoreSums(B, n, score_lags, dev)
     res = _ResidualSums(B, lags, keep, dev)
@@ -198,6 +204,9 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
             dz = zs[k] - z.unsqueeze(2)                                                  # (B, n_z, n)
             z_init = recorded[-1][z_sig][k]
             res.add(z, None if w_sig is None else first[w_sig][k], first[y_sig][k], z_init)
+            jac = dz / eps.to(f64).unsqueeze(1)                                  # (B, n_z, n)
+            jwj += torch.einsum("bzi,zy,byj->bij", jac, weight, jac)
+            jwz += torch.einsum("bzi,zy,by->bi", jac, weight, z)
             psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
             m = base_est.row_scale(psi)
             if m is not None:                                                     # the rows as weighed
@@ -243,7 +252,13 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     settles = settles & finite.to(settles.device)
     ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
     X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
-    pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured)
+    # The output error's Gauss-Newton step over the window: where the frozen loop's error is smaller.
+    step_ok = ok & torch.isfinite(jwj).flatten(1).all(1) & torch.isfinite(jwz).all(1)
+    offset = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
+               torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
+    offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
+    pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
+                             offset=offset)
     return Replay(covariance=pc, residuals=residuals)
 
 
@@ -492,6 +507,8 @@ class Intervals:
     half_width: dict[str, torch.Tensor]
     determined: torch.Tensor              # (B,) bool
     undetermined_keys: list[list[str]]    # per member, the estimates whose interval is too wide
+    offset: dict[str, torch.Tensor] | None = None   # the estimates' move by the output error's step (B,)
+    widened: torch.Tensor | None = None   # (B,) bool: an interval includes that move (``OFFSET_FACTOR``)
 
     def lower(self, key: str) -> torch.Tensor:
         return self.estimate[key] - self.half_width[key]
@@ -505,6 +522,13 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
                        rel_tol: float = REL_TOL) -> Intervals:
     """Intervals est +- q sd of every estimate, sd^2 = g X g^T with g its gradient in eta (delta method).
 
+    Where the window's output error is smaller away from the estimate by more than its random error (the
+    estimate's move d = g offset by the output error's Gauss-Newton step, ``pc.offset``, exceeds
+    ``OFFSET_FACTOR`` half-widths), the estimate is biased beyond its interval (a structure the refinement
+    cannot fit without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
+    q sd + |d|, so that the interval reaches the point the data favour, and the estimate is not determined
+    (the refinement did not reach what the data determine).
+
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
     user gives for an estimate that may be near zero (e.g. the nominal value a change is relative to)."""
@@ -514,17 +538,27 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     grads = estimate_gradients(graph, estimates, pc.std)
     X = pc.cov.cpu()
     det = pc.settles.cpu().clone()
-    half, bad = {}, []
+    half, bad, moved = {}, [], {}
+    widened = torch.zeros_like(det)
     for key, v in values.items():
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
         hw = q * var.clamp_min(0).sqrt()
+        biased = torch.zeros_like(det)
+        if pc.offset is not None:
+            d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+            moved[key] = d
+            biased = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_FACTOR * hw)
+            hw = torch.where(biased, hw + d.abs(), hw)
+            widened |= biased
         half[key] = torch.where(torch.isfinite(var), hw, math.nan)
         scale = float((scales or {}).get(key, 0.0))
         ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * torch.clamp(v.abs(), min=scale))
+        ok &= ~biased                         # biased beyond its interval: not what the data determine
         bad.append(~ok)
         det &= ok
     keys = list(values)
     undetermined = [[k for k, b in zip(keys, row) if b] for row in
                     (torch.stack(bad, 1).tolist() if bad else [[]] * det.numel())]
-    return Intervals(level=level, estimate=values, half_width=half, determined=det, undetermined_keys=undetermined)
+    return Intervals(level=level, estimate=values, half_width=half, determined=det, undetermined_keys=undetermined,
+                     offset=moved or None, widened=widened)
