@@ -67,6 +67,30 @@ def test_a_uniform_shear_building_has_the_closed_form_frequencies_and_rayleigh_d
         rt.models.shear_building([m] * n, [k] * n, measured=["velocity[4]"])
 
 
+def test_a_floor_accelerometer_reads_the_derivative_of_its_velocity_plus_the_ground_acceleration():
+    """'acceleration[j]' against the time derivative of python-control's velocity response (a fine grid, central
+    differences) plus the ground acceleration, under base excitation and with a force pair acting; with a force
+    on a floor it is the floor's acceleration alone."""
+    import control
+    import numpy as np
+    m, k = 2.0e4, 2.0e7
+    t = np.linspace(0.0, 2.0, 40001)
+    w = np.sin(7 * t) + 0.3 * np.sin(23 * t)
+    u = 1e4 * np.cos(11 * t)
+    for force, ground in (("base", 1.0), (2, 0.0)):
+        G = rt.models.shear_building([m] * 3, [k] * 3, damping_ratio=0.02, force=force, identified=[2],
+                                     measured=["velocity[2]", "acceleration[2]", "acceleration[-1]", "velocity[-1]"])
+        assert np.any(G.D[1:3] != 0)                      # the inputs reach an acceleration at once
+        y = control.forced_response(G, t, np.vstack([w, u])).outputs
+        h = t[1] - t[0]
+        for acc, vel in ((1, 0), (2, 3)):
+            derivative = (y[vel, 2:] - y[vel, :-2]) / (2 * h)
+            np.testing.assert_allclose(y[acc, 1:-1], derivative + ground * w[1:-1], rtol=0,
+                                       atol=2e-5 * np.abs(y[acc]).max())
+    with pytest.raises(rt.ConfigError, match="'acceleration\\[j\\]'"):
+        rt.models.shear_building([m] * 3, [k] * 3, measured=["accel[1]"])
+
+
 @pytest.mark.parametrize("name", ["double", "update", "keys", "to"])
 def test_a_block_named_like_a_method_of_the_module_container_is_refused_naming_it(name):
     with pytest.raises(rt.ConfigError, match=f"block '{name}' \\(Gain\\) cannot be named so"):

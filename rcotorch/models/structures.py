@@ -179,7 +179,9 @@ def shear_building(masses: Sequence[float], stiffnesses: Sequence[float], dampin
     ``masses[j - 1]``. Damping is Rayleigh, C = a M + b K, with ``damping_ratio`` in the first two modes (the
     first alone for one storey). ``force``: ``'base'`` (w is the ground acceleration: every floor feels
     -m_j w) or a floor number 1..n (w is a force on that floor). ``measured``: 'displacement[j]' or
-    'velocity[j]' of floors j = 1..n (negative j counts from the roof: -1 is the roof), relative to the ground.
+    'velocity[j]' of floors j = 1..n (negative j counts from the roof: -1 is the roof), relative to the ground,
+    or 'acceleration[j]', the floor's absolute acceleration (what an accelerometer on it reads: relative
+    acceleration plus the ground's, x_j'' + w, for base excitation), which the inputs reach at once (D != 0).
 
     ``identified``: the storeys whose stiffness change the unknown subsystem supplies. For each, it sees the
     storey drift d_j = x_j - x_(j-1) (output ``y0[i]``) and acts with a force pair u_j: +u_j on floor j and
@@ -197,7 +199,7 @@ def shear_building(masses: Sequence[float], stiffnesses: Sequence[float], dampin
     force : 'base' or int, optional
         Ground acceleration, or the floor a force acts on.
     measured : Sequence[str], optional
-        'displacement[j]' or 'velocity[j]' of floors (``y``).
+        'displacement[j]', 'velocity[j]' or 'acceleration[j]' of floors (``y``).
     identified : Sequence[int], optional
         The storeys whose stiffness change the unknown subsystem supplies (``y0``, ``u``).
     actuation : bool, optional
@@ -262,25 +264,33 @@ def shear_building(masses: Sequence[float], stiffnesses: Sequence[float], dampin
         if s > 1:
             Fu[s - 2, i] = -1.0
             drift[i, s - 2] = -1.0
-    rows = []
+    Minv = np.linalg.inv(M)
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    B = np.vstack([np.zeros((n, 1 + (len(storeys) if actuation else 0))),
+                   Minv @ (np.hstack([Fw, Fu]) if actuation else Fw)])
+    rows, feed = [], []
     for sig in measured:
         kind, _, idx = str(sig).partition("[")
         try:
             j = int(idx.rstrip("]"))
         except ValueError:
             j = 0
-        if kind not in ("displacement", "velocity") or not idx:
-            raise ConfigError(f"shear_building: measured signal {sig!r}; use 'displacement[j]' or 'velocity[j]' "
-                              f"with a floor j in 1..{n} (or -1 for the roof)")
-        r = np.zeros(2 * n)
-        r[floor(j, f"measured {sig!r}") + (n if kind == "velocity" else 0)] = 1.0
+        if kind not in ("displacement", "velocity", "acceleration") or not idx:
+            raise ConfigError(f"shear_building: measured signal {sig!r}; use 'displacement[j]', 'velocity[j]' or "
+                              f"'acceleration[j]' with a floor j in 1..{n} (or -1 for the roof)")
+        i = floor(j, f"measured {sig!r}")
+        if kind == "acceleration":            # x_j'' = row n + i of (A, B), plus the ground's for base excitation
+            r, d = A[n + i].copy(), B[n + i].copy()
+            if force == "base":
+                d[0] += 1.0
+        else:
+            r, d = np.zeros(2 * n), np.zeros(B.shape[1])
+            r[i + (n if kind == "velocity" else 0)] = 1.0
         rows.append(r)
-    Minv = np.linalg.inv(M)
-    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
-    B = np.vstack([np.zeros((n, 1 + (len(storeys) if actuation else 0))),
-                   Minv @ (np.hstack([Fw, Fu]) if actuation else Fw)])
+        feed.append(d)
     Cm = np.vstack(rows + ([drift] if len(storeys) else []))
+    Dm = np.vstack(feed + ([np.zeros((len(storeys), B.shape[1]))] if len(storeys) else []))
     names = dict(inputs=["w"] + (vector("u", len(storeys)) if actuation and storeys else []),
                  outputs=vector("y", len(rows)) + (vector("y0", len(storeys)) if storeys else []),
                  states=vector("x", n) + vector("xdot", n))
-    return control.ss(A, B, Cm, np.zeros((Cm.shape[0], B.shape[1])), **names)
+    return control.ss(A, B, Cm, Dm, **names)
