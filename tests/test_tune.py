@@ -1,5 +1,6 @@
-"""Tuning from held-out data (rcotorch.tune): ranking over seeds, the sensitivity table, best.toml, and a
-search that recovers a scenario's requirements from a deliberately poor start without looking at the truth."""
+"""Tuning from held-out data (rcotorch.tune): ranking over seeds, the sensitivity table, best.toml, a search
+that recovers a scenario's requirements from a deliberately poor start without looking at the truth, TPE rounds
+of batched candidates (resumable), and the Ray backend."""
 
 import math
 import tomllib
@@ -142,3 +143,109 @@ def test_a_tuning_with_a_bad_candidate_is_refused_before_its_folder_is_made(tmp_
     with pytest.raises(ConfigError, match="p0"):
         run_tune(t, out=tmp_path / "t", progress=False)
     assert not (tmp_path / "t").exists()
+
+
+# --- tpe: rounds of batched candidates -------------------------------------------------------------------------
+TPE = dict(scenario="sdof-stiffness", method="tpe", space={"p0": {"loguniform": [1e-2, 1e8]}, "lam": [0.99, 1.0]},
+           samples=4, rounds=2, seeds=1, steps=600)
+
+
+def test_tpe_rounds_ask_where_the_told_scores_are_low():
+    """Told a known score (lowest at p0 = 1e7, lam = 1, nu = 15) round by round, the sampler's batches move to
+    it: the last round's median score is well below the first (random) round's, and the best found beats as
+    many random draws, over three search seeds."""
+    pytest.importorskip("optuna")
+    import numpy as np
+
+    def score(c):
+        return 0.3 * abs(math.log10(c["p0"]) - 7) + 200 * (1 - c["lam"]) + (c["nu"] != 15)
+    space = {"p0": {"loguniform": [1e-2, 1e10]}, "lam": {"uniform": [0.98, 1.0]}, "nu": [5, 15, 45]}
+    best_tpe, best_random = 0.0, 0.0
+    for seed in range(3):
+        t = Tuning(scenario="sdof-stiffness", method="tpe", space=space, samples=32, rounds=4, seed=seed)
+        assert t.ask([], 0) == t.ask([], 0)                              # seeded: the same batch again
+        history, medians = [], []
+        for r in range(4):
+            batch = t.ask(history, r)
+            assert len(batch) == 8 and len({c["p0"] for c in batch}) == 8     # a batch, not one point 8 times
+            assert all(1e-2 <= c["p0"] <= 1e10 and 0.98 <= c["lam"] <= 1 and c["nu"] in (5, 15, 45) for c in batch)
+            history += [(c, score(c)) for c in batch]
+            medians.append(np.median([score(c) for c in batch]))
+        assert medians[-1] < 0.6 * medians[0], medians
+        best_tpe += min(s for _, s in history)
+        random = Tuning(scenario="sdof-stiffness", method="random", space=space, samples=32, seeds=1, seed=seed)
+        best_random += min(score(m) for m in random.sweep().members())
+    assert best_tpe < 0.7 * best_random
+
+
+def test_tpe_candidates_are_members_of_batched_runs_and_an_interrupted_search_resumes_to_the_same_result(tmp_path):
+    pytest.importorskip("optuna")
+    import json
+
+    from rcotorch.runner import Interrupted
+    whole = run_tune(Tuning(**TPE), out=tmp_path / "whole", progress=False)
+    assert whole.members == 4 and len(whole.candidates) == 4
+    scores = {}
+    for r in (0, 1):                 # one sweep per round; p0 and lam are per member: one batch of two
+        folder = tmp_path / "whole" / "runs" / f"round_{r:03d}"
+        rows = json.loads((folder / "sweep.json").read_text())
+        assert len(rows) == 2 and {row["shard"] for row in rows} == {0}
+        assert json.loads((folder / "shard_0000" / "summary.json").read_text())["batch"] == 2
+        scores.update({(row["p0"], row["lam"]): row["validation_rmse"] for row in rows})
+    assert {(c["settings"]["p0"], c["settings"]["lam"]): c["score"] for c in whole.candidates} == scores
+    assert [c["score"] for c in whole.candidates] == sorted(scores.values())
+    assert tomllib.loads((tmp_path / "whole" / "best.toml").read_text())["settings"] == whole.best
+
+    def stop():                      # a stop request during the second round
+        return (tmp_path / "cut" / "runs" / "round_001").exists()
+    with pytest.raises(Interrupted):
+        run_tune(Tuning(**TPE), out=tmp_path / "cut", progress=False, stop=stop)
+    assert not (tmp_path / "cut" / "tune.csv").exists()
+    shard = tmp_path / "cut" / "runs" / "round_000" / "shard_0000" / "summary.json"
+    stamp = shard.stat().st_mtime_ns
+    resumed = run_tune(Tuning(**TPE), out=tmp_path / "cut", progress=False, resume=True)
+    assert shard.stat().st_mtime_ns == stamp                    # the finished round was read, not run again
+    assert [(c["settings"], c["score"]) for c in resumed.candidates] == \
+        [(c["settings"], c["score"]) for c in whole.candidates]
+
+
+def test_tpe_without_optuna_says_how_to_install(tmp_path, monkeypatch):
+    import sys
+    monkeypatch.setitem(sys.modules, "optuna", None)
+    with pytest.raises(ConfigError, match=r"pip install 'rcotorch\[tune\]'"):
+        run_tune(Tuning(**TPE), out=tmp_path / "t", progress=False)
+    assert not (tmp_path / "t").exists()
+
+
+def test_a_tpe_config_is_checked():
+    pytest.importorskip("optuna")
+    with pytest.raises(ConfigError, match="rounds .3. cannot exceed samples .2."):
+        Tuning.from_dict(dict(TPE, samples=2, rounds=3)).ask([], 0)
+    with pytest.raises(ConfigError, match="'p0'.*normal"):
+        Tuning.from_dict(dict(TPE, space={"p0": {"normal": [1.0, 0.1]}})).ask([], 0)
+    with pytest.raises(ConfigError, match=r"tune space .*lam must lie in \(0, 1\]"):
+        run_tune(Tuning.from_dict(dict(TPE, space={"lam": {"uniform": [0.9, 2.0]}})), out=None, progress=False)
+
+
+def test_ray_backend_tunes_as_the_local_one(tmp_path):
+    """The same candidates, scores and ranking from Ray tasks as from this process, for a grid search and for a
+    tpe search, whose later rounds follow the earlier rounds' scores."""
+    ray = pytest.importorskip("ray")
+    searches = [Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1.0, 1e3], "nu": [5, 15]}, seeds=1,
+                       steps=400)]
+    try:
+        import optuna  # noqa: F401
+        searches.append(Tuning(**TPE))
+    except ImportError:
+        pass
+    local = [run_tune(t, out=tmp_path / f"local{i}", progress=False) for i, t in enumerate(searches)]
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = [run_tune(t, out=tmp_path / f"ray{i}", backend="ray", progress=False)
+                  for i, t in enumerate(searches)]
+    finally:
+        ray.shutdown()
+    for a, b in zip(local, remote):
+        assert [(c["settings"], c["score"], c["rank"]) for c in a.candidates] == \
+            [(c["settings"], c["score"], c["rank"]) for c in b.candidates]
+        assert a.best == b.best and a.members == b.members
