@@ -91,6 +91,9 @@ class Sweep:
     dtype: str = "float64"
     trace: Sequence[int] = ()   # member indices logged individually in TensorBoard (default: 3 per shard)
 
+    def __post_init__(self):
+        self.scenario = scenarios.get(self.scenario)       # looked up once; the members carry the object
+
     @classmethod
     def from_dict(cls, spec: Mapping[str, Any], source: str = "sweep") -> Sweep:
         unknown = set(spec) - CONFIG_KEYS
@@ -103,7 +106,13 @@ class Sweep:
 
     @property
     def scenario_name(self) -> str:
-        return scenarios.get(self.scenario).name
+        return self.scenario.name
+
+    def scenario_ref(self) -> str | scenarios.Scenario:
+        """What a worker process is given to find the scenario: its registered name (the worker imports it),
+        or the object itself for a scenario of one's own."""
+        registered = scenarios.available().get(self.scenario.name)
+        return self.scenario.name if registered is self.scenario else self.scenario
 
     def config(self) -> dict[str, Any]:
         """The sweep as plain data (the scenario by name), as its folder records it."""
@@ -128,7 +137,7 @@ class Sweep:
 
     def members(self) -> list[dict[str, Any]]:
         """One settings dict per member (swept names plus 'seed'), after checking names and values."""
-        sc = scenarios.get(self.scenario)
+        sc = self.scenario
         known = set(sc.settings)
         for what, names in (("grid", self.grid), ("random", self.random), ("fixed", self.fixed)):
             for name in names:
@@ -204,7 +213,7 @@ class Sweep:
 
     def shards(self) -> list[dict[str, Any]]:
         """Shard specs: {'index', 'members' (member indices), 'settings' (per-member dicts), 'common'}."""
-        sc = scenarios.get(self.scenario)
+        sc = self.scenario
         members = self.members()
         groups: dict[tuple, list[int]] = {}
         for i, m in enumerate(members):
@@ -362,7 +371,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     if overwrite and resume:
         raise ConfigError("choose one of --overwrite and --resume")
     shards = sweep.shards()  # validates everything before any work
-    sc = scenarios.get(sweep.scenario)
+    sc = sweep.scenario
     steps = sweep.steps                  # None: each shard's scenario default for its settings
     own = folder is None
     folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
@@ -468,7 +477,8 @@ def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
             raise ConfigError(f"{where}: {e}") from None
     try:
         task = ray.remote(num_cpus=1, num_gpus=1 if device == "cuda" else 0)(run_shard)
-        refs = {task.remote(sweep.scenario, s, steps, sweep.dtype, device, o, 1): s for s, o in zip(shards, shard_out)}
+        ref = sweep.scenario_ref()
+        refs = {task.remote(ref, s, steps, sweep.dtype, device, o, 1): s for s, o in zip(shards, shard_out)}
         parts, pending, done = {}, list(refs), 0
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=0.5)
@@ -522,7 +532,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     from torch.utils.tensorboard import SummaryWriter
 
     from .monitor import final_values, setting_text, write_session
-    sc = scenarios.get(sweep.scenario)
+    sc = sweep.scenario
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
         settings = set(sc.settings)
