@@ -54,6 +54,7 @@ SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated r
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
+BIAS_TOL = 0.05          # a biased estimate that step moves by more than this fraction of its size is undetermined
 
 
 @dataclass
@@ -509,6 +510,7 @@ class Intervals:
     undetermined_keys: list[list[str]]    # per member, the estimates whose interval is too wide
     offset: dict[str, torch.Tensor] | None = None   # the estimates' move by the output error's step (B,)
     widened: torch.Tensor | None = None   # (B,) bool: an interval includes that move (``OFFSET_FACTOR``)
+    biased: torch.Tensor | None = None    # (B,) bool: an estimate undetermined for it (``BIAS_TOL``)
 
     def lower(self, key: str) -> torch.Tensor:
         return self.estimate[key] - self.half_width[key]
@@ -526,8 +528,9 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     estimate's move d = g offset by the output error's Gauss-Newton step, ``pc.offset``, exceeds
     ``OFFSET_FACTOR`` half-widths), the estimate is biased beyond its interval (a structure the refinement
     cannot fit without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
-    q sd + |d|, so that the interval reaches the point the data favour, and the estimate is not determined
-    (the refinement did not reach what the data determine).
+    q sd + |d|, so that the interval reaches the point the data favour; where |d| is also more than
+    ``BIAS_TOL`` times max(|estimate|, scale), the estimate is not determined (the refinement settled well away
+    from what the data determine).
 
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
@@ -539,7 +542,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     X = pc.cov.cpu()
     det = pc.settles.cpu().clone()
     half, bad, moved = {}, [], {}
-    widened = torch.zeros_like(det)
+    widened, far_off = torch.zeros_like(det), torch.zeros_like(det)
     for key, v in values.items():
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
@@ -554,11 +557,14 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         half[key] = torch.where(torch.isfinite(var), hw, math.nan)
         scale = float((scales or {}).get(key, 0.0))
         ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * torch.clamp(v.abs(), min=scale))
-        ok &= ~biased                         # biased beyond its interval: not what the data determine
+        if key in moved:                      # the data favour a point well away from the estimate
+            away = biased & (moved[key].abs() > BIAS_TOL * torch.clamp(v.abs(), min=scale))
+            ok &= ~away
+            far_off |= away
         bad.append(~ok)
         det &= ok
     keys = list(values)
     undetermined = [[k for k, b in zip(keys, row) if b] for row in
                     (torch.stack(bad, 1).tolist() if bad else [[]] * det.numel())]
     return Intervals(level=level, estimate=values, half_width=half, determined=det, undetermined_keys=undetermined,
-                     offset=moved or None, widened=widened)
+                     offset=moved or None, widened=widened, biased=far_off)

@@ -449,8 +449,8 @@ class Run:
         if res is not None:
             health["residuals_white"] = self._plain((res.whiteness_p >= ci.WHITE_P).tolist())
             health["undetermined"] = self._plain(found.undetermined_keys)
-            if found.widened is not None:
-                health["intervals_widened"] = self._plain(found.widened.tolist())
+            if found.biased is not None:
+                health["biased"] = self._plain(found.biased.tolist())
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
                      "reason": (health["reason"] if self.batch == 1 else health["reason"][b])} for b in members]
@@ -718,9 +718,9 @@ def health_line(summary: Mapping[str, Any]) -> str:
         white = h.get("residuals_white", True)
         note = "" if white else "; residuals not white: dynamics the model leaves unexplained may bias the " \
             "estimates beyond their intervals"
-        if h.get("intervals_widened"):
-            note += ("; the output error is smaller away from the estimates than their random error explains "
-                     "(a biased refinement): the intervals reach that point")
+        if h.get("biased"):
+            note += ("; biased: the output error favours estimates more than 5% away, beyond their random error "
+                     "(the intervals reach them)")
         if h["status"] == "undetermined":
             which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
             return f"health: undetermined: settled, but the data did not determine {which} ({detail}){note}"
@@ -731,10 +731,10 @@ def health_line(summary: Mapping[str, Any]) -> str:
     if isinstance(white, list) and not all(white):
         line += (f"; residuals not white in {len(white) - sum(white)} members (dynamics the model leaves "
                  "unexplained may bias their estimates beyond their intervals)")
-    widened = h.get("intervals_widened")
-    if isinstance(widened, list) and any(widened):
-        line += (f"; in {sum(widened)} members the output error is smaller away from the estimates than their "
-                 "random error explains (a biased refinement): their intervals reach that point")
+    biased = h.get("biased")
+    if isinstance(biased, list) and any(biased):
+        line += (f"; biased in {sum(biased)} members: the output error favours estimates more than 5% away, "
+                 "beyond their random error (their intervals reach them)")
     if summary["diverged"]:
         first = summary["diverged"][:5]
         line += "; diverged: " + ", ".join(f"member {d['member']} at step {d['step']} ({d['reason']})"
