@@ -41,7 +41,7 @@ def reference_response(reference, omega, dt: float) -> np.ndarray:
 def frequency_error(identified: RCOEstimator, reference, omega) -> torch.Tensor:
     """max over omega of |G_identified - G_ref| / |G_ref| for each member, (B,); SISO paths (n_u = n_sig = 1)
     or the full matrix with the spectral-norm ratio of the difference to the reference."""
-    dt = identified.dt
+    dt = identified.sample_time
     ident = identified.frequency_response(omega).cpu()                      # (B, F, n_u, n_sig)
     ref = torch.as_tensor(reference_response(reference, omega, dt))
     ref = ref.reshape(1, len(omega), *ident.shape[2:]).to(ident.dtype)

@@ -359,8 +359,8 @@ class Gain(Block):
         b : rcotorch.lowering.Builder
             Receives the block's parameters, ports and instructions.
         """
-        b.emit("GAIN", [*self.K.shape[1:], b.param(self.K), b.input("in"), b.output("out"), b.shared(self.K)],
-               port="out")
+        b.emit("GAIN", port="out", ROWS=self.K.shape[1], COLS=self.K.shape[2], K=b.param(self.K), IN=b.input("in"),
+               OUT=b.output("out"), SHARED=b.shared(self.K))
 
 
 class Sum(Block):
@@ -408,10 +408,8 @@ class Sum(Block):
         b : rcotorch.lowering.Builder
             Receives the block's ports and instructions.
         """
-        args = [self.outputs["out"], len(self.signs), b.output("out")]
-        for p, s in self.signs.items():
-            args += [b.input(p), int(s)]
-        b.emit("SUM", args, port="out")
+        b.emit("SUM", port="out", WIDTH=self.outputs["out"], OUT=b.output("out"),
+               terms=[dict(IN=b.input(p), SIGN=int(s)) for p, s in self.signs.items()])
 
 
 class StaticMap(Block):
@@ -483,7 +481,8 @@ class StaticMap(Block):
         c = compile_map(self.fn, n_in, n_out)
         if isinstance(c, str):
             b.refuse(f"function {describe(self.fn)} is not compiled: {c}")
-        b.emit("CALL", [n_in, b.input("in"), n_out, b.output("out"), b.function(c.address, c)], port="out")
+        b.emit("CALL", port="out", NIN=n_in, IN=b.input("in"), NOUT=n_out, OUT=b.output("out"),
+               FUNCTION=b.function(c.address, c))
 
 
 def tensor_result(out, dtype, device=None):

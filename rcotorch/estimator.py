@@ -19,7 +19,9 @@ z_R(k) = z_hat(theta(k), k).
 Structure: theta's entries are functions of a parameter vector eta, Theta = T eta, with T a 0/1 matrix. A
 mask pins entries to zero (their rows of T are zero); ``tie`` lets entries share one parameter (e.g. one
 function of a temperature for every altitude node). The update runs on eta with the regressor T^T Psi, so
-P is (n_theta x n_theta) over the free parameters only; for a plain estimator T is the identity.
+P is (n_theta x n_theta) over the free parameters only; for a plain estimator T is the identity. The map is
+the estimator's ``parameter_map`` (``rcotorch.parameter_map.ParameterMap``); the identified subsystem as a
+transfer function (frequency response, DC gain, python-control export) is computed by ``rcotorch.transfer``.
 
 A member whose z, Psi or theta becomes non-finite, or whose P loses definiteness, is frozen (theta and P
 held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where the optional ``valid`` input is
@@ -41,17 +43,16 @@ Robustness options (each off by default, each a scalar or one value per member):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 
-from . import kernels, memo
+from . import kernels, memo, transfer
 from .blocks import DEFAULT_DTYPE, Block
 from .errors import ConfigError, DimensionError
 from .features import Term, as_terms
+from .parameter_map import ParameterMap
 from .rls import rls_update
 
 if TYPE_CHECKING:
@@ -60,14 +61,6 @@ if TYPE_CHECKING:
 # The buffer that holds each robustness option (see ``RCOEstimator._options``).
 _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
 
-
-
-def _solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """A^-1 b per member, NaN for a member whose A is singular or not finite (a diverged member; CUDA's solver
-    reports those as singular where LAPACK returns NaN)."""
-    x, info = torch.linalg.solve_ex(A, b)
-    bad = (info != 0).reshape(info.shape + (1,) * (x.dim() - info.dim()))
-    return torch.where(bad, torch.full_like(x, math.nan), x)
 
 class RCOEstimator(Block):
     """Identified subsystem u = theta phi with the retrospective-cost RLS update.
@@ -115,7 +108,9 @@ class RCOEstimator(Block):
         d, the delay of the first Markov parameter in ``markov`` (>= 0; 0 only for a strictly proper
         identified subsystem).
     dt : float, optional
-        Sample time [s] (for transfer functions and frequency responses).
+        Sample time [s] (for transfer functions and frequency responses). Left out, the identified subsystem
+        has the sample time that comes with its Markov parameters (``set_markov``; ``refinement`` gives the
+        known model's): ``sample_time``.
     u_bounds : tuple, optional
         (low, high) saturation of u, scalars or per component (n_u,), e.g. (0, inf) where physics forbids a
         sign (a cooling that cannot heat). The retrospective cost uses the saturated u, the one actually
@@ -187,7 +182,9 @@ class RCOEstimator(Block):
         self.n_phi = len(self.lags) * self.n_sig + (nc * n_u if self.feed_u else 0)
         self.phi_names = self._phi_names()
         self.dt = dt
-        self._structure(mask, tie)
+        self.markov_dt: float | None = None      # the sample time of the Markov parameters (set_markov)
+        # Theta = T eta: which parameter each entry of theta holds (mask and tie)
+        self.parameter_map = ParameterMap(n_u, self.phi_names, mask, tie, block=name, dtype=dtype)
         for key, value in (("p0", p0), ("lam", lam)):
             t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
             if key == "p0" and bool((t <= 0).any()):
@@ -204,18 +201,15 @@ class RCOEstimator(Block):
         self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
             torch.as_tensor(theta0, dtype=dtype, device="cpu").reshape(-1, n_u, self.n_phi)
-        theta0 = theta0 * self.mask
-        self._check_tied("theta0", theta0.reshape(theta0.shape[0], -1))
+        theta0 = theta0 * self.parameter_map.unpinned
+        self.parameter_map.check_shared("theta0", theta0.reshape(theta0.shape[0], -1))
         self.register_buffer("theta0", theta0)
-        self.register_buffer("free_idx", self.rep.clone())      # the entry of theta that holds each parameter
-        if self.tied:
-            self.register_buffer("tie_T", self._tie_matrix(dtype))
         for key, value, width in (("u", u_bounds, n_u), ("theta", theta_bounds, n_u * self.n_phi)):
             lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
             if key == "theta" and lo is not None:
                 for what, t in (("theta_bounds low", lo), ("theta_bounds high", hi)):
                     if t.dim():
-                        self._check_tied(what, t.reshape(1, -1))
+                        self.parameter_map.check_shared(what, t.reshape(1, -1))
             self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
             self.register_buffer(f"{key}_high", hi)
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
@@ -281,54 +275,37 @@ class RCOEstimator(Block):
             if self.batch_size:                                   # already reset for a batch
                 self.check_batch(t, key)
 
-    def _structure(self, mask, tie) -> None:
-        """The parameter map Theta = T eta from ``mask`` and ``tie``: ``param_of[e]`` is the parameter of
-        entry e of Theta (-1: pinned to zero), ``rep[p]`` the first entry holding parameter p."""
-        name, shape = self.name, (self.n_u, self.n_phi)
-        mask = torch.ones(shape, dtype=torch.bool) if mask is None else torch.as_tensor(mask, device="cpu")
-        if tuple(mask.shape) != shape:
-            raise DimensionError(f"block '{name}': mask has shape {tuple(mask.shape)}, expected "
-                                 f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
-        labels = torch.arange(mask.numel()).reshape(shape) if tie is None else torch.as_tensor(tie, device="cpu")
-        if tuple(labels.shape) != shape:
-            raise DimensionError(f"block '{name}': tie has shape {tuple(labels.shape)}, expected "
-                                 f"(n_u, n_phi) = {shape} for phi = {self.phi_names}")
-        if labels.is_floating_point() or labels.dtype == torch.bool:
-            raise ConfigError(f"block '{name}': tie must hold integer labels, got dtype {labels.dtype}")
-        mask = mask.bool() & (labels >= 0)
-        param_of, first = [], {}
-        for free, label in zip(mask.flatten().tolist(), labels.flatten().tolist()):
-            param_of.append(first.setdefault(label, len(first)) if free else -1)
-        # Buffers (not in state_dict: they follow from mask and tie), so that they move with the block.
-        self.register_buffer("mask", mask, persistent=False)
-        self.register_buffer("param_of", torch.tensor(param_of, dtype=torch.int64), persistent=False)
-        self.register_buffer("free", torch.nonzero(self.param_of >= 0).flatten(), persistent=False)  # not pinned
-        self.n_theta = len(first)
-        if self.n_theta == 0:
-            raise ConfigError(f"block '{name}': the mask leaves no free entry of theta")
-        self.register_buffer("rep", torch.tensor([param_of.index(p) for p in range(self.n_theta)],
-                                                 dtype=torch.int64), persistent=False)
-        self.tied = self.n_theta < self.free.numel()
-        self.all_free = bool(mask.all()) and not self.tied
-        entry = [f"{i}:{self.phi_names[j]}" if self.n_u > 1 else self.phi_names[j]
-                 for i in range(self.n_u) for j in range(self.n_phi)]
-        self.theta_names = [" = ".join(entry[e] for e in range(len(param_of)) if param_of[e] == p)
-                            for p in range(self.n_theta)]
+    # --- the parameter map (``parameter_map``: Theta = T eta) ----------------------------------------------
+    @property
+    def n_theta(self) -> int:
+        """n_theta, the number of free parameters eta (``parameter_map.n_params``)."""
+        return self.parameter_map.n_params
 
-    def _tie_matrix(self, dtype) -> torch.Tensor:
-        """T (n_u * n_phi, n_theta): Theta = T eta, so the regressor of eta is T^T Psi."""
-        T = torch.zeros(self.n_u * self.n_phi, self.n_theta, dtype=dtype)
-        T[self.free, self.param_of[self.free]] = 1.0
-        return T
+    @property
+    def theta_names(self) -> list[str]:
+        """One name per free parameter, in the order of eta: the entries of theta that hold it, joined by ' = '."""
+        return self.parameter_map.names
 
-    def _check_tied(self, what: str, values: torch.Tensor) -> None:
-        """Entries that share a parameter must share ``values`` (B, n_u * n_phi) too."""
-        if not self.tied:
-            return
-        reps = values[:, self.rep[self.param_of[self.free]]]
-        if not bool((values[:, self.free] == reps).all()):
-            raise ConfigError(f"block '{self.name}': {what} differs between entries of theta that share a "
-                              "parameter (tie)")
+    @property
+    def param_of(self) -> torch.Tensor:
+        """The parameter each entry of Theta holds, -1 where it is pinned, (n_u * n_phi,)
+        (``parameter_map.param_of_entry``)."""
+        return self.parameter_map.param_of_entry
+
+    @property
+    def rep(self) -> torch.Tensor:
+        """The first entry of Theta holding each parameter, (n_theta,) (``parameter_map.entry_of_param``)."""
+        return self.parameter_map.entry_of_param
+
+    @property
+    def free_idx(self) -> torch.Tensor:
+        """The entry of Theta that each parameter is read from, (n_theta,) (``parameter_map.entry_of_param``)."""
+        return self.parameter_map.entry_of_param
+
+    @property
+    def all_free(self) -> bool:
+        """Whether every entry of theta is its own parameter (T = I; ``parameter_map.identity``)."""
+        return self.parameter_map.identity
 
     def theta_free(self) -> torch.Tensor:
         """The free parameters eta, in the order of ``theta_names``.
@@ -338,7 +315,7 @@ class RCOEstimator(Block):
         torch.Tensor
             (B, n_theta).
         """
-        return self.theta.reshape(self.theta.shape[0], -1).index_select(1, self.free_idx)
+        return self.parameter_map.eta_of(self.theta.reshape(self.theta.shape[0], -1))
 
     @classmethod
     def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
@@ -470,7 +447,7 @@ class RCOEstimator(Block):
                 idx += [upast0 + (lag - 1) * self.n_u + c for c in range(self.n_u)]
         return torch.tensor(idx, dtype=torch.int64)
 
-    def set_markov(self, markov, first_delay: int = 1) -> None:
+    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None) -> None:
         """Set the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z (sign included).
 
         A lowered native program reads the new values where their shape stays, and is built again where it
@@ -482,6 +459,9 @@ class RCOEstimator(Block):
             (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1.
         first_delay : int, optional
             d, the delay of the first one (>= 0; 0 only for an estimator that is not ``proper``).
+        dt : float, optional
+            The sample time [s] of the model they are taken from, the identified subsystem's ``sample_time``
+            where the estimator has no ``dt`` of its own; None keeps the one given before.
 
         Raises
         ------
@@ -506,6 +486,8 @@ class RCOEstimator(Block):
         self.first_delay = int(first_delay)
         self.delays = torch.arange(first_delay, first_delay + beta.shape[1], device=beta.device)
         self.window = first_delay + beta.shape[1]
+        if dt is not None:
+            self.markov_dt = dt
         lowered = self.__dict__.get("_native_beta_ring")     # (what a lowered program reads, what it was made of)
         if lowered is not None:
             ring = self._beta_padded().repeat(1, 1, 2)
@@ -513,6 +495,12 @@ class RCOEstimator(Block):
                 lowered[0].copy_(ring)
             else:                           # other sizes: the program, which holds the old beta, is made again
                 kernels.bump(*lowered[1])
+
+    @property
+    def sample_time(self) -> float | None:
+        """The identified subsystem's sample time [s]: ``dt``, or where that is None the sample time given with the
+        Markov parameters (``set_markov``); None where neither is known."""
+        return self.dt if self.dt else self.markov_dt
 
     @property
     def nu(self) -> int:
@@ -585,11 +573,13 @@ class RCOEstimator(Block):
     def update(self, inputs):
         """The retrospective-cost update of theta from the error z(k), then the shift of the histories.
 
-        The stages: store [phi(k), u(k)] in the window; the Markov filter gives Psi^T and
-        zeta(k) = z(k) - sum_i beta_i u(k-i); z_R = zeta + Psi^T eta; ``rls_update`` on (T^T Psi, z_R) (rows
-        normalized and penalty rows added per the robustness options); the trace bound on P; Theta = T eta and
-        the projection onto ``theta_bounds``; members that became non-finite are frozen; the regressor signals
-        and u move into the past.
+        The stages, each a method: store [phi(k), u(k)] in the window (``_store_in_window``); the Markov filter
+        gives Psi^T and zeta(k) = z(k) - sum_i beta_i u(k-i) (``_markov_filter``); both over the free parameters,
+        T^T Psi and eta (``_over_parameters``); z_R = zeta + Psi^T eta (``_retrospective_performance``);
+        ``rls_update`` on (T^T Psi, z_R), rows normalized and penalty rows added per the robustness options
+        (``_rls_step``); the trace bound on P (``_bound_covariance``); Theta = T eta and the projection onto
+        ``theta_bounds`` (``_write_theta``); members whose step failed are frozen (``_freeze_failed``); the
+        regressor signals and u move into the past (``_shift_histories``).
 
         Parameters
         ----------
@@ -609,57 +599,115 @@ class RCOEstimator(Block):
                                   "(e.g. with Graph.markov('identified.u', 'error.out', n)), or build the graph "
                                   "with rcotorch.refinement, which derives them from the known model")
             raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
-        B, n_phi, n_u, n_z = self.batch_size, self.n_phi, self.n_u, self.n_z
         k = self._step_index()
-        # Ring buffer of [phi(t), u(t)], time-major: row t mod W holds time t, so the W rows hold the delays
-        # 0 .. W-1; every row is weighed (by 0 below the first delay), the same products on both engines.
         p = k % W
-        self.win[p] = torch.cat([self.phi_now, self.u_now], dim=1)
-        prod = self._markov_sums(p)
-        psi_t = prod[..., :n_phi].reshape(B, n_z, -1)                           # Psi^T, Theta row-major
-        if n_u == 1:
-            zeta = inputs["z"] - prod[:, :, 0, n_phi]                           # z - sum_i beta_i u(k-i)
-        else:
-            zeta = inputs["z"] - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)
+        self._store_in_window(p)
+        psi_t, zeta = self._markov_filter(p, inputs["z"])
         if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
             self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
-        theta_flat = self.theta.view(B, -1)
-        if self.tied:                                                           # Psi of eta: T^T Psi
-            psi_t, theta_flat = psi_t @ self.tie_T, theta_flat.index_select(1, self.free_idx)
-        elif not self.all_free:
-            psi_t, theta_flat = psi_t.index_select(2, self.free_idx), theta_flat.index_select(1, self.free_idx)
-        z_r = zeta + (psi_t @ theta_flat.unsqueeze(-1)).squeeze(-1)
-        # A member whose Psi or z_R is not finite fails rls_update's checks (S or the step is not finite) and
-        # is frozen with theta and P held, like one whose P lost definiteness.
-        active = self.alive
-        if "valid" in inputs:
-            active = active & (inputs["valid"].reshape(B) > 0.5)
-        psi_u, z_u, r_inv = self._rows(psi_t, z_r)
-        theta_flat, _, ok = rls_update(theta_flat, self.P, psi_u.mT, z_u, self._lam_arg(), r_inv, active,
-                                       inplace=True)                            # theta (all free) and P in place
-        if self.p_max is not None:                                              # trace bound on P
-            tr = self.P.diagonal(dim1=1, dim2=2).sum(-1)
-            scale = torch.where(self.alive & ok & (tr > self.p_max), self.p_max / tr, 1.0)
-            self.P.mul_(scale.reshape(B, 1, 1))
-        if self.tied:                                                           # Theta = T eta
-            self.theta.view(B, -1).index_copy_(1, self.free, theta_flat.index_select(1, self.param_of[self.free]))
-        elif not self.all_free:
-            self.theta.view(B, -1).index_copy_(1, self.free_idx, theta_flat)
-        if self.theta_low is not None:  # projection onto the box; P is left as it is
-            self.theta.view(B, -1).clamp_(self.theta_low, self.theta_high)
-        alive = self.alive & ok
-        self.set_state(z_r=z_r, alive=alive,
-                       diverged_at=torch.where(self.alive & ~ok, k, self.diverged_at))
-        if self.nc:  # shift the regressor histories
-            cur = self._regressors(inputs)
-            if self.nc == 1:
-                self.past.copy_(cur.unsqueeze(1))
-                self.past_u.copy_(self.u_now.unsqueeze(1))
-            else:
-                self.set_state(past=torch.cat([cur.unsqueeze(1), self.past[:, :-1]], dim=1),
-                               past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
+        theta_flat = self.theta.view(self.batch_size, -1)
+        psi_eta, eta = self._over_parameters(psi_t, theta_flat)
+        z_r = self._retrospective_performance(zeta, psi_eta, eta)
+        eta, ok = self._rls_step(eta, psi_eta, z_r, self._active(inputs))
+        self._bound_covariance(ok)
+        self._write_theta(theta_flat, eta)
+        self._freeze_failed(z_r, ok, k)
+        self._shift_histories(inputs)
         self.k += 1
         memo.remember(self, "k", (self.k,), k + 1)
+
+    # --- the stages of ``update`` ---------------------------------------------------------------------------
+    def _store_in_window(self, p: int) -> None:
+        """Store [phi(k), u(k)] in the window, a time-major ring: row t mod W holds time t, so the W rows hold the
+        delays 0 .. W-1."""
+        # win[k mod W] = [phi(k), u(k)]
+        self.win[p] = torch.cat([self.phi_now, self.u_now], dim=1)
+
+    def _markov_filter(self, p: int, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Markov filter over the window: Psi^T (B, n_z, n_u * n_phi), Theta row-major, and zeta (B, n_z).
+
+        Every row of the window is weighed (by 0 below the first delay), the same products on both engines."""
+        B, n_phi = self.batch_size, self.n_phi
+        prod = self._markov_sums(p)
+        # Psi^T[z, a * n_phi + j] = sum_i beta_i[z, a] phi(k-i)[j]
+        psi_t = prod[..., :n_phi].reshape(B, self.n_z, -1)
+        # zeta(k) = z(k) - sum_i beta_i u(k-i)
+        if self.n_u == 1:
+            zeta = z - prod[:, :, 0, n_phi]
+        else:
+            zeta = z - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)
+        return psi_t, zeta
+
+    def _over_parameters(self, psi_t: torch.Tensor, theta_flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The regressor and the value of the free parameters eta: Psi_eta^T (B, n_z, n_theta) and eta
+        (B, n_theta). Where T = I they are ``psi_t`` and ``theta_flat`` themselves, so that the RLS step updates
+        theta in place."""
+        pm = self.parameter_map
+        if pm.identity:
+            return psi_t, theta_flat
+        # Psi_eta^T = Psi^T T,  eta(k) = Theta(k)[entry_of_param]
+        return pm.regressor_of_eta(psi_t), pm.eta_of(theta_flat)
+
+    @staticmethod
+    def _retrospective_performance(zeta: torch.Tensor, psi_eta: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+        """z_R(k) = z_hat(eta(k), k), (B, n_z)."""
+        # z_R(k) = zeta(k) + Psi_eta(k)^T eta(k)
+        return zeta + (psi_eta @ eta.unsqueeze(-1)).squeeze(-1)
+
+    def _active(self, inputs) -> torch.Tensor:
+        """The members that update this step, (B,): alive, and with valid > 0.5 where ``valid`` is given."""
+        active = self.alive
+        if "valid" in inputs:
+            active = active & (inputs["valid"].reshape(self.batch_size) > 0.5)
+        return active
+
+    def _rls_step(self, eta: torch.Tensor, psi_eta: torch.Tensor, z_r: torch.Tensor, active: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``rls_update`` on eta and P, both in place, over the rows of ``_rows``; returns eta and ok (B,).
+
+        A member whose Psi or z_R is not finite fails rls_update's checks (S or the step is not finite) and is
+        frozen with theta and P held, like one whose P lost definiteness."""
+        psi_u, z_u, r_inv = self._rows(psi_eta, z_r)
+        # S = lam R^-1 + Psi^T P Psi,  eta <- eta - P Psi S^-1 z_R,  P <- (P - P Psi S^-1 Psi^T P) / lam
+        eta, _, ok = rls_update(eta, self.P, psi_u.mT, z_u, self._lam_arg(), r_inv, active, inplace=True)
+        return eta, ok
+
+    def _bound_covariance(self, ok: torch.Tensor) -> None:
+        """The trace bound on P: a living member whose trace(P) exceeds p_max has P scaled down to it."""
+        if self.p_max is None:
+            return
+        tr = self.P.diagonal(dim1=1, dim2=2).sum(-1)
+        # P <- P p_max / trace(P) where trace(P) > p_max
+        scale = torch.where(self.alive & ok & (tr > self.p_max), self.p_max / tr, 1.0)
+        self.P.mul_(scale.reshape(self.batch_size, 1, 1))
+
+    def _write_theta(self, theta_flat: torch.Tensor, eta: torch.Tensor) -> None:
+        """Theta = T eta (already there where T = I), then the projection onto ``theta_bounds`` (P is left as it
+        is)."""
+        if not self.parameter_map.identity:
+            # Theta = T eta
+            self.parameter_map.write_theta_(theta_flat, eta)
+        if self.theta_low is not None:
+            # Theta <- min(max(Theta, low), high)
+            theta_flat.clamp_(self.theta_low, self.theta_high)
+
+    def _freeze_failed(self, z_r: torch.Tensor, ok: torch.Tensor, k: int) -> None:
+        """Keep z_R, and freeze the members whose step failed (``ok`` False), recording k in ``diverged_at``."""
+        self.set_state(z_r=z_r, alive=self.alive & ok,
+                       diverged_at=torch.where(self.alive & ~ok, k, self.diverged_at))
+
+    def _shift_histories(self, inputs) -> None:
+        """Move s(k) and u(k) into the past: past[0] = s(k), past[l] = s(k-l) (and u likewise)."""
+        if not self.nc:
+            return
+        cur = self._regressors(inputs)
+        if self.nc == 1:
+            self.past.copy_(cur.unsqueeze(1))
+            self.past_u.copy_(self.u_now.unsqueeze(1))
+        else:
+            # [s(k), s(k-1) .. s(k-nc+1)], [u(k), u(k-1) .. u(k-nc+1)]
+            self.set_state(past=torch.cat([cur.unsqueeze(1), self.past[:, :-1]], dim=1),
+                           past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
 
     def _markov_sums(self, p: int) -> torch.Tensor:
         """The Markov filter over the ring at a step with k mod W = p: sum_i beta_i[z, a] phi(k-i)[j] and
@@ -687,11 +735,7 @@ class RCOEstimator(Block):
             raise ConfigError(f"block '{self.name}': no update has run yet")
         B = self.batch_size
         psi_t = self._markov_sums((self._step_index() - 1) % self.window)[..., :self.n_phi].reshape(B, self.n_z, -1)
-        if self.tied:
-            psi_t = psi_t @ self.tie_T
-        elif not self.all_free:
-            psi_t = psi_t.index_select(2, self.free_idx)
-        return psi_t
+        return self.parameter_map.regressor_of_eta(psi_t)
 
     def set_theta_free(self, eta: torch.Tensor) -> None:
         """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).
@@ -701,8 +745,10 @@ class RCOEstimator(Block):
         eta : torch.Tensor
             (B, n_theta), in the order of ``theta_names``.
         """
+        pm = self.parameter_map
         flat = self.theta.reshape(self.theta.shape[0], -1).clone()
-        flat[:, self.free] = eta.to(flat.dtype)[:, self.param_of[self.free]]
+        # Theta[e] = eta[param_of_entry[e]] for every unpinned entry e
+        flat[:, pm.unpinned_entries] = eta.to(flat.dtype)[:, pm.param_of_unpinned]
         self.set_state(theta=flat.reshape(self.theta.shape).contiguous())
 
     def row_scale(self, psi_t: torch.Tensor) -> torch.Tensor | None:
@@ -742,8 +788,8 @@ class RCOEstimator(Block):
         """Describe the estimator to the native engine.
 
         State, parameters and ports go in slots; the regressor signals s(k) (ports or features) are computed
-        once per step; ``RCO_OUT`` computes ``output`` and ``RCO_UPD`` ``update``, from the fields of
-        ``kernels.RCO_FIELD``.
+        once per step; ``RCO_OUT`` computes ``output`` and ``RCO_UPD`` ``update``, from the fields and tables of
+        ``kernels.LAYOUT['ESTIMATOR']``.
 
         Parameters
         ----------
@@ -787,10 +833,10 @@ class RCOEstimator(Block):
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         fields["IDENT"] = int(self.param_of.tolist() == list(range(self.n_u * self.n_phi)))  # entry i is parameter i
-        args = [fields[key] for key in kernels.RCO_FIELD]
-        args += [flat[j] for j in self._gather.tolist()] + self.param_of.tolist() + self.rep.tolist()
-        b.emit("RCO_OUT", args, port="u")
-        b.emit("RCO_UPD", args)
+        fields.update(phi_src=[flat[j] for j in self._gather.tolist()], param_of=self.param_of.tolist(),
+                      rep=self.rep.tolist())
+        b.emit("RCO_OUT", port="u", **fields)
+        b.emit("RCO_UPD", **fields)
 
     def _native_beta(self) -> torch.Tensor:
         """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, which
@@ -810,13 +856,10 @@ class RCOEstimator(Block):
         if self.terms is None:
             at = cur
             for p, w in self.ports.items():
-                b.emit("COPY", [w, b.input(p), at], port=port)
+                b.emit("COPY", port=port, WIDTH=w, IN=b.input(p), OUT=at)
                 at += w
         else:
-            args = [cur, len(self.terms)]
-            for t in self.terms:
-                args += t.encode(self.ports, b.input, b.const)
-            b.emit("FEATURE", args, port=port)
+            b.emit("FEATURE", port=port, OUT=cur, terms=[t.encode(self.ports, b.input, b.const) for t in self.terms])
         return cur
 
     # --- the identified subsystem -----------------------------------------------------------------------
@@ -843,6 +886,7 @@ class RCOEstimator(Block):
             M[:, : self.nc] = theta[:, :, j:].reshape(B, self.n_u, self.nc, self.n_u).permute(0, 2, 1, 3)
         return N, M
 
+    # --- the identified subsystem as a transfer function (``rcotorch.transfer``) ---------------------------
     def frequency_response(self, omega) -> torch.Tensor:
         """The identified subsystem's frequency response at z = exp(j omega dt).
 
@@ -861,19 +905,9 @@ class RCOEstimator(Block):
         Raises
         ------
         ConfigError
-            If the estimator has no ``dt``.
+            If the estimator has no sample time (``sample_time``).
         """
-        if not self.dt:
-            raise ConfigError(f"block '{self.name}': dt is needed for a frequency response")
-        N, M = self.coefficients()
-        omega = torch.as_tensor(omega, dtype=N.dtype, device=N.device)
-        zinv = torch.exp(-1j * omega * self.dt)                                 # (F,)
-        lags = torch.as_tensor(self.lags, device=N.device)
-        num = torch.einsum("fl,blij->bfij", zinv.unsqueeze(1) ** lags, N.to(zinv.dtype))
-        ulags = torch.arange(1, M.shape[1] + 1, device=N.device)
-        den = torch.eye(self.n_u, dtype=zinv.dtype, device=N.device) - \
-            torch.einsum("fl,blij->bfij", zinv.unsqueeze(1) ** ulags, M.to(zinv.dtype))
-        return _solve(den, num)
+        return transfer.frequency_response(self, omega)
 
     def dc_gain(self) -> torch.Tensor:
         """DC gain of the identified subsystem: (I - sum M_l)^-1 sum N_l.
@@ -885,19 +919,7 @@ class RCOEstimator(Block):
         torch.Tensor
             (B, n_u, n_sig); NaN for a member whose I - sum M_l is singular or not finite.
         """
-        N, M = self.coefficients()
-        if not self.feed_u:
-            return N.sum(1)
-        eye = torch.eye(self.n_u, dtype=N.dtype, device=N.device)
-        return _solve(eye - M.sum(1), N.sum(1))
-
-    def _check_member(self, member: int) -> None:
-        B = self.theta.shape[0]
-        if B == 0:
-            raise ConfigError(f"block '{self.name}': it has no members yet; build the graph (rt.refinement or "
-                              "rt.Graph) before asking for its identified subsystem")
-        if not -B <= member < B:
-            raise ConfigError(f"block '{self.name}': member {member} out of range; the batch has {B} members")
+        return transfer.dc_gain(self)
 
     def to_control(self, member: int = 0) -> control.TransferFunction:
         """The identified subsystem of one member as a discrete python-control ``TransferFunction`` (dt),
@@ -916,64 +938,11 @@ class RCOEstimator(Block):
         Returns
         -------
         control.TransferFunction
-            Discrete, with sample time ``dt`` (True where the estimator has none).
+            Discrete, with sample time ``sample_time`` (True where the estimator has none).
 
         Raises
         ------
         ConfigError
             If the block has no members yet or ``member`` is out of range.
         """
-        import control
-        self._check_member(member)
-        names = self._control_names()
-        if self.n_u != 1 and self.feed_u:
-            # A MIMO controller with shared poles: build it in state space and convert.
-            return control.ss2tf(self._to_ss(member), **names)
-        N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
-        L = self.nc if self.feed_u else max(self.lags)
-        den = np.zeros(L + 1)
-        den[0] = 1.0
-        if self.feed_u:
-            den[1: self.nc + 1] = -M[: self.nc, 0, 0]
-        nums, dens = [], []
-        for i in range(self.n_u):
-            row_n, row_d = [], []
-            for j in range(self.n_sig):
-                num = np.zeros(L + 1)
-                for li, lag in enumerate(self.lags):
-                    num[lag] = N[li, i, j]
-                row_n.append(num)
-                row_d.append(den)
-            nums.append(row_n)
-            dens.append(row_d)
-        return control.tf(nums, dens, self.dt if self.dt else True, **names)
-
-    def _control_names(self) -> dict:
-        """python-control signal names: the regressor signals in, u out, the block's name."""
-        inputs = [f"{s}[{c}]" if w > 1 else s for s, w in self.signals.items() for c in range(w)]
-        outputs = [f"u[{i}]" for i in range(self.n_u)] if self.n_u > 1 else ["u"]
-        return dict(inputs=inputs, outputs=outputs, name=self.name)
-
-    def _to_ss(self, member: int) -> control.StateSpace:
-        """State space of u(k) = sum N_l s(k-l) + sum M_l u(k-l), state = past s and past u."""
-        import control
-        N, M = (t[member].detach().cpu().numpy() for t in self.coefficients())
-        nc, m, p = self.nc, self.n_sig, self.n_u
-        n = nc * (m + p)
-        A, Bm = np.zeros((n, n)), np.zeros((n, m))
-        C, D = np.zeros((p, n)), np.zeros((p, m))
-        for li, lag in enumerate(self.lags):
-            if lag == 0:
-                D += N[li]
-            else:
-                C[:, (lag - 1) * m: lag * m] += N[li]
-        for lag in range(1, nc + 1):
-            C[:, nc * m + (lag - 1) * p: nc * m + lag * p] += M[lag - 1]
-        # shift registers: s-part gets s(k), u-part gets u(k) = C x + D s
-        Bm[:m] = np.eye(m)
-        for lag in range(1, nc):
-            A[lag * m:(lag + 1) * m, (lag - 1) * m: lag * m] = np.eye(m)
-            A[nc * m + lag * p: nc * m + (lag + 1) * p, nc * m + (lag - 1) * p: nc * m + lag * p] = np.eye(p)
-        A[nc * m: nc * m + p] += C
-        Bm[nc * m: nc * m + p] += D
-        return control.ss(A, Bm, C, D, self.dt if self.dt else True, **self._control_names())
+        return transfer.to_control(self, member)

@@ -290,8 +290,9 @@ class Term:
             v = v * f(x)
         return v
 
-    def encode(self, ports: Mapping[str, int], slot: Callable[[str], int], const: Callable[..., int]) -> list[int]:
-        """This term in the native engine's FEATURE layout (engine.h): width, coefficient, factors.
+    def encode(self, ports: Mapping[str, int], slot: Callable[[str], int], const: Callable[..., int]) -> dict:
+        """This term as an entry of the native engine's FEATURE record by name (engine.h: FEATURE_TERM and
+        its FACTORS; ``rcotorch.lowering.Builder.emit`` lays it out).
 
         Parameters
         ----------
@@ -304,19 +305,15 @@ class Term:
 
         Returns
         -------
-        list of int
-            [width, coefficient's slot, number of factors], then the fields ``kernels.FACTOR_FIELD`` of each
-            factor.
+        dict
+            WIDTH, COEF (the coefficient's slot) and ``factors``: per factor KIND, SRC, STRIDE, POWER, PARAM.
         """
-        w = self.width(ports)
-        out = [w, const(self.coefficient), len(self.factors)]
-        for f in self.factors:
-            fields = dict(KIND=kernels.FACTOR[_KINDS[f.kind]],
-                          SRC=slot(f.port) + (f.channel if f.channel is not None else 0),
-                          STRIDE=1 if f.channel is None and ports[f.port] > 1 else 0, POWER=f.power,
-                          PARAM=const(*f.params) if f.params else const(0.0))
-            out += [fields[k] for k in kernels.FACTOR_FIELD]
-        return out
+        coefficient = const(self.coefficient)
+        factors = [dict(KIND=kernels.FACTOR[_KINDS[f.kind]],
+                        SRC=slot(f.port) + (f.channel if f.channel is not None else 0),
+                        STRIDE=1 if f.channel is None and ports[f.port] > 1 else 0, POWER=f.power,
+                        PARAM=const(*f.params) if f.params else const(0.0)) for f in self.factors]
+        return dict(WIDTH=self.width(ports), COEF=coefficient, factors=factors)
 
 
 _KINDS = {"pow": "POW", "sign": "SIGN", "abs": "ABS", "sat": "SAT", "deadzone": "DEADZONE", "tanh": "TANH",

@@ -46,9 +46,14 @@ def _names(attr: str, start: int = 0) -> dict[str, int]:
 
 
 OP = _names("OPS", 1)                          # op code of each instruction (engine.h: RCO_OPS)
+#: The layout of each op's record (RCO_OPS), and each layout's fields in order (RCO_<LAYOUT>_FIELDS).
+OP_LAYOUT: dict[str, str] = dict(zip(getattr(_engine, "OPS", ()), getattr(_engine, "OP_LAYOUTS", ())))
+LAYOUT: dict[str, tuple[str, ...]] = dict(getattr(_engine, "LAYOUTS", {}))
+#: The tables after a layout's fields, in order: (table, the field counting its entries, the entries' layout).
+TABLES: dict[str, list[tuple[str, str, str]]] = {
+    layout: [(table, count, entry) for owner, table, count, entry in getattr(_engine, "TABLES", ()) if owner == layout]
+    for layout in LAYOUT}
 FACTOR = _names("FACTORS")                     # kinds of feature factors (RCO_FACTORS)
-FACTOR_FIELD = _names("FACTOR_FIELDS")         # fields of a factor (RCO_FACTOR_FIELDS)
-RCO_FIELD = _names("RCO_FIELDS")               # fixed fields of the estimator's instructions (RCO_FIELDS)
 BIND_FIELD = _names("BIND_FIELDS")             # fields of a binding record (RCO_BIND_FIELDS)
 KIND = _names("KINDS")                         # element kinds of a binding (RCO_KINDS)
 OBS_FIELD = _names("OBS_FIELDS")               # fields of an observer record (RCO_OBS_FIELDS)

@@ -17,11 +17,12 @@ can take turns in one run. Signals can be recorded every step inside the engine 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 
 from . import kernels, memo
+from .errors import ConfigError
 
 Signal = tuple[str, str]
 _KIND_OF = {torch.float64: "F64", torch.bool: "BOOL", torch.int64: "I64"}
@@ -61,7 +62,7 @@ class Builder:
 
     Slots are numbered scalars of every member; ``state`` / ``param`` / ``input`` / ``output`` / ``scratch``
     return the first slot of consecutive ones. ``emit`` appends an instruction (op name from ``csrc/engine.h``,
-    integer arguments) that computes an output port, or that updates the block after every output was
+    its fields by name) that computes an output port, or that updates the block after every output was
     computed (``port=None``)."""
 
     def __init__(self, graph, batch: int):
@@ -185,8 +186,42 @@ class Builder:
         """The block can give at most ``fn()`` more steps (a recording); a call runs no further."""
         self.limits.append((self.block, fn))
 
-    def emit(self, op: str, args, port: str | None = None) -> None:
-        ins = [kernels.OP[op], kernels.HEADER + len(args)] + [int(a) for a in args]
+    def emit(self, op: str, args: Sequence[int] | None = None, port: str | None = None, **fields) -> None:
+        """Append an instruction: ``op`` (``csrc/engine.h``, RCO_OPS) with its record given by name.
+
+        Parameters
+        ----------
+        op : str
+            The op, e.g. ``"GAIN"``.
+        args : sequence of int, optional
+            The record already encoded (its fields in the declared order, then its tables), instead of
+            ``fields``; checked against the layout's length.
+        port : str, optional
+            The output port the instruction computes; None for an update, run after every output.
+        **fields
+            The fields of the op's layout (upper case, ``kernels.LAYOUT``), e.g. ``ROWS=2``, and its tables (lower
+            case, ``kernels.TABLES``), each a list of entries: a mapping of the entry's fields (and tables), its
+            value where the entry has a single field, or the entry already encoded. The field that counts a
+            table's entries may be left out: it is the table's length.
+
+        Raises
+        ------
+        ConfigError
+            If a field or table is missing or unknown, a table's count disagrees with its length, or ``args``
+            does not have the layout's length.
+        """
+        what = f"block '{self.block.name}' ({type(self.block).__name__}): instruction {op}"
+        if op not in kernels.OP:
+            raise ConfigError(f"{what}: no such op (the ops: {', '.join(kernels.OP)})")
+        layout = kernels.OP_LAYOUT[op]
+        if args is not None:
+            if fields:
+                raise ConfigError(f"{what}: give its record either encoded (args) or by name, not both")
+            args = [int(a) for a in args]
+            _check_encoded(layout, args, what)
+        else:
+            args = encode(layout, fields, what)
+        ins = [kernels.OP[op], kernels.HEADER + len(args)] + args
         if port is None:
             self.upds.append(ins)
         else:
@@ -208,6 +243,62 @@ class Builder:
         slot = self.alloc(count)
         self.binds.append(_Bind(get, mode, rows, slot, count, what))
         return slot
+
+
+def encode(layout: str, fields: Mapping, what: str) -> list[int]:
+    """A record of ``layout`` (``kernels.LAYOUT``) as the engine reads it: its fields in the declared order, then
+    its tables (``kernels.TABLES``), from ``fields`` by name (see ``Builder.emit``); ``what`` names the record in
+    errors."""
+    names, tables = kernels.LAYOUT[layout], kernels.TABLES[layout]
+    given = dict(fields)
+    table_keys = [table.lower() for table, _, _ in tables]
+    unknown = [k for k in given if k not in names and k not in table_keys]
+    missing = [k for k in table_keys if k not in given]
+    tail: list[int] = []
+    for (_table, count, entry), key in zip(tables, table_keys):
+        entries = list(given.pop(key, ()))
+        if count in given and int(given[count]) != len(entries):
+            raise ConfigError(f"{what}: {count} = {given[count]}, but the table {key} has {len(entries)} entries")
+        given[count] = len(entries)
+        for i, e in enumerate(entries):
+            tail += _entry(entry, e, f"{what}, {key}[{i}]")
+    missing = [k for k in names if k not in given] + missing
+    if missing or unknown:
+        parts = [f"missing {', '.join(missing)}"] * bool(missing) + [f"unknown {', '.join(unknown)}"] * bool(unknown)
+        listed = ", ".join(names + tuple(table_keys))
+        raise ConfigError(f"{what}: {'; '.join(parts)} (the fields of {layout}: {listed})")
+    return [int(given[k]) for k in names] + tail
+
+
+def _entry(layout: str, entry, what: str) -> list[int]:
+    """One entry of a table: a mapping by name, the value of a one-field entry, or a record already encoded."""
+    if isinstance(entry, Mapping):
+        return encode(layout, entry, what)
+    if isinstance(entry, (list, tuple)):
+        ints = [int(v) for v in entry]
+        _check_encoded(layout, ints, what)
+        return ints
+    if len(kernels.LAYOUT[layout]) != 1 or kernels.TABLES[layout]:
+        raise ConfigError(f"{what}: a single value for an entry of {layout}, whose fields are "
+                          f"{', '.join(kernels.LAYOUT[layout])}")
+    return [int(entry)]
+
+
+def _check_encoded(layout: str, ints: list[int], what: str) -> None:
+    """Raise unless ``ints`` is one record of ``layout``: as many ints as its fields and tables hold."""
+    def end(layout: str, at: int) -> int:
+        names = kernels.LAYOUT[layout]
+        stop = at + len(names)
+        if stop > len(ints):
+            raise ConfigError(f"{what}: {len(ints)} ints are too few for the fields of {layout} ({', '.join(names)}) "
+                              "and its tables")
+        for _table, count, entry in kernels.TABLES[layout]:
+            for _ in range(ints[at + names.index(count)]):
+                stop = end(entry, stop)
+        return stop
+    if end(layout, 0) != len(ints):
+        raise ConfigError(f"{what}: {len(ints)} ints, but the fields of {layout} ({', '.join(kernels.LAYOUT[layout])}) "
+                          f"and its tables make {end(layout, 0)}")
 
 
 def _state_tensor(blk, name: str) -> torch.Tensor:

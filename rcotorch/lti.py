@@ -283,14 +283,13 @@ class LTI(Block):
                 D = b.param(self.D)
             cols = [(c, b.input(p) + c - self._in_slices[p].start)   # each feedthrough column and its slot
                     for p in ft for c in range(self._in_slices[p].start, self._in_slices[p].stop)]
-            args = [n, rows.stop - rows.start, C + rows.start * n, x, b.output(port), mt,
-                    (0 if D is None else D) + rows.start * mt, shared, len(cols)]
-            args += [v for col in cols for v in col]
-            b.emit("LTI_OUT", args, port=port)
-        args = [n, mt, b.param(self.A), b.param(self.B), x, b.scratch(n), shared]
-        for p, cs in self._in_slices.items():   # the input ports' columns in order: the slot of each
-            args += [b.input(p) + i for i in range(cs.stop - cs.start)]
-        b.emit("LTI_UPD", args)
+            b.emit("LTI_OUT", port=port, NX=n, ROWS=rows.stop - rows.start, C=C + rows.start * n, STATE=x,
+                   OUT=b.output(port), MT=mt, D=(0 if D is None else D) + rows.start * mt, SHARED=shared,
+                   feedthrough=[dict(COLUMN=c, IN=slot) for c, slot in cols])
+        inputs = [b.input(p) + i for p, cs in self._in_slices.items()   # the input columns in order: their slots
+                  for i in range(cs.stop - cs.start)]
+        b.emit("LTI_UPD", NX=n, MT=mt, A=b.param(self.A), B=b.param(self.B), STATE=x, SCRATCH=b.scratch(n),
+               SHARED=shared, inputs=inputs)
 
     # --- analysis -------------------------------------------------------------------------------------
     def markov(self, input: str, output: str, n: int) -> torch.Tensor:

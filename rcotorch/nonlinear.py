@@ -219,25 +219,26 @@ class Nonlinear(Block):
             b.refuse(f"state function f {describe(self.f)} is not compiled: {c}")
         for port, sl in self._out_slices.items():
             if len(self._out_slices) == 1:           # h writes the port itself
-                b.emit("CALL", [n, x, n_out, b.output(port), b.function(h.address, h)], port=port)
+                b.emit("CALL", port=port, NIN=n, IN=x, NOUT=n_out, OUT=b.output(port),
+                       FUNCTION=b.function(h.address, h))
                 continue
             y = b.scratch(n_out)
-            b.emit("CALL", [n, x, n_out, y, b.function(h.address, h)], port=port)
-            b.emit("COPY", [sl.stop - sl.start, y + sl.start, b.output(port)], port=port)
+            b.emit("CALL", port=port, NIN=n, IN=x, NOUT=n_out, OUT=y, FUNCTION=b.function(h.address, h))
+            b.emit("COPY", port=port, WIDTH=sl.stop - sl.start, IN=y + sl.start, OUT=b.output(port))
         if beside == x + n:
             xu = x
         else:
             xu = b.scratch(n + m)
-            b.emit("COPY", [n, x, xu])
+            b.emit("COPY", WIDTH=n, IN=x, OUT=xu)
         at = xu + n
         for port, width in self.inputs.items():
             src = b.input(port)
             if src is None:
                 b.refuse(f"input '{port}' is not connected")
-            b.emit("COPY", [width, src, at])
+            b.emit("COPY", WIDTH=width, IN=src, OUT=at)
             at += width
         # x(k + 1) is written over x(k), read from xu (a copy, or x itself in the components form)
-        b.emit("CALL", [n + m, xu, n, x, b.function(c.address, c)])
+        b.emit("CALL", NIN=n + m, IN=xu, NOUT=n, OUT=x, FUNCTION=b.function(c.address, c))
 
     # --- linearization ------------------------------------------------------------------------------------
     def differentiable(self) -> bool:

@@ -1,7 +1,9 @@
 """The seed paper's Figure 1 as one call: physical system, simulated system, z = y - y_hat, estimator.
 
 ``refinement`` wires the blocks and declares their roles (``Graph.roles``), so that the runner, monitor and
-figures find the estimator, the known model and the model error whatever the blocks are called.
+figures find the estimator, the known model and the model error whatever the blocks are called. The blocks the
+figure names for their part (``excitation``, ``plant``, ``unknown``, ``noise``) enter the graph under those
+names; a block given under another name enters as a copy so named, so the caller's block keeps its name.
 ``derive_markov`` gives the Markov parameters of u -> z, with their sign and the relative degree, from the
 known model.
 """
@@ -52,10 +54,12 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     the known model's impulse response w -> y has decayed below 1e-3 of its peak for good, plus the
     estimator's window (``holdoff_samples``). A hold-off set on the data block itself is kept.
 
-    The blocks given become parts of the graph: ``excitation``, the physical block, ``truth`` and ``noise``
-    are renamed ``excitation``, ``plant``, ``unknown`` and ``noise``; an estimator without ``dt`` takes the
-    known model's; Markov parameters derived here and a hold-off set here are set on the estimator and the
-    data block.
+    The blocks given become parts of the graph, their names and sample times as given: ``excitation``, the
+    physical block, ``truth`` and ``noise`` are the graph's blocks ``excitation``, ``plant``, ``unknown`` and
+    ``noise``: the block itself where it already has that name, otherwise a copy of it so named (reach it
+    through ``graph.blocks`` or ``graph.role``). The known model, the estimator, the data block and ``blocks``
+    enter as they are. Markov parameters derived here are set on the estimator with the known model's sample
+    time (the estimator's ``sample_time`` where it has no ``dt``), and a hold-off set here on the data block.
 
     Parameters
     ----------
@@ -140,7 +144,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     else:
         if excitation is None:
             raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
-        excitation.name = "excitation"
+        excitation = _role_block(excitation, "excitation")
         parts.append(excitation)
         w_src = "excitation.out"
         if truth is not None:
@@ -150,7 +154,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                                 f"inputs {list(truth.inputs)} and outputs {list(truth.outputs)}")
             plant = copy.deepcopy(known)
             plant.name = "plant"
-            truth.name = "unknown"
+            truth = _role_block(truth, "unknown")
             (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
             sees = [p for p in known.outputs if p != measured]
             if len(sees) != 1:
@@ -161,8 +165,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                       (f"unknown.{t_out}", f"plant.{actuation}")]
             y_src = f"plant.{measured}"
         else:
-            physical.name = "plant"
-            parts.append(physical)
+            parts.append(_role_block(physical, "plant"))
             conns.append((w_src, f"plant.{exogenous}"))
             y_src = f"plant.{measured}"
     width = known.outputs[measured]
@@ -174,8 +177,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
             raise PortError(f"refinement: noise block '{noise.name}' must be a source with one output 'out' "
                             f"of width {width} (the width of '{measured}'); it has inputs {list(noise.inputs)} "
                             f"and outputs {dict(noise.outputs)}")
-        noise.name = "noise"
-        parts += [noise, Sum({"clean": 1, "noise": 1}, width, name="measurement")]
+        parts += [_role_block(noise, "noise"), Sum({"clean": 1, "noise": 1}, width, name="measurement")]
         conns += [(y_src, "measurement.clean"), ("noise.out", "measurement.noise")]
         y_src = "measurement.out"
     parts.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
@@ -196,19 +198,40 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         if nu is None:
             raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
         beta, d = derive_markov(known, actuation, measured, nu)
-        identified.set_markov(beta, d)
+        identified.set_markov(beta, d, dt=known.dt)
     if data is not None and hasattr(data, "gaps") and data.gaps(exogenous) and exogenous not in data.holdoff:
         n = holdoff_samples(known, identified, exogenous, measured) if input_holdoff is None else input_holdoff
         data.set_holdoff({exogenous: n})
     if data is not None and "valid" in data.outputs:
         conns.append(("data.valid", f"{en}.valid"))
-    if identified.dt is None:
-        identified.dt = known.dt
     roles = {"estimator": en, "known": kn, "physical": "data" if data is not None else "plant",
              "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}", "exogenous": w_src}
     if data is None:
         roles["excitation"] = "excitation"
     return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+
+
+def _role_block(block: Block, name: str) -> Block:
+    """The block that plays a part of the figure under the graph's name for that part.
+
+    Parameters
+    ----------
+    block : Block
+        The block given.
+    name : str
+        The name the graph gives the part (``'plant'``, ``'unknown'``, ...).
+
+    Returns
+    -------
+    Block
+        ``block`` itself where it is so named; otherwise a copy of it (``copy.deepcopy``) with that name, so that
+        ``block`` keeps its own.
+    """
+    if block.name == name:
+        return block
+    named = copy.deepcopy(block)
+    named.name = name
+    return named
 
 
 def holdoff_samples(known: LTI, identified: RCOEstimator, exogenous: str = "w", measured: str = "y",

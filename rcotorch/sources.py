@@ -119,8 +119,8 @@ class WhiteNoise(Block):
         """
         keys = memo.derived(self, "keys", (self.stream,), lambda: rng.hash32(
             self.stream[:, 0], self.stream[:, 1]).to(torch.float64).reshape(-1, 1))   # (seed, member) prefix
-        b.emit("NOISE", [self.width, b.counter(), b.param(keys), b.param(self.std), b.param(self.mean),
-                         b.output("out"), b.scratch(kernels.NOISE_AHEAD * self.width)], port="out")
+        b.emit("NOISE", port="out", WIDTH=self.width, COUNTER=b.counter(), KEY=b.param(keys), STD=b.param(self.std),
+               MEAN=b.param(self.mean), OUT=b.output("out"), BUFFER=b.scratch(kernels.NOISE_AHEAD * self.width))
 
 
 def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int,
@@ -385,8 +385,9 @@ class Recorded(Block):
         for port in self.outputs:
             t, off, w = (self.valid_mask, 0, 1) if port == "valid" else \
                 (self.values, self._slices[port].start, self.outputs[port])
-            b.emit("PLAYBACK", [b.pointer(t.contiguous()), 0 if t.shape[0] == 1 else t[0].numel(), t.shape[2], off, w,
-                                b.counter(), b.output(port)], port=port)
+            b.emit("PLAYBACK", port=port, TABLE=b.pointer(t.contiguous()),
+                   MSTRIDE=0 if t.shape[0] == 1 else t[0].numel(), TSTRIDE=t.shape[2], OFFSET=off, WIDTH=w,
+                   COUNTER=b.counter(), OUT=b.output(port))
 
 
 def _recording(data, name: str, dt: float | None) -> Recording:

@@ -9,7 +9,8 @@ from pathlib import Path
 import rcotorch
 
 ROOT = Path(rcotorch.__file__).resolve().parent
-CORE_BELOW_MODELS = {"blocks", "estimator", "graph", "kernels", "lowering", "rls", "sources", "lti", "features"}
+CORE_BELOW_MODELS = {"blocks", "estimator", "graph", "kernels", "lowering", "rls", "sources", "lti", "features",
+                     "parameter_map", "transfer"}
 
 
 def _modules() -> dict[str, Path]:

@@ -156,12 +156,50 @@ typedef long long v4i_t __attribute__((vector_size(32)));
 #define SHUF4(a, b, i, j, k, l) __builtin_shuffle(a, b, (v4i_t){i, j, k, l})
 #endif
 
-/* Scratch slots of one RLS step with n parameters and nl channels (lanes.h, rls). */
-static int64_t rls_scratch(int64_t n, int64_t nl) { return 2 * n * nl + n + nl * nl + nl; }
+/* Scratch layouts: lists of regions (lane arrays), each its name and its size in slots, in order. From one
+ * list come a struct of the regions' offsets (NAME_at: X_AT) and the total (NAME_SIZE: a constant expression
+ * where the sizes are constants). */
+#define X_REGION(name, size) int64_t name;
+#define X_AT(name, size) o.name = o.end; o.end += (size);
+#define X_SIZE(name, size) +(size)
 
-/* Scratch slots of one estimator update (lanes.h, rco_upd). */
-static int64_t rco_scratch(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nl) {
-    return n_z * n_u * (n_phi + n_u) + n * nl + n + 2 + nl + rls_scratch(n, nl);
+/* One RLS step (lanes.h, rls) with n parameters and nl rows: a = P Psi (n x nl), the step (n), S and its
+ * Cholesky factor L (nl x nl), W = P Psi L^-T (n x nl), v = L^-1 z_R (nl). */
+#define RLS_SCRATCH(X, n, nl) X(a, (n) * (nl)) X(step, (n)) X(L, (nl) * (nl)) X(W, (n) * (nl)) X(v, (nl))
+#define RLS_SCRATCH_SIZE(n, nl) (0 RLS_SCRATCH(X_SIZE, n, nl))
+typedef struct { RLS_SCRATCH(X_REGION, 0, 0) int64_t end; } rls_scratch_t;
+static inline ALWAYS rls_scratch_t rls_scratch_at(int64_t n, int64_t nl) {
+    rls_scratch_t o = {0};
+    RLS_SCRATCH(X_AT, n, nl)
+    return o;
+}
+
+/* One estimator update (lanes.h, rco_upd_n) with n_u outputs, n_z errors, n_phi regressors, n parameters and
+ * nl rows: the Markov filter's products (n_z n_u (n_phi + n_u)), Psi (n x nl), eta (n), the member's
+ * activity and health (1 each), the rows' residuals (nl), the RLS step's scratch and z_R (n_z; the update
+ * keeps it there when it holds its scratch in an array of its own, else in the estimator's state slots). */
+#define RCO_UPD_SCRATCH(X, n_u, n_z, n_phi, n, nl)                                                           \
+    X(prod, (n_z) * (n_u) * ((n_phi) + (n_u))) X(psi, (n) * (nl)) X(eta, (n)) X(act, 1) X(ok, 1) X(zrx, (nl))  \
+    X(rls, RLS_SCRATCH_SIZE(n, nl)) X(zr, (n_z))
+#define RCO_UPD_SCRATCH_SIZE(n_u, n_z, n_phi, n, nl) (0 RCO_UPD_SCRATCH(X_SIZE, n_u, n_z, n_phi, n, nl))
+typedef struct { RCO_UPD_SCRATCH(X_REGION, 0, 0, 0, 0, 0) int64_t end; } rco_upd_scratch_t;
+static inline ALWAYS rco_upd_scratch_t rco_upd_scratch_at(int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n,
+                                                          int64_t nl) {
+    rco_upd_scratch_t o = {0};
+    RCO_UPD_SCRATCH(X_AT, n_u, n_z, n_phi, n, nl)
+    return o;
+}
+
+/* The arena of one chunk of rls_update (lanes.h, rls_chunk): theta (n), P (n x n), Psi (n x nl), z_R (nl),
+ * lambda (1), R^-1 (nl x nl), active and ok (1 each), the RLS step's scratch. */
+#define RLS_ARENA(X, n, nl)                                                                                  \
+    X(theta, (n)) X(P, (n) * (n)) X(psi, (n) * (nl)) X(zr, (nl)) X(lam, 1) X(rinv, (nl) * (nl)) X(act, 1)       \
+    X(ok, 1) X(scratch, RLS_SCRATCH_SIZE(n, nl))
+typedef struct { RLS_ARENA(X_REGION, 0, 0) int64_t end; } rls_arena_t;
+static inline ALWAYS rls_arena_t rls_arena_at(int64_t n, int64_t nl) {
+    rls_arena_t o = {0};
+    RLS_ARENA(X_AT, n, nl)
+    return o;
 }
 
 typedef struct {
@@ -345,7 +383,7 @@ static PyObject *py_rls(PyObject *self, PyObject *args) {
     if (li < 0) return PyErr_Format(PyExc_ValueError, "lane width %lld is not one of 1, 4, 8, 16", vl);
     rls_t q = {ADDR(theta), ADDR(P), ADDR(psi), ADDR(zr), ADDR(lam), ADDR(rinv), ADDR(active), ADDR(ok),
                n, nl, lam_stride, lam_one};
-    int64_t slots = n + n * n + n * nl + nl + 1 + nl * nl + 2 + rls_scratch(n, nl);
+    int64_t slots = rls_arena_at(n, nl).end;
     int fail;
     Py_BEGIN_ALLOW_THREADS
     fail = parallel_chunks(call_rls, &q, (void *)RLS[li], slots, B, vl, nthreads);
@@ -389,10 +427,13 @@ static PyObject *py_uniform_grid(PyObject *self, PyObject *args) {
 }
 
 /* The health checks' bounds (health.py, Health._bounds_exceeded) for members [0, B): code[b] = the reason
- * (reason[0..3], health.Reason's codes) of an alive member beyond a bound, else 0. Later tests take precedence:
- * P not positive definite or not finite (reason[0]), trace(P) > windup[b] (reason[1]), max_a |u_now[b, a]| >
- * bound[b] (reason[2]), max_a sum_j |theta[b, a, j]| phi_rms[b, j] > bound[b] (reason[3]). Comparisons with NaN
- * are false, as in PyTorch. */
+ * (health.Reason's codes, in the order of HEALTH_REASONS) of an alive member beyond a bound, else 0. Later tests
+ * take precedence: P not positive definite or not finite (NOT_PD), trace(P) > windup[b] (WINDUP),
+ * max_a |u_now[b, a]| > bound[b] (U_RUNAWAY), max_a sum_j |theta[b, a, j]| phi_rms[b, j] > bound[b]
+ * (THETA_RUNAWAY). Comparisons with NaN are false, as in PyTorch. */
+#define HEALTH_REASONS(X) X(NOT_PD) X(WINDUP) X(U_RUNAWAY) X(THETA_RUNAWAY)
+#define X_REASON(name) REASON_##name,
+enum { HEALTH_REASONS(X_REASON) REASON_N };
 static int health_bounds(int64_t B, int64_t n, int64_t n_u, int64_t n_phi, const double *P, const double *theta,
                          const double *u_now, const double *phi_rms, const double *bound, const double *windup,
                          const uint8_t *alive, const int64_t *reason, int64_t *code, int nthreads) {
@@ -429,8 +470,8 @@ static int health_bounds(int64_t B, int64_t n, int64_t n_u, int64_t n_phi, const
                     }
                 }
                 for (int64_t i = 0; i < n; i++) trace += p[i * n + i];
-                if (!ok) c = reason[0];
-                if (trace > windup[b]) c = reason[1];
+                if (!ok) c = reason[REASON_NOT_PD];
+                if (trace > windup[b]) c = reason[REASON_WINDUP];
                 double u_max = 0.0, pot_max = 0.0;
                 for (int64_t a = 0; a < n_u; a++) {
                     double u = fabs(u_now[b * n_u + a]), pot = 0.0;
@@ -439,8 +480,8 @@ static int health_bounds(int64_t B, int64_t n, int64_t n_u, int64_t n_phi, const
                     u_max = a == 0 || u > u_max || u != u ? u : u_max;          /* amax: NaN wins */
                     pot_max = a == 0 || pot > pot_max || pot != pot ? pot : pot_max;
                 }
-                if (u_max > bound[b]) c = reason[2];
-                if (pot_max > bound[b]) c = reason[3];
+                if (u_max > bound[b]) c = reason[REASON_U_RUNAWAY];
+                if (pot_max > bound[b]) c = reason[REASON_THETA_RUNAWAY];
                 code[b] = alive[b] ? c : 0;
             }
             free(L);
@@ -498,7 +539,7 @@ static PyObject *py_window_gram(PyObject *self, PyObject *args) {
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
     long long n_u, n_z, n_phi, n, nl;
     if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
-    return PyLong_FromLongLong(rco_scratch(n_u, n_z, n_phi, n, nl));
+    return PyLong_FromLongLong(rco_upd_scratch_at(n_u, n_z, n_phi, n, nl).end);
 }
 
 static PyMethodDef METHODS[] = {
@@ -520,20 +561,67 @@ static PyMethodDef METHODS[] = {
 static struct PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "_engine", "rcotorch's native CPU kernels", -1, METHODS};
 
 #define X_NAME(name) #name,
-static const char *OP_NAMES[] = {RCO_OPS(X_NAME)};
+#define X_OP_NAME(name, layout) #name,
+#define X_OP_LAYOUT(name, layout) #layout,
+static const char *OP_NAMES[] = {RCO_OPS(X_OP_NAME)};
+static const char *OP_LAYOUT_NAMES[] = {RCO_OPS(X_OP_LAYOUT)};
 static const char *FACTOR_NAMES[] = {RCO_FACTORS(X_NAME)};
-static const char *FACTOR_FIELD_NAMES[] = {RCO_FACTOR_FIELDS(X_NAME)};
-static const char *RCO_FIELD_NAMES[] = {RCO_FIELDS(X_NAME)};
 static const char *BIND_FIELD_NAMES[] = {RCO_BIND_FIELDS(X_NAME)};
 static const char *KIND_NAMES[] = {RCO_KINDS(X_NAME)};
 static const char *OBS_FIELD_NAMES[] = {RCO_OBS_FIELDS(X_NAME)};
 static const char *OBSERVER_NAMES[] = {RCO_OBSERVERS(X_NAME)};
 
-static int add_names(PyObject *m, const char *attr, const char **names, int count) {
+static PyObject *name_tuple(const char **names, int count) {
     PyObject *t = PyTuple_New(count);
+    if (!t) return NULL;
+    for (int i = 0; i < count; i++) {
+        PyObject *s = PyUnicode_FromString(names[i]);
+        if (!s) {
+            Py_DECREF(t);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(t, i, s);
+    }
+    return t;
+}
+
+static int add_names(PyObject *m, const char *attr, const char **names, int count) {
+    PyObject *t = name_tuple(names, count);
+    return t ? PyModule_AddObject(m, attr, t) : -1;
+}
+
+/* LAYOUTS: {layout: (field, ...)}; TABLES: ((layout, table, count field, entry layout), ...). */
+#define X_LAYOUT_NAMES(layout) static const char *layout##_FIELD_NAMES[] = {RCO_##layout##_FIELDS(X_NAME)};
+RCO_LAYOUTS(X_LAYOUT_NAMES)
+#define X_LAYOUT_ADD(layout)                                                                                 \
+    if (!fail) {                                                                                             \
+        PyObject *t = name_tuple(layout##_FIELD_NAMES, (int)(sizeof layout##_FIELD_NAMES / sizeof(char *)));  \
+        fail = !t || PyDict_SetItemString(d, #layout, t) < 0;                                                \
+        Py_XDECREF(t);                                                                                       \
+    }
+#define X_TABLE(layout, table, count, entry) {#layout, #table, #count, #entry},
+static const char *TABLE_NAMES[][4] = {RCO_TABLES(X_TABLE)};
+
+static int add_layouts(PyObject *m) {
+    PyObject *d = PyDict_New();
+    int fail = !d;
+    RCO_LAYOUTS(X_LAYOUT_ADD)
+    if (fail || PyModule_AddObject(m, "LAYOUTS", d) < 0) {
+        Py_XDECREF(d);
+        return -1;
+    }
+    int n = (int)(sizeof TABLE_NAMES / sizeof TABLE_NAMES[0]);
+    PyObject *t = PyTuple_New(n);
     if (!t) return -1;
-    for (int i = 0; i < count; i++) PyTuple_SET_ITEM(t, i, PyUnicode_FromString(names[i]));
-    return PyModule_AddObject(m, attr, t);
+    for (int i = 0; i < n; i++) {
+        PyObject *row = name_tuple(TABLE_NAMES[i], 4);
+        if (!row) {
+            Py_DECREF(t);
+            return -1;
+        }
+        PyTuple_SET_ITEM(t, i, row);
+    }
+    return PyModule_AddObject(m, "TABLES", t);
 }
 
 PyMODINIT_FUNC PyInit__engine(void) {
@@ -546,9 +634,8 @@ PyMODINIT_FUNC PyInit__engine(void) {
 #else
     int openmp = 0;
 #endif
-    if (add_names(m, "OPS", OP_NAMES, OP_N - 1) || add_names(m, "FACTORS", FACTOR_NAMES, FAC_N) ||
-        add_names(m, "FACTOR_FIELDS", FACTOR_FIELD_NAMES, FF_N) ||
-        add_names(m, "RCO_FIELDS", RCO_FIELD_NAMES, E_N) ||
+    if (add_names(m, "OPS", OP_NAMES, OP_N - 1) || add_names(m, "OP_LAYOUTS", OP_LAYOUT_NAMES, OP_N - 1) ||
+        add_layouts(m) || add_names(m, "FACTORS", FACTOR_NAMES, FAC_N) ||
         add_names(m, "BIND_FIELDS", BIND_FIELD_NAMES, BF_N) || add_names(m, "KINDS", KIND_NAMES, KIND_N) ||
         add_names(m, "OBS_FIELDS", OBS_FIELD_NAMES, OF_N) ||
         add_names(m, "OBSERVERS", OBSERVER_NAMES, OBS_N) || PyModule_AddObject(m, "LANE_WIDTHS", lanes) ||

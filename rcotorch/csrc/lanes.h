@@ -11,43 +11,46 @@
  *
  * One member alone (VL = 1) is bound by the instructions it executes, not by arithmetic: a loop over sizes
  * known only at run time costs more than its few multiply-adds. At VL = 1 these operations therefore also
- * exist as copies compiled with their sizes as constants, which the compiler unrolls:
+ * exist as copies compiled with their sizes as constants, which the compiler unrolls (the arithmetic, and so
+ * every result, is the same in every copy):
  *
- *   instruction  copies compiled for                               chosen
- *   LTI_OUT      n = 1..4 states, 1..2 output rows, no feedthrough  when the program is decoded (sized)
- *   LTI_UPD      n = 1..4 states, 1..2 input columns                when the program is decoded (sized);
- *                                                                   the new state held in registers
- *   SUM          two inputs of width 1                              when the program is decoded (sum_1_2)
- *   RCO_OUT      one u, n_phi = 1..SMALL regressors                 when the program is decoded (rco_out_sized)
- *   RCO_UPD      one u, one z, one row, n = n_phi = 1..SMALL        on each step (SMALL_SIZES in FN(rco_upd))
- *                parameters (one per regressor)
- *
- * The sizes stop where a further copy no longer shortens the step (docs/engine.md). The SISO estimator's
- * update keeps its intermediates in an array of its own (OWN) that the compiler holds in registers, and sums
- * its Markov filter before storing the step's row where that row is weighed by 0 (rco_upd_n); any estimator
- * sums its Markov filter 4, then 2 columns at a time in vectors. The arithmetic, and so every result, is the
- * same in every copy.
+ *   copy                  compiled for                                    chosen
+ *   LTI_OUT               n = 1..LTI_SMALL_N states, 1..LTI_SMALL_W       when the program is decoded
+ *                         output rows, no feedthrough                     (lti_out_sized)
+ *   LTI_UPD               n = 1..LTI_SMALL_N states, 1..LTI_SMALL_W       when the program is decoded
+ *                         input columns; the new state in registers       (lti_upd_sized)
+ *   SUM                   two inputs of width 1                           when the program is decoded (sum_1_2)
+ *   RCO_OUT               one u, n_phi = 1..SMALL regressors              when the program is decoded
+ *                                                                         (rco_out_sized)
+ *   RCO_UPD               one u, z and row, n = n_phi = 1..SMALL          on each step (FN(rco_upd))
+ *                         parameters, one per regressor
+ *   RCO_UPD stages:
+ *     own_scratch         one member whose scratch fits OWN slots: the    on each step (FN(rco_upd_n))
+ *                         scratch in an array of its own, in registers
+ *     theta_is_eta        one u, z and row, each entry its own            on each step
+ *                         parameter: eta is theta, Psi the filter's sums
+ *     row_after_filter    own_scratch and theta_is_eta, the current row   on each step
+ *                         weighed by 0: the filter sums before the row
+ *                         is stored
+ *   Markov filter         one member: 4, then 2 columns at a time in      always at VL = 1 (FN(markov))
+ *                         vectors
  */
 
-#define SMALL 6
-_Static_assert(SMALL == 6, "SMALL_SIZES and the chunk's sized estimator outputs list the sizes 1 .. 6");
+/* The SISO estimator's sizes compiled as constants at one lane: 1 .. SMALL. */
+#define SMALL_LIST(X) X(1) X(2) X(3) X(4) X(5) X(6)
+#define X_COUNT(c) +1
+#define SMALL (0 SMALL_LIST(X_COUNT))
+/* The LTI sizes compiled as constants at one lane: n = 1 .. LTI_SMALL_N states, w = 1 .. LTI_SMALL_W output rows
+ * (LTI_OUT) or input columns (LTI_UPD); each (n, w) as X(op, n, w). */
+#define LTI_STATES(X, op) X(op, 1) X(op, 2) X(op, 3) X(op, 4)
+#define LTI_WIDTHS(X, op, n) X(op, n, 1) X(op, n, 2)
+#define X_COUNT2(op, c) +1
+#define X_COUNT3(op, n, c) +1
+#define LTI_SMALL_N (0 LTI_STATES(X_COUNT2, _))
+#define LTI_SMALL_W (0 LTI_WIDTHS(X_COUNT3, _, _))
 /* The scratch of one member's estimator update held in an array of its own (rco_upd_n): room for the SISO
- * estimator of SMALL parameters (rco_scratch(1, 1, SMALL, SMALL, 1) + 1 = 43). */
-#define OWN 48
-/* At VL = 1, call(c) with the constant c = v and return when 1 <= v <= SMALL; else go on (the caller then
- * calls with v itself). */
-#define SMALL_SIZES(v, call)                                                                                 \
-    do {                                                                                                     \
-        if (VL == 1) switch (v) {                                                                            \
-            case 1: call(1); return;                                                                         \
-            case 2: call(2); return;                                                                         \
-            case 3: call(3); return;                                                                         \
-            case 4: call(4); return;                                                                         \
-            case 5: call(5); return;                                                                         \
-            case 6: call(6); return;                                                                         \
-            default: break;                                                                                  \
-        }                                                                                                    \
-    } while (0)
+ * estimator of SMALL parameters, rounded up to whole cache lines. */
+#define OWN ((RCO_UPD_SCRATCH_SIZE(1, 1, SMALL, SMALL, 1) + 7) / 8 * 8)
 
 #define LANES _Pragma("omp simd") for (int l = 0; l < VL; l++)
 #define SL(s) (S + (int64_t)(s) * VL)
@@ -68,13 +71,10 @@ _Static_assert(SMALL == 6, "SMALL_SIZES and the chunk's sized estimator outputs 
 /* RLS (rls.py, rls_update): theta (n), P (n x n), psi (n x nl), zr (nl), lam (1), rinv (nl x nl), active (1)  */
 /* in lane arrays; ok (1) out: 0 where S is not positive definite and finite or the step is not finite.     */
 /* ------------------------------------------------------------------------------------------------------ */
-static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
-        double *restrict P, const double *restrict psi, const double *restrict zr, const double *restrict lam,
-        int lam_one, const double *restrict rinv, const double *restrict active, double *restrict ok,
-        double *restrict scr) {
-    double *a = scr, *step = AT(a, n * nl), *Lm = AT(step, n), *Wm = AT(Lm, nl * nl), *v = AT(Wm, n * nl);
-    double go[VL], sum[VL];
-    for (int64_t i = 0; i < n; i++) /* a = P Psi */
+/* a = P Psi (n x nl) */
+static inline ALWAYS void FN(rls_p_psi)(int64_t n, int64_t nl, const double *restrict P,
+                                        const double *restrict psi, double *restrict a) {
+    for (int64_t i = 0; i < n; i++)
         for (int64_t c = 0; c < nl; c++) {
             double acc[VL];
             LANES acc[l] = 0.0;
@@ -85,131 +85,155 @@ static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
             double *ai = AT(a, i * nl + c);
             LANES ai[l] = acc[l];
         }
-    if (nl == 1) {
-        double s[VL], g[VL];
-        LANES s[l] = 0.0;
-        for (int64_t i = 0; i < n; i++) {
-            const double *q = AT(psi, i), *ai = AT(a, i);
-            LANES s[l] += q[l] * ai[l];
-        }
+}
+
+/* One row (nl = 1): S = lam R^-1 + psi^T P psi, a scalar; the step P psi S^-1 z_R and W = P psi S^-1/2 (in
+ * place of a), 0 where the member does not go (go: active, S > 0 and finite, the step finite). */
+static inline ALWAYS void FN(rls_gain_row)(int64_t n, double *restrict a, double *restrict step,
+        const double *restrict psi, const double *restrict zr, const double *restrict lam, int lam_one,
+        const double *restrict rinv, const double *restrict active, double *restrict ok, double *restrict go) {
+    double s[VL], g[VL], sum[VL];
+    LANES s[l] = 0.0;
+    for (int64_t i = 0; i < n; i++) {
+        const double *q = AT(psi, i), *ai = AT(a, i);
+        LANES s[l] += q[l] * ai[l];
+    }
+    LANES {
+        double sv = (lam_one ? rinv[l] : lam[l] * rinv[l]) + s[l]; /* S = lam R^-1 + psi^T P psi */
+        int ok0 = (sv > 0.0) & (sv < INFINITY), gg = ok0 & (active[l] != 0.0);
+        ok[l] = ok0;
+        s[l] = gg ? sv : 1.0;
+        go[l] = gg;
+        double q = zr[l] / s[l]; /* every lane loads (no masked loads) */
+        g[l] = gg ? q : 0.0;
+        sum[l] = 0.0;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        double *ai = AT(a, i), *st = AT(step, i);
         LANES {
-            double sv = (lam_one ? rinv[l] : lam[l] * rinv[l]) + s[l]; /* S = lam R^-1 + psi^T P psi */
-            int ok0 = (sv > 0.0) & (sv < INFINITY), gg = ok0 & (active[l] != 0.0);
-            ok[l] = ok0;
-            s[l] = gg ? sv : 1.0;
-            go[l] = gg;
-            double q = zr[l] / s[l]; /* every lane loads (no masked loads) */
-            g[l] = gg ? q : 0.0;
-            sum[l] = 0.0;
-        }
-        for (int64_t i = 0; i < n; i++) {
-            double *ai = AT(a, i), *st = AT(step, i);
-            LANES {
-                ai[l] = go[l] != 0.0 ? ai[l] : 0.0;
-                st[l] = ai[l] * g[l]; /* P psi S^-1 z_R */
-                sum[l] += st[l];
-            }
-        }
-        LANES {
-            int fin = fabs(sum[l]) < INFINITY;
-            ok[l] = (ok[l] != 0.0) & fin;
-            go[l] = (go[l] != 0.0) & fin;
-            g[l] = go[l] != 0.0 ? 1.0 / sqrt(s[l]) : 0.0;
-        }
-        for (int64_t i = 0; i < n; i++) {
-            double *ai = AT(a, i), *st = AT(step, i);
-            LANES {
-                ai[l] *= g[l]; /* W = P psi s^-1/2 */
-                st[l] = go[l] != 0.0 ? st[l] : 0.0;
-            }
-        }
-        Wm = a;
-    } else {
-        for (int64_t c1 = 0; c1 < nl; c1++) /* S = lam R^-1 + Psi^T P Psi, into Lm */
-            for (int64_t c2 = 0; c2 < nl; c2++) {
-                double *sc = AT(Lm, c1 * nl + c2), acc[VL];
-                const double *r = AT(rinv, c1 * nl + c2);
-                LANES acc[l] = 0.0;
-                for (int64_t i = 0; i < n; i++) {
-                    const double *q = AT(psi, i * nl + c1), *ai = AT(a, i * nl + c2);
-                    LANES acc[l] += q[l] * ai[l];
-                }
-                LANES sc[l] = (lam_one ? r[l] : lam[l] * r[l]) + acc[l];
-            }
-        LANES ok[l] = 1.0;
-        for (int64_t e = 0; e < nl * nl; e++) {
-            const double *sc = AT(Lm, e);
-            LANES ok[l] = (ok[l] != 0.0) & (fabs(sc[l]) < INFINITY);
-        }
-        for (int64_t j = 0; j < nl; j++) { /* Cholesky S = L L^T in place (lower triangle) */
-            double *ljj = AT(Lm, j * nl + j), d[VL];
-            LANES d[l] = 0.0;
-            for (int64_t k = 0; k < j; k++) {
-                const double *ljk = AT(Lm, j * nl + k);
-                LANES d[l] += ljk[l] * ljk[l];
-            }
-            LANES {
-                double piv = ljj[l] - d[l];
-                ok[l] = (ok[l] != 0.0) & (piv > 0.0);
-                ljj[l] = sqrt(piv > 0.0 ? piv : 1.0);
-            }
-            for (int64_t i = j + 1; i < nl; i++) {
-                double *lij = AT(Lm, i * nl + j);
-                LANES d[l] = 0.0;
-                for (int64_t k = 0; k < j; k++) {
-                    const double *lik = AT(Lm, i * nl + k), *ljk = AT(Lm, j * nl + k);
-                    LANES d[l] += lik[l] * ljk[l];
-                }
-                LANES lij[l] = (lij[l] - d[l]) / ljj[l];
-            }
-        }
-        LANES go[l] = (ok[l] != 0.0) & (active[l] != 0.0);
-        for (int64_t i = 0; i < nl; i++) /* L where go, else I */
-            for (int64_t j = 0; j <= i; j++) {
-                double *lij = AT(Lm, i * nl + j), e = i == j ? 1.0 : 0.0;
-                LANES lij[l] = go[l] != 0.0 ? lij[l] : e;
-            }
-        for (int64_t r = -1; r < n; r++) { /* W = a L^-T (rows r of a), v = L^-1 z_R (r = -1) */
-            for (int64_t c = 0; c < nl; c++) {
-                double *x = r < 0 ? AT(v, c) : AT(Wm, r * nl + c);
-                const double *b = r < 0 ? AT(zr, c) : AT(a, r * nl + c), *lcc = AT(Lm, c * nl + c);
-                LANES {
-                    double bv = b[l];
-                    x[l] = go[l] != 0.0 ? bv : 0.0;
-                }
-                for (int64_t k = 0; k < c; k++) {
-                    const double *lck = AT(Lm, c * nl + k), *xk = r < 0 ? AT(v, k) : AT(Wm, r * nl + k);
-                    LANES x[l] -= lck[l] * xk[l];
-                }
-                LANES x[l] /= lcc[l];
-            }
-        }
-        LANES sum[l] = 0.0;
-        for (int64_t i = 0; i < n; i++) { /* step = W v */
-            double *st = AT(step, i), acc[VL];
-            LANES acc[l] = 0.0;
-            for (int64_t c = 0; c < nl; c++) {
-                const double *w = AT(Wm, i * nl + c), *vc = AT(v, c);
-                LANES acc[l] += w[l] * vc[l];
-            }
-            LANES st[l] = acc[l];
-            LANES sum[l] += st[l];
-        }
-        LANES {
-            int fin = fabs(sum[l]) < INFINITY;
-            ok[l] = (ok[l] != 0.0) & fin;
-            go[l] = (go[l] != 0.0) & fin;
-        }
-        for (int64_t i = 0; i < n; i++) {
-            double *st = AT(step, i);
-            LANES st[l] = go[l] != 0.0 ? st[l] : 0.0;
-            for (int64_t c = 0; c < nl; c++) {
-                double *w = AT(Wm, i * nl + c);
-                LANES w[l] = go[l] != 0.0 ? w[l] : 0.0;
-            }
+            ai[l] = go[l] != 0.0 ? ai[l] : 0.0;
+            st[l] = ai[l] * g[l]; /* P psi S^-1 z_R */
+            sum[l] += st[l];
         }
     }
-    for (int64_t i = 0; i < n; i++) /* P <- (P - W W^T) / lam where the member goes; theta <- theta - step */
+    LANES {
+        int fin = fabs(sum[l]) < INFINITY;
+        ok[l] = (ok[l] != 0.0) & fin;
+        go[l] = (go[l] != 0.0) & fin;
+        g[l] = go[l] != 0.0 ? 1.0 / sqrt(s[l]) : 0.0;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        double *ai = AT(a, i), *st = AT(step, i);
+        LANES {
+            ai[l] *= g[l]; /* W = P psi s^-1/2 */
+            st[l] = go[l] != 0.0 ? st[l] : 0.0;
+        }
+    }
+}
+
+/* S = L L^T (nl x nl) in place, the lower triangle; ok cleared where a pivot is not positive (the pivot is
+ * then taken as 1, so that every lane goes on). */
+static inline ALWAYS void FN(cholesky)(int64_t nl, double *restrict Lm, double *restrict ok) {
+    for (int64_t j = 0; j < nl; j++) {
+        double *ljj = AT(Lm, j * nl + j), d[VL];
+        LANES d[l] = 0.0;
+        for (int64_t k = 0; k < j; k++) {
+            const double *ljk = AT(Lm, j * nl + k);
+            LANES d[l] += ljk[l] * ljk[l];
+        }
+        LANES {
+            double piv = ljj[l] - d[l];
+            ok[l] = (ok[l] != 0.0) & (piv > 0.0);
+            ljj[l] = sqrt(piv > 0.0 ? piv : 1.0);
+        }
+        for (int64_t i = j + 1; i < nl; i++) {
+            double *lij = AT(Lm, i * nl + j);
+            LANES d[l] = 0.0;
+            for (int64_t k = 0; k < j; k++) {
+                const double *lik = AT(Lm, i * nl + k), *ljk = AT(Lm, j * nl + k);
+                LANES d[l] += lik[l] * ljk[l];
+            }
+            LANES lij[l] = (lij[l] - d[l]) / ljj[l];
+        }
+    }
+}
+
+/* nl rows: S = lam R^-1 + Psi^T P Psi and its Cholesky factor L (in Lm), W = a L^-T, v = L^-1 z_R and the step
+ * W v, each 0 where the member does not go (go: active, S positive definite and finite, the step finite). */
+static inline ALWAYS void FN(rls_gain_rows)(int64_t n, int64_t nl, const double *restrict a, double *restrict step,
+        double *restrict Lm, double *restrict Wm, double *restrict v, const double *restrict psi,
+        const double *restrict zr, const double *restrict lam, int lam_one, const double *restrict rinv,
+        const double *restrict active, double *restrict ok, double *restrict go) {
+    double sum[VL];
+    for (int64_t c1 = 0; c1 < nl; c1++) /* S = lam R^-1 + Psi^T P Psi, into Lm */
+        for (int64_t c2 = 0; c2 < nl; c2++) {
+            double *sc = AT(Lm, c1 * nl + c2), acc[VL];
+            const double *r = AT(rinv, c1 * nl + c2);
+            LANES acc[l] = 0.0;
+            for (int64_t i = 0; i < n; i++) {
+                const double *q = AT(psi, i * nl + c1), *ai = AT(a, i * nl + c2);
+                LANES acc[l] += q[l] * ai[l];
+            }
+            LANES sc[l] = (lam_one ? r[l] : lam[l] * r[l]) + acc[l];
+        }
+    LANES ok[l] = 1.0;
+    for (int64_t e = 0; e < nl * nl; e++) {
+        const double *sc = AT(Lm, e);
+        LANES ok[l] = (ok[l] != 0.0) & (fabs(sc[l]) < INFINITY);
+    }
+    FN(cholesky)(nl, Lm, ok);
+    LANES go[l] = (ok[l] != 0.0) & (active[l] != 0.0);
+    for (int64_t i = 0; i < nl; i++) /* L where go, else I */
+        for (int64_t j = 0; j <= i; j++) {
+            double *lij = AT(Lm, i * nl + j), e = i == j ? 1.0 : 0.0;
+            LANES lij[l] = go[l] != 0.0 ? lij[l] : e;
+        }
+    for (int64_t r = -1; r < n; r++) { /* W = a L^-T (rows r of a), v = L^-1 z_R (r = -1) */
+        for (int64_t c = 0; c < nl; c++) {
+            double *x = r < 0 ? AT(v, c) : AT(Wm, r * nl + c);
+            const double *b = r < 0 ? AT(zr, c) : AT(a, r * nl + c), *lcc = AT(Lm, c * nl + c);
+            LANES {
+                double bv = b[l];
+                x[l] = go[l] != 0.0 ? bv : 0.0;
+            }
+            for (int64_t k = 0; k < c; k++) {
+                const double *lck = AT(Lm, c * nl + k), *xk = r < 0 ? AT(v, k) : AT(Wm, r * nl + k);
+                LANES x[l] -= lck[l] * xk[l];
+            }
+            LANES x[l] /= lcc[l];
+        }
+    }
+    LANES sum[l] = 0.0;
+    for (int64_t i = 0; i < n; i++) { /* step = W v */
+        double *st = AT(step, i), acc[VL];
+        LANES acc[l] = 0.0;
+        for (int64_t c = 0; c < nl; c++) {
+            const double *w = AT(Wm, i * nl + c), *vc = AT(v, c);
+            LANES acc[l] += w[l] * vc[l];
+        }
+        LANES st[l] = acc[l];
+        LANES sum[l] += st[l];
+    }
+    LANES {
+        int fin = fabs(sum[l]) < INFINITY;
+        ok[l] = (ok[l] != 0.0) & fin;
+        go[l] = (go[l] != 0.0) & fin;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        double *st = AT(step, i);
+        LANES st[l] = go[l] != 0.0 ? st[l] : 0.0;
+        for (int64_t c = 0; c < nl; c++) {
+            double *w = AT(Wm, i * nl + c);
+            LANES w[l] = go[l] != 0.0 ? w[l] : 0.0;
+        }
+    }
+}
+
+/* P <- (P - W W^T) / lam where the member goes; theta <- theta - step. */
+static inline ALWAYS void FN(rls_apply)(int64_t n, int64_t nl, double *restrict th, double *restrict P,
+        const double *restrict Wm, const double *restrict step, const double *restrict lam, int lam_one,
+        const double *restrict go) {
+    for (int64_t i = 0; i < n; i++)
         for (int64_t j = 0; j < n; j++) {
             double *p = AT(P, i * n + j);
             if (nl == 1) {
@@ -236,25 +260,44 @@ static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
     }
 }
 
+/* The RLS step: a = P Psi, the gain (one row, or nl rows through S's Cholesky factor), then P and theta. */
+static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
+        double *restrict P, const double *restrict psi, const double *restrict zr, const double *restrict lam,
+        int lam_one, const double *restrict rinv, const double *restrict active, double *restrict ok,
+        double *restrict scr) {
+    const rls_scratch_t at = rls_scratch_at(n, nl);
+    double *a = AT(scr, at.a), *step = AT(scr, at.step), *Lm = AT(scr, at.L), *Wm = AT(scr, at.W), *v = AT(scr, at.v);
+    double go[VL];
+    FN(rls_p_psi)(n, nl, P, psi, a);
+    if (nl == 1) {
+        FN(rls_gain_row)(n, a, step, psi, zr, lam, lam_one, rinv, active, ok, go);
+        Wm = a;
+    } else {
+        FN(rls_gain_rows)(n, nl, a, step, Lm, Wm, v, psi, zr, lam, lam_one, rinv, active, ok, go);
+    }
+    FN(rls_apply)(n, nl, th, P, Wm, step, lam, lam_one, go);
+}
+
 /* ------------------------------------------------------------------------------------------------------ */
 /* Sources, LTI, static blocks                                                                             */
 /* ------------------------------------------------------------------------------------------------------ */
 static inline void FN(playback)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ptrs,
                                 const int64_t *restrict ctr, int64_t t,
                                 int64_t b0, int64_t nb) {
-    const double *src = (const double *)(intptr_t)ptrs[a[0]];
-    int64_t ms = a[1], ts = a[2], off = a[3], w = a[4], k = ctr[a[5]] + t;
+    const double *src = (const double *)(intptr_t)ptrs[a[PLAYBACK_TABLE]];
+    int64_t ms = a[PLAYBACK_MSTRIDE], ts = a[PLAYBACK_TSTRIDE], off = a[PLAYBACK_OFFSET], w = a[PLAYBACK_WIDTH];
+    int64_t k = ctr[a[PLAYBACK_COUNTER]] + t;
     for (int64_t c = 0; c < w; c++) {
-        double *o = SL(a[6] + c);
+        double *o = SL(a[PLAYBACK_OUT] + c);
         LANES o[l] = src[(b0 + (l < nb ? l : nb - 1)) * ms + k * ts + off + c];
     }
 }
 
 static inline void FN(noise)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ctr,
                              int64_t t, int64_t T) {
-    int64_t w = a[0], k0 = ctr[a[1]] + t, ahead = t % NOISE_AHEAD;
-    const double *key = SL(a[2]), *sd = SL(a[3]), *mean = SL(a[4]);
-    double *buf = SL(a[6]);
+    int64_t w = a[NOISE_WIDTH], k0 = ctr[a[NOISE_COUNTER]] + t, ahead = t % NOISE_AHEAD;
+    const double *key = SL(a[NOISE_KEY]), *sd = SL(a[NOISE_STD]), *mean = SL(a[NOISE_MEAN]);
+    double *buf = SL(a[NOISE_BUFFER]);
     if (ahead == 0) { /* N(0, 1) of the next steps (at most NOISE_AHEAD, no further than the call's last step),
                        * channel-major: [c][step][lane] */
         uint32_t k1 = mix32_key(1u), k2 = mix32_key(2u);
@@ -270,7 +313,7 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
     }
     for (int64_t c = 0; c < w; c++) {
         const double *n = buf + (c * NOISE_AHEAD + ahead) * VL;
-        double *o = SL(a[5] + c);
+        double *o = SL(a[NOISE_OUT] + c);
         LANES o[l] = n[l] * sd[l] + mean[l];
     }
 }
@@ -278,13 +321,17 @@ static inline void FN(noise)(const int64_t *restrict a, double *restrict S, cons
 /* out = C[rows] x + sum_f D[rows, column_f] u_f over the feedthrough columns f (a column and its input slot) */
 static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t w,
                                         int64_t nft) {
-    int64_t cs = a[2], xs = a[3], os = a[4], mt = a[5], ds = a[6], sh = a[7];
-    const int64_t *restrict ft = a + 9;
+    int64_t cs = a[LTI_OUT_C], xs = a[LTI_OUT_STATE], os = a[LTI_OUT_OUT], mt = a[LTI_OUT_MT], ds = a[LTI_OUT_D];
+    int64_t sh = a[LTI_OUT_SHARED];
+    const int64_t *restrict ft = a + LTI_OUT_N; /* the table FEEDTHROUGH */
     for (int64_t r = 0; r < w; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
         for (int64_t j = 0; j < n; j++) PMAC(acc, SL(cs + r * n + j), SL(xs + j), sh);
-        for (int64_t f = 0; f < nft; f++) PMAC(acc, SL(ds + r * mt + ft[2 * f]), SL(ft[2 * f + 1]), sh);
+        for (int64_t f = 0; f < nft; f++) {
+            const int64_t *col = ft + f * LTI_FT_N;
+            PMAC(acc, SL(ds + r * mt + col[LTI_FT_COLUMN]), SL(col[LTI_FT_IN]), sh);
+        }
         double *o = SL(os + r);
         LANES o[l] = acc[l];
     }
@@ -294,8 +341,8 @@ static inline ALWAYS void FN(lti_out_n)(const int64_t *restrict a, double *restr
  * the caller then stores x */
 static inline ALWAYS void FN(lti_upd_to)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt,
                                          double *restrict xn) {
-    int64_t as = a[2], bs = a[3], xs = a[4], sh = a[6];
-    const int64_t *restrict in = a + 7;
+    int64_t as = a[LTI_UPD_A], bs = a[LTI_UPD_B], xs = a[LTI_UPD_STATE], sh = a[LTI_UPD_SHARED];
+    const int64_t *restrict in = a + LTI_UPD_N; /* the table INPUTS, one slot per entry */
     for (int64_t r = 0; r < n; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
@@ -306,10 +353,10 @@ static inline ALWAYS void FN(lti_upd_to)(const int64_t *restrict a, double *rest
     }
 }
 static inline ALWAYS void FN(lti_upd_n)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
-    double *xn = SL(a[5]); /* through the scratch slots */
+    double *xn = SL(a[LTI_UPD_SCRATCH]); /* through the scratch slots */
     FN(lti_upd_to)(a, S, n, mt, xn);
     for (int64_t r = 0; r < n; r++) {
-        double *x = SL(a[4] + r);
+        double *x = SL(a[LTI_UPD_STATE] + r);
         const double *v = AT(xn, r);
         LANES x[l] = v[l];
     }
@@ -321,9 +368,9 @@ static inline ALWAYS void FN(lti_out_c)(const int64_t *restrict a, double *restr
     FN(lti_out_n)(a, S, n, w, 0);
 }
 static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restrict S, int64_t n, int64_t mt) {
-    double xn[4 * VL];
+    double xn[LTI_SMALL_N * VL];
     FN(lti_upd_to)(a, S, n, mt, xn);
-    for (int64_t r = 0; r < n; r++) SL(a[4] + r)[0] = xn[r];
+    for (int64_t r = 0; r < n; r++) SL(a[LTI_UPD_STATE] + r)[0] = xn[r];
 }
 
 /* A compiled user function, called once per chunk: its inputs are consecutive slots (n_in x VL lane values,
@@ -331,11 +378,12 @@ static inline ALWAYS void FN(lti_upd_c)(const int64_t *restrict a, double *restr
  * everywhere. */
 typedef void (*rco_fn_t)(const double *, double *, int64_t);
 static inline void FN(call)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ptrs) {
-    ((rco_fn_t)(intptr_t)ptrs[a[4]])(SL(a[1]), SL(a[3]), VL);
+    ((rco_fn_t)(intptr_t)ptrs[a[CALL_FUNCTION]])(SL(a[CALL_IN]), SL(a[CALL_OUT]), VL);
 }
 
 static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
-    int64_t m = a[0], n = a[1], ks = a[2], is = a[3], os = a[4], sh = a[5];
+    int64_t m = a[GAIN_ROWS], n = a[GAIN_COLS], ks = a[GAIN_K], is = a[GAIN_IN], os = a[GAIN_OUT];
+    int64_t sh = a[GAIN_SHARED];
     for (int64_t r = 0; r < m; r++) {
         double acc[VL];
         LANES acc[l] = 0.0;
@@ -346,13 +394,15 @@ static inline void FN(gain)(const int64_t *restrict a, double *restrict S) {
 }
 
 static inline ALWAYS void FN(sum_n)(const int64_t *restrict a, double *restrict S, int64_t w, int64_t nin) {
-    int64_t os = a[2];
+    int64_t os = a[SUM_OUT];
+    const int64_t *terms = a + SUM_N; /* the table TERMS */
     for (int64_t c = 0; c < w; c++) {
         double acc[VL];
         LANES acc[l] = 0.0;
         for (int64_t q = 0; q < nin; q++) {
-            const double *v = SL(a[3 + 2 * q] + c);
-            int pos = a[4 + 2 * q] > 0;
+            const int64_t *term = terms + q * SUM_TERM_N;
+            const double *v = SL(term[SUM_TERM_IN] + c);
+            int pos = term[SUM_TERM_SIGN] > 0;
             if (q == 0) {
                 if (pos) { LANES acc[l] = v[l]; } else { LANES acc[l] = -v[l]; }
             } else {
@@ -364,28 +414,30 @@ static inline ALWAYS void FN(sum_n)(const int64_t *restrict a, double *restrict 
     }
 }
 
-static inline void FN(sum)(const int64_t *restrict a, double *restrict S) { FN(sum_n)(a, S, a[0], a[1]); }
+static inline void FN(sum)(const int64_t *restrict a, double *restrict S) {
+    FN(sum_n)(a, S, a[SUM_WIDTH], a[SUM_NIN]);
+}
 
 static inline void FN(copy)(const int64_t *restrict a, double *restrict S) {
-    for (int64_t c = 0; c < a[0]; c++) {
-        const double *v = SL(a[1] + c);
-        double *o = SL(a[2] + c);
+    for (int64_t c = 0; c < a[COPY_WIDTH]; c++) {
+        const double *v = SL(a[COPY_IN] + c);
+        double *o = SL(a[COPY_OUT] + c);
         LANES o[l] = v[l];
     }
 }
 
 /* Basis features (features.py): each output channel is coefficient * f_1(x_1) * f_2(x_2) * ... */
 static inline void FN(feature)(const int64_t *restrict a, double *restrict S, const double *restrict consts) {
-    int64_t out = a[0], nterms = a[1];
-    const int64_t *q = a + 2;
+    int64_t out = a[FEATURE_OUT], nterms = a[FEATURE_NTERMS];
+    const int64_t *q = a + FEATURE_N; /* the table TERMS: each term's fields, then its table FACTORS */
     for (int64_t term = 0; term < nterms; term++) {
-        int64_t w = q[0], nf = q[2];
-        double coef = consts[q[1]];
+        int64_t w = q[TERM_WIDTH], nf = q[TERM_NFACTORS];
+        double coef = consts[q[TERM_COEF]];
         for (int64_t c = 0; c < w; c++) {
             double v[VL];
             LANES v[l] = coef;
             for (int64_t f = 0; f < nf; f++) {
-                const int64_t *fa = q + 3 + f * FF_N;
+                const int64_t *fa = q + TERM_N + f * FF_N;
                 const double *x = SL(fa[FF_SRC] + fa[FF_STRIDE] * c), *p = consts + fa[FF_PARAM];
                 switch (fa[FF_KIND]) {
                 case FAC_POW:
@@ -397,10 +449,10 @@ static inline void FN(feature)(const int64_t *restrict a, double *restrict S, co
                     break;
                 case FAC_SIGN: LANES v[l] *= (double)(x[l] > 0.0) - (double)(x[l] < 0.0); break;
                 case FAC_ABS: LANES v[l] *= fabs(x[l]); break;
-                case FAC_SAT: LANES v[l] *= clampd(x[l], p[0], p[1]); break;
-                case FAC_DEADZONE: LANES v[l] *= x[l] - clampd(x[l], p[0], p[1]); break;
-                case FAC_TANH: LANES v[l] *= tanh(x[l] / p[0]); break;
-                case FAC_AFFINE: LANES v[l] *= p[0] * x[l] + p[1]; break;
+                case FAC_SAT: LANES v[l] *= clampd(x[l], p[FP_LO], p[FP_HI]); break;
+                case FAC_DEADZONE: LANES v[l] *= x[l] - clampd(x[l], p[FP_LO], p[FP_HI]); break;
+                case FAC_TANH: LANES v[l] *= tanh(x[l] / p[FP_SCALE]); break;
+                case FAC_AFFINE: LANES v[l] *= p[FP_GAIN] * x[l] + p[FP_OFFSET]; break;
                 default: break;
                 }
             }
@@ -408,7 +460,7 @@ static inline void FN(feature)(const int64_t *restrict a, double *restrict S, co
             LANES o[l] = v[l];
         }
         out += w;
-        q += 3 + nf * FF_N;
+        q += TERM_N + nf * FF_N;
     }
 }
 
@@ -419,7 +471,7 @@ static inline void FN(feature)(const int64_t *restrict a, double *restrict S, co
 /* output: phi = [s(k) | past s | past u] gathered, u = theta phi (0 for a frozen member), saturated. */
 static inline ALWAYS void FN(rco_out_n)(const int64_t *restrict e, double *restrict S, int64_t n_u,
                                         int64_t n_phi) {
-    const int64_t *phi_src = e + E_N;
+    const int64_t *phi_src = e + E_N; /* the table PHI_SRC */
     const double *alive = SL(e[E_ALIVE]);
     for (int64_t j = 0; j < n_phi; j++) {
         const double *v = SL(phi_src[j]);
@@ -570,35 +622,37 @@ static inline ALWAYS void FN(markov)(const int64_t *restrict e, double *restrict
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
  * the theta box, the member's health and the regressor histories. */
 static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
-                                      int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
-                                      int64_t nl) {
+                                        int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
+                                        int64_t nl) {
     int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
-    const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent;
-    /* One member keeps its scratch and z_R (stored to its slot once computed) in an array of its own when
-     * they fit: the compiler then holds them in registers where the sizes are constants, where slots in S put a
-     * store and a load between one stage of the update and the next. */
+    const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent; /* the tables PARAM_OF and REP */
+    /* own_scratch: one member keeps its scratch and z_R (stored to its slot once computed) in an array of its
+     * own when they fit: the compiler then holds them in registers where the sizes are constants, where slots in
+     * S put a store and a load between one stage of the update and the next. */
+    const rco_upd_scratch_t at = rco_upd_scratch_at(n_u, n_z, n_phi, n, nl);
     double own[VL == 1 ? OWN : 1];
-    const int mine = VL == 1 && rco_scratch(n_u, n_z, n_phi, n, nl) + n_z <= OWN;
-    double *scr = mine ? own : SL(e[E_SCRATCH]);
-    double *prod = scr, *psi = AT(prod, n_z * n_u * m), *eta = AT(psi, n * nl), *act = AT(eta, n);
-    /* one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is theta, in place */
-    const int direct = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
-    if (direct) {
+    const int own_scratch = VL == 1 && at.end <= OWN;
+    double *scr = own_scratch ? own : SL(e[E_SCRATCH]);
+    double *prod = AT(scr, at.prod), *psi = AT(scr, at.psi), *eta = AT(scr, at.eta), *act = AT(scr, at.act);
+    /* theta_is_eta: one z, one u, one row, each entry its own parameter: Psi is prod's phi part and eta is
+     * theta, updated in place */
+    const int theta_is_eta = n_z == 1 && n_u == 1 && nl == 1 && e[E_IDENT];
+    if (theta_is_eta) {
         psi = prod;
         eta = SL(e[E_THETA]);
     }
-    double *okv = AT(act, 1), *zrx = AT(okv, 1), *rls_scr = AT(zrx, nl);
-    double *zr = mine ? AT(rls_scr, rls_scratch(n, nl)) : SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
-    /* One member (own scratch) with one z, u and row whose current row (this step's phi and u, delay 0) is
-     * weighed by 0 (below the first delay): the row's products are 0 where its entries are finite and add
-     * nothing to the sums. The filter below then sums the ring before the row is stored, so that it does not
-     * wait for this step's u: row pr still holds the oldest sample, whose products are 0 as well where it is
-     * finite. Where a product is NaN or the current row is not finite, the sums are made again with the row
-     * stored, as in the general case. */
-    const int late = mine && direct && SL(e[E_BETA])[W - 1] == 0.0;
-    if (!late) FN(win_row)(e, S, pr, n_phi, m);
+    double *okv = AT(scr, at.ok), *zrx = AT(scr, at.zrx), *rls_scr = AT(scr, at.rls);
+    double *zr = own_scratch ? AT(scr, at.zr) : SL(e[E_ZR]), *alive = SL(e[E_ALIVE]);
+    /* row_after_filter: one member (own_scratch) with one z, u and row (theta_is_eta) whose current row (this
+     * step's phi and u, delay 0) is weighed by 0 (below the first delay): the row's products are 0 where its
+     * entries are finite and add nothing to the sums. The filter below then sums the ring before the row is
+     * stored, so that it does not wait for this step's u: row pr still holds the oldest sample, whose products
+     * are 0 as well where it is finite. Where a product is NaN or the current row is not finite, the sums are
+     * made again with the row stored, as in the general case. */
+    const int row_after_filter = own_scratch && theta_is_eta && SL(e[E_BETA])[W - 1] == 0.0;
+    if (!row_after_filter) FN(win_row)(e, S, pr, n_phi, m);
     FN(markov)(e, S, prod, n_z * n_u, m, W, pr);
-    if (late) {
+    if (row_after_filter) {
         FN(win_row)(e, S, pr, n_phi, m);
         /* t is finite where the m sums and the row are (or else overflows): then the sums are those of the
          * general order; otherwise they are made again with the row stored (one z and u: m sums) */
@@ -618,7 +672,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES o[l] = zi[l] - d[l];
     }
     /* eta and its regressor T^T Psi (entries of one parameter summed) */
-    if (!direct) for (int64_t p = 0; p < n; p++) {
+    if (!theta_is_eta) for (int64_t p = 0; p < n; p++) {
         const double *th = SL(e[E_THETA] + rep[p]);
         double *et = AT(eta, p);
         LANES et[l] = th[l];
@@ -643,7 +697,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES o[l] += d[l];
     }
     FN(rco_rows)(e, S, n, n_z, nl, psi, zr, zrx);
-    if (mine)
+    if (own_scratch)
         for (int64_t z = 0; z < n_z; z++) SL(e[E_ZR])[z] = zr[z];
     const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
     if (valid) { /* & and |, not && and ||, in lane loops: no conditional (masked) loads */
@@ -652,7 +706,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         LANES act[l] = alive[l] != 0.0;
     }
     FN(rls)(n, nl, eta, SL(e[E_P]), psi, zrx, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
-    if (!direct) for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
+    if (!theta_is_eta) for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
         if (param_of[en] < 0) continue;
         double *th = SL(e[E_THETA] + en);
         const double *et = AT(eta, param_of[en]);
@@ -715,11 +769,13 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
 static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                int64_t t) {
     int64_t n_u = e[E_NU], n_z = e[E_NZ], n_phi = e[E_NPHI], n = e[E_NTHETA], nent = e[E_NENT], nl = e[E_NL];
-    if (n_u == 1 && n_z == 1 && nl == 1 && n == n_phi) { /* SISO, one parameter per regressor */
-#define CALL(c) FN(rco_upd_n)(e, S, ctr, t, 1, 1, c, c, c, 1)
-        SMALL_SIZES(n, CALL);
-#undef CALL
-    }
+    if (VL == 1 && n_u == 1 && n_z == 1 && nl == 1 && n == n_phi) /* SISO, one parameter per regressor */
+        switch (n) {
+#define SISO_CASE(c) case c: FN(rco_upd_n)(e, S, ctr, t, 1, 1, c, c, c, 1); return;
+            SMALL_LIST(SISO_CASE)
+#undef SISO_CASE
+        default: break;
+        }
     FN(rco_upd_n)(e, S, ctr, t, n_u, n_z, n_phi, n, nent, nl);
 }
 
@@ -802,15 +858,30 @@ static inline void FN(observe)(const int64_t *obs, int64_t nobs, double *S, doub
     }
 }
 
+/* The SUMSQ observers' sums, one lane array each in acc: from the caller's accumulators before the steps
+ * (load), back after them (store). */
+static inline void FN(sums_load)(const int64_t *obs, int64_t nobs, double *acc, int64_t b0, int64_t nb) {
+    for (int64_t q = 0; q < nobs; q++) {
+        const int64_t *o = obs + q * OF_N;
+        double *a = AT(acc, q);
+        if (o[OF_KIND] == OBS_SUMSQ) LANES a[l] = ((const double *)(intptr_t)o[OF_PTR])[b0 + (l < nb ? l : nb - 1)];
+    }
+}
+
+static inline void FN(sums_store)(const int64_t *obs, int64_t nobs, const double *acc, int64_t b0, int64_t nb) {
+    for (int64_t q = 0; q < nobs; q++) {
+        const int64_t *o = obs + q * OF_N;
+        const double *a = AT(acc, q);
+        if (o[OF_KIND] == OBS_SUMSQ)
+            for (int64_t l = 0; l < nb; l++) ((double *)(intptr_t)o[OF_PTR])[b0 + l] = a[l];
+    }
+}
+
 /* One chunk of members [b0, b0 + nb) for T steps: load, step, store. */
 static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     double *acc = SL(r->nslots);
     FN(load)(r->binds, r->nbind, S, b0, nb);
-    for (int64_t q = 0; q < r->nobs; q++) {
-        const int64_t *o = r->obs + q * OF_N;
-        double *a = AT(acc, q);
-        if (o[OF_KIND] == OBS_SUMSQ) LANES a[l] = ((const double *)(intptr_t)o[OF_PTR])[b0 + (l < nb ? l : nb - 1)];
-    }
+    FN(sums_load)(r->obs, r->nobs, acc, b0, nb);
     const int64_t *restrict code = r->code, *restrict ptrs = r->ptrs, *restrict ctr = r->counters;
     const double *restrict consts = r->consts;
     const int64_t ncode = r->ncode, T = r->T;
@@ -822,15 +893,17 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         [OP_NONE] = &&next, [OP_PLAYBACK] = &&playback, [OP_NOISE] = &&noise, [OP_LTI_OUT] = &&lti_out,
         [OP_LTI_UPD] = &&lti_upd, [OP_GAIN] = &&gain, [OP_SUM] = &&sum, [OP_COPY] = &&copy,
         [OP_FEATURE] = &&feature, [OP_RCO_OUT] = &&rco_out, [OP_RCO_UPD] = &&rco_upd, [OP_CALL] = &&call};
-#if VL == 1 /* [op][n - 1][w - 1]: LTI_OUT (no feedthrough), LTI_UPD of n <= 4 states and w <= 2 rows or input
-             * columns; RCO_OUT of one u and n_phi <= SMALL regressors */
-#define SIZED2(op, c) {&&op##_##c##_1, &&op##_##c##_2}
-#define SIZED(op) {SIZED2(op, 1), SIZED2(op, 2), SIZED2(op, 3), SIZED2(op, 4)}
-    static const void *const sized[2][4][2] = {SIZED(lti_out), SIZED(lti_upd)};
-    static const void *const rco_out_sized[SMALL] = {&&rco_out_1, &&rco_out_2, &&rco_out_3, &&rco_out_4,
-                                                     &&rco_out_5, &&rco_out_6};
-#undef SIZED
-#undef SIZED2
+#if VL == 1 /* [n - 1][w - 1]: LTI_OUT (no feedthrough) and LTI_UPD of n states and w rows or input columns;
+             * [n_phi - 1]: RCO_OUT of one u and n_phi regressors */
+#define LTI_LABEL(op, n, w) &&op##_##n##_##w,
+#define LTI_LABELS(op, n) {LTI_WIDTHS(LTI_LABEL, op, n)},
+    static const void *const lti_out_sized[LTI_SMALL_N][LTI_SMALL_W] = {LTI_STATES(LTI_LABELS, lti_out)};
+    static const void *const lti_upd_sized[LTI_SMALL_N][LTI_SMALL_W] = {LTI_STATES(LTI_LABELS, lti_upd)};
+#define RCO_OUT_LABEL(c) &&rco_out_##c,
+    static const void *const rco_out_sized[SMALL] = {SMALL_LIST(RCO_OUT_LABEL)};
+#undef RCO_OUT_LABEL
+#undef LTI_LABELS
+#undef LTI_LABEL
 #endif
     int64_t nops = 0;
     for (int64_t pc = 0; pc < ncode; pc += code[pc + 1]) nops++;
@@ -843,10 +916,13 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         prog[i].to = labels[op];
         prog[i].args = x;
 #if VL == 1
-        if ((op == OP_LTI_UPD || (op == OP_LTI_OUT && x[8] == 0)) && x[0] >= 1 && x[0] <= 4 && x[1] >= 1 &&
-            x[1] <= 2)
-            prog[i].to = sized[op == OP_LTI_UPD][x[0] - 1][x[1] - 1];
-        if (op == OP_SUM && x[0] == 1 && x[1] == 2) prog[i].to = &&sum_1_2;
+        if (op == OP_LTI_OUT && x[LTI_OUT_NFT] == 0 && x[LTI_OUT_NX] >= 1 && x[LTI_OUT_NX] <= LTI_SMALL_N &&
+            x[LTI_OUT_ROWS] >= 1 && x[LTI_OUT_ROWS] <= LTI_SMALL_W)
+            prog[i].to = lti_out_sized[x[LTI_OUT_NX] - 1][x[LTI_OUT_ROWS] - 1];
+        if (op == OP_LTI_UPD && x[LTI_UPD_NX] >= 1 && x[LTI_UPD_NX] <= LTI_SMALL_N && x[LTI_UPD_MT] >= 1 &&
+            x[LTI_UPD_MT] <= LTI_SMALL_W)
+            prog[i].to = lti_upd_sized[x[LTI_UPD_NX] - 1][x[LTI_UPD_MT] - 1];
+        if (op == OP_SUM && x[SUM_WIDTH] == 1 && x[SUM_NIN] == 2) prog[i].to = &&sum_1_2;
         if (op == OP_RCO_OUT && x[E_NU] == 1 && x[E_NPHI] >= 1 && x[E_NPHI] <= SMALL)
             prog[i].to = rco_out_sized[x[E_NPHI] - 1];
 #endif
@@ -867,8 +943,8 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         NEXT();
     playback: FN(playback)(a, S, ptrs, ctr, t, b0, nb); NEXT();
     noise: FN(noise)(a, S, ctr, t, T); NEXT();
-    lti_out: FN(lti_out_n)(a, S, a[0], a[1], a[8]); NEXT();
-    lti_upd: FN(lti_upd_n)(a, S, a[0], a[1]); NEXT();
+    lti_out: FN(lti_out_n)(a, S, a[LTI_OUT_NX], a[LTI_OUT_ROWS], a[LTI_OUT_NFT]); NEXT();
+    lti_upd: FN(lti_upd_n)(a, S, a[LTI_UPD_NX], a[LTI_UPD_MT]); NEXT();
     gain: FN(gain)(a, S); NEXT();
     sum: FN(sum)(a, S); NEXT();
     copy: FN(copy)(a, S); NEXT();
@@ -877,17 +953,15 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     rco_upd: FN(rco_upd)(a, S, ctr, t); NEXT();
     call: FN(call)(a, S, ptrs); NEXT();
 #if VL == 1
-#define SIZED1(op, c, d) op##_##c##_##d: FN(op##_c)(a, S, c, d); NEXT();
-#define SIZED2(op, c) SIZED1(op, c, 1) SIZED1(op, c, 2)
-#define SIZED(op) SIZED2(op, 1) SIZED2(op, 2) SIZED2(op, 3) SIZED2(op, 4)
-    SIZED(lti_out)
-    SIZED(lti_upd)
-#undef SIZED
-#undef SIZED2
-#undef SIZED1
+#define LTI_CASE(op, n, w) op##_##n##_##w: FN(op##_c)(a, S, n, w); NEXT();
+#define LTI_CASES(op, n) LTI_WIDTHS(LTI_CASE, op, n)
+    LTI_STATES(LTI_CASES, lti_out)
+    LTI_STATES(LTI_CASES, lti_upd)
+#undef LTI_CASES
+#undef LTI_CASE
     sum_1_2: FN(sum_n)(a, S, 1, 2); NEXT();
 #define RCO_OUT1(c) rco_out_##c: FN(rco_out_n)(a, S, 1, c); NEXT();
-    RCO_OUT1(1) RCO_OUT1(2) RCO_OUT1(3) RCO_OUT1(4) RCO_OUT1(5) RCO_OUT1(6)
+    SMALL_LIST(RCO_OUT1)
 #undef RCO_OUT1
 #endif
     next: NEXT();
@@ -896,12 +970,7 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     }
 #undef NEXT
     FN(store)(r->binds, r->nbind, S, b0, nb);
-    for (int64_t q = 0; q < r->nobs; q++) {
-        const int64_t *o = r->obs + q * OF_N;
-        const double *a = AT(acc, q);
-        if (o[OF_KIND] == OBS_SUMSQ)
-            for (int64_t l = 0; l < nb; l++) ((double *)(intptr_t)o[OF_PTR])[b0 + l] = a[l];
-    }
+    FN(sums_store)(r->obs, r->nobs, acc, b0, nb);
 }
 
 /* Lane arrays from the members' own rows and back: dst[i * VL + l] = src[l][i] for i < cnt (to_lanes), and

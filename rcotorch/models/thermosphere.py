@@ -525,42 +525,43 @@ class ColumnBlock(Nonlinear):
             table = torch.from_numpy(reads).reshape(1, -1)
             count = table.shape[1] + 1
             block = b.scratch(size + count + n)
-            b.emit("COPY", [size, params, block], port=port)
-            b.emit("COPY", [count, b.param(torch.cat([table.new_full((1, 1), len(reads)), table], 1)),
-                            block + size], port=port)
-            b.emit("COPY", [n, x, block + size + count], port=port)
+            b.emit("COPY", WIDTH=size, IN=params, OUT=block, port=port)
+            b.emit("COPY", WIDTH=count, IN=b.param(torch.cat([table.new_full((1, 1), len(reads)), table], 1)),
+                   OUT=block + size, port=port)
+            b.emit("COPY", WIDTH=n, IN=x, OUT=block + size + count, port=port)
             fn = tn.entry("observe")
-            b.emit("CALL", [size + count + n, block, len(reads), out, b.function(fn.address, fn)], port=port)
+            b.emit("CALL", NIN=size + count + n, IN=block, NOUT=len(reads), OUT=out,
+                   FUNCTION=b.function(fn.address, fn), port=port)
 
         for port, obs in self.observations.items():
             observe(obs, b.output(port), port)
         if self.record is not None:            # the ring moves up one row; the newest row is the last
             m = self.record_width
             ring = b.state("pending", rows=RECORD_RING)
-            b.emit("COPY", [(RECORD_RING - 1) * m, ring + m, ring])
+            b.emit("COPY", WIDTH=(RECORD_RING - 1) * m, IN=ring + m, OUT=ring)
             at = ring + (RECORD_RING - 1) * m
             for part in self.record.parts:
                 if isinstance(part, Observation):
                     observe(part, at, None)
                     at += part.width
                 elif part in self.inputs and b.input(part) is not None:
-                    b.emit("COPY", [self.inputs[part], b.input(part), at])
+                    b.emit("COPY", WIDTH=self.inputs[part], IN=b.input(part), OUT=at)
                     at += self.inputs[part]
                 else:
                     b.refuse(f"its record reads '{part}', which is not a connected input")
             b.steps_left(self._room)
             b.unread("history")                # the pending rows move there on the Python side
         block = b.scratch(size + n + sum(self.inputs.values()))
-        b.emit("COPY", [size, params, block])
-        b.emit("COPY", [n, x, block + size])
+        b.emit("COPY", WIDTH=size, IN=params, OUT=block)
+        b.emit("COPY", WIDTH=n, IN=x, OUT=block + size)
         at = block + size + n
         for port, width in self.inputs.items():
             if b.input(port) is None:
                 b.refuse(f"input '{port}' is not connected")
-            b.emit("COPY", [width, b.input(port), at])
+            b.emit("COPY", WIDTH=width, IN=b.input(port), OUT=at)
             at += width
         fn = tn.entry("step")
-        b.emit("CALL", [at - block, block, n, x, b.function(fn.address, fn)])
+        b.emit("CALL", NIN=at - block, IN=block, NOUT=n, OUT=x, FUNCTION=b.function(fn.address, fn))
         b.counter()
 
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
@@ -639,14 +640,16 @@ class SpaceWeather(Block):
             b.refuse("numba is not installed (pip install numba)")
         from . import thermosphere_native as tn
         count, block = b.state("count"), b.scratch(6)
-        b.emit("COPY", [3, b.param(torch.tensor([[self.dt, self.start, self.rise]], dtype=torch.float64)), block],
-               port="out")
-        b.emit("COPY", [1, count, block + 3], port="out")
-        b.emit("COPY", [1, b.param(self.f107), block + 4], port="out")
-        b.emit("COPY", [1, b.param(self.peak), block + 5], port="out")
+        b.emit("COPY", WIDTH=3, IN=b.param(torch.tensor([[self.dt, self.start, self.rise]], dtype=torch.float64)),
+               OUT=block, port="out")
+        b.emit("COPY", WIDTH=1, IN=count, OUT=block + 3, port="out")
+        b.emit("COPY", WIDTH=1, IN=b.param(self.f107), OUT=block + 4, port="out")
+        b.emit("COPY", WIDTH=1, IN=b.param(self.peak), OUT=block + 5, port="out")
         fn = tn.entry("storm")
-        b.emit("CALL", [6, block, 2, b.output("out"), b.function(fn.address, fn)], port="out")
-        b.emit("SUM", [1, 2, count, count, 1, b.param(torch.ones(1, 1, dtype=torch.float64)), 1])
+        b.emit("CALL", NIN=6, IN=block, NOUT=2, OUT=b.output("out"), FUNCTION=b.function(fn.address, fn),
+               port="out")
+        b.emit("SUM", WIDTH=1, OUT=count, terms=[dict(IN=count, SIGN=1),
+                                                 dict(IN=b.param(torch.ones(1, 1, dtype=torch.float64)), SIGN=1)])
         b.counter()
 
 
@@ -778,18 +781,18 @@ class TemperatureFeatures(Block):
                   *self.decay.reshape(-1).tolist()]
         head = len(layout)
         block, out = b.scratch(head + (2 + mem) * nodes), b.scratch((terms + mem) * nodes)
-        b.emit("COPY", [head, b.param(torch.tensor([layout], dtype=torch.float64)), block], port="f")
-        b.emit("COPY", [nodes, b.input("T"), block + head], port="f")
-        b.emit("COPY", [nodes, b.param(self.T_ref), block + head + nodes], port="f")
+        b.emit("COPY", WIDTH=head, IN=b.param(torch.tensor([layout], dtype=torch.float64)), OUT=block, port="f")
+        b.emit("COPY", WIDTH=nodes, IN=b.input("T"), OUT=block + head, port="f")
+        b.emit("COPY", WIDTH=nodes, IN=b.param(self.T_ref), OUT=block + head + nodes, port="f")
         if mem:
             m = b.state("m")
-            b.emit("COPY", [mem * nodes, m, block + head + 2 * nodes], port="f")
+            b.emit("COPY", WIDTH=mem * nodes, IN=m, OUT=block + head + 2 * nodes, port="f")
         fn = tn.entry("features")
-        b.emit("CALL", [head + (2 + mem) * nodes, block, (terms + mem) * nodes, out, b.function(fn.address, fn)],
-               port="f")
-        b.emit("COPY", [terms * nodes, out, b.output("f")], port="f")
+        b.emit("CALL", NIN=head + (2 + mem) * nodes, IN=block, NOUT=(terms + mem) * nodes, OUT=out,
+               FUNCTION=b.function(fn.address, fn), port="f")
+        b.emit("COPY", WIDTH=terms * nodes, IN=out, OUT=b.output("f"), port="f")
         if mem:
-            b.emit("COPY", [mem * nodes, out + terms * nodes, m])
+            b.emit("COPY", WIDTH=mem * nodes, IN=out + terms * nodes, OUT=m)
 
 
 def interpolation_basis(z: torch.Tensor, nodes: torch.Tensor) -> torch.Tensor:
