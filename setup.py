@@ -1,8 +1,8 @@
-"""Build of rcotorch's native engine, the C extension ``rcotorch._engine`` (the rest is in pyproject.toml).
+"""Build of rcotorch's native engine, the C extension ``rcotorch.engine._engine`` (the rest is in pyproject.toml).
 
-``pip install .`` and ``pip install -e .`` compile ``rcotorch/csrc/engine.c`` with the C compiler Python was
+``pip install .`` and ``pip install -e .`` compile ``rcotorch/engine/csrc/engine.c`` with the C compiler Python was
 built with (OpenMP when the compiler has it). The extension is optional: without a working compiler the
-package still installs, says so once here, and runs everything on PyTorch (``rcotorch.kernels`` warns once at
+package still installs, says so once here, and runs everything on PyTorch (``rcotorch.engine.kernels`` warns once at
 import). It needs no torch at build time: the kernels take tensors as addresses and sizes.
 """
 
@@ -41,7 +41,7 @@ class BuildEngine(build_ext):
 
 
 setup(
-    ext_modules=[Extension("rcotorch._engine", sources=["rcotorch/csrc/engine.c"],
-                           depends=["rcotorch/csrc/engine.h", "rcotorch/csrc/lanes.h"], optional=True)],
+    ext_modules=[Extension("rcotorch.engine._engine", sources=["rcotorch/engine/csrc/engine.c"],
+                           depends=["rcotorch/engine/csrc/engine.h", "rcotorch/engine/csrc/lanes.h"], optional=True)],
     cmdclass={"build_ext": BuildEngine},
 )

@@ -31,7 +31,7 @@ import torch
 from common import add_common_args, machine, setup_cpu, table, write_json
 from peer import _numba_call
 
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 NAME = "sdof-stiffness-damping"
 GOAL = 1.5

@@ -29,8 +29,8 @@ from pathlib import Path
 import common
 import torch
 
-from rcotorch import scenario as scenarios
-from rcotorch.cli import main as cli
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.cli import main as cli
 
 SCENARIO = "sdof-stiffness"
 

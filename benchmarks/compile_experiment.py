@@ -17,8 +17,8 @@ import time
 import torch
 from common import add_common_args, machine, setup, sync, table, write_json
 
-from rcotorch import scenario as scenarios
-from rcotorch.rls import rls_update
+from rcotorch.engine.rls import rls_update
+from rcotorch.run import scenario as scenarios
 
 NAME = "sdof-stiffness-damping"
 

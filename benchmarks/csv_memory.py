@@ -1,4 +1,4 @@
-"""Reading a large CSV with ``rcotorch.data.load``: wall time and peak memory against the bytes of the columns
+"""Reading a large CSV with ``rcotorch.data.recording.load``: wall time and peak memory against the bytes of the columns
 asked for, with ``numpy.loadtxt(usecols=...)`` (numpy's C reader) measured on the same file for reference.
 
     python benchmarks/csv_memory.py                      # a ~200 MB CSV of 8 columns, 2 loaded; about a minute

@@ -32,7 +32,7 @@ import torch
 from common import machine, setup, table, write_json
 
 import rcotorch as rt
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 f = rt.features
 GOALS = {"B=1": 10.0, "B=4096": 300.0, "recording": 2.0}

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from common import machine, table, write_json
 
-from rcotorch.runner import Run
-from rcotorch.tune import Tuning, run_tune
+from rcotorch.run.runner import Run
+from rcotorch.run.tune import Tuning, run_tune
 
 NAME = "mass-friction"
 CHECK_SEED = 9001                     # a seed the search does not use
@@ -141,7 +141,7 @@ def passes(overrides: dict, work: Path, tag: str) -> dict:
 
 
 def tuning(samples: int, seeds: int, work: Path) -> dict:
-    from rcotorch import scenario as scenarios
+    from rcotorch.run import scenario as scenarios
     nu = int(scenarios.get(NAME).settings["nu"])
     poor = {"p0": 1.0, "nu": 3 * nu, "lam": 0.98}
     poor_check = passes(poor, work, "poor")

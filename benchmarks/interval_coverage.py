@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 import rcotorch as rt
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 
 def friction(members: int, out: Path, std: float = 20.0) -> dict:

@@ -3,7 +3,7 @@
 The same equations as ``benchmarks/numpy_reference.py`` (and rcotorch's Figure-1 graph): ZOH-discretized known
 model and truth (scipy ``expm``, in Python, outside the loop), Markov parameters beta_i = -C_y A^(i-1) B_u, the
 retrospective cost over a ring buffer of [phi, u], the scalar RLS update, and the excitation drawn inside the
-loop from the same counter-based stream as ``rcotorch.rng`` (seed, member, step, component; the hash written
+loop from the same counter-based stream as ``rcotorch.engine.rng`` (seed, member, step, component; the hash written
 out in uint32 arithmetic, Box-Muller with ``math.log`` / ``math.cos``).
 
 Three variants, each compiled once (``numba.njit``, not cached):

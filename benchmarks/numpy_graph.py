@@ -5,7 +5,7 @@ The per-step cost baseline of ``benchmarks/engine_cost.py`` for graphs other tha
 graph with basis features. One refinement at a time, a Python loop over steps, the equations written out:
 
 * known model x(k+1) = A x + B [w; u], outputs [y; y0] = C x + D [w; u] (matrices read from the built graph);
-* physical system: recorded w, y played back, or a white-noise w (``rcotorch.rng``, the same samples) into an
+* physical system: recorded w, y played back, or a white-noise w (``rcotorch.engine.rng``, the same samples) into an
   LTI plant;
 * identified subsystem u = Theta phi, phi = the basis features of y0(k) (a NumPy function given by the
   caller), Theta with pinned entries (the estimator's mask);
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from rcotorch import rng
+from rcotorch.engine import rng
 
 
 @dataclass

@@ -45,7 +45,7 @@ def noise(seed: int, member: int, steps: int) -> np.ndarray:
     """The excitation samples rcotorch's WhiteNoise draws for stream (seed, member), steps 0..steps-1."""
     import torch
 
-    from rcotorch import rng
+    from rcotorch.engine import rng
     return rng.normal(seed, member, torch.arange(steps), 0, dtype=torch.float64).numpy()
 
 
@@ -111,7 +111,7 @@ def refine(steps: int, settings: dict | None = None, member: int = 0, w: np.ndar
 def steps_per_second(steps: int, settings: dict | None = None, repeat: int = 1) -> float:
     """Throughput of the loop (refinement steps per second, the excitation drawn inside the timing), best of
     ``repeat``."""
-    noise(1, 0, 1)   # import torch and rcotorch.rng outside the timing
+    noise(1, 0, 1)   # import torch and rcotorch.engine.rng outside the timing
     best = float("inf")
     for _ in range(repeat):
         t = time.perf_counter()
@@ -124,7 +124,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=20000)
     args = ap.parse_args(argv)
-    noise(1, 0, 1)   # import torch and rcotorch.rng outside the timing
+    noise(1, 0, 1)   # import torch and rcotorch.engine.rng outside the timing
     t = time.perf_counter()
     out = refine(args.steps)
     dt = time.perf_counter() - t

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from common import machine, setup, table, write_json
 
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 NAME = "sdof-stiffness-damping"
 VARIANTS = ("numba one", "numba one pairs", "numba prange", "numba prange pairs", "numba lanes", "numba lanes pairs")

@@ -15,7 +15,7 @@ Definitions (all measured in the same run):
 * percent = effective P bandwidth / memory-copy bandwidth.
 
 Variants: ``inplace`` (``rls_update(..., inplace=True)``, what the estimator runs: on the CPU in float64 the
-native single-pass kernel of ``rcotorch._engine``, each member's P read once and written once),
+native single-pass kernel of ``rcotorch.engine._engine``, each member's P read once and written once),
 ``inplace_torch`` (the same in PyTorch operations, ``kernel='torch'``), ``functional`` (new tensors returned;
 a copy of theta and P, then the native kernel), ``before`` (the kernel as it was before the speed work, for
 reference) and ``compiled`` (``torch.compile`` of the PyTorch in-place kernel; ``--no-compile`` skips it).
@@ -29,7 +29,7 @@ import time
 import torch
 from common import add_common_args, machine, setup, sync, table, timed, write_json
 
-from rcotorch.rls import rls_update
+from rcotorch.engine.rls import rls_update
 
 
 def rls_before(theta, P, psi, z_r, lam=1.0, r_inv=1.0, active=None):

@@ -3,7 +3,7 @@
 For each scenario, ``--seeds`` seeds (64 by default) run in one batch (the members differ only in their seed;
 a scenario whose seed fixes its structure runs one batch per seed, one without a seed runs once), at the
 scenario's defaults and with each ``--variant`` (settings applied to every member, e.g. a robustness option).
-Each member's health (``rcotorch.health``) is tabulated with whether it meets the scenario's requirements,
+Each member's health (``rcotorch.verdict.health``) is tabulated with whether it meets the scenario's requirements,
 so the table also shows how well the health verdict agrees with the truth.
 
     .venv/bin/python benchmarks/robustness.py --threads 1                      # every scenario at defaults
@@ -34,9 +34,9 @@ from pathlib import Path
 import common
 import torch
 
-from rcotorch import scenario as scenarios
-from rcotorch.health import STATUSES
-from rcotorch.runner import Run, member_truth
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run, member_truth
+from rcotorch.verdict.health import STATUSES
 
 
 def _variant(text: str) -> tuple[str, dict[str, str]]:

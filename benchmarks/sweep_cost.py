@@ -19,8 +19,8 @@ from pathlib import Path
 import torch
 from common import add_common_args, machine, setup_cpu, table, write_json
 
-from rcotorch import scenario as scenarios
-from rcotorch.sweep import Sweep, run_sweep
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.sweep import Sweep, run_sweep
 
 NAME = "sdof-stiffness"
 GOAL_S = 15.0

@@ -34,8 +34,8 @@ def child(args) -> None:
     t0 = time.perf_counter()
     import torch
 
-    from rcotorch import scenario as scenarios
-    from rcotorch.runner import Run
+    from rcotorch.run import scenario as scenarios
+    from rcotorch.run.runner import Run
     scenarios.get(NAME)                               # the registry imports every shipped scenario
     torch.set_num_threads(args.threads or 1)
     t1 = time.perf_counter()

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from common import RESULTS, ROOT, machine, table
 
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 NAME = "thermosphere-no-cooling"
 #: Tuning per structure: the RLS covariance of the temperature basis (normalized features near 1) is larger.

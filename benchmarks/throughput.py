@@ -32,7 +32,7 @@ import numpy_reference
 import torch
 from common import add_common_args, machine, proc_status, reset_peak_rss, setup, sync, table, write_json
 
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 GOALS = {"B=4096 ratio": 500.0, "B=1 ratio": 1.0, "n_theta=10 peak KiB per member": 16.0}
 

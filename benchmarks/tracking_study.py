@@ -1,6 +1,6 @@
 """Tracking a change: the scenario shear-building-damage (a 3-storey shear building whose storey 2 loses 20% of its
 stiffness during the run) refined with lam = 1, with constant forgetting, and with the CUSUM detector and
-covariance restart (rcotorch.tracking), over many seeds in one batch each: every variant is the scenario's own
+covariance restart (rcotorch.estimator.tracking), over many seeds in one batch each: every variant is the scenario's own
 graph with other settings.
 
     python benchmarks/tracking_study.py              # 200 seeds, a few minutes
@@ -22,7 +22,7 @@ import torch
 from common import machine, table, write_json
 from rcotorch.scenarios.shear_building_damage import first_period
 
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 NAME = "shear-building-damage"
 NO_DETECTOR = {"threshold": 1e300}

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 from common import machine, table, write_json
 
-from rcotorch import scenario as scenarios
-from rcotorch.runner import Run
-from rcotorch.tune import Tuning, run_tune
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
+from rcotorch.run.tune import Tuning, run_tune
 
 SCENARIOS = ("sdof-dynamic-impedance",)
 CHECK_SEED = 9001                     # a seed the searches do not use

@@ -25,9 +25,9 @@ from pathlib import Path
 import torch
 from common import machine, table, write_json
 
-from rcotorch import scenario as scenarios
-from rcotorch.runner import Run
-from rcotorch.tune import Tuning, run_tune
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
+from rcotorch.run.tune import Tuning, run_tune
 
 SCENARIOS = ("sdof-stiffness", "sdof-stiffness-damping", "twodof-stiffness", "sdof-dynamic-impedance",
              "rlc-circuit")

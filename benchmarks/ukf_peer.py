@@ -31,7 +31,7 @@ import torch
 from common import machine, table, write_json
 from rcotorch.scenarios.shear_building_damage import first_period
 
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 NAME = "shear-building-damage"
 Q_THETA, P0_X, P0_THETA, ALPHA, BETA, KAPPA = 1e-7, 1e-8, 1e-2, 0.1, 2.0, 0.0

@@ -16,21 +16,25 @@ __version__ = "0.1.0"
 # Each public name and the submodule that defines it. Submodules (the public ones are datasets, features, models
 # and rng) are imported on first use as well: ``rcotorch.models.sdof`` imports the subpackage then.
 _DEFINED_IN = {
-    "Block": "blocks", "Gain": "blocks", "StaticMap": "blocks", "Sum": "blocks",
-    "Recording": "data", "load": "data",
+    "Block": "blocks.base", "Gain": "blocks.base", "StaticMap": "blocks.base", "Sum": "blocks.base",
+    "Recording": "data.recording", "load": "data.recording",
     "AlgebraicLoopError": "errors", "ConfigError": "errors", "DataError": "errors", "DimensionError": "errors",
     "PortError": "errors", "RcoError": "errors",
-    "RCOEstimator": "estimator",
+    "RCOEstimator": "estimator.rco",
     "Graph": "graph",
-    "LTI": "lti", "zoh": "lti",
-    "MarkovRefresh": "nonlinear", "Nonlinear": "nonlinear",
-    "RefinementResult": "refine", "refine": "refine",
+    "LTI": "blocks.lti", "zoh": "blocks.lti",
+    "MarkovRefresh": "blocks.nonlinear", "Nonlinear": "blocks.nonlinear",
+    "RefinementResult": "run.refine", "refine": "run.refine",
     "derive_markov": "refinement", "refinement": "refinement",
-    "rls_update": "rls",
-    "Recorded": "sources", "WhiteNoise": "sources",
-    "ChangeDetector": "tracking", "ResetOnChange": "tracking", "at_step": "tracking",
-    "Validation": "validation", "validate": "validation",
+    "rls_update": "engine.rls",
+    "Recorded": "blocks.sources", "WhiteNoise": "blocks.sources",
+    "ChangeDetector": "estimator.tracking", "ResetOnChange": "estimator.tracking", "at_step": "estimator.tracking",
+    "Validation": "verdict.validation", "validate": "verdict.validation",
 }
+
+# The public submodules that live in a subpackage: rcotorch.<name> imports rcotorch.<path>.
+_SUBMODULES = {"datasets": "data.datasets", "features": "blocks.features", "rng": "engine.rng",
+               "scenario": "run.scenario"}
 
 __all__ = [
     "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "ConfigError", "DataError", "datasets",
@@ -44,6 +48,10 @@ __all__ = [
 def __getattr__(name: str):
     if name in _DEFINED_IN:
         value = getattr(importlib.import_module(f"{__name__}.{_DEFINED_IN[name]}"), name)
+        globals()[name] = value
+        return value
+    if name in _SUBMODULES:
+        value = importlib.import_module(f"{__name__}.{_SUBMODULES[name]}")
         globals()[name] = value
         return value
     if not name.startswith("__"):
@@ -73,17 +81,20 @@ class _Package(types.ModuleType):
 sys.modules[__name__].__class__ = _Package
 
 if TYPE_CHECKING:
-    from . import datasets, features, models, rng
-    from .blocks import Block, Gain, StaticMap, Sum
-    from .data import Recording, load
+    from . import models
+    from .blocks import features
+    from .blocks.base import Block, Gain, StaticMap, Sum
+    from .blocks.lti import LTI, zoh
+    from .blocks.nonlinear import MarkovRefresh, Nonlinear
+    from .blocks.sources import Recorded, WhiteNoise
+    from .data import datasets
+    from .data.recording import Recording, load
+    from .engine import rng
+    from .engine.rls import rls_update
     from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
-    from .estimator import RCOEstimator
+    from .estimator.rco import RCOEstimator
+    from .estimator.tracking import ChangeDetector, ResetOnChange, at_step
     from .graph import Graph
-    from .lti import LTI, zoh
-    from .nonlinear import MarkovRefresh, Nonlinear
-    from .refine import RefinementResult, refine
     from .refinement import derive_markov, refinement
-    from .rls import rls_update
-    from .sources import Recorded, WhiteNoise
-    from .tracking import ChangeDetector, ResetOnChange, at_step
-    from .validation import Validation, validate
+    from .run.refine import RefinementResult, refine
+    from .verdict.validation import Validation, validate

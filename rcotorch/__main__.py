@@ -1,7 +1,7 @@
-"""``python -m rcotorch``: the command line (see ``rcotorch.cli``)."""
+"""``python -m rcotorch``: the command line (see ``rcotorch.run.cli``)."""
 
 import sys
 
-from .cli import main
+from .run.cli import main
 
 sys.exit(main())

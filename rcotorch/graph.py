@@ -25,11 +25,11 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 import torch
 from torch import nn
 
-from . import kernels, lowering, memo
-from .blocks import DEFAULT_DTYPE, Block
-from .data import same_sample_time
+from .blocks.base import DEFAULT_DTYPE, Block
+from .blocks.sources import Recorded
+from .data.recording import same_sample_time
+from .engine import kernels, lowering, memo
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError
-from .sources import Recorded
 
 Signal = tuple[str, str]
 ENGINES = ("auto", "native", "torch")

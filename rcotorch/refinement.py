@@ -15,11 +15,11 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 
-from .blocks import DEFAULT_DTYPE, Block, Sum
+from .blocks.base import DEFAULT_DTYPE, Block, Sum
+from .blocks.lti import LTI
 from .errors import ConfigError, PortError
-from .estimator import RCOEstimator
+from .estimator.rco import RCOEstimator
 from .graph import Graph
-from .lti import LTI
 
 
 def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = None,

@@ -68,7 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario
+from rcotorch.run.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -223,9 +223,9 @@ class RlcCircuit(Scenario):
         return out
 
     def figures(self, g, s):
-        from rcotorch.figures import frequency_figure
-        from rcotorch.intervals import member_band
         from rcotorch.models.circuits import series_rlc
+        from rcotorch.run.figures import frequency_figure
+        from rcotorch.verdict.intervals import member_band
         omega = np.logspace(1, np.log10(np.pi / s["Ts"]), 400)
         L0, C0, R0 = initial_values(s)
         est = {k: float(v[0]) for k, v in self.estimates(g, s).items()}

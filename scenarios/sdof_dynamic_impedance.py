@@ -19,7 +19,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario
+from rcotorch.run.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -89,18 +89,18 @@ class SdofDynamicImpedance(Scenario):
         return {"dc_gain": ident.dc_gain()[:, 0, 0], **{k: mags[:, i] for i, k in enumerate(freqs)}}
 
     def omega(self, s):
-        from rcotorch.analysis import log_grid
+        from rcotorch.estimator.analysis import log_grid
         return log_grid(s["Ts"], 1e-2, s["n_freq"])
 
     def metrics(self, g, s):
-        from rcotorch.analysis import frequency_error
+        from rcotorch.estimator.analysis import frequency_error
         return {"freq_rel_err_max": frequency_error(g.role("estimator"), self.truth_tf(s), self.omega(s))}
 
     def figures(self, g, s):
         import torch
 
-        from rcotorch.figures import frequency_figure
-        from rcotorch.intervals import band
+        from rcotorch.run.figures import frequency_figure
+        from rcotorch.verdict.intervals import band
         w = self.omega(s)
         est = g.role("estimator")
         ident = est.frequency_response(w)[0, :, 0, 0].cpu().numpy()

@@ -15,7 +15,7 @@ dC = -theta_v; nc >= 1 gives a strictly proper controller of order nc and dK, dC
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import Requirement, Scenario, member_values
 
 NOISE_SEED = 7919       # the measurement noise of member b draws the stream (seed + NOISE_SEED, b)
 
@@ -23,7 +23,7 @@ NOISE_SEED = 7919       # the measurement noise of member b draws the stream (se
 def noise_std(s, truth_system) -> list[float] | float:
     """Std of the measurement noise: s['noise'] times the rms of y (w of std w_std), per member where a setting
     differs between members (``truth_system(member settings)``: the discrete python-control system w -> y)."""
-    from rcotorch.analysis import white_noise_rms
+    from rcotorch.estimator.analysis import white_noise_rms
 
     def std(member) -> float:
         return member["noise"] * float(white_noise_rms(truth_system(member), member["w_std"])[0])

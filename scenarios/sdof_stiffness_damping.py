@@ -4,7 +4,7 @@ As ``sdof-stiffness`` with K=0.7, dK=-0.4, C=0.4, dC=0.5 and the seed's tuning: 
 subsystem of order nc = 1 on [x, x'], p0 = 1e6, 15 Markov parameters; dK and dC are minus its DC gains.
 """
 
-from rcotorch.scenario import Requirement
+from rcotorch.run.scenario import Requirement
 
 from .sdof_stiffness import SdofStiffness
 

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import Requirement, Scenario, member_values
 
 from .sdof_stiffness import noise_seed
 

@@ -1,7 +1,7 @@
 """Real measured data: the Silverbox benchmark (an electronic Duffing oscillator), cubic spring refined by RCMR.
 
 Data: ``SNLS80mV.csv`` of the Silverbox benchmark (Wigren and Schoukens, ECC 2013), obtained by
-``rcotorch.datasets.silverbox_files`` (downloaded once and verified, or a local copy in ``$RCOTORCH_SILVERBOX``;
+``rcotorch.data.datasets.silverbox_files`` (downloaded once and verified, or a local copy in ``$RCOTORCH_SILVERBOX``;
 docs/data.md); setting ``data`` names another file. Input w = V1 (volts), output y = V2 (volts, the "position"),
 fs = 1e7 / 2^14 Hz.
 
@@ -52,7 +52,7 @@ import numpy as np
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError, DataError
-from rcotorch.scenario import Requirement, Scenario
+from rcotorch.run.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
     import torch

@@ -57,7 +57,7 @@ import numpy as np
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import Requirement, Scenario, member_values
 
 if TYPE_CHECKING:
     import torch

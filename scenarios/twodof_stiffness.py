@@ -63,7 +63,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.scenario import Requirement, Scenario
+from rcotorch.run.scenario import Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -179,8 +179,8 @@ class TwoDofStiffness(Scenario):
         return {"freq_rel_err_max": torch.tensor(errs)}
 
     def figures(self, g, s):
-        from rcotorch.figures import frequency_figure
-        from rcotorch.intervals import member_band
+        from rcotorch.run.figures import frequency_figure
+        from rcotorch.verdict.intervals import member_band
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         bands = None
         cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals

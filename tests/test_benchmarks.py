@@ -9,9 +9,9 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import rng
-from rcotorch import scenario as scenarios
-from rcotorch.sources import _normal_grid
+from rcotorch.blocks.sources import _normal_grid
+from rcotorch.engine import rng
+from rcotorch.run import scenario as scenarios
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import csv_memory  # noqa: E402

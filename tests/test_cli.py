@@ -21,8 +21,8 @@ import torch
 from conftest import wait_for
 
 import rcotorch
-from rcotorch.cli import Session, main
-from rcotorch.outputs import MANIFEST, load_checkpoint
+from rcotorch.run.cli import Session, main
+from rcotorch.run.outputs import MANIFEST, load_checkpoint
 
 QUICK = ["--steps", "300", "--quiet", "--no-figures"]
 
@@ -244,11 +244,11 @@ def test_resume_refuses_what_it_cannot_honour(name, args, message, tmp_path, cap
 
 
 def test_internal_error_exits_3_with_one_line_and_the_traceback_in_the_log(tmp_path, monkeypatch, capsys):
-    import rcotorch.runner
+    import rcotorch.run.runner
 
     def broken(self):
         raise RuntimeError("something inside broke")
-    monkeypatch.setattr(rcotorch.runner.Run, "_log", broken)
+    monkeypatch.setattr(rcotorch.run.runner.Run, "_log", broken)
     out = tmp_path / "run"
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 3
     err = capsys.readouterr().err

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import compiled
+from rcotorch.engine import compiled
 from rcotorch.refinement import refinement
 
 pytest.importorskip("numba")
@@ -207,7 +207,7 @@ def test_a_markov_refresh_of_a_numpy_known_model_runs_natively_between_refreshes
 _CACHED_RUN = """
 import numpy as np
 import rcotorch as rt
-from rcotorch import compiled
+from rcotorch.engine import compiled
 K = {k}
 def spring(x, ins):
     return np.concatenate((x[:, 1:2], -K * x[:, 0:1] + ins["w"]), axis=1)

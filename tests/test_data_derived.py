@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import rcotorch as rt
-from rcotorch.data import derivative, difference, function
+from rcotorch.data.recording import derivative, difference, function
 
 
 def _rec(dt=0.01, n=2000, **columns):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import rcotorch as rt
-from rcotorch.data import CSV_CHUNK_ROWS
+from rcotorch.data.recording import CSV_CHUNK_ROWS
 
 
 def _write(tmp_path, text, name="d.csv"):

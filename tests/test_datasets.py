@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import rcotorch as rt
-from rcotorch import datasets
+from rcotorch.data import datasets
 
 FILES = ("SNLS80mV.csv", "Schroeder80mV.csv")
 
@@ -158,7 +158,7 @@ def test_a_damaged_cache_says_to_delete_it(server, no_local):
 
 
 def test_the_scenario_reads_the_data_set(monkeypatch, silverbox_csv, tmp_path):
-    from rcotorch.runner import Run
+    from rcotorch.run.runner import Run
     monkeypatch.setenv("RCOTORCH_SILVERBOX", str(silverbox_csv.parent))
     run = Run("silverbox-cubic-stiffness", steps=10, out=tmp_path / "a")
     assert run.graph.blocks["data"].source == str(silverbox_csv.resolve())

@@ -15,9 +15,9 @@ from torch.utils._pytree import tree_flatten
 from virtual_cuda import virtual_cuda
 
 import rcotorch as rt
-from rcotorch import memo, rls
-from rcotorch import scenario as scenarios
-from rcotorch.runner import Run
+from rcotorch.engine import memo, rls
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
 
 FACTORIES = {torch.tensor, torch.as_tensor, torch.zeros, torch.ones, torch.empty, torch.full, torch.eye,
              torch.arange, torch.linspace, torch.randn, torch.rand}

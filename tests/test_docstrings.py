@@ -1,11 +1,11 @@
 """The public API's docstrings follow numpydoc, and their Parameters sections match the signatures.
 
 The public API: every name in ``rcotorch.__all__``; the public functions and classes of the modules listed there
-(``rcotorch.features``, ``rcotorch.datasets``, ``rcotorch.models`` and its submodules, ``rcotorch.rng``); the
-public methods and properties of each public class, and its ``__call__``, its own and those it inherits from a
-class of the library. A class documents its constructor's parameters in its own docstring. A method that
-overrides a documented one without a docstring of its own inherits that docstring (``inspect.getdoc``), which
-must then fit its signature.
+(``rcotorch.blocks.features``, ``rcotorch.data.datasets``, ``rcotorch.models`` and its submodules,
+``rcotorch.engine.rng``); the public methods and properties of each public class, and its ``__call__``, its own
+and those it inherits from a class of the library. A class documents its constructor's parameters in its own
+docstring. A method that overrides a documented one without a docstring of its own inherits that docstring
+(``inspect.getdoc``), which must then fit its signature.
 
 For each callable the test checks that
 

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels, lowering
+from rcotorch.engine import kernels, lowering
 from rcotorch.errors import ConfigError
 
 pytestmark = pytest.mark.skipif(not kernels.available(), reason=f"no native engine: {kernels.why_unavailable()}")
 
 
-class _Difference(rt.blocks.Block):
+class _Difference(rt.Block):
     """y = a - b, lowered to one SUM instruction written as ``emit`` receives it."""
 
     def __init__(self, emit):

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
+from rcotorch.engine import kernels
 
 DT = 0.1
 OMEGA = np.array([0.0, 0.05, 0.7, 3.0, 9.0, np.pi / DT - 1e-3])

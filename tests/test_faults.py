@@ -23,10 +23,10 @@ import pytest
 import torch
 from conftest import wait_for
 
-import rcotorch.runner
-from rcotorch.cli import Session, main
+import rcotorch.run.runner
 from rcotorch.errors import OutputError
-from rcotorch.outputs import LOCK, MANIFEST, OutputFolder, load_checkpoint, save_checkpoint
+from rcotorch.run.cli import Session, main
+from rcotorch.run.outputs import LOCK, MANIFEST, OutputFolder, load_checkpoint, save_checkpoint
 
 QUICK = ["--steps", "300", "--quiet", "--no-figures"]
 ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -188,13 +188,13 @@ def test_a_full_disk_when_the_folder_is_opened_leaves_nothing_behind(tmp_path, m
 # --- the output folder --------------------------------------------------------------------------------------
 def _at_step(monkeypatch, step: int, action) -> None:
     """Do ``action(out)`` once, when the run reaches ``step``."""
-    original, done = rcotorch.runner.Run._take_snapshot, []
+    original, done = rcotorch.run.runner.Run._take_snapshot, []
 
     def snapshot(self):
         if self.k >= step and not done:
             done.append(action(self.out))
         return original(self)
-    monkeypatch.setattr(rcotorch.runner.Run, "_take_snapshot", snapshot)
+    monkeypatch.setattr(rcotorch.run.runner.Run, "_take_snapshot", snapshot)
 
 
 def test_the_output_folder_deleted_during_a_run_exits_2(tmp_path, monkeypatch, capsys):
@@ -231,7 +231,7 @@ def test_an_oserror_is_exit_2_when_it_names_the_output_folder_and_exit_3_otherwi
 
     def broken(self):
         raise PermissionError(errno.EACCES, "Permission denied", str(path))
-    monkeypatch.setattr(rcotorch.runner.Run, "_log", broken)
+    monkeypatch.setattr(rcotorch.run.runner.Run, "_log", broken)
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == code
     err = _one_line(capsys.readouterr().err)
     if code == 2:

@@ -1,4 +1,4 @@
-"""The feature vocabulary (rcotorch.features): names, checks at build time, and values against NumPy."""
+"""The feature vocabulary (rcotorch.blocks.features): names, checks at build time, and values against NumPy."""
 
 import numpy as np
 import pytest
@@ -54,7 +54,7 @@ def test_mistakes_are_named_when_the_block_is_built():
         F.sign("y0[")
     with pytest.raises(rt.ConfigError, match="given twice"):
         rt.RCOEstimator({"y0": 1}, features=[F.power("y0", 3), F.power("y0", 3)])
-    with pytest.raises(rt.ConfigError, match="rcotorch.features terms"):
+    with pytest.raises(rt.ConfigError, match="rcotorch.blocks.features terms"):
         rt.RCOEstimator({"y0": 1}, features=[F.port("y0"), lambda s: s["y0"]])
 
 

@@ -9,8 +9,8 @@ import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgba
 
-from rcotorch.figures import draw_meanwhile, frequency_figure, log_time_axis, pngs, run_figures, sweep_figures
-from rcotorch.runner import Run
+from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, pngs, run_figures, sweep_figures
+from rcotorch.run.runner import Run
 
 
 def _overlaps(a, b) -> bool:

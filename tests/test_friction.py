@@ -6,8 +6,8 @@ import pytest
 import torch
 from rcotorch.scenarios.mass_friction import friction_law
 
-from rcotorch import scenario as scenarios
-from rcotorch.runner import Run
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
 
 pytest.importorskip("numba")
 

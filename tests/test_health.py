@@ -9,9 +9,9 @@ import torch
 
 import rcotorch as rt
 from rcotorch import ConfigError
-from rcotorch import scenario as scenarios
-from rcotorch.health import STATUSES, Criteria, Health, Reason, check_every
-from rcotorch.runner import Run
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
+from rcotorch.verdict.health import STATUSES, Criteria, Health, Reason, check_every
 
 
 def _clean_theta(tmp_path, name, **kw):
@@ -242,7 +242,7 @@ def test_a_million_steps_with_forgetting_and_weak_excitation_end_classified_and_
 def test_the_bounds_kernel_gives_each_reason_as_the_pytorch_checks_do():
     """One member per case, with its reason worked out by hand: the compiled checks and the PyTorch ones (the
     reference, run with the kernels disabled) give the same codes, precedence included."""
-    from rcotorch import kernels
+    from rcotorch.engine import kernels
     sc = scenarios.get("sdof-stiffness")
     g = sc.build(sc.resolve(), 9, torch.float64, "cpu")
     health = Health(g, 1000)
@@ -283,7 +283,7 @@ def test_the_bounds_kernel_gives_each_reason_as_the_pytorch_checks_do():
 
 def test_the_window_gram_kernel_sums_the_regressors_outer_products():
     """sum_w x x^T over the rows of a (W, B, m) window, x the first n entries, against numpy."""
-    from rcotorch import kernels
+    from rcotorch.engine import kernels
     rng = np.random.default_rng(3)
     win = torch.from_numpy(rng.standard_normal((7, 300, 5)))
     gram = kernels.window_gram(win, 3)

@@ -9,8 +9,8 @@ import scipy.stats
 import torch
 
 import rcotorch as rt
-from rcotorch.runner import Run, health_line
-from rcotorch.scenario import Requirement
+from rcotorch.run.runner import Run, health_line
+from rcotorch.run.scenario import Requirement
 
 
 def _regression_graph(theta_true, noise_std, seed=5, p0=1e8):
@@ -154,7 +154,7 @@ def test_intervals_cover_the_truth_at_their_level_over_200_seeds(name, tmp_path)
 def test_a_graph_run_resumed_inside_its_window_gives_the_same_intervals_and_checks(tmp_path):
     """The state at the window's start travels in the checkpoint: a Python graph's run stopped inside the
     convergence window and resumed (with its scenario object) ends with the same intervals and residual checks."""
-    from rcotorch.refine import GraphScenario
+    from rcotorch.run.refine import GraphScenario
 
     def graph():
         known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.8, 0.6, sees=["position", "velocity"]),
@@ -181,7 +181,7 @@ def test_a_graph_run_resumed_inside_its_window_gives_the_same_intervals_and_chec
 def test_residuals_that_are_not_white_are_said_beside_the_verdict(tmp_path):
     """A continuous truth without noise leaves z = the discretization's mismatch, a colored signal: the
     whiteness test fails and the verdict line says so; a discrete truth with white noise passes."""
-    from rcotorch.runner import result_table
+    from rcotorch.run.runner import result_table
 
     colored = Run("sdof-stiffness", steps=3000, out=tmp_path / "c")
     colored.advance(progress=False)

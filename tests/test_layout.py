@@ -9,8 +9,13 @@ from pathlib import Path
 import rcotorch
 
 ROOT = Path(rcotorch.__file__).resolve().parent
-CORE_BELOW_MODELS = {"blocks", "estimator", "graph", "kernels", "lowering", "rls", "sources", "lti", "features",
-                     "parameter_map", "transfer"}
+# The packages and top-level modules, by level: each imports only from levels below its own (the package's
+# __init__, which re-exports the public names lazily, is the facade above them all).
+LAYERS = {"errors": 0, "engine": 1, "data": 1, "blocks": 2, "verdict": 2, "estimator": 3, "graph": 3, "models": 3,
+          "refinement": 4, "run": 5, "__main__": 6}
+CORE_BELOW_MODELS = {"blocks.base", "blocks.lti", "blocks.nonlinear", "blocks.sources", "blocks.features",
+                     "estimator.rco", "estimator.parameter_map", "estimator.transfer", "graph", "engine.kernels",
+                     "engine.lowering", "engine.rls"}
 
 
 def _modules() -> dict[str, Path]:
@@ -105,7 +110,7 @@ def test_the_circle_finder_finds_a_planted_circle():
 
 def test_no_import_circle_at_module_level_or_inside_functions():
     mods = _modules()
-    assert "rcotorch.kernels" in mods and "rcotorch.estimator" in mods
+    assert "rcotorch.engine.kernels" in mods and "rcotorch.estimator.rco" in mods
     for lazy in (False, True):
         graph = _imports(mods, lazy)
         # the package itself re-exports everything; a module importing `rcotorch` is an edge to all of it
@@ -115,7 +120,22 @@ def test_no_import_circle_at_module_level_or_inside_functions():
 def test_kernels_are_at_the_bottom_and_the_core_does_not_import_the_models():
     mods = _modules()
     graph = _imports(mods, lazy=True)
-    assert graph["rcotorch.kernels"] == set()
+    assert graph["rcotorch.engine.kernels"] == set()
     for name in CORE_BELOW_MODELS:
         deps = graph[f"rcotorch.{name}"]
         assert not any(d.startswith(("rcotorch.models", "rcotorch.scenarios")) for d in deps), (name, deps)
+
+
+def test_every_package_imports_only_from_the_levels_below_it():
+    mods = _modules()
+    graph = _imports(mods, lazy=True)
+
+    def part(module: str) -> str:
+        parts = module.split(".")
+        return parts[1] if len(parts) > 1 else "rcotorch"
+
+    found = {part(m) for m in mods} - {"rcotorch"}
+    assert found == set(LAYERS), f"packages without a level: {found - set(LAYERS)}; gone: {set(LAYERS) - found}"
+    upwards = sorted((m, d) for m, deps in graph.items() if part(m) != "rcotorch" for d in deps
+                     if part(d) not in ("rcotorch", part(m)) and LAYERS[part(d)] >= LAYERS[part(m)])
+    assert upwards == [], f"imports that do not go down a level: {upwards}"

@@ -1,8 +1,8 @@
-"""rcotorch.memo: a derived value is made again exactly when one of its tensors changed."""
+"""rcotorch.engine.memo: a derived value is made again exactly when one of its tensors changed."""
 
 import torch
 
-from rcotorch import memo
+from rcotorch.engine import memo
 
 
 class Owner:

@@ -21,10 +21,10 @@ from tensorboard.plugins.custom_scalar import layout_pb2
 from tensorboard.plugins.hparams import metadata as hp_metadata
 from tensorboard.util import tensor_util
 
-from rcotorch import monitor
-from rcotorch import sweep as sweeps
-from rcotorch.outputs import load_checkpoint
-from rcotorch.runner import Run
+from rcotorch.run import monitor
+from rcotorch.run import sweep as sweeps
+from rcotorch.run.outputs import load_checkpoint
+from rcotorch.run.runner import Run
 
 
 def _log_steps(every: int, last: int) -> list[int]:
@@ -113,7 +113,7 @@ def test_engineering_notation_puts_the_size_in_one_to_a_thousand():
 
 
 def test_each_estimate_is_sized_by_its_scenario_so_every_run_writes_the_same_tags():
-    import rcotorch.scenario as scenarios
+    import rcotorch.run.scenario as scenarios
     rlc = monitor.estimate_scales(scenarios.get("rlc-circuit"), ["L", "C", "R"], {"C": 1e-3})
     assert {k: s.unit for k, s in rlc.items()} == {"L": "mH", "C": "uF", "R": "ohm"}   # the defaults' truths
     sdof = monitor.estimate_scales(scenarios.get("sdof-stiffness"), ["dK", "dC"])

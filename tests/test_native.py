@@ -1,4 +1,5 @@
-"""The native engine (rcotorch.lowering, rcotorch._engine): a graph lowered to C and run many steps per call.
+"""The native engine (rcotorch.engine.lowering, rcotorch.engine._engine): a graph lowered to C and run many
+steps per call.
 
 It must do what the PyTorch engine does, to rounding: every lowered block and estimator option is run on
 both engines from the same state and compared. Independent references for the engine itself: the NumPy loop
@@ -16,8 +17,8 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels, lowering
-from rcotorch import scenario as scenarios
+from rcotorch.engine import kernels, lowering
+from rcotorch.run import scenario as scenarios
 
 pytestmark = pytest.mark.skipif(not kernels.available(), reason=f"no native engine: {kernels.why_unavailable()}")
 
@@ -204,7 +205,7 @@ def test_recorded_data_with_gaps():
     y = control.forced_response(sysd, U=w).outputs
     values = np.stack([w, y], 1)
     values[[50, 51, 200], 1] = np.nan
-    rec = rt.data.Recording(np.nan_to_num(values), ["w", "y"], DT, valid=np.isfinite(values))
+    rec = rt.Recording(np.nan_to_num(values), ["w", "y"], DT, valid=np.isfinite(values))
 
     def build():
         G = rt.models.sdof(1.0, 0.6, 1.5, measured=["velocity"], sees=["velocity"])
@@ -412,7 +413,7 @@ def test_runs_stay_native_without_a_compiler_on_path(tmp_path):
     env = dict(os.environ, CC=str(tmp_path / "no-such-compiler"), PATH=str(tmp_path))
     out = _subprocess("""
         import torch
-        from rcotorch import scenario as scenarios
+        from rcotorch.run import scenario as scenarios
         sc = scenarios.get("sdof-stiffness")
         g = sc.build(sc.resolve(), 2, torch.float64, "cpu")
         g.advance(50)
@@ -426,9 +427,9 @@ def test_without_the_compiled_engine_one_warning_and_the_same_results():
     PyTorch, and the results of the native engine to rounding."""
     out = _subprocess("""
         import sys, warnings
-        sys.modules["rcotorch._engine"] = None          # as if it had not been built
+        sys.modules["rcotorch.engine._engine"] = None          # as if it had not been built
         import torch
-        from rcotorch import scenario as scenarios
+        from rcotorch.run import scenario as scenarios
         sc = scenarios.get("sdof-stiffness-damping")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -599,7 +600,7 @@ def test_large_recording_buffers_are_backed_by_huge_pages():
     assert small.shape == (3, 2) and small.dtype == torch.float64
 
 
-class _NoisySystem(rt.blocks.Block):
+class _NoisySystem(rt.Block):
     """A composite block of a user's: a system (input w, output y) plus white noise on y, lowered by inlining
     both inside it."""
 

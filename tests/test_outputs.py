@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from rcotorch.errors import CheckpointError, OutputError
-from rcotorch.outputs import LOCK, MANIFEST, OutputFolder, atomic_write, load_checkpoint, save_checkpoint
+from rcotorch.run.outputs import LOCK, MANIFEST, OutputFolder, atomic_write, load_checkpoint, save_checkpoint
 
 
 def _files(path):
@@ -72,7 +72,7 @@ def test_out_that_is_a_file_is_refused(tmp_path):
 
 HOLD = textwrap.dedent("""
     import sys, time
-    from rcotorch.outputs import OutputFolder
+    from rcotorch.run.outputs import OutputFolder
     folder = OutputFolder(sys.argv[1], "run").open("new")
     print("locked", flush=True)
     time.sleep(60)
@@ -136,7 +136,7 @@ def test_checkpoint_round_trip_and_every_damage_is_named(tmp_path):
 
 KILLED_WRITER = textwrap.dedent("""
     import os, sys, torch
-    from rcotorch.outputs import save_checkpoint
+    from rcotorch.run.outputs import save_checkpoint
     class Boom:
         def __reduce__(self):   # runs in the middle of torch.save, after part of the file is written
             os._exit(9)

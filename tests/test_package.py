@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from rcotorch import scenario as scenarios
-from rcotorch.cli import main
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 LEFT_OUT = shutil.ignore_patterns(".git", ".venv", "runs", "build", "dist", "*.egg-info", "__pycache__",
@@ -55,7 +55,7 @@ def test_wheel_lists_shows_and_runs_every_scenario_from_another_folder(installed
     venv, kw = installed
     where = _sh(venv / "bin" / "python", "-c", "import rcotorch; print(rcotorch.__file__)", **kw).stdout
     assert str(venv) in where and str(ROOT) not in where            # the installed copy, not the checkout
-    engine = _sh(venv / "bin" / "python", "-c", "import rcotorch._engine as e; print(e.__file__)", **kw).stdout
+    engine = _sh(venv / "bin" / "python", "-c", "import rcotorch.engine._engine as e; print(e.__file__)", **kw).stdout
     assert str(venv) in engine                                       # the wheel carries the compiled engine
     listed = _sh(venv / "bin" / "rcotorch", "list", **kw).stdout
     names = sorted(line.split()[0] for line in listed.splitlines())

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch.parameter_map import ParameterMap
+from rcotorch.estimator.parameter_map import ParameterMap
 
 
 def _tied():

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
+from rcotorch.engine import kernels
 
 
 @pytest.fixture(autouse=True, params=["torch", "native"])

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
+from rcotorch.engine import kernels
 
 pytestmark = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built here")
 

@@ -6,7 +6,7 @@ import torch
 from scipy import stats
 
 import rcotorch as rt
-from rcotorch import rng
+from rcotorch.engine import rng
 
 
 def _draw(block, steps):

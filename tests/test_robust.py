@@ -138,7 +138,7 @@ def _sdof_data(gap: slice, steps=20000):
     values = np.stack([w, y], 1)
     valid = np.ones_like(values, dtype=bool)
     values[gap, 0], valid[gap, 0] = np.nan, False
-    rec = rt.data.Recording(values, ["w", "y"], Ts, valid=valid)
+    rec = rt.Recording(values, ["w", "y"], Ts, valid=valid)
     return known, rec
 
 
@@ -175,7 +175,7 @@ def test_holdoff_marks_samples_after_an_input_gap():
 # --- the options as scenario settings ------------------------------------------------------------------------
 
 def _estimator(name, batch=1, members=None, **overrides):
-    from rcotorch import scenario
+    from rcotorch.run import scenario
     sc = scenario.get(name)
     s = sc.resolve_members(overrides, members) if members else sc.resolve(overrides)
     return sc.build(s, batch, torch.float64, "cpu")
@@ -183,7 +183,7 @@ def _estimator(name, batch=1, members=None, **overrides):
 
 @pytest.mark.parametrize("name", ["sdof-stiffness", "sdof-stiffness-damping", "rlc-circuit", "twodof-stiffness"])
 def test_every_scenario_offers_the_options_off_by_default(name):
-    from rcotorch import scenario
+    from rcotorch.run import scenario
     sc = scenario.get(name)
     assert {k: sc.settings[k] for k in ("r_delta", "normalize", "p_max")} == dict(r_delta=0.0, normalize=0.0, p_max=0.0)
     assert "r_delta" in sc.per_member and "normalize" not in sc.per_member
@@ -197,7 +197,7 @@ def test_options_set_as_settings_reach_the_estimator_and_run_as_if_built_with_th
     assert float(est.rd_sqrt) == pytest.approx(0.5 ** 0.5) and float(est.norm_inv_s2) == 0.25
     assert float(est.p_max) == 30.0
     # the same graph built with the options on the estimator itself gives the same run, bit for bit
-    from rcotorch import scenario
+    from rcotorch.run import scenario
     sc = scenario.get("sdof-stiffness")
     s = sc.resolve()
     known = rt.LTI.continuous(*rt.models.sdof_matrices(s["m"], s["C"], s["K"], sees=["position", "velocity"]),
@@ -221,7 +221,7 @@ def test_penalty_may_differ_between_members_and_zero_is_no_penalty():
 
 
 def test_options_run_from_the_command_line_and_are_refused_when_out_of_range(tmp_path):
-    from rcotorch.runner import Run
+    from rcotorch.run.runner import Run
     with Run("sdof-stiffness", steps=500, out=tmp_path / "a", overrides={"p_max": "100", "normalize": "0.01"}) as run:
         run.advance(progress=False)
         assert run.summary()["settings"]["p_max"] == 100.0

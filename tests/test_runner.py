@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from rcotorch import ConfigError
-from rcotorch.cli import main
 from rcotorch.errors import CheckpointError
-from rcotorch.runner import Run
+from rcotorch.run.cli import main
+from rcotorch.run.runner import Run
 
 
 def test_cli_run_writes_summary_events_and_figures(tmp_path, capsys):
@@ -142,7 +142,7 @@ def test_a_diverging_member_is_frozen_and_reported(tmp_path):
 def test_a_checkpoint_of_another_format_is_refused_with_exit_2(tmp_path, capsys):
     """A checkpoint written with the doubled regressor ring (format 2) does not fit this version's state: a
     resume refuses it, naming the file and its format, and leaves it as it was."""
-    from rcotorch.outputs import load_checkpoint, save_checkpoint
+    from rcotorch.run.outputs import load_checkpoint, save_checkpoint
     run = Run("sdof-stiffness", steps=40, out=tmp_path / "old")
     run.advance(progress=False)
     path = run.save()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 _RUNS: dict = {}
 

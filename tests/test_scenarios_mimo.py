@@ -13,7 +13,7 @@ import scipy.signal
 import torch
 
 from rcotorch.models.circuits import series_rlc
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 
 @contextlib.contextmanager

@@ -13,9 +13,9 @@ import scipy.signal
 import torch
 
 import rcotorch as rt
-from rcotorch import scenario as scenarios
 from rcotorch.models.identification import MassSpringDamper, rmse
-from rcotorch.runner import Run
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
 
 DATA_DOC = Path(__file__).resolve().parents[1] / "docs" / "data.md"
 
@@ -198,7 +198,7 @@ def test_missing_data_file_is_a_clear_error(tmp_path):
     with pytest.raises(rt.DataError, match=r"data file .*nope\.csv not found.*--set data=PATH"):
         Run("silverbox-cubic-stiffness", out=tmp_path, overrides={"data": str(tmp_path / "nope.csv")})
     sc = scenarios.get("silverbox-cubic-stiffness")
-    assert sc.settings["data"] == "silverbox"                   # the data set of rcotorch.datasets
+    assert sc.settings["data"] == "silverbox"                   # the data set of rcotorch.data.datasets
     s = sc.resolve({"data": "my.csv", "fit_stop": "3000", "foh": "false"})
     assert s["data"] == "my.csv" and s["fit_stop"] == 3000 and s["foh"] is False
 

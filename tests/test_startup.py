@@ -53,26 +53,26 @@ def test_import_rcotorch_loads_no_heavy_package_and_offers_every_name():
 
 
 def test_every_public_name_resolves_to_its_definition():
-    import rcotorch.data
+    import rcotorch.blocks.sources
+    import rcotorch.data.recording
     import rcotorch.graph
-    import rcotorch.sources
     for name in rt.__all__:
         assert getattr(rt, name) is not None, name
-    assert rt.Graph is rcotorch.graph.Graph and rt.load is rcotorch.data.load
-    assert rt.WhiteNoise is rcotorch.sources.WhiteNoise
-    assert rt.models.__name__ == "rcotorch.models" and rt.rng.__name__ == "rcotorch.rng"
-    assert rt.features.__name__ == "rcotorch.features" and rt.datasets.__name__ == "rcotorch.datasets"
+    assert rt.Graph is rcotorch.graph.Graph and rt.load is rcotorch.data.recording.load
+    assert rt.WhiteNoise is rcotorch.blocks.sources.WhiteNoise
+    assert rt.models.__name__ == "rcotorch.models" and rt.rng.__name__ == "rcotorch.engine.rng"
+    assert rt.features.__name__ == "rcotorch.blocks.features" and rt.datasets.__name__ == "rcotorch.data.datasets"
     with pytest.raises(AttributeError, match="no attribute 'Grahp'"):
         rt.Grahp  # noqa: B018
 
 
 def test_refine_and_refinement_stay_functions_when_their_modules_are_imported():
-    """``rcotorch.refine`` and ``rcotorch.refinement`` are functions named like the modules that define them."""
-    code = ("import rcotorch.refine, rcotorch.refinement, rcotorch as rt, inspect; "
+    """``rcotorch.run.refine`` and ``rcotorch.refinement`` are functions named like the modules that define them."""
+    code = ("import rcotorch.run.refine, rcotorch.refinement, rcotorch as rt, inspect; "
             "print(inspect.isfunction(rt.refine), inspect.isfunction(rt.refinement), "
             "rt.refine.__module__, rt.refinement.__module__)")
     _, out = _imported(code=code)
-    assert out.split() == ["True", "True", "rcotorch.refine", "rcotorch.refinement"]
+    assert out.split() == ["True", "True", "rcotorch.run.refine", "rcotorch.refinement"]
 
 
 def test_a_user_scenario_that_imports_torch_at_the_top_lists_and_shows(tmp_path):

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from rcotorch import ConfigError
-from rcotorch.cli import main
-from rcotorch.runner import Run
-from rcotorch.sweep import Sweep, run_sweep
+from rcotorch.run.cli import main
+from rcotorch.run.runner import Run
+from rcotorch.run.sweep import Sweep, run_sweep
 
 SPEC = dict(scenario="sdof-stiffness-damping", steps=400, seeds=[5, 9], shard_size=3,
             grid={"dK": [-0.4, 0.3], "Ts": [0.01, 0.02]}, random={"dC": {"uniform": [0.0, 1.0]}}, samples=1,
@@ -163,7 +163,7 @@ class _Deterministic:
         import numpy as np
 
         import rcotorch as rt
-        from rcotorch.scenario import Scenario
+        from rcotorch.run.scenario import Scenario
 
         class Replay(Scenario):
             name = "replay-gain"

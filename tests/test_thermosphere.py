@@ -9,7 +9,7 @@ import torch
 
 import rcotorch as rt
 from rcotorch.models import thermosphere as th
-from rcotorch.runner import Run
+from rcotorch.run.runner import Run
 
 F64 = torch.float64
 

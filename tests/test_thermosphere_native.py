@@ -15,9 +15,9 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
-from rcotorch import scenario as scenarios
+from rcotorch.engine import kernels
 from rcotorch.models import thermosphere as th
+from rcotorch.run import scenario as scenarios
 
 pytestmark = pytest.mark.skipif(not kernels.available() or importlib.util.find_spec("numba") is None,
                                 reason="no native engine or no numba")
@@ -167,7 +167,7 @@ def test_a_column_advanced_one_step_at_a_time_keeps_its_program(monkeypatch):
     """The rows a column records move to its history on the Python side between calls of the engine; the
     program does not read the history, so advancing step by step (as a run that logs every step does) lowers the
     graph again only where the Markov refresh changed the estimator's parameters."""
-    from rcotorch import lowering
+    from rcotorch.engine import lowering
     _, g = _pair(_settings())
     calls = []
     real = lowering._lower

@@ -12,10 +12,10 @@ import torch
 from scipy.signal import lfilter
 
 import rcotorch as rt
-from rcotorch import scenario as scenarios
 from rcotorch.errors import ConfigError
 from rcotorch.models import thermosphere as th
-from rcotorch.runner import Run
+from rcotorch.run import scenario as scenarios
+from rcotorch.run.runner import Run
 
 F64 = torch.float64
 NAME = "thermosphere-no-cooling"

@@ -1,4 +1,5 @@
-"""Change detection and tracking (rcotorch.tracking): the CUSUM against a plain loop of its equations, its false
+"""Change detection and tracking (rcotorch.estimator.tracking): the CUSUM against a plain loop of its equations,
+its false
 alarms on white noise, the covariance restart per member on both engines, and a change of the truth at a step."""
 
 import numpy as np
@@ -6,9 +7,9 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch import kernels
-from rcotorch.runner import Run
-from rcotorch.tracking import FIRST, LAST, PENDING, G
+from rcotorch.engine import kernels
+from rcotorch.estimator.tracking import FIRST, LAST, PENDING, G
+from rcotorch.run.runner import Run
 
 needs_native = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built")
 
@@ -236,7 +237,7 @@ def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
     alarmed = values(".", "detection/detector alarmed members [%]")
     assert all(v == 0.0 for k, v in alarmed.items() if k <= 2000) and alarmed[max(alarmed)] == 100.0
 
-    from rcotorch.figures import run_figures
+    from rcotorch.run.figures import run_figures
     figs = run_figures(result.run)
     ax = figs["estimates"].axes[0]
     lines = {line.get_label(): line for line in ax.get_lines()}

@@ -1,4 +1,4 @@
-"""Tuning from held-out data (rcotorch.tune): ranking over seeds, the sensitivity table, best.toml, a search
+"""Tuning from held-out data (rcotorch.run.tune): ranking over seeds, the sensitivity table, best.toml, a search
 that recovers a scenario's requirements from a deliberately poor start without looking at the truth, TPE rounds
 of batched candidates (resumable), and the Ray backend."""
 
@@ -8,7 +8,7 @@ import tomllib
 import pytest
 
 from rcotorch.errors import ConfigError, OutputError
-from rcotorch.tune import Tuning, best_toml, rank, run_tune, sensitivity_table
+from rcotorch.run.tune import Tuning, best_toml, rank, run_tune, sensitivity_table
 
 
 def _row(p0, nu, seed, score, diverged=False):
@@ -53,7 +53,7 @@ def test_a_tuning_config_is_checked():
 def test_tune_recovers_the_requirements_from_a_poor_start_on_held_out_data_only(tmp_path):
     """sdof-stiffness from p0 = 1 (too small to move theta in 3000 steps): the search over p0 picks a value whose
     run meets the scenario's requirements on the truth, which the search never read."""
-    from rcotorch.runner import Run
+    from rcotorch.run.runner import Run
     t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1.0, 10.0, 1e3, 1e5]}, seeds=2,
                steps=3000, fixed={"dC": 0.0})
     result = run_tune(t, out=tmp_path / "tune", progress=False)
@@ -80,7 +80,7 @@ class _Room:
     @staticmethod
     def scenario():
         import rcotorch as rt
-        from rcotorch.scenario import Scenario
+        from rcotorch.run.scenario import Scenario
 
         class Room(Scenario):
             name = "my-room"
@@ -112,7 +112,7 @@ def test_a_scenario_declared_in_a_script_is_tuned_without_registering_it(tmp_pat
 
 
 def test_a_p0_far_too_small_for_the_regressors_is_named_at_the_end_of_a_run(tmp_path):
-    from rcotorch.runner import Run
+    from rcotorch.run.runner import Run
     warned = []
     for p0 in (1e-3, 1e3):
         run = Run("sdof-stiffness", steps=2000, out=tmp_path / f"p0-{p0}", overrides={"p0": p0}, intervals=False,
@@ -182,7 +182,7 @@ def test_tpe_candidates_are_members_of_batched_runs_and_an_interrupted_search_re
     pytest.importorskip("optuna")
     import json
 
-    from rcotorch.runner import Interrupted
+    from rcotorch.run.runner import Interrupted
     whole = run_tune(Tuning(**TPE), out=tmp_path / "whole", progress=False)
     assert whole.members == 4 and len(whole.candidates) == 4
     scores = {}

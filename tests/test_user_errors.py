@@ -3,7 +3,7 @@
 import pytest
 
 import rcotorch as rt
-from rcotorch import scenario as scenarios
+from rcotorch.run import scenario as scenarios
 
 
 def _known():

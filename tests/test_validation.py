@@ -1,4 +1,4 @@
-"""Held-out validation (rcotorch.validation) against independent simulations (python-control)."""
+"""Held-out validation (rcotorch.verdict.validation) against independent simulations (python-control)."""
 
 import control
 import numpy as np
@@ -7,7 +7,7 @@ import torch
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.validation import validate
+from rcotorch.verdict.validation import validate
 
 TS, K_MODEL, K_TRUE, DAMP, NOISE = 0.01, 4.0, 5.0, 0.4, 0.01
 

@@ -38,9 +38,9 @@ from functools import cached_property
 
 import numpy as np
 
-from ..blocks import DEFAULT_DTYPE
+from ..blocks.base import DEFAULT_DTYPE
+from ..blocks.lti import LTI
 from ..errors import ConfigError, DataError
-from ..lti import LTI
 
 
 def rmse(a, b) -> float:

@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..blocks import DEFAULT_DTYPE
+from ..blocks.base import DEFAULT_DTYPE
+from ..blocks.lti import LTI
 from ..errors import ConfigError
-from ..lti import LTI
 from .structures import vector
 
 if TYPE_CHECKING:

@@ -63,10 +63,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import kernels
-from ..blocks import DEFAULT_DTYPE, Block
+from ..blocks.base import DEFAULT_DTYPE, Block
+from ..blocks.nonlinear import Nonlinear
+from ..engine import kernels
 from ..errors import ConfigError
-from ..nonlinear import Nonlinear
 from .thermosphere_constants import (  # noqa: F401  (the column's constants, also read from here)
     AMU,
     BANDS,

@@ -1,0 +1,2 @@
+"""Measured data: recordings loaded from files, and the public data sets rcotorch obtains itself.
+"""

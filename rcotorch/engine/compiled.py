@@ -1,0 +1,500 @@
+"""A user's own function compiled for the native engine.
+
+A ``StaticMap``'s function, written with NumPy or ``math`` operations, is compiled by numba (``njit``) into a
+C function ``void f(const double *in, double *out, int64 lanes)`` (a numba ``cfunc``) whose address the native
+engine calls once per chunk of members and step (the ``CALL`` instruction: the chunk's inputs slot by slot,
+``(n_in, lanes)``, outputs likewise): no Python runs per step, and an array-form function's arrays are made
+once for the chunk's lanes, not once per member. numba is the usual choice of
+the field for this (an LLVM compiler of NumPy code that can hand out C function pointers); the engine's own C
+code needs nothing from it but the address.
+
+Two forms are tried, the faster first: with one input and one output, the function applied to a float (a
+scalar map such as ``lambda v: -(2 * np.sign(v) + 0.5 * v)``, in a loop over the lanes); otherwise, or when
+that fails, applied to the chunk's (lanes, n) array and returning (lanes, m), as the PyTorch engine calls it
+with a batch. The compiled function
+is checked against the function itself on test inputs before it is used: a function that compiles but
+computes something else (an operation that treats a float and a tensor differently) stays on PyTorch.
+
+What cannot be compiled (torch operations, Python objects, an unsupported NumPy function) runs on the PyTorch
+engine, and the reason names the block, the function and numba's word on the operation. Compilations are
+kept for the process (copies of a graph, a sweep's shards in one process, the intervals' replay reuse them)
+and on disk for later processes (``cache_folder``): each function's wrappers are a small module file named by
+a hash of everything its code depends on, which numba caches beside it; a function whose globals have no
+stable description (an arbitrary object) is compiled in every process. What is loaded from the disk is
+checked like a fresh compilation, and compiled afresh if it does not reproduce the function.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.util
+import os
+import re
+import stat
+import sys
+import threading
+import types
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import DimensionError
+
+PROBES = 64                 # test inputs the compiled function must reproduce
+RTOL = 1e-12
+
+
+@dataclass
+class Compiled:
+    """A compiled function: its C address, the numba object that owns the code, and its form."""
+
+    address: int
+    owner: Any
+    form: str               # 'scalar', 'array' or 'member'
+
+    def __deepcopy__(self, memo) -> Compiled:
+        return self         # compiled code is immutable: copies of a graph (and of its program) share it
+
+
+_cache: dict[tuple, tuple[Any, Compiled | str]] = {}
+_lock = threading.Lock()
+
+
+def call_user(fn, *args):
+    """A user function called with tensors. NumPy's functions applied to a tensor go through its
+    ``__array_wrap__``, whose old signature NumPy 2 warns about at each call; that says nothing to the user."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*__array_wrap__.*", category=DeprecationWarning)
+        return fn(*args)
+
+
+def describe(fn) -> str:
+    """A function's name for messages: its qualified name and where it is defined."""
+    code = getattr(fn, "__code__", None)
+    name = getattr(fn, "__qualname__", None) or type(fn).__name__
+    return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
+
+
+def components(out, n: int, batch: int, dtype, device=None) -> torch.Tensor:
+    """A components-form function's result as a batch (B, n): a sequence of n components (each a (B,) tensor
+    or array, or a number shared by every member), an (n, B) tensor or array, or, for n = 1, one component."""
+    if isinstance(out, (torch.Tensor, np.ndarray)) and out.ndim == 2:
+        parts = list(out)
+    elif isinstance(out, (tuple, list)):
+        parts = list(out)
+    elif n == 1:
+        parts = [out]
+    else:
+        raise DimensionError(f"returned {type(out).__name__}, not a sequence of {n} components")
+    if len(parts) != n:
+        raise DimensionError(f"returned {len(parts)} components, expected {n}")
+    cols = []
+    for c in parts:
+        c = torch.as_tensor(c, dtype=dtype, device=device)
+        if c.dim() > 1 or (c.dim() == 1 and c.shape[0] not in (1, batch)):
+            raise DimensionError(f"returned a component of shape {tuple(c.shape)}, expected ({batch},) or a number")
+        cols.append(c.reshape(-1).expand(batch))
+    return torch.stack(cols, dim=1)
+
+
+def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | str:
+    """``fn`` (a (B, n_in) -> (B, n_out) map; in the ``components`` form, a function of the sequence of n_in
+    components returning n_out components, ``rcotorch.blocks.nonlinear``) as a compiled C function, or why it cannot
+    be compiled; it must reproduce ``fn`` called with tensors."""
+    key = (id(fn), n_in, n_out, form)
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is fn:
+            return hit[1]
+        fp = _fingerprint(fn)
+        if form == "components":
+            args = ", ".join(f"a{i}" for i in range(n_in))
+            source = f"def call({args}):\n    return f(({args},))\n"
+            reference: dict = {"f": fn}
+            exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
+            result = _compile(lambda module: _numba().njit(module.call), _batch_reference(reference["call"], n_out),
+                              n_in, n_out, source, {"f": _jit(fn), "item": _numba_item()},
+                              None if fp is None else f"components map {n_in} {n_out} {fp}", ("member",))
+        else:
+            result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
+                              None if fp is None else f"map {n_in} {n_out} {fp}")
+        _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
+        return result
+
+
+def _batch_reference(member, n_out: int):
+    """A components-form function of n_in arguments as a batch map (B, n_in) -> (B, n_out), called with the
+    batch's columns: what its compiled form must reproduce."""
+    def batch(xu: torch.Tensor) -> torch.Tensor:
+        return components(call_user(member, *xu.T), n_out, xu.shape[0], xu.dtype, xu.device)
+    return batch
+
+
+def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int,
+                 form: str = "batch") -> Compiled | str:
+    """The discrete map of a ``Nonlinear`` block compiled, x(k+1) from [x(k), inputs(k)] stacked in one
+    (B, n + m) array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held,
+    as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
+    builds the inputs' dict as the PyTorch engine passes it."""
+    if form == "components":
+        return _compile_member_step(f, n, inputs, dt, continuous, substeps)
+    key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is f:
+            return hit[1]
+        cols, start = [], n
+        for port, width in inputs.items():
+            cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
+            start += width
+        # An entry of another type makes numba keep the dict a compile-time literal (no dict made per call).
+        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        if continuous:
+            h = float(dt) / int(substeps)
+            body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
+                    f"        k1 = f(x, ins)\n        k2 = f(x + {0.5 * h!r} * k1, ins)\n"
+                    f"        k3 = f(x + {0.5 * h!r} * k2, ins)\n        k4 = f(x + {h!r} * k3, ins)\n"
+                    f"        x = x + {h / 6.0!r} * (k1 + 2.0 * k2 + 2.0 * k3 + k4)\n    return x\n")
+        else:
+            body = f"    return f(xu[:, :{n}], {ins})\n"
+        source = "def step(xu):\n" + body
+        reference: dict = {"f": f}                 # the same source calling f itself: what is checked against
+        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
+        fp = _fingerprint(f)
+        result = _compile(lambda module: _numba().njit(module.step), reference["step"], n + sum(inputs.values()), n,
+                          source, {"f": _jit(f)}, None if fp is None else f"step {fp}")
+        _cache[key] = (f, result)
+        return result
+
+
+def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
+                         substeps: int) -> Compiled | str:
+    """``compile_step`` for a components-form ``f``: one member at a time, the state and the inputs as tuples
+    of floats, the RK4 stages written out component by component, so that no array is made in a step."""
+    key = ("member step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is f:
+            return hit[1]
+        m = sum(inputs.values())
+        xs = [f"x{i}" for i in range(n)]
+        cols, start = [], 0
+        for port, width in inputs.items():
+            cols.append(f"{port!r}: ({''.join(f'u{start + j}, ' for j in range(width))})")
+            start += width
+        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        args = ", ".join(xs + [f"u{j}" for j in range(m)])
+        state = lambda xv: "(" + "".join(f"{v}, " for v in xv) + ")"          # noqa: E731
+        lines = [f"def step({args}):", f"    ins = {ins}"]
+        if continuous:
+            h = float(dt) / int(substeps)
+            stage = lambda k, c: [f"{x} + {c!r} * item({k}, {i})" for i, x in enumerate(xs)]  # noqa: E731
+            lines += [f"    for _ in range({int(substeps)}):",
+                      f"        k1 = f({state(xs)}, ins)",
+                      f"        k2 = f({state(stage('k1', 0.5 * h))}, ins)",
+                      f"        k3 = f({state(stage('k2', 0.5 * h))}, ins)",
+                      f"        k4 = f({state(stage('k3', h))}, ins)"]
+            lines += [f"        {x} = {x} + {h / 6.0!r} * (item(k1, {i}) + 2.0 * item(k2, {i}) + 2.0 * item(k3, {i})"
+                      f" + item(k4, {i}))" for i, x in enumerate(xs)]
+            lines.append(f"    return {state(xs)}")
+        else:
+            lines.append(f"    r = f({state(xs)}, ins)")
+            lines.append(f"    return ({''.join(f'item(r, {i}), ' for i in range(n))})")
+        source = "\n".join(lines) + "\n"
+        reference: dict = {"f": f, "item": _item}
+        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
+        fp = _fingerprint(f)
+        result = _compile(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
+                          n + m, n, source, {"f": _jit(f), "item": _numba_item()},
+                          None if fp is None else f"member step {fp}", ("member",))
+        _cache[key] = (f, result)
+        return result
+
+
+def _item(r, i: int):
+    """Component i of a components-form result: r[i] of a sequence, r itself when it is one number (or one
+    (B,) component)."""
+    if isinstance(r, (tuple, list)) or (isinstance(r, (torch.Tensor, np.ndarray)) and r.ndim == 2):
+        return r[i]
+    return r
+
+
+@functools.cache
+def _numba_item():
+    """``_item`` for numba: typed by what the user's function returns (a float, a tuple or an array)."""
+    numba = _numba()
+    from numba import types as nt
+    from numba.extending import overload
+
+    def item(r, i):
+        pass
+
+    @overload(item, inline="always")
+    def _ov(r, i):
+        if isinstance(r, (nt.Float, nt.Integer, nt.Boolean)):
+            return lambda r, i: float(r)
+        if isinstance(r, nt.Array) and r.ndim == 0:
+            return lambda r, i: float(r[()])
+        return lambda r, i: float(r[i])
+    return numba.njit(inline="always")(lambda r, i: item(r, i))
+
+
+def _numba():
+    import numba
+    return numba
+
+
+def _jit(f):
+    """``f`` as numba calls it from compiled code (a dispatcher), or ``f`` when numba cannot take it (the
+    compilation then fails with numba's reason)."""
+    try:
+        import numba
+        return numba.njit(_with_helpers_jitted(f))
+    except Exception:
+        return f
+
+
+def _with_helpers_jitted(fn, depth: int = 4):
+    """A copy of ``fn`` whose plain Python helpers (functions it names as globals or closes over) are numba
+    dispatchers, compiled the same way, so that a user's function may call functions of its own."""
+
+    import numba
+    if not isinstance(fn, types.FunctionType) or depth == 0:
+        return fn
+
+    def ready(v):
+        if isinstance(v, types.FunctionType) and v is not fn and v.__module__ != "numpy" and \
+                not v.__module__.startswith(("numpy.", "math")):
+            return numba.njit(_with_helpers_jitted(v, depth - 1))
+        return v
+    names = set(fn.__code__.co_names)
+    glob = {**fn.__globals__, **{k: ready(v) for k, v in fn.__globals__.items() if k in names}}
+    def cell(c):
+        try:
+            return types.CellType(ready(c.cell_contents))
+        except ValueError:                     # an empty cell (a name not yet bound)
+            return c
+    cells = tuple(cell(c) for c in fn.__closure__ or ())
+    out = types.FunctionType(fn.__code__, glob, fn.__name__, fn.__defaults__, cells or None)
+    out.__kwdefaults__, out.__qualname__ = fn.__kwdefaults__, fn.__qualname__
+    return out
+
+
+# The C wrappers: x and y hold the chunk's lanes slot by slot, (n_in, vl) and (n_out, vl), row-major; ``jfn`` is
+# the function (or step) compiled by numba, bound in the module before the wrappers are compiled.
+_WRAPPERS = """
+SIG = types.void(types.CPointer(types.float64), types.CPointer(types.float64), types.int64)
+
+
+def scalar(x, y, vl):
+    for lane in range(vl):
+        y[lane] = jfn(x[lane])
+
+
+def array(x, y, vl):
+    r = jfn(numba.carray(x, (N_IN, vl)).T)
+    out = numba.carray(y, (N_OUT, vl))
+    for j in range(N_OUT):
+        for lane in range(vl):
+            out[j, lane] = r[lane, j]
+"""
+
+
+def _member_wrapper(n_in: int, n_out: int) -> str:
+    """The C wrapper of a components-form function: member by member, its inputs as separate floats."""
+    args = ", ".join(f"x[{i} * vl + lane]" for i in range(n_in))
+    body = "".join(f"        y[{j} * vl + lane] = item(r, {j})\n" for j in range(n_out))
+    return f"\n\ndef member(x, y, vl):\n    for lane in range(vl):\n        r = jfn({args})\n{body}"
+
+
+def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None,
+             forms: tuple[str, ...] | None = None) -> Compiled | str:
+    """Compile the wrappers of a module holding ``source`` with ``bind`` as globals and ``jfn = entry(module)``;
+    the result must reproduce ``reference``. ``key`` names everything the code depends on (None: not known, so
+    nothing is kept on disk); a module loaded from the disk cache that does not reproduce ``reference`` is
+    compiled again without it."""
+    try:
+        numba = _numba()
+    except ImportError:
+        return "numba is not installed (pip install numba)"
+    reasons: list[str] = []
+    for cached in ((True, False) if key is not None and cache_folder() is not None else (False,)):
+        module = _module(source + (_member_wrapper(n_in, n_out) if forms == ("member",) else ""), n_in, n_out,
+                         key if cached else None)
+        try:
+            module.__dict__.update(bind)
+            module.jfn = entry(module)
+        except Exception as e:                # not a Python function numba can take
+            return f"numba cannot take it: {_first_line(e)}"
+        for form in forms or (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]:
+            try:
+                cf = numba.cfunc(module.SIG, nopython=True, cache=cached)(getattr(module, form))
+            except Exception as e:
+                reasons.append(_first_line(e))
+                continue
+            mismatch = _check(reference, cf, n_in, n_out)
+            if mismatch:
+                reasons.append(mismatch)
+                continue
+            return Compiled(address=cf.address, owner=cf, form=form)
+    return reasons[-1] if reasons else "no form compiled"
+
+
+def cache_folder() -> Path | None:
+    """Where compiled functions are kept between processes: ``$RCOTORCH_CACHE`` (``off``: nowhere), else
+    ``$XDG_CACHE_HOME/rcotorch`` or ``~/.cache/rcotorch``; its ``compiled/`` folder, private to the user. A
+    folder that others may write to is not used (its code would be loaded unchecked by numba before
+    rcotorch's own check)."""
+    root = os.environ.get("RCOTORCH_CACHE")
+    if root == "off":
+        return None
+    if not root:
+        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rcotorch"
+    folder = Path(root) / "compiled"
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        st = folder.stat()
+    except OSError:
+        return None
+    if st.st_uid != os.getuid() or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return None
+    return folder
+
+
+def _module(source: str, n_in: int, n_out: int, key: str | None) -> types.ModuleType:
+    """A module of ``source`` and the wrappers: a file in the cache folder named by a hash of ``key`` and its
+    text when ``key`` is given (numba keeps what it compiles from it beside it), else in memory only."""
+    text = f"import numba\nfrom numba import types\n\nN_IN, N_OUT = {n_in}, {n_out}\n\n\n{source}{_WRAPPERS}"
+    if key is None:
+        module = types.ModuleType("rcotorch_compiled")
+        exec(compile(text, "<rcotorch compiled>", "exec"), module.__dict__)
+        return module
+    import numba
+    digest = hashlib.sha256("\n".join([key, text, numba.__version__, np.__version__, sys.version]).encode())
+    name = f"rcotorch_compiled_{digest.hexdigest()[:32]}"
+    if name in sys.modules:
+        return sys.modules[name]
+    path = cache_folder() / f"{name}.py"
+    if not path.exists() or path.read_text() != text:
+        tmp = path.with_name(f".{name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module              # numba finds the module by name when it loads its cached code
+    spec.loader.exec_module(module)
+    return module
+
+
+def _fingerprint(fn, depth: int = 4) -> str | None:
+    """A text naming everything ``fn``'s compiled code depends on (its code, constants, defaults, closure and
+    the globals it reads, helper functions included), or None when a value has no stable description."""
+    if not isinstance(fn, types.FunctionType) or depth == 0:
+        return None
+    parts = [fn.__module__ or "", fn.__qualname__, _code_text(fn.__code__), repr(fn.__defaults__)]
+    values = [c.cell_contents for c in fn.__closure__ or () if _filled(c)]
+    values += [fn.__globals__[k] for k in sorted(_names(fn.__code__)) if k in fn.__globals__]
+    for v in values:
+        if isinstance(v, types.FunctionType):
+            inner = _fingerprint(v, depth - 1)
+            if inner is None:
+                return None
+            parts.append(inner)
+        elif isinstance(v, types.ModuleType):
+            parts.append(f"module {v.__name__}")
+        elif isinstance(v, np.ndarray):
+            parts.append(f"array {v.dtype} {v.shape} {hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()}")
+        elif isinstance(v, (int, float, complex, str, bytes, bool, type(None))) or \
+                (isinstance(v, tuple) and all(isinstance(t, (int, float, str, bool)) for t in v)):
+            parts.append(f"{type(v).__name__} {v!r}")
+        elif callable(v) and getattr(v, "__module__", "") and str(v.__module__).startswith(("numpy", "math")):
+            parts.append(f"{v.__module__}.{getattr(v, '__qualname__', '')}")
+        else:
+            return None
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _code_text(code) -> str:
+    consts = [(_code_text(c) if isinstance(c, types.CodeType) else repr(c)) for c in code.co_consts]
+    return f"{code.co_code.hex()} {consts} {code.co_names} {code.co_varnames}"
+
+
+def _names(code) -> set[str]:
+    """The global names a code object (and the code objects nested in it) reads."""
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= _names(c)
+    return names
+
+
+def _filled(cell) -> bool:
+    try:
+        return cell.cell_contents is not _filled       # reading an empty cell raises
+    except ValueError:
+        return False
+
+
+def _check(fn, cf, n_in: int, n_out: int) -> str | None:
+    """None when the compiled function gives the function's own values on test inputs (called for one member
+    and for all of them at once), else what differs."""
+    import ctypes
+
+    rng = np.random.default_rng(12345)
+    x = np.concatenate([rng.standard_normal((PROBES - 8, n_in)) * 10.0 ** rng.integers(-3, 4, (PROBES - 8, 1)),
+                        np.zeros((1, n_in)), np.full((1, n_in), 1.5), np.full((1, n_in), -1.5),
+                        rng.uniform(-1, 1, (5, n_in))])
+    with torch.no_grad(), np.errstate(all="ignore"):
+        want = call_user(fn, torch.from_numpy(x))
+    want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
+    if want.shape != (len(x), n_out):
+        return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"
+    pd = ctypes.POINTER(ctypes.c_double)
+    one = np.empty((len(x), n_out))
+    # An exception inside a C function cannot propagate: Python reports it as unraisable and the function returns
+    # what it had. Here that is a failed check (e.g. code from the disk cache that does not fit these sizes).
+    raised: list[str] = []
+    hook, sys.unraisablehook = sys.unraisablehook, lambda info: raised.append(f"{info.exc_type.__name__}: "
+                                                                                  f"{info.exc_value}")
+    try:
+        for i in range(len(x)):
+            xi, yi = np.ascontiguousarray(x[i]), np.empty(n_out)
+            cf.ctypes(xi.ctypes.data_as(pd), yi.ctypes.data_as(pd), 1)
+            one[i] = yi
+        xs, ys = np.ascontiguousarray(x.T), np.empty((n_out, len(x)))
+        cf.ctypes(xs.ctypes.data_as(pd), ys.ctypes.data_as(pd), len(x))
+    finally:
+        sys.unraisablehook = hook
+    if raised:
+        return f"the compiled code raised {raised[0]}"
+    with np.errstate(all="ignore"):
+        return _compare(x, one, want) or _compare(x, ys.T, want)
+
+
+def _compare(x: np.ndarray, got: np.ndarray, want: np.ndarray) -> str | None:
+    same = np.isclose(got, want, rtol=RTOL, atol=RTOL * max(1.0, float(np.nanmax(np.abs(want), initial=0.0))),
+                      equal_nan=True)
+    if same.all():
+        return None
+    i = int(np.argwhere(~same)[0][0])
+    return (f"the compiled function differs from the function itself at input {x[i].tolist()}: "
+            f"{got[i].tolist()} against {want[i].tolist()}")
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def _first_line(e: BaseException) -> str:
+    """numba's reason in one line: the line that names the operation where it says so."""
+    lines = [ln.strip() for ln in _ANSI.sub("", str(e)).splitlines() if ln.strip()]
+    for pattern in ("Unknown attribute", "Untyped global name", "No implementation of function",
+                    "Use of unsupported", "Cannot determine Numba type", "unsupported", "Invalid use"):
+        for ln in lines:
+            if pattern in ln:
+                return ln
+    return lines[0] if lines else type(e).__name__

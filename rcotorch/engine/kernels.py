@@ -1,0 +1,259 @@
+"""The compiled kernels (``rcotorch.engine._engine``, built from ``csrc/`` when the package is installed).
+
+The bottom of the import graph: this module imports only torch. It loads the extension, takes the engine's
+op codes and record layouts from the names the extension exports (``csrc/engine.h`` is their one
+definition), and wraps the kernels with the checks they need:
+
+* ``run``: a lowered graph for T steps (``rcotorch.engine.lowering`` builds the program);
+* ``rls_``: ``rls_update`` in place through the same RLS code as the estimator's native step;
+* ``uniform_grid``: the integer hashing behind ``rcotorch.engine.rng.normal`` on a grid;
+* ``health_bounds``: the member health checks' bounds (``rcotorch.verdict.health``) of every member;
+* ``window_gram``: the sum of the regressors' outer products over the estimator's window;
+
+and ``empty``, the allocation of the large buffers the engine fills (recordings).
+
+Without the extension (no C compiler when the package was installed) everything runs on PyTorch and the
+first use warns once. ``RCOTORCH_ENGINE=torch`` turns the kernels off for the whole process, and
+``disabled()`` for a block of code (``Graph(engine='torch')`` steps inside it, so that engine runs no C).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import ctypes
+import os
+import sys
+import threading
+import warnings
+
+import torch
+
+try:
+    from . import _engine
+    _WHY: str | None = None
+except ImportError as e:  # built without a compiler, or not built at all
+    _engine = None
+    _WHY = (f"the compiled engine rcotorch.engine._engine is not installed ({e}); reinstall rcotorch with a C compiler "
+            "(pip install .) to build it")
+
+if _engine is not None and os.environ.get("RCOTORCH_ENGINE", "auto") == "torch":
+    _WHY = "RCOTORCH_ENGINE=torch"
+
+
+def _names(attr: str, start: int = 0) -> dict[str, int]:
+    return {name: i + start for i, name in enumerate(getattr(_engine, attr, ()))}
+
+
+OP = _names("OPS", 1)                          # op code of each instruction (engine.h: RCO_OPS)
+#: The layout of each op's record (RCO_OPS), and each layout's fields in order (RCO_<LAYOUT>_FIELDS).
+OP_LAYOUT: dict[str, str] = dict(zip(getattr(_engine, "OPS", ()), getattr(_engine, "OP_LAYOUTS", ())))
+LAYOUT: dict[str, tuple[str, ...]] = dict(getattr(_engine, "LAYOUTS", {}))
+#: The tables after a layout's fields, in order: (table, the field counting its entries, the entries' layout).
+TABLES: dict[str, list[tuple[str, str, str]]] = {
+    layout: [(table, count, entry) for owner, table, count, entry in getattr(_engine, "TABLES", ()) if owner == layout]
+    for layout in LAYOUT}
+FACTOR = _names("FACTORS")                     # kinds of feature factors (RCO_FACTORS)
+BIND_FIELD = _names("BIND_FIELDS")             # fields of a binding record (RCO_BIND_FIELDS)
+KIND = _names("KINDS")                         # element kinds of a binding (RCO_KINDS)
+OBS_FIELD = _names("OBS_FIELDS")               # fields of an observer record (RCO_OBS_FIELDS)
+OBSERVER = _names("OBSERVERS")                 # kinds of observers (RCO_OBSERVERS)
+HEADER = getattr(_engine, "HEADER", 2)         # ints before an instruction's arguments (op, length)
+NOISE_AHEAD = getattr(_engine, "NOISE_AHEAD", 1)  # steps of noise drawn at a time (a buffer per channel)
+LANE_WIDTHS: tuple[int, ...] = getattr(_engine, "LANE_WIDTHS", (1,))
+
+_ALLOWED = contextvars.ContextVar("rcotorch_kernels_allowed", default=True)
+_WARNED = threading.Event()
+
+
+def available() -> bool:
+    """Whether the compiled kernels can be used here (the first call without them warns once)."""
+    if _WHY is not None and _WHY != "RCOTORCH_ENGINE=torch" and not _WARNED.is_set():
+        _WARNED.set()
+        warnings.warn(f"rcotorch: native engine unavailable, running on PyTorch only ({_WHY})", stacklevel=2)
+    return _WHY is None
+
+
+def why_unavailable() -> str | None:
+    """Why the compiled kernels cannot be used, or None."""
+    return _WHY
+
+
+def allowed() -> bool:
+    """Whether code running now may call the kernels: available and not inside ``disabled()``."""
+    return _ALLOWED.get() and available()
+
+
+@contextlib.contextmanager
+def disabled():
+    """Run a block of code without the compiled kernels (PyTorch operations only)."""
+    token = _ALLOWED.set(False)
+    try:
+        yield
+    finally:
+        _ALLOWED.reset(token)
+
+
+#: Work (members times steps of one call) below which a call runs on one thread: starting and joining the other
+#: threads costs more than they give, most of all on a busy machine.
+PARALLEL_WORK = 1 << 16
+PARALLEL_BATCH = 1024
+
+
+def threads(batch: int | None = None, steps: int = 1) -> int:
+    """Threads for a call on ``batch`` members for ``steps`` steps: torch's thread count where the work is
+    large enough to share (``PARALLEL_BATCH`` members and ``PARALLEL_WORK`` member-steps), else one."""
+    if batch is not None and (batch < PARALLEL_BATCH or batch * steps < PARALLEL_WORK):
+        return 1
+    return max(1, torch.get_num_threads())
+
+
+def lanes(batch: int, nthreads: int | None = None) -> int:
+    """The lane width for a batch: members run VL at a time; small batches in narrow lanes, so one member does
+    not pay for sixteen, and a second thread has chunks to take."""
+    per_thread = max(1, batch // (threads() if nthreads is None else nthreads))
+    return max([w for w in LANE_WIDTHS if w <= per_thread] or [1])
+
+
+def estimator_scratch(n_u: int, n_z: int, n_phi: int, n_theta: int, n_rows: int) -> int:
+    """Scratch slots of one native estimator update with ``n_rows`` rows in its RLS step (the C code's count)."""
+    return _engine.rco_scratch(n_u, n_z, n_phi, n_theta, n_rows)
+
+
+def bump(*tensors: torch.Tensor) -> None:
+    """Tell PyTorch (and ``rcotorch.engine.memo``) that C code wrote these tensors."""
+    for t in tensors:
+        torch.autograd.graph.increment_version(t)
+
+
+def run(code: torch.Tensor, consts: torch.Tensor, binds: torch.Tensor, ptrs: torch.Tensor, counters: torch.Tensor,
+        obs: torch.Tensor, nslots: int, steps: int, batch: int) -> None:
+    """Run a lowered program (int64 ``code``, float64 ``consts``, binding and observer records, pointer and
+    counter tables, all contiguous CPU tensors) for ``steps`` steps of ``batch`` members."""
+    _engine.run(code.data_ptr(), code.numel(), consts.data_ptr(), binds.data_ptr(), binds.numel() // len(BIND_FIELD),
+                ptrs.data_ptr(), counters.data_ptr(), obs.data_ptr(), obs.numel() // len(OBS_FIELD), nslots, steps,
+                batch, lanes(batch, threads(batch, steps)), threads(batch, steps))
+
+
+def rls_(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Tensor, lam, r_inv,
+         active: torch.Tensor | None) -> torch.Tensor | None:
+    """``rls_update`` in place (theta (B, n), P (B, n, n), psi (B, n, l), z_r (B, l), lam a float or (B,) / (1,),
+    r_inv a float or (l, l)); returns ok (B,) before ``active`` is applied, or None where the kernel does not
+    apply (not allowed here, not the CPU or float64, not contiguous): then the caller runs PyTorch."""
+    if not allowed() or theta.device.type != "cpu" or theta.dtype != torch.float64 or P.dtype != torch.float64:
+        return None
+    if not (theta.is_contiguous() and P.is_contiguous()):
+        return None
+    B, n = theta.shape
+    l = psi.shape[-1]
+    psi = psi.to(torch.float64).reshape(B, n, l).contiguous()
+    z_r = z_r.to(torch.float64).reshape(B, l).contiguous()
+    lam_one = not isinstance(lam, torch.Tensor) and float(lam) == 1.0
+    lam_t = (lam.to(torch.float64).reshape(-1) if isinstance(lam, torch.Tensor) else
+             torch.tensor([float(lam)], dtype=torch.float64)).contiguous()
+    if lam_t.numel() not in (1, B):
+        return None
+    r = torch.as_tensor(r_inv, dtype=torch.float64)
+    r = (r * torch.eye(l, dtype=torch.float64) if r.dim() == 0 else r.reshape(l, l)).contiguous()
+    act = None if active is None else active.reshape(B).to(torch.uint8).contiguous()
+    ok = torch.empty(B, dtype=torch.uint8)
+    _engine.rls(theta.data_ptr(), P.data_ptr(), psi.data_ptr(), z_r.data_ptr(), lam_t.data_ptr(),
+                1 if lam_t.numel() > 1 else 0, int(lam_one), r.data_ptr(), 0 if act is None else act.data_ptr(),
+                ok.data_ptr(), B, n, l, lanes(B), threads())
+    bump(theta, P)
+    return ok.bool()
+
+
+def uniform_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int
+                 ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The two uniforms behind ``rng.normal(seed, member, step, comp)`` on the grid (B, length, width), bit
+    for bit, or None where the kernels are not allowed (or off the CPU)."""
+    if not allowed() or seeds.device.type != "cpu":
+        return None
+    seeds = seeds.reshape(-1).long().contiguous()
+    members = members.reshape(-1).long().contiguous()
+    B = seeds.numel()
+    u1 = torch.empty(B, length, width, dtype=torch.float64)
+    u2 = torch.empty_like(u1)
+    _engine.uniform_grid(B, seeds.data_ptr(), members.data_ptr(), int(start), int(length), int(width),
+                         u1.data_ptr(), u2.data_ptr(), threads())
+    return u1, u2
+
+
+def health_bounds(P: torch.Tensor, theta: torch.Tensor, u_now: torch.Tensor, phi_rms: torch.Tensor,
+                  bound: torch.Tensor, windup: torch.Tensor, alive: torch.Tensor, reasons: tuple[int, int, int, int]
+                  ) -> torch.Tensor | None:
+    """The codes of ``Health._bounds_exceeded`` (P (B, n, n), theta (B, n_u, n_phi), u_now (B, n_u), phi_rms
+    (B, n_phi), bound and windup (B,), alive (B,); ``reasons``: the codes of P not positive definite, windup,
+    u runaway, theta runaway), or None where the kernel does not apply (not allowed here, not the CPU or
+    float64): then the caller runs PyTorch."""
+    if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in (P, theta, u_now)):
+        return None
+    B, n = P.shape[0], P.shape[-1]
+    n_u, n_phi = theta.shape[1], theta.shape[2]
+
+    def f64(t: torch.Tensor, *shape: int) -> torch.Tensor:
+        return t.detach().to(torch.float64).expand(*shape).contiguous()
+    args = [f64(P, B, n, n), f64(theta, B, n_u, n_phi), f64(u_now, B, n_u), f64(phi_rms, B, n_phi),
+            f64(bound, B), f64(windup, B), alive.reshape(B).to(torch.uint8).contiguous()]
+    args.append(torch.tensor(reasons, dtype=torch.int64))
+    code = torch.empty(B, dtype=torch.int64)
+    _engine.health_bounds(B, n, n_u, n_phi, *(t.data_ptr() for t in args), code.data_ptr(), threads())
+    return code
+
+
+def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
+    """sum_w x x^T over the rows of a time-major window (W, B, m), x = win[w, b, :n], as (B, n, n), or None where
+    the kernel does not apply (not allowed here, not the CPU, float64 and contiguous)."""
+    if not allowed() or win.device.type != "cpu" or win.dtype != torch.float64 or not win.is_contiguous():
+        return None
+    W, B, m = win.shape
+    out = torch.empty(B, n, n, dtype=torch.float64)
+    _engine.window_gram(W, B, m, n, win.data_ptr(), out.data_ptr(), threads())
+    return out
+
+
+_HUGE = 2 << 20              # the huge page size of x86-64 and arm64 Linux
+_MADV_HUGEPAGE = 14
+
+
+def _libc_madvise():
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).madvise
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int
+    return fn
+
+
+_MADVISE = _libc_madvise() if sys.platform.startswith("linux") else None
+
+
+def empty(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.Tensor:
+    """``torch.empty``; a large CPU buffer is first advised to the kernel as huge-page memory.
+
+    The advice (Linux ``madvise(MADV_HUGEPAGE)``, given before anything touches the buffer) lets filling it
+    fault once per 2 MiB page rather than once per 4 KiB page. Elsewhere, or where the system refuses, it is a
+    plain ``torch.empty``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The tensor's shape.
+    dtype : torch.dtype
+        Its type.
+    device : torch.device or str, optional
+        Its device.
+
+    Returns
+    -------
+    torch.Tensor
+        Uninitialized.
+    """
+    t = torch.empty(shape, dtype=dtype, device=device)
+    if _MADVISE is not None and t.device.type == "cpu":
+        start = -(-t.data_ptr() // _HUGE) * _HUGE                        # the whole huge pages inside the buffer
+        end = (t.data_ptr() + t.numel() * t.element_size()) // _HUGE * _HUGE
+        if end > start:
+            _MADVISE(start, end - start, _MADV_HUGEPAGE)                  # advice only: a refusal changes nothing
+    return t

@@ -1,0 +1,949 @@
+"""The retrospective-cost (RCO) estimator: the identified subsystem and its adaptive update.
+
+The identified subsystem is the linear controller (seed eqs. 6-8)
+
+    u(k) = theta(k) phi(k),
+    phi(k) = [ s_1(k-l) for l in lags ; ... ; s_m(k-l) for l in lags ; u(k-1) .. u(k-nc) ]
+
+over regressor signals s_i (input ports such as y0 or w). ``lags`` are 1..nc (strictly proper) or 0..nc
+(``proper=True``; lag 0 only with nc = 0 gives the exactly proper static gain u(k) = theta s(k)).
+The retrospective error (seed eq. 9) uses the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z:
+
+    z_hat(theta_hat, k) = z(k) + sum_i beta_i [theta_hat - theta(k-i)] phi(k-i)
+                        = zeta(k) + Psi(k)^T Theta_hat,  zeta(k) = z(k) - sum_i beta_i u(k-i),
+
+with Theta = theta flattened row-major (entry (i, j) at i * n_phi + j), so Psi^T has entries
+sum_i beta_i[z, a] phi(k-i)[j] at column a * n_phi + j. Theta is then updated by ``rls_update`` on
+z_R(k) = z_hat(theta(k), k).
+
+Structure: theta's entries are functions of a parameter vector eta, Theta = T eta, with T a 0/1 matrix. A
+mask pins entries to zero (their rows of T are zero); ``tie`` lets entries share one parameter (e.g. one
+function of a temperature for every altitude node). The update runs on eta with the regressor T^T Psi, so
+P is (n_theta x n_theta) over the free parameters only; for a plain estimator T is the identity. The map is
+the estimator's ``parameter_map`` (``rcotorch.estimator.parameter_map.ParameterMap``); the identified subsystem as a
+transfer function (frequency response, DC gain, python-control export) is computed by ``rcotorch.estimator.transfer``.
+
+A member whose z, Psi or theta becomes non-finite, or whose P loses definiteness, is frozen (theta and P
+held, u = 0) and its step recorded in ``diverged_at``; the others go on. Where the optional ``valid`` input is
+0 (a skipped measurement) the update is skipped, theta and P held.
+
+Robustness options (each off by default, each a scalar or one value per member):
+
+* ``r_delta``: a penalty r_delta |eta_hat - eta(k)|^2 on the parameters' change, added to the retrospective
+  cost at every step. It enters the update as n_theta pseudo-measurement rows sqrt(r_delta) I with residual 0
+  (weight 1) next to the rows of z, so the update is the exact minimizer of
+  lam^(k+1) |eta - eta_0|^2 / p0 + sum_j lam^(k-j) (|z_hat_j(eta)|^2_R + r_delta |eta - eta(j)|^2).
+* ``normalize``: a scale s; the rows of z are divided by m(k) = sqrt(1 + |Psi(k)|_R^2 / s^2) before the update
+  (normalized RLS), i.e. step j of the cost is weighted by 1 / m(j)^2. |Psi|_R^2 = sum_p Psi_p^T R Psi_p is the
+  regressors' size in the cost's own weight R (the Frobenius norm for R = I), so channels of z in different
+  units count as the cost counts them.
+* ``p_max``: a bound on trace(P); after an update, a living member whose trace exceeds it has P scaled by
+  p_max / trace(P) (covariance windup with lam < 1 and weak excitation).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
+
+import torch
+
+from ..blocks.base import DEFAULT_DTYPE, Block
+from ..blocks.features import Term, as_terms
+from ..engine import kernels, memo
+from ..engine.rls import rls_update
+from ..errors import ConfigError, DimensionError
+from . import transfer
+from .parameter_map import ParameterMap
+
+if TYPE_CHECKING:
+    import control
+
+# The buffer that holds each robustness option (see ``RCOEstimator._options``).
+_OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
+
+
+class RCOEstimator(Block):
+    """Identified subsystem u = theta phi with the retrospective-cost RLS update.
+
+    Parameters
+    ----------
+    signals : Mapping[str, int]
+        Input ports and widths, e.g. ``{'y0': 1}`` (the subsystem's input) or ``{'y0': 1, 'w': 1}``. Which
+        signals feed phi decides identifiability (see docs/method.md).
+    n_u : int, optional
+        Width of u (the identified subsystem's output).
+    n_z : int, optional
+        Width of z (the model error).
+    nc : int, optional
+        Controller order (number of past samples of each signal and of u).
+    features : Term, sequence of Term, or Mapping[str, Term or callable], optional
+        Basis functions of the input ports that become phi's regressor signals instead of the ports
+        themselves: terms of ``rcotorch.blocks.features`` (one, or a list), e.g.
+        ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable
+        maps the dict of port tensors (B, width) to a (B, m) tensor (probed with batches of 1 and 2 when the
+        block is built; PyTorch engine only). theta stays linear in them, so the update is least squares.
+    proper : bool, optional
+        Also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
+    feed_u : bool, optional
+        Put past u into phi (the controller's poles); False gives an FIR controller.
+    mask : array_like of bool, optional
+        (n_u, n_phi), True where theta is free; False pins that entry to zero.
+    tie : array_like of int, optional
+        (n_u, n_phi): entries with the same label share one parameter (labels are any integers; a negative
+        label pins the entry to zero, as does ``mask``). For example, with u_j = theta_j1 e_j + theta_j2 e_j^2
+        at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the function the same at every node.
+        ``theta_names`` lists one name per parameter.
+    p0 : float or array_like, optional
+        Initial covariance P(0) = p0 I, scalar or one per member (B,), > 0.
+    lam : float or array_like, optional
+        Forgetting factor in (0, 1], scalar or one per member (B,).
+    R : float or array_like, optional
+        Weight on z, scalar or (n_z, n_z).
+    theta0 : array_like, optional
+        Initial theta (n_u, n_phi) or (B, n_u, n_phi); zero by default.
+    markov : array_like, optional
+        beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u), with the relative degree
+        ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
+    first_delay : int, optional
+        d, the delay of the first Markov parameter in ``markov`` (>= 0; 0 only for a strictly proper
+        identified subsystem).
+    dt : float, optional
+        Sample time [s] (for transfer functions and frequency responses). Left out, the identified subsystem
+        has the sample time that comes with its Markov parameters (``set_markov``; ``refinement`` gives the
+        known model's): ``sample_time``.
+    u_bounds : tuple, optional
+        (low, high) saturation of u, scalars or per component (n_u,), e.g. (0, inf) where physics forbids a
+        sign (a cooling that cannot heat). The retrospective cost uses the saturated u, the one actually
+        applied.
+    theta_bounds : tuple, optional
+        (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each update
+        (P unchanged).
+    r_delta : float or array_like, optional
+        Weight of the penalty r_delta |eta - eta(k)|^2 on the parameters' change in the retrospective cost,
+        scalar or one per member (>= 0); None (the default) leaves it out. Larger values slow and smooth the
+        estimate (noisy data, a member that jumps).
+    normalize : float or array_like, optional
+        Scale s of normalized regressors, scalar or one per member (> 0): Psi and z_R enter the update divided
+        by sqrt(1 + |Psi|_R^2 / s^2) (module docstring), which bounds the step for large signals. None (the
+        default): not normalized.
+    p_max : float or array_like, optional
+        Bound on trace(P), scalar or one per member (> 0): after each update P is scaled by p_max / trace(P)
+        where the trace exceeds it (covariance windup). None (the default): unbounded.
+    name : str, optional
+        The block's name.
+    dtype : torch.dtype, optional
+        Floating-point type (float64 by default).
+
+    Raises
+    ------
+    ConfigError
+        If a port is named 'z', 'u' or 'valid', ``nc`` is not a non-negative integer, phi is empty, a setting
+        is out of its range, ``tie`` does not hold integers, the mask leaves no free entry, or values that
+        tied entries share differ.
+    DimensionError
+        If ``R``, ``mask``, ``tie``, a bound or ``markov`` has the wrong shape, or a feature returns the wrong
+        shape.
+
+    Shape
+    -----
+    n_phi is the length of phi (``phi_names``), n_theta the number of free parameters (``theta_names``).
+
+    - Inputs: one per entry of ``signals``, (B, width); ``z``: (B, n_z); ``valid`` (optional): (B, 1), 0 skips
+      the update of that step.
+    - Output ``u``: (B, n_u).
+    - State: ``theta`` (B, n_u, n_phi), ``P`` (B, n_theta, n_theta).
+    """
+
+    def __init__(self, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, nc: int = 1,
+                 features: Term | Sequence[Term] | Mapping[str, Term | Callable[[dict], torch.Tensor]] | None = None,
+                 proper: bool = False, feed_u: bool = True, mask=None, tie=None, p0=1.0, lam=1.0, R=1.0,
+                 theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
+                 u_bounds=None, theta_bounds=None, r_delta=None, normalize=None, p_max=None,
+                 name: str = "identified", dtype=DEFAULT_DTYPE):
+        signals = dict(signals)
+        if "z" in signals or "valid" in signals or "u" in signals:
+            raise ConfigError(f"block '{name}': 'z', 'u' and 'valid' are reserved port names")
+        super().__init__(name, {**signals, "z": n_z, "valid": 1}, {"u": n_u})
+        self.optional_inputs = {"valid"}
+        if not isinstance(nc, int) or nc < 0:
+            raise ConfigError(f"block '{name}': nc must be a non-negative integer, got {nc!r}")
+        self.ports, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
+        # Regressor signals (name -> width, and one name per channel): the ports themselves, or the features.
+        self.terms = as_terms(features) if features is not None else None   # vocabulary only: both engines
+        self.features = self._feature_map(features) if features is not None else None
+        self.signals = self._probe_features(dtype) if self.features else dict(signals)
+        self.signal_names = self._signal_names()
+        self.proper, self.feed_u = bool(proper), bool(feed_u and nc > 0)
+        self.lags = list(range(0 if proper else 1, nc + 1))
+        if not self.lags or not self.signals:
+            raise ConfigError(f"block '{name}': phi is empty (signals={list(signals)}, nc={nc}, "
+                              f"proper={proper}); use nc >= 1 or proper=True")
+        self.n_sig = sum(self.signals.values())
+        self.n_phi = len(self.lags) * self.n_sig + (nc * n_u if self.feed_u else 0)
+        self.phi_names = self._phi_names()
+        self.dt = dt
+        self.markov_dt: float | None = None      # the sample time of the Markov parameters (set_markov)
+        # Theta = T eta: which parameter each entry of theta holds (mask and tie)
+        self.parameter_map = ParameterMap(n_u, self.phi_names, mask, tie, block=name, dtype=dtype)
+        for key, value in (("p0", p0), ("lam", lam)):
+            t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
+            if key == "p0" and bool((t <= 0).any()):
+                raise ConfigError(f"block '{name}': p0 must be positive, got {value!r}")
+            if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
+                raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
+            self.register_buffer(key, t)
+        self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
+        R = torch.as_tensor(R, dtype=dtype, device="cpu")
+        R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
+        if tuple(R.shape) != (n_z, n_z):
+            raise DimensionError(f"block '{name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
+        self.register_buffer("r_inv", torch.linalg.inv(R))
+        self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
+        theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
+            torch.as_tensor(theta0, dtype=dtype, device="cpu").reshape(-1, n_u, self.n_phi)
+        theta0 = theta0 * self.parameter_map.unpinned
+        self.parameter_map.check_shared("theta0", theta0.reshape(theta0.shape[0], -1))
+        self.register_buffer("theta0", theta0)
+        for key, value, width in (("u", u_bounds, n_u), ("theta", theta_bounds, n_u * self.n_phi)):
+            lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
+            if key == "theta" and lo is not None:
+                for what, t in (("theta_bounds low", lo), ("theta_bounds high", hi)):
+                    if t.dim():
+                        self.parameter_map.check_shared(what, t.reshape(1, -1))
+            self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
+            self.register_buffer(f"{key}_high", hi)
+        self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
+        self.register_buffer("beta_t", torch.zeros(1, 0, 0, dtype=dtype))  # beta as (Bp, n_z * n_u, nu)
+        self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
+        self.window = 0  # first_delay + nu once Markov parameters are set
+        if markov is not None:
+            self.set_markov(markov, first_delay)
+        # Per-member state (created by reset).
+        for key, shape in (("theta", (0, n_u, self.n_phi)), ("P", (0, self.n_theta, self.n_theta)),
+                           ("past", (0, max(nc, 1), self.n_sig)), ("past_u", (0, max(nc, 1), n_u)),
+                           ("win", (0, 0, self.n_phi + n_u)),    # [phi, u] history, see update()
+                           ("phi_now", (0, self.n_phi)), ("u_now", (0, n_u)), ("z_r", (0, n_z))):
+            self.register_buffer(key, torch.zeros(shape, dtype=dtype))
+        self.register_buffer("alive", torch.zeros(0, dtype=torch.bool))
+        self.register_buffer("diverged_at", torch.zeros(0, dtype=torch.int64))
+        self.register_buffer("k", torch.zeros((), dtype=torch.int64))
+        self.register_buffer("_gather", self._phi_gather())
+        # Without lag 0, phi is a permutation of [past s | past u]; often the identity (one regressor port).
+        tail = self._gather - self.n_sig
+        width = max(nc, 1) * (self.n_sig + (n_u if self.feed_u else 0))
+        self._phi_is_past = (not self.proper and tail.numel() == width
+                             and bool(torch.equal(tail, torch.arange(width))))
+
+    def _options(self, dtype, **values) -> None:
+        """The robustness options as buffers (None when off): sqrt(r_delta), 1 / s^2 and p_max, each (1,) or (B,)."""
+        for key, value in values.items():
+            low, stored = {"r_delta": (0.0, torch.sqrt), "normalize": (None, lambda t: 1.0 / (t * t)),
+                           "p_max": (None, lambda t: t)}[key]
+            t = None if value is None else torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
+            if t is not None and not bool(torch.isfinite(t).all() & ((t >= low) if low is not None else (t > 0)).all()):
+                bound = "finite and >= 0" if low is not None else "finite and > 0"
+                raise ConfigError(f"block '{self.name}': {key} must be {bound}, got {value!r}")
+            self.register_buffer(_OPTION_BUFFER[key], None if t is None else stored(t))
+
+    def set_options(self, r_delta=None, normalize=None, p_max=None) -> None:
+        """Switch robustness options on after construction, before the graph runs.
+
+        Each value given replaces that option (checked as in the constructor: a scalar or one value per
+        member); None leaves it as it is.
+
+        Parameters
+        ----------
+        r_delta : float or array_like, optional
+            Weight of the penalty on the parameters' change (>= 0).
+        normalize : float or array_like, optional
+            Scale s of normalized regressors (> 0).
+        p_max : float or array_like, optional
+            Bound on trace(P) (> 0).
+
+        Raises
+        ------
+        ConfigError
+            If a value is out of its range.
+        DimensionError
+            If a value is given per member for another number of members than the batch's.
+        """
+        given = {k: v for k, v in (("r_delta", r_delta), ("normalize", normalize), ("p_max", p_max)) if v is not None}
+        self._options(self.theta0.dtype, **given)
+        for key in given:
+            t = getattr(self, _OPTION_BUFFER[key])
+            setattr(self, _OPTION_BUFFER[key], t.to(self.theta0.device))
+            if self.batch_size:                                   # already reset for a batch
+                self.check_batch(t, key)
+
+    # --- the parameter map (``parameter_map``: Theta = T eta) ----------------------------------------------
+    @property
+    def n_theta(self) -> int:
+        """n_theta, the number of free parameters eta (``parameter_map.n_params``)."""
+        return self.parameter_map.n_params
+
+    @property
+    def theta_names(self) -> list[str]:
+        """One name per free parameter, in the order of eta: the entries of theta that hold it, joined by ' = '."""
+        return self.parameter_map.names
+
+    @property
+    def param_of(self) -> torch.Tensor:
+        """The parameter each entry of Theta holds, -1 where it is pinned, (n_u * n_phi,)
+        (``parameter_map.param_of_entry``)."""
+        return self.parameter_map.param_of_entry
+
+    @property
+    def rep(self) -> torch.Tensor:
+        """The first entry of Theta holding each parameter, (n_theta,) (``parameter_map.entry_of_param``)."""
+        return self.parameter_map.entry_of_param
+
+    @property
+    def free_idx(self) -> torch.Tensor:
+        """The entry of Theta that each parameter is read from, (n_theta,) (``parameter_map.entry_of_param``)."""
+        return self.parameter_map.entry_of_param
+
+    @property
+    def all_free(self) -> bool:
+        """Whether every entry of theta is its own parameter (T = I; ``parameter_map.identity``)."""
+        return self.parameter_map.identity
+
+    def theta_free(self) -> torch.Tensor:
+        """The free parameters eta, in the order of ``theta_names``.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_theta).
+        """
+        return self.parameter_map.eta_of(self.theta.reshape(self.theta.shape[0], -1))
+
+    @classmethod
+    def static_gain(cls, signals: Mapping[str, int], n_u: int = 1, n_z: int = 1, **kwargs) -> RCOEstimator:
+        """An estimator of the exactly proper structure u(k) = theta s(k) (a static gain: stiffness, damping, ...).
+
+        Parameters
+        ----------
+        signals : Mapping[str, int]
+            Input ports and widths.
+        n_u : int, optional
+            Width of u.
+        n_z : int, optional
+            Width of z.
+        **kwargs
+            Further arguments of ``RCOEstimator`` (not ``nc``, ``proper`` or ``feed_u``, which this sets).
+
+        Returns
+        -------
+        RCOEstimator
+            With nc = 0, ``proper=True`` and ``feed_u=False``.
+        """
+        return cls(signals, n_u=n_u, n_z=n_z, nc=0, proper=True, feed_u=False, **kwargs)
+
+    def _bounds(self, bounds, what: str, width: int, dtype):
+        """(low, high) as tensors broadcastable to (B, width) (theta bounds flattened like Theta), or Nones."""
+        if bounds is None:
+            return None, None
+        try:
+            lo, hi = (torch.as_tensor(b, dtype=dtype, device="cpu") for b in bounds)
+        except (TypeError, ValueError):
+            raise ConfigError(f"block '{self.name}': {what} must be a pair (low, high), got {bounds!r}") from None
+        lo, hi = (t.reshape(-1) if t.dim() else t for t in (lo, hi))
+        for t in (lo, hi):
+            if t.dim() and t.numel() != width:
+                raise DimensionError(f"block '{self.name}': {what} entries must be scalars or have {width} "
+                                     f"values, got {t.numel()}")
+        if bool((lo > hi).any()):
+            raise ConfigError(f"block '{self.name}': {what} has low > high")
+        return lo, hi
+
+    def _regressors(self, inputs) -> torch.Tensor:
+        """The regressor signals at time k, (B, n_sig)."""
+        if self.features is None:
+            return torch.cat([inputs[p] for p in self.ports], dim=1)
+        return torch.cat([f(inputs) for f in self.features.values()], dim=1)
+
+    def _feature_map(self, features) -> dict[str, Callable]:
+        """name -> callable for the PyTorch engine (terms are named after what they compute)."""
+        if isinstance(features, Mapping):
+            return dict(features)
+        terms = [features] if isinstance(features, Term) else list(features)
+        out = {}
+        for t in terms:
+            if not isinstance(t, Term):
+                raise ConfigError(f"block '{self.name}': features must be rcotorch.blocks.features terms (or a dict of "
+                                  f"name -> callable), got {t!r}")
+            key = t.name({})
+            if key in out:
+                raise ConfigError(f"block '{self.name}': feature {key!r} is given twice")
+            out[key] = t
+        return out
+
+    def _probe_features(self, dtype) -> dict[str, int]:
+        """The width of each feature: a term's from its ports; a callable is called on random inputs of batch 1
+        and 2 and must return (B, m)."""
+        widths = {}
+        for name, f in self.features.items():
+            if isinstance(f, Term):
+                widths[name] = f.width(self.ports, self.name)
+                continue
+            if not callable(f):
+                raise ConfigError(f"block '{self.name}': feature {name!r} is not callable")
+            shapes = []
+            for B in (1, 2):
+                probe = {p: torch.randn(B, w, dtype=dtype) for p, w in self.ports.items()}
+                try:
+                    out = f(probe)
+                except Exception as e:  # the user's function failed on well-formed inputs
+                    raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
+                                      f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
+                if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
+                    raise DimensionError(f"block '{self.name}': feature {name!r} must return a (batch, m) tensor; "
+                                         f"for batch {B} it returned "
+                                         f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out)}")
+                shapes.append(out.shape[1])
+            if shapes[0] != shapes[1]:
+                raise DimensionError(f"block '{self.name}': feature {name!r} width changes with the batch size")
+            widths[name] = shapes[0]
+        return widths
+
+    def _signal_names(self) -> list[str]:
+        """One name per regressor channel, in order: 'y0', 'y0[1]', 'y0^3', 'sign(v)*v^2', ..."""
+        names = []
+        for s, w in self.signals.items():
+            f = self.features.get(s) if self.features else None
+            if isinstance(f, Term) and s == f.name({}):           # named after what it computes
+                names += f.names(self.ports)
+            else:
+                names += [f"{s}[{c}]" if w > 1 else s for c in range(w)]
+        return names
+
+    # --- layout ---------------------------------------------------------------------------------------
+    def _phi_names(self) -> list[str]:
+        names, offset = [], 0
+        for w in self.signals.values():
+            for lag in self.lags:
+                for c in range(w):
+                    sig = self.signal_names[offset + c]
+                    names.append(f"{sig}(k)" if lag == 0 else f"{sig}(k-{lag})")
+            offset += w
+        if self.feed_u:
+            for lag in range(1, self.nc + 1):
+                for c in range(self.n_u):
+                    names.append(f"u[{c}](k-{lag})" if self.n_u > 1 else f"u(k-{lag})")
+        return names
+
+    def _phi_gather(self) -> torch.Tensor:
+        """Index map from [s(k) | past s(k-1..k-nc) | past u(k-1..k-nc)] (flattened) to phi's order."""
+        nc1 = max(self.nc, 1)
+        cur, past0, upast0 = 0, self.n_sig, self.n_sig + nc1 * self.n_sig
+        idx, offset = [], 0
+        for _s, w in self.signals.items():
+            for lag in self.lags:
+                for c in range(w):
+                    idx.append(cur + offset + c if lag == 0 else past0 + (lag - 1) * self.n_sig + offset + c)
+            offset += w
+        if self.feed_u:
+            for lag in range(1, self.nc + 1):
+                idx += [upast0 + (lag - 1) * self.n_u + c for c in range(self.n_u)]
+        return torch.tensor(idx, dtype=torch.int64)
+
+    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None) -> None:
+        """Set the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z (sign included).
+
+        A lowered native program reads the new values where their shape stays, and is built again where it
+        changes.
+
+        Parameters
+        ----------
+        markov : array_like
+            (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1.
+        first_delay : int, optional
+            d, the delay of the first one (>= 0; 0 only for an estimator that is not ``proper``).
+        dt : float, optional
+            The sample time [s] of the model they are taken from, the identified subsystem's ``sample_time``
+            where the estimator has no ``dt`` of its own; None keeps the one given before.
+
+        Raises
+        ------
+        DimensionError
+            If ``markov`` has the wrong shape.
+        ConfigError
+            If ``first_delay`` is negative, or 0 for a proper estimator (an algebraic loop).
+        """
+        beta = torch.as_tensor(markov, dtype=self.theta0.dtype, device=self.theta0.device)
+        beta = beta.unsqueeze(0) if beta.dim() == 3 else beta
+        if beta.dim() != 4 or tuple(beta.shape[2:]) != (self.n_z, self.n_u) or beta.shape[1] < 1:
+            raise DimensionError(f"block '{self.name}': Markov parameters must be (nu, n_z, n_u) = "
+                                 f"(nu, {self.n_z}, {self.n_u}) with nu >= 1, got {tuple(beta.shape)}")
+        if first_delay < 0:
+            raise ConfigError(f"block '{self.name}': first_delay must be >= 0, got {first_delay}")
+        if first_delay == 0 and self.proper:
+            raise ConfigError(f"block '{self.name}': u acts on z at once (beta_0 != 0) and the identified "
+                              "subsystem is proper: the step has an algebraic loop")
+        same = self._buffers["beta"].shape == beta.shape and self.__dict__.get("first_delay") == first_delay
+        self.beta = beta
+        self.beta_t = beta.flatten(2).mT.contiguous()
+        self.first_delay = int(first_delay)
+        self.delays = torch.arange(first_delay, first_delay + beta.shape[1], device=beta.device)
+        self.window = first_delay + beta.shape[1]
+        if dt is not None:
+            self.markov_dt = dt
+        lowered = self.__dict__.get("_native_beta_ring")     # (what a lowered program reads, what it was made of)
+        if lowered is not None:
+            ring = self._beta_padded().repeat(1, 1, 2)
+            if same and ring.shape == lowered[0].shape and ring.device == lowered[0].device:
+                lowered[0].copy_(ring)
+            else:                           # other sizes: the program, which holds the old beta, is made again
+                kernels.bump(*lowered[1])
+
+    @property
+    def sample_time(self) -> float | None:
+        """The identified subsystem's sample time [s]: ``dt``, or where that is None the sample time given with the
+        Markov parameters (``set_markov``); None where neither is known."""
+        return self.dt if self.dt else self.markov_dt
+
+    @property
+    def nu(self) -> int:
+        """nu, the number of Markov parameters the retrospective cost uses (0 before they are set)."""
+        return int(self.beta.shape[1])
+
+    # --- block protocol -------------------------------------------------------------------------------
+    def feedthrough(self):
+        return {"u": tuple(self.ports) if self.proper else ()}
+
+    def reset(self, batch_size: int) -> None:
+        super().reset(batch_size)
+        for key in ("p0", "lam", "theta0", "beta", "rd_sqrt", "norm_inv_s2", "p_max"):
+            if getattr(self, key) is not None:
+                self.check_batch(getattr(self, key), key)
+        B, dt, dev = batch_size, self.theta0.dtype, self.theta0.device
+        self.theta = self.theta0.expand(B, -1, -1).clone()
+        eye = torch.eye(self.n_theta, dtype=dt, device=dev)
+        self.P = (self.p0.reshape(-1, 1, 1) * eye).expand(B, -1, -1).clone()
+        nc1 = max(self.nc, 1)
+        self.past = torch.zeros(B, nc1, self.n_sig, dtype=dt, device=dev)
+        self.past_u = torch.zeros(B, nc1, self.n_u, dtype=dt, device=dev)
+        self.win = torch.zeros(max(self.window, 1), B, self.n_phi + self.n_u, dtype=dt, device=dev)
+        self.phi_now = torch.zeros(B, self.n_phi, dtype=dt, device=dev)
+        self.u_now = torch.zeros(B, self.n_u, dtype=dt, device=dev)
+        self.z_r = torch.zeros(B, self.n_z, dtype=dt, device=dev)
+        self.alive = torch.ones(B, dtype=torch.bool, device=dev)
+        self.diverged_at = torch.full((B,), -1, dtype=torch.int64, device=dev)
+        self.k = torch.zeros((), dtype=torch.int64, device=dev)
+
+    def _current(self, inputs) -> torch.Tensor:
+        if self.proper:
+            return self._regressors(inputs)
+        return self.past.new_zeros(self.batch_size, self.n_sig)
+
+    def output(self, port, inputs):
+        if self._phi_is_past:   # phi = [s(k-1..k-nc) | u(k-1..k-nc)] as stored
+            phi = torch.cat([self.past.flatten(1), self.past_u.flatten(1)], dim=1) if self.feed_u else \
+                self.past.flatten(1).clone()
+        else:
+            flat = torch.cat([self._current(inputs), self.past.flatten(1), self.past_u.flatten(1)], dim=1)
+            phi = flat.index_select(1, self._gather)
+        u = torch.bmm(self.theta, phi.unsqueeze(-1)).squeeze(-1)
+        u = torch.where(self.alive.unsqueeze(1), u, 0.0)
+        if self.u_low is not None:
+            u = torch.clamp(u, self.u_low, self.u_high)
+        self.set_state(phi_now=phi, u_now=u)
+        return u
+
+    def _step_index(self) -> int:
+        """k as a Python int, read from the buffer (a device sync) only when something other than ``update``
+        changed it."""
+        return memo.derived(self, "k", (self.k,), lambda: int(self.k))
+
+    def _beta_padded(self) -> torch.Tensor:
+        """beta_t reversed in time with first_delay zeros after it, (Bp, n_z * n_u, W): entry j weighs delay
+        W - 1 - j."""
+        return memo.derived(self, "beta_padded", (self.beta_t,), lambda: torch.nn.functional.pad(
+            self.beta_t.flip(-1), (0, self.first_delay)))
+
+    def _beta_ring(self, p: int) -> torch.Tensor:
+        """The weights of the window's rows at a step with k mod W = p, (Bp, n_z * n_u, W): row r holds the
+        sample of delay (p - r) mod W, weighed by beta at that delay, or by 0 below the first delay."""
+        return self._beta_padded().roll(p + 1, dims=-1)
+
+    def _lam_arg(self):
+        """lam for rls_update: the Python float 1.0 when every member has lam = 1 (no division by lambda)."""
+        return memo.derived(self, "lam", (self.lam,), lambda: 1.0 if bool((self.lam == 1).all()) else self.lam)
+
+    def update(self, inputs):
+        """The retrospective-cost update of theta from the error z(k), then the shift of the histories.
+
+        The stages, each a method: store [phi(k), u(k)] in the window (``_store_in_window``); the Markov filter
+        gives Psi^T and zeta(k) = z(k) - sum_i beta_i u(k-i) (``_markov_filter``); both over the free parameters,
+        T^T Psi and eta (``_over_parameters``); z_R = zeta + Psi^T eta (``_retrospective_performance``);
+        ``rls_update`` on (T^T Psi, z_R), rows normalized and penalty rows added per the robustness options
+        (``_rls_step``); the trace bound on P (``_bound_covariance``); Theta = T eta and the projection onto
+        ``theta_bounds`` (``_write_theta``); members whose step failed are frozen (``_freeze_failed``); the
+        regressor signals and u move into the past (``_shift_histories``).
+
+        Parameters
+        ----------
+        inputs : Mapping[str, torch.Tensor]
+            The regressor ports, (B, width); ``z``, (B, n_z); and optionally ``valid``, (B, 1): a member with
+            valid <= 0.5 keeps theta and P this step.
+
+        Raises
+        ------
+        ConfigError
+            If the Markov parameters are not set, or changed since ``reset``.
+        """
+        W = self.window
+        if self.win.shape[0] != W:
+            if W == 0:
+                raise ConfigError(f"block '{self.name}': no Markov parameters; pass markov=, call set_markov() "
+                                  "(e.g. with Graph.markov('identified.u', 'error.out', n)), or build the graph "
+                                  "with rcotorch.refinement, which derives them from the known model")
+            raise ConfigError(f"block '{self.name}': Markov parameters changed; call reset() before stepping")
+        k = self._step_index()
+        p = k % W
+        self._store_in_window(p)
+        psi_t, zeta = self._markov_filter(p, inputs["z"])
+        if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
+            self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
+        theta_flat = self.theta.view(self.batch_size, -1)
+        psi_eta, eta = self._over_parameters(psi_t, theta_flat)
+        z_r = self._retrospective_performance(zeta, psi_eta, eta)
+        eta, ok = self._rls_step(eta, psi_eta, z_r, self._active(inputs))
+        self._bound_covariance(ok)
+        self._write_theta(theta_flat, eta)
+        self._freeze_failed(z_r, ok, k)
+        self._shift_histories(inputs)
+        self.k += 1
+        memo.remember(self, "k", (self.k,), k + 1)
+
+    # --- the stages of ``update`` ---------------------------------------------------------------------------
+    def _store_in_window(self, p: int) -> None:
+        """Store [phi(k), u(k)] in the window, a time-major ring: row t mod W holds time t, so the W rows hold the
+        delays 0 .. W-1."""
+        # win[k mod W] = [phi(k), u(k)]
+        self.win[p] = torch.cat([self.phi_now, self.u_now], dim=1)
+
+    def _markov_filter(self, p: int, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Markov filter over the window: Psi^T (B, n_z, n_u * n_phi), Theta row-major, and zeta (B, n_z).
+
+        Every row of the window is weighed (by 0 below the first delay), the same products on both engines."""
+        B, n_phi = self.batch_size, self.n_phi
+        prod = self._markov_sums(p)
+        # Psi^T[z, a * n_phi + j] = sum_i beta_i[z, a] phi(k-i)[j]
+        psi_t = prod[..., :n_phi].reshape(B, self.n_z, -1)
+        # zeta(k) = z(k) - sum_i beta_i u(k-i)
+        if self.n_u == 1:
+            zeta = z - prod[:, :, 0, n_phi]
+        else:
+            zeta = z - prod[..., n_phi:].diagonal(dim1=2, dim2=3).sum(-1)
+        return psi_t, zeta
+
+    def _over_parameters(self, psi_t: torch.Tensor, theta_flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The regressor and the value of the free parameters eta: Psi_eta^T (B, n_z, n_theta) and eta
+        (B, n_theta). Where T = I they are ``psi_t`` and ``theta_flat`` themselves, so that the RLS step updates
+        theta in place."""
+        pm = self.parameter_map
+        if pm.identity:
+            return psi_t, theta_flat
+        # Psi_eta^T = Psi^T T,  eta(k) = Theta(k)[entry_of_param]
+        return pm.regressor_of_eta(psi_t), pm.eta_of(theta_flat)
+
+    @staticmethod
+    def _retrospective_performance(zeta: torch.Tensor, psi_eta: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+        """z_R(k) = z_hat(eta(k), k), (B, n_z)."""
+        # z_R(k) = zeta(k) + Psi_eta(k)^T eta(k)
+        return zeta + (psi_eta @ eta.unsqueeze(-1)).squeeze(-1)
+
+    def _active(self, inputs) -> torch.Tensor:
+        """The members that update this step, (B,): alive, and with valid > 0.5 where ``valid`` is given."""
+        active = self.alive
+        if "valid" in inputs:
+            active = active & (inputs["valid"].reshape(self.batch_size) > 0.5)
+        return active
+
+    def _rls_step(self, eta: torch.Tensor, psi_eta: torch.Tensor, z_r: torch.Tensor, active: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``rls_update`` on eta and P, both in place, over the rows of ``_rows``; returns eta and ok (B,).
+
+        A member whose Psi or z_R is not finite fails rls_update's checks (S or the step is not finite) and is
+        frozen with theta and P held, like one whose P lost definiteness."""
+        psi_u, z_u, r_inv = self._rows(psi_eta, z_r)
+        # S = lam R^-1 + Psi^T P Psi,  eta <- eta - P Psi S^-1 z_R,  P <- (P - P Psi S^-1 Psi^T P) / lam
+        eta, _, ok = rls_update(eta, self.P, psi_u.mT, z_u, self._lam_arg(), r_inv, active, inplace=True)
+        return eta, ok
+
+    def _bound_covariance(self, ok: torch.Tensor) -> None:
+        """The trace bound on P: a living member whose trace(P) exceeds p_max has P scaled down to it."""
+        if self.p_max is None:
+            return
+        tr = self.P.diagonal(dim1=1, dim2=2).sum(-1)
+        # P <- P p_max / trace(P) where trace(P) > p_max
+        scale = torch.where(self.alive & ok & (tr > self.p_max), self.p_max / tr, 1.0)
+        self.P.mul_(scale.reshape(self.batch_size, 1, 1))
+
+    def _write_theta(self, theta_flat: torch.Tensor, eta: torch.Tensor) -> None:
+        """Theta = T eta (already there where T = I), then the projection onto ``theta_bounds`` (P is left as it
+        is)."""
+        if not self.parameter_map.identity:
+            # Theta = T eta
+            self.parameter_map.write_theta_(theta_flat, eta)
+        if self.theta_low is not None:
+            # Theta <- min(max(Theta, low), high)
+            theta_flat.clamp_(self.theta_low, self.theta_high)
+
+    def _freeze_failed(self, z_r: torch.Tensor, ok: torch.Tensor, k: int) -> None:
+        """Keep z_R, and freeze the members whose step failed (``ok`` False), recording k in ``diverged_at``."""
+        self.set_state(z_r=z_r, alive=self.alive & ok,
+                       diverged_at=torch.where(self.alive & ~ok, k, self.diverged_at))
+
+    def _shift_histories(self, inputs) -> None:
+        """Move s(k) and u(k) into the past: past[0] = s(k), past[l] = s(k-l) (and u likewise)."""
+        if not self.nc:
+            return
+        cur = self._regressors(inputs)
+        if self.nc == 1:
+            self.past.copy_(cur.unsqueeze(1))
+            self.past_u.copy_(self.u_now.unsqueeze(1))
+        else:
+            # [s(k), s(k-1) .. s(k-nc+1)], [u(k), u(k-1) .. u(k-nc+1)]
+            self.set_state(past=torch.cat([cur.unsqueeze(1), self.past[:, :-1]], dim=1),
+                           past_u=torch.cat([self.u_now.unsqueeze(1), self.past_u[:, :-1]], dim=1))
+
+    def _markov_sums(self, p: int) -> torch.Tensor:
+        """The Markov filter over the ring at a step with k mod W = p: sum_i beta_i[z, a] phi(k-i)[j] and
+        sum_i beta_i[z, a] u(k-i)[c] in one product, (B, n_z, n_u, n_phi + n_u)."""
+        W, B, m = self.window, self.batch_size, self.n_phi + self.n_u
+        beta = self._beta_ring(p)                                               # (Bp, n_z * n_u, W)
+        if beta.shape[0] == 1 and self.n_z * self.n_u == 1:
+            return (beta[0] @ self.win.view(W, B * m)).reshape(B, 1, 1, m)
+        return torch.bmm(beta.expand(B, -1, -1), self.win.transpose(0, 1)).reshape(B, self.n_z, self.n_u, m)
+
+    def last_regressor(self) -> torch.Tensor:
+        """The regressor of the parameters in the last update, Psi^T: z_hat(eta) = zeta + Psi^T eta.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_z, n_theta), before the division by m of normalized regressors.
+
+        Raises
+        ------
+        ConfigError
+            If no update has run yet.
+        """
+        if not int(self.k):
+            raise ConfigError(f"block '{self.name}': no update has run yet")
+        B = self.batch_size
+        psi_t = self._markov_sums((self._step_index() - 1) % self.window)[..., :self.n_phi].reshape(B, self.n_z, -1)
+        return self.parameter_map.regressor_of_eta(psi_t)
+
+    def set_theta_free(self, eta: torch.Tensor) -> None:
+        """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).
+
+        Parameters
+        ----------
+        eta : torch.Tensor
+            (B, n_theta), in the order of ``theta_names``.
+        """
+        pm = self.parameter_map
+        flat = self.theta.reshape(self.theta.shape[0], -1).clone()
+        # Theta[e] = eta[param_of_entry[e]] for every unpinned entry e
+        flat[:, pm.unpinned_entries] = eta.to(flat.dtype)[:, pm.param_of_unpinned]
+        self.set_state(theta=flat.reshape(self.theta.shape).contiguous())
+
+    def row_scale(self, psi_t: torch.Tensor) -> torch.Tensor | None:
+        """The scale m = sqrt(1 + |Psi|_R^2 / s^2) that normalized regressors divide the rows of z by.
+
+        Parameters
+        ----------
+        psi_t : torch.Tensor
+            Psi^T, (B, n_z, n_theta).
+
+        Returns
+        -------
+        torch.Tensor or None
+            m, (B,); None where the regressors are not normalized.
+        """
+        if self.norm_inv_s2 is None:
+            return None
+        return torch.sqrt(1.0 + (psi_t * (self.r_weight @ psi_t)).sum((1, 2)) * self.norm_inv_s2)
+
+    def _rows(self, psi_t: torch.Tensor, z_r: torch.Tensor):
+        """The rows of the update (Psi^T (B, l, n), their residuals (B, l), R^-1 (l, l)): the rows of z, divided
+        by m = sqrt(1 + |Psi|_R^2 / s^2) when normalized, then sqrt(r_delta) I with residual 0 for the penalty."""
+        r_inv = self.r_inv
+        m = self.row_scale(psi_t)
+        if m is not None:
+            psi_t, z_r = psi_t / m.reshape(-1, 1, 1), z_r / m.reshape(-1, 1)
+        if self.rd_sqrt is not None:
+            B, n = psi_t.shape[0], psi_t.shape[2]
+            eye = torch.eye(n, dtype=psi_t.dtype, device=psi_t.device)
+            psi_t = torch.cat([psi_t, (self.rd_sqrt.reshape(-1, 1, 1) * eye).expand(B, n, n)], dim=1)
+            z_r = torch.cat([z_r, z_r.new_zeros(B, n)], dim=1)
+            r_inv = torch.block_diag(r_inv, eye)
+        return psi_t, z_r, r_inv
+
+    # --- native form ------------------------------------------------------------------------------------
+    def lower(self, b) -> None:
+        """Describe the estimator to the native engine.
+
+        State, parameters and ports go in slots; the regressor signals s(k) (ports or features) are computed
+        once per step; ``RCO_OUT`` computes ``output`` and ``RCO_UPD`` ``update``, from the fields and tables of
+        ``kernels.LAYOUT['ESTIMATOR']``.
+
+        Parameters
+        ----------
+        b : rcotorch.engine.lowering.Builder
+            Receives the state, parameters, ports and instructions; refuses the block where its features are
+            Python functions or its Markov parameters are missing.
+        """
+        if self.features is not None and self.terms is None:
+            b.refuse("features are Python functions (the native engine runs rcotorch.blocks.features terms)")
+        W = self.window
+        if W == 0 or self.win.shape[0] != W:
+            b.refuse("has no Markov parameters, or they changed since reset()")
+        if self.alive.dtype != torch.bool:
+            b.refuse("alive is not boolean")
+        st = {key: b.state(key) for key in ("theta", "P", "phi_now", "u_now", "z_r", "alive", "diverged_at", "past",
+                                           "past_u")}
+        st["win"] = b.state("win", rows=W)
+        cur = self._lower_regressors(b)
+        nc1 = max(self.nc, 1)
+        flat = list(range(cur, cur + self.n_sig)) + list(range(st["past"], st["past"] + nc1 * self.n_sig)) + \
+            list(range(st["past_u"], st["past_u"] + nc1 * self.n_u))            # [s(k) | past s | past u]
+        low_high = [(self.theta_low, self.theta_high, self.n_u * self.n_phi), (self.u_low, self.u_high, self.n_u)]
+        (tlo, thi), (ulo, uhi) = [(-1, -1) if lo is None else
+                                  tuple(b.param(v.reshape(-1).expand(w).reshape(1, w)) for v in (lo, hi))
+                                  for lo, hi, w in low_high]
+        r_inv = self.r_inv if self.rd_sqrt is None else \
+            torch.block_diag(self.r_inv, torch.eye(self.n_theta, dtype=self.r_inv.dtype))
+        nl = r_inv.shape[0]
+        fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
+                      W=W, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
+                      LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
+                      SHARED=b.shared(self.beta_t),
+                      THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
+                      ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
+                      BETA=b.param(self._native_beta()), LAM=b.param(self.lam.reshape(-1, 1)),
+                      RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
+                      Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
+                      UOUT=b.output("u"),
+                      SCRATCH=b.scratch(kernels.estimator_scratch(self.n_u, self.n_z, self.n_phi, self.n_theta, nl)),
+                      RW=-1 if self.norm_inv_s2 is None else b.param(self.r_weight.reshape(1, -1)),
+                      NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
+                                (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
+        fields["IDENT"] = int(self.param_of.tolist() == list(range(self.n_u * self.n_phi)))  # entry i is parameter i
+        fields.update(phi_src=[flat[j] for j in self._gather.tolist()], param_of=self.param_of.tolist(),
+                      rep=self.rep.tolist())
+        b.emit("RCO_OUT", port="u", **fields)
+        b.emit("RCO_UPD", **fields)
+
+    def _native_beta(self) -> torch.Tensor:
+        """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, which
+        ``set_markov`` refills while its shape stays, so that the lowered program runs on with the new
+        parameters (a Markov refresh between two calls of the engine)."""
+        ring = self._beta_padded().repeat(1, 1, 2)
+        self.__dict__["_native_beta_ring"] = (ring, (self.beta, self.beta_t))
+        return ring
+
+    def _lower_regressors(self, b) -> int:
+        """Slots of s(k): the port itself (one port, no features), else s(k) computed into scratch, before u
+        when phi holds s(k) (``proper``), else before the update (which shifts s(k) into the history)."""
+        port = "u" if self.proper else None
+        if self.terms is None and len(self.ports) == 1:
+            return b.input(next(iter(self.ports)))
+        cur = b.scratch(self.n_sig)
+        if self.terms is None:
+            at = cur
+            for p, w in self.ports.items():
+                b.emit("COPY", port=port, WIDTH=w, IN=b.input(p), OUT=at)
+                at += w
+        else:
+            b.emit("FEATURE", port=port, OUT=cur, terms=[t.encode(self.ports, b.input, b.const) for t in self.terms])
+        return cur
+
+    # --- the identified subsystem -----------------------------------------------------------------------
+    def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """theta split by lag: u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l).
+
+        Returns
+        -------
+        N : torch.Tensor
+            (B, n_lags, n_u, n_sig), the coefficients of the signals at ``lags``.
+        M : torch.Tensor
+            (B, max(nc, 1), n_u, n_u), the coefficients of u(k-1)..u(k-nc) (zeros if ``feed_u`` is False).
+        """
+        B, theta = self.theta.shape[0], self.theta
+        N = theta.new_zeros(B, len(self.lags), self.n_u, self.n_sig)
+        j, offset = 0, 0
+        for _s, w in self.signals.items():
+            for li in range(len(self.lags)):
+                N[:, li, :, offset:offset + w] = theta[:, :, j:j + w]
+                j += w
+            offset += w
+        M = theta.new_zeros(B, max(self.nc, 1), self.n_u, self.n_u)
+        if self.feed_u:
+            M[:, : self.nc] = theta[:, :, j:].reshape(B, self.n_u, self.nc, self.n_u).permute(0, 2, 1, 3)
+        return N, M
+
+    # --- the identified subsystem as a transfer function (``rcotorch.estimator.transfer``) ---------------------------
+    def frequency_response(self, omega) -> torch.Tensor:
+        """The identified subsystem's frequency response at z = exp(j omega dt).
+
+        H(z) = (I - sum_l M_l z^-l)^-1 sum_l N_l z^-l, from the regressor signals to u.
+
+        Parameters
+        ----------
+        omega : array_like
+            Angular frequencies [rad/s], (F,).
+
+        Returns
+        -------
+        torch.Tensor
+            Complex, (B, F, n_u, n_sig); NaN for a member whose denominator is singular or not finite.
+
+        Raises
+        ------
+        ConfigError
+            If the estimator has no sample time (``sample_time``).
+        """
+        return transfer.frequency_response(self, omega)
+
+    def dc_gain(self) -> torch.Tensor:
+        """DC gain of the identified subsystem: (I - sum M_l)^-1 sum N_l.
+
+        Without fed-back u (M = 0) it is sum N_l, with no linear solve.
+
+        Returns
+        -------
+        torch.Tensor
+            (B, n_u, n_sig); NaN for a member whose I - sum M_l is singular or not finite.
+        """
+        return transfer.dc_gain(self)
+
+    def to_control(self, member: int = 0) -> control.TransferFunction:
+        """The identified subsystem of one member as a discrete python-control ``TransferFunction`` (dt),
+        from the regressor signals to u, with named signals and the block's name as the system's name.
+
+        Inputs are the regressor signals in port order, named after them (``'y0'``, ``'y0[1]'`` for a wide
+        port, a feature's name such as ``'y0^3'``); outputs are ``'u'`` (``'u[i]'`` for n_u > 1). So
+        ``control.interconnect([known, identified.to_control()], inputs='w', outputs='y')`` with a known model
+        whose ports carry the same names (``rt.models``, ``rt.models.label_ports``) builds the refined model.
+
+        Parameters
+        ----------
+        member : int, optional
+            The batch member (negative counts from the end).
+
+        Returns
+        -------
+        control.TransferFunction
+            Discrete, with sample time ``sample_time`` (True where the estimator has none).
+
+        Raises
+        ------
+        ConfigError
+            If the block has no members yet or ``member`` is out of range.
+        """
+        return transfer.to_control(self, member)

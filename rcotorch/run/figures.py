@@ -1,0 +1,482 @@
+"""Matplotlib figures of a run: estimates vs time with the truth, model error of the initial and the refined
+model, residual checks, frequency responses; a sweep's estimates and errors against its swept settings; PNG
+bytes of figures, drawn on a second thread where the caller has other work meanwhile.
+
+Conventions of every figure here: the truth is drawn dashed in black on top of everything else (so that it stays
+visible where an estimate covers it), the initial model dotted in grey below the estimates; legends sit below the
+axes, outside them, so that they never cover a curve. Where the estimates settle early (they move little in the
+second half of the run) and the run spans two decades of logged times or more, the time axis is logarithmic, so
+that the transient and the end are both visible.
+
+The figures are made with matplotlib's ``Figure`` (Agg), not pyplot: pyplot keeps one list of open figures
+for the whole process, so only figures made without it can be drawn off the main thread.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+from collections.abc import Callable, Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from ..estimator.tracking import change_report  # noqa: E402
+from .scenario import truth_at  # noqa: E402
+
+MAX_LINES = 8
+DPI = 110
+TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
+INITIAL_STYLE = dict(color="tab:gray", ls=":", lw=1.3, zorder=1.5)     # below the estimates
+CHANGE_STYLE = dict(color="tab:brown", ls="-.", lw=1.2, zorder=5)       # a change of the truth
+DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.2, zorder=5)       # a change detector's first alarm
+LATE_MOVE = 0.2        # the estimates settled early: they move less than this share of their range in the 2nd half
+STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "not_converged": "tab:orange",
+                  "diverged": "tab:red", "finished": "tab:gray"}
+
+
+def run_figures(run) -> dict:
+    """Estimates against time (one row per estimate: the traced members' paths up to ``MAX_LINES``, the truth
+    dashed on top, the initial model's value dotted; beside it the convergence window with the final
+    intervals) and the model error: the rms of z over each log interval, and z of the initial model beside the
+    refined one's on held-out data (or on the replayed window), with units and legends below the axes."""
+    h = run.history
+    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    t = np.asarray(h["step"], dtype=float) * (dt or 1.0)
+    xlabel = "time [s]" if dt else "step"
+    members = list(getattr(run, "history_members", range(MAX_LINES)))
+    figs = {}
+    keys = [k for k in h if k not in ("step", "z_rms")]
+    series = {key: torch.stack(h[key]).numpy()[:, :MAX_LINES] for key in keys} if len(t) else {}
+    log_t = log_time_axis(t, series.values())
+    if keys and len(t):
+        found = run.intervals() if hasattr(run, "intervals") else None
+        start = run.health.window_start * (dt or 1.0) if found is not None else None
+        zoom = found is not None and bool((t >= start).sum() >= 2)
+        fig = Figure(figsize=(10.5 if zoom else 7.5, 2.3 * len(keys) + 1.2), layout="constrained")
+        axes = fig.subplots(len(keys), 2 if zoom else 1, sharex="col", squeeze=False,
+                            gridspec_kw={"width_ratios": [2.4, 1]} if zoom else None)
+        for row, key in zip(axes, keys):
+            v = series[key]
+            _estimate_panel(row[0], run, key, t, v, members)
+            if log_t:
+                row[0].set_xscale("log")
+            if zoom:
+                _window_panel(row[1], run, key, t[t >= start], v[t >= start], found)
+        axes[-1, 0].set_xlabel(xlabel + (", log scale" if log_t else ""))
+        shown = _members_shown(len(members), run.batch)
+        _title(axes[0, 0], f"{run.scenario.name}: estimates{shown}")
+        if zoom:
+            axes[-1, 1].set_xlabel(xlabel)
+            _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
+        _legend_below(fig, axes[0, 0])
+        figs["estimates"] = fig
+    if len(t):
+        figs["model_error"] = _model_error_figure(run, t, xlabel, log_t, members, dt)
+    res = run.residuals() if hasattr(run, "residuals") else None
+    if res is not None:
+        figs.update(residual_figures(run, res, dt))
+    return figs
+
+
+def log_time_axis(t: np.ndarray, series) -> bool:
+    """Whether a time axis should be logarithmic: the logged times span two decades or more, and every series
+    (T, ...) moved by less than ``LATE_MOVE`` of its whole range in the second half of the run (it settled
+    early; a change in the second half, as in a tracking run, keeps the axis linear)."""
+    if len(t) < 3 or not t[0] > 0 or t[-1] / t[0] < 100:
+        return False
+    late = t >= t[-1] / 2
+    for v in series:
+        v = np.asarray(v, dtype=float)
+        whole = np.nanmax(v, axis=0) - np.nanmin(v, axis=0) if np.isfinite(v).any() else np.zeros(1)
+        tail = v[late]
+        moved = np.nanmax(tail, axis=0) - np.nanmin(tail, axis=0) if np.isfinite(tail).any() else np.zeros(1)
+        with np.errstate(invalid="ignore"):
+            if np.any(moved > LATE_MOVE * whole):
+                return False
+    return True
+
+
+def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: list[int], dt) -> Figure:
+    """The rms of z over each log interval (with the held-out rms of the initial and the refined model where
+    the run validated them), and z of the initial and the refined model side by side on held-out data (else
+    on the replayed window), member 0."""
+    h = run.history
+    trace = _initial_and_refined(run)
+    fig = Figure(figsize=(7.5, 5.6 if trace else 3.4), layout="constrained")
+    axes = fig.subplots(2 if trace else 1, 1, squeeze=False)[:, 0]
+    ax = axes[0]
+    z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
+    labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in members[:z.shape[1]]]
+    ax.semilogy(t, z, lw=1, label=labels)
+    _change_marks(ax, run, t, members)
+    held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
+    if held is not None:
+        ax.axhline(float(held.rmse_initial[0]), **INITIAL_STYLE, label="initial model, held-out data (member 0)")
+        ax.axhline(float(held.rmse[0]), color="tab:red", ls="-.", lw=1.3, zorder=5,
+                   label="refined model, held-out data (member 0)")
+    if log_t:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel + (", log scale" if log_t else ""))
+    y_unit = run.scenario.unit("y")
+    ax.set_ylabel(_with_unit("rms of z = y - y_hat", y_unit))
+    shown = _members_shown(len(members), run.batch)
+    _title(ax, f"{run.scenario.name}: model error (rms over each log interval){shown}")
+    ax.grid(alpha=0.3, which="both")
+    _legend_below(fig, ax, axes=ax)
+    if trace:
+        where, k, z_init, z_ref = trace
+        ax = axes[1]
+        x = k * (dt or 1.0)
+        rms = [f"rms {float(np.sqrt(np.mean(v ** 2))):.3g} {y_unit}".rstrip() for v in (z_init, z_ref)]
+        ax.plot(x, z_init, color="tab:gray", lw=1.0, label=f"initial model ({rms[0]})")
+        ax.plot(x, z_ref, color="tab:red", lw=1.0, zorder=3, label=f"refined model ({rms[1]})")
+        ax.set_xlabel(("time" if dt else "samples") + f" into the {where}" + (" [s]" if dt else ""))
+        ax.set_ylabel(_with_unit("z = y - y_hat", y_unit))
+        _title(ax, f"z of the initial and the refined model on the {where}, member 0")
+        ax.grid(alpha=0.3)
+        _legend_below(fig, ax, axes=ax)
+    return fig
+
+
+def _initial_and_refined(run):
+    """(where, sample indices, z of the initial model, z of the refined one) for member 0, output 0: on the
+    held-out data where the run validated its model (after the samples that fixed the initial state), else on
+    the replayed window (its last 600 samples); None without either."""
+    held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
+    if held is not None:
+        y = held.measured[held.fit_steps:, 0, 0].numpy()
+        k = np.arange(len(y))
+        return ("held-out data", k, y - held.initial[held.fit_steps:, 0, 0].numpy(),
+                y - held.refined[held.fit_steps:, 0, 0].numpy())
+    res = run.residuals() if hasattr(run, "residuals") else None
+    if res is None:
+        return None
+    y = res.series["measured"][:, 0, 0].numpy()
+    n = min(len(y), 600)
+    k = np.arange(len(y))[-n:]
+    return ("replayed window", k, y[-n:] - res.series["initial"][-n:, 0, 0].numpy(),
+            y[-n:] - res.series["refined"][-n:, 0, 0].numpy())
+
+
+def residual_figures(run, res, dt: float | None) -> dict:
+    """The refined model checked on the replayed window (member 0): z's autocorrelation and its
+    cross-correlation with w against the 95% band of white, independent signals; the measured output against
+    the refined and the initial model's outputs, with their fit in percent."""
+    figs = {}
+    lags = np.arange(res.autocorr.shape[1])
+    n_panels = 2 if res.xcorr is not None else 1
+    fig = Figure(figsize=(7.5, 2.6 * n_panels + 1.0), layout="constrained")
+    axes = fig.subplots(n_panels, 1, squeeze=False)[:, 0]
+    ax = axes[0]
+    auto = res.autocorr[0].numpy()                               # (L + 1, n_z)
+    for c in range(auto.shape[1]):
+        ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=f"z[{c}]" if auto.shape[1] > 1 else "z")
+    ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
+    ax.set_xlabel("lag [samples]")
+    ax.set_ylabel("autocorrelation")
+    _title(ax, f"{run.scenario.name}: residual z of the refined model, member 0 "
+               f"(Ljung-Box p = {float(res.whiteness_p[0]):.2g})")
+    ax.grid(alpha=0.3)
+    _legend_below(fig, ax, axes=ax)
+    if res.xcorr is not None:
+        ax = axes[1]
+        x = res.xcorr[0].numpy()                                  # (L + 1, n_z, n_w)
+        for c in range(x.shape[1]):
+            for d in range(x.shape[2]):
+                ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z[{c}], w[{d}]" if x.shape[1] * x.shape[2] > 1
+                        else "z(k), w(k - lag)")
+        ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
+        ax.set_xlabel("lag [samples]")
+        ax.set_ylabel("cross-correlation")
+        ax.grid(alpha=0.3)
+        _legend_below(fig, ax, axes=ax)
+    figs["residuals"] = fig
+    y = res.series["measured"][:, 0].numpy()
+    n = min(len(y), 600)                                          # the last samples of the window
+    t = (np.arange(len(y)) - len(y) + 1) * (dt or 1.0)            # 0 at the window's end
+    fig = Figure(figsize=(7.5, 3.8), layout="constrained")
+    ax = fig.subplots()
+    ax.plot(t[-n:], y[-n:, 0], color="k", lw=1.6, label="measured", zorder=2)
+    ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].numpy(), color="tab:gray", ls=":", lw=1.3, zorder=3,
+            label=f"initial model (fit {float(res.fit_initial[0]):.1f}%)")
+    ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].numpy(), color="tab:orange", ls="--", lw=1.2, zorder=4,
+            label=f"refined model (fit {float(res.fit[0]):.1f}%)")
+    ax.set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
+    ax.set_ylabel(_with_unit("y", run.scenario.unit("y")))
+    _title(ax, f"{run.scenario.name}: measured and model outputs, member 0 (theta frozen)")
+    ax.grid(alpha=0.3)
+    _legend_below(fig, ax)
+    figs["output_fit"] = fig
+    return figs
+
+
+def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: list[int]) -> None:
+    """One estimate against time: the drawn members, the truth on top and the initial model's value below."""
+    lines = v[:, :MAX_LINES]
+    labels = ["estimate"] if lines.shape[1] == 1 else [f"member {b}" for b in members[:lines.shape[1]]]
+    ax.plot(t, lines, lw=1.2, label=labels, zorder=2)
+    found = run.intervals() if hasattr(run, "intervals") else None
+    if found is not None and key in found.estimate and len(t):
+        idx = [b for b in members[:lines.shape[1]] if b < found.half_width[key].shape[0]]
+        half = found.half_width[key].numpy()[idx]
+        est = found.estimate[key].numpy()[idx]
+        ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
+                    zorder=4, label=f"{found.level:.0%} interval at the end")
+    truth = run.truth.get(key)
+    history = (getattr(run, "truth_history", None) or {}).get(key)
+    if history and len(t):                      # a truth that changes: as it was at each time
+        times = [x for x, _ in history if t[0] < x < t[-1]]
+        xs = np.r_[t[0], times, t[-1]]
+        ys = [truth_at(history, x) for x in xs]
+        ax.step(xs, ys, where="post", **TRUTH_STYLE, label="truth")
+    elif truth is not None:
+        values = np.atleast_1d(np.asarray(truth, dtype=float))
+        if values.size > 1:
+            values = values[[b for b in members if b < values.size]]
+        for i, tv in enumerate(np.unique(values[np.isfinite(values)])[:MAX_LINES]):
+            ax.axhline(tv, **TRUTH_STYLE, label="truth" if i == 0 else None)
+    _change_marks(ax, run, t, members)
+    initial = (run.monitor.initial or {}).get(key) if getattr(run, "monitor", None) is not None else None
+    if initial is not None:
+        for i, iv in enumerate(np.unique(initial.numpy()[members])[:MAX_LINES]):
+            ax.axhline(iv, **INITIAL_STYLE, label="initial model" if i == 0 else None)
+    ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
+    ax.grid(alpha=0.3, which="both")
+
+
+def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
+    """Vertical lines at each change of a truth (``Scenario.truth_history``) and at each drawn member's first
+    alarm of a change detector (``rcotorch.estimator.tracking.change_report``), within the plotted times."""
+    if not len(t):
+        return
+    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    changes = sorted({x for pairs in (getattr(run, "truth_history", None) or {}).values() for x, _ in pairs[1:]})
+    for i, x in enumerate(c for c in changes if t[0] <= c <= t[-1]):
+        ax.axvline(x, **CHANGE_STYLE, label="change" if i == 0 else None)
+    labelled = False
+    for name, found in change_report(run.graph).items():
+        first = found["first_alarm_step"].numpy()
+        for b in members[:MAX_LINES]:
+            if b < len(first) and first[b] >= 0:
+                x = first[b] * (dt or 1.0)
+                if t[0] <= x <= t[-1]:
+                    ax.axvline(x, **DETECTION_STYLE, label=None if labelled else f"{name}: first alarm")
+                    labelled = True
+
+
+def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> None:
+    """The convergence window of one estimate, zoomed: each drawn member's path and its final interval shaded
+    in its colour, the truth on top."""
+    lines = ax.plot(t, v[:, :MAX_LINES], lw=1.2, zorder=2)
+    members = list(getattr(run, "history_members", range(len(lines))))
+    if key in found.estimate:
+        lo, hi = found.lower(key).numpy(), found.upper(key).numpy()
+        for b, line in zip(members, lines):
+            if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
+                ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
+    truth = run.truth.get(key)
+    if truth is not None:
+        values = np.atleast_1d(np.asarray(truth, dtype=float))
+        for tv in np.unique(values[np.isfinite(values)])[:MAX_LINES]:
+            ax.axhline(tv, **TRUTH_STYLE)
+    ax.grid(alpha=0.3)
+    ax.ticklabel_format(axis="y", useOffset=False)
+
+
+def _members_shown(n: int, batch: int) -> str:
+    return f" ({n} of {batch} members)" if batch > n else ""
+
+
+def _legend_below(fig, ax, axes=None) -> None:
+    """A legend of ``ax``'s labelled artists below the figure (or, with ``axes``, below those axes), outside
+    them, in as many columns as fit."""
+    handles, labels = ax.get_legend_handles_labels()
+    if not handles:
+        return
+    ncol = min(len(handles), 4 if max(len(s) for s in labels) < 28 else 2)
+    if axes is None:
+        fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=8, frameon=False)
+    else:
+        axes.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=ncol, fontsize=8,
+                    frameon=False)
+
+
+def _title(ax, text: str) -> None:
+    """A title on the axes' top edge: where matplotlib puts it on axes without tick labels above them, which it
+    would otherwise confirm by laying out every tick label of the figure once more."""
+    ax.set_title(text, y=1.0)
+
+
+def _with_unit(label: str, unit: str) -> str:
+    return f"{label} [{unit}]" if unit else label
+
+
+def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = "",
+                     bands: dict | None = None):
+    """Bode magnitude (in ``unit``, the unit of output per unit of input) and phase of named complex responses
+    {label: (F,) array}; the Nyquist frequency dotted. ``bands``: {label: (lower, upper)} magnitude bands, e.g.
+    a confidence region of an identified response, shaded. A curve whose label says 'true' is drawn dashed, in
+    black (a second one in grey, with longer dashes) and on top of the others, so that it stays visible where a
+    refined curve covers it; the legend sits below the axes."""
+    fig = Figure(figsize=(7, 6), layout="constrained")
+    am, ap = fig.subplots(2, 1, sharex=True)
+    for label, (lo, hi) in (bands or {}).items():
+        am.fill_between(omega, np.maximum(np.asarray(lo), 1e-300), np.asarray(hi), color="tab:orange", alpha=0.25,
+                        lw=0, label=label, zorder=1)
+    colours = iter(["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
+                    "tab:cyan", "tab:red"])
+    true_styles = iter([dict(color="k", dashes=(4, 3), lw=1.5), dict(color="dimgray", dashes=(8, 4), lw=1.5)])
+    for label, resp in curves.items():
+        resp = np.asarray(resp)
+        if "true" in label.lower():
+            style = dict(next(true_styles, dict(color="k", dashes=(2, 2), lw=1.5)), zorder=6)
+        else:
+            style = dict(color=next(colours, None), ls="-", lw=1.6, zorder=3)
+        am.loglog(omega, np.abs(resp), label=label, **style)
+        ap.semilogx(omega, np.degrees(np.unwrap(np.angle(resp))), label=label, **style)
+    for ax in (am, ap):
+        if nyquist:
+            ax.axvline(nyquist, color="gray", lw=0.8, ls=":", label="Nyquist frequency" if ax is am else None)
+        ax.grid(alpha=0.3, which="both")
+    am.set_ylabel(_with_unit("magnitude", unit))
+    ap.set_ylabel("phase [deg]")
+    ap.set_xlabel("frequency [rad/s]")
+    _title(am, title)
+    _legend_below(fig, am)
+    return fig
+
+
+def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) -> dict:
+    """The figures of a finished sweep, one per swept setting: for each estimate (the rows' ``est_<key>``
+    columns) the estimate against the setting, the truth on top (``truth_<key>``, black crosses), and its
+    |error| (``err_<key>``) against the setting, each member a dot coloured by its status. ``rows``: the
+    sweep's table (``rcotorch.run.sweep.run_sweep``, sweep.json); ``swept``: the settings to draw against (columns of
+    the rows; numbers, or words drawn as categories); ``scenario`` (a name or object, optional): the units of
+    the axes. Returns {``sweep_<setting>``: Figure}."""
+    sc = _scenario(scenario)
+    keys = list(dict.fromkeys(c[4:] for r in rows for c in r if c.startswith("est_")))
+    figs = {}
+    if not rows or not keys:
+        return figs
+    status = [str(r.get("status", "finished")) for r in rows]
+    for setting in swept:
+        raw = [r.get(setting) for r in rows]
+        if all(v is None for v in raw):
+            continue
+        x, ticks = _axis_values(raw)
+        fig = Figure(figsize=(9, 2.4 * len(keys) + 1.2), layout="constrained")
+        axes = fig.subplots(len(keys), 2, sharex=True, squeeze=False)
+        for row, key in zip(axes, keys):
+            est = _column(rows, f"est_{key}")
+            truth = _column(rows, f"truth_{key}")
+            err = np.abs(_column(rows, f"err_{key}"))
+            unit = sc.unit(key) if sc is not None else ""
+            for name in dict.fromkeys(status):
+                sel = np.array([s == name for s in status])
+                colour = STATUS_COLOURS.get(name, "tab:blue")
+                row[0].scatter(x[sel], est[sel], s=18, color=colour, label=name.replace("_", " "), zorder=3)
+                row[1].scatter(x[sel], err[sel], s=18, color=colour, zorder=3)
+            if np.isfinite(truth).any():
+                row[0].scatter(x, truth, marker="x", s=40, color="k", lw=1.3, zorder=6, label="truth")
+            row[0].set_ylabel(_with_unit(key, unit))
+            row[1].set_ylabel(_with_unit(f"|error| of {key}", unit))
+            positive = err[np.isfinite(err)]
+            if positive.size and (positive > 0).all() and positive.max() / positive.min() > 100:
+                row[1].set_yscale("log")
+            for ax in row:
+                ax.grid(alpha=0.3, which="both")
+        s_unit = sc.unit(setting) if sc is not None and setting in getattr(sc, "settings", {}) else ""
+        for ax in axes[-1]:
+            ax.set_xlabel(_with_unit(setting, s_unit))
+            if ticks is not None:
+                ax.set_xticks(range(len(ticks)), ticks)
+            elif _log_spread(x):
+                ax.set_xscale("log")
+        name = getattr(sc, "name", None) or (rows[0].get("scenario") if isinstance(rows[0], Mapping) else None)
+        _title(axes[0, 0], f"{name + ': ' if name else ''}estimates against {setting} ({len(rows)} members)")
+        _title(axes[0, 1], "|estimate - truth|")
+        _legend_below(fig, axes[0, 0])
+        figs[f"sweep_{setting}"] = fig
+    return figs
+
+
+def _column(rows: Sequence[Mapping], name: str) -> np.ndarray:
+    """A column of the rows as floats (NaN where missing or not a number)."""
+    out = np.full(len(rows), np.nan)
+    for i, r in enumerate(rows):
+        v = r.get(name)
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[i] = v
+    return out
+
+
+def _axis_values(raw: list) -> tuple[np.ndarray, list[str] | None]:
+    """Positions of a swept setting's values: the numbers themselves, or for words (or a mix) the index of
+    each distinct value in order of appearance, with those values as tick labels."""
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in raw):
+        return np.asarray(raw, dtype=float), None
+    labels = list(dict.fromkeys(str(v) for v in raw))
+    return np.array([labels.index(str(v)) for v in raw], dtype=float), labels
+
+
+def _log_spread(x: np.ndarray) -> bool:
+    x = x[np.isfinite(x)]
+    return bool(x.size and (x > 0).all() and x.max() / x.min() >= 100)
+
+
+def _scenario(which):
+    """A scenario object from a name or object (None for None or a name no scenario has)."""
+    if which is None or not isinstance(which, str):
+        return which
+    from ..errors import RcoError
+    from . import scenario as scenarios
+    try:
+        return scenarios.get(which)
+    except RcoError:
+        return None
+
+
+def png(fig) -> bytes:
+    """The figure as PNG bytes at ``DPI``, laid out tightly unless it has a layout of its own (one drawing); a
+    figure that pyplot made is closed (removed from pyplot's list)."""
+    if fig.get_layout_engine() is None:
+        fig.set_layout_engine("tight")             # laid out while it is drawn
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    if fig.canvas.manager is not None:
+        import matplotlib.pyplot as plt
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def pngs(figs: dict) -> dict[str, bytes]:
+    """{name: PNG bytes} of {name: figure}."""
+    return {name: png(fig) for name, fig in figs.items()}
+
+
+def draw_meanwhile(make: Callable[[], dict]) -> Callable[[], dict[str, bytes]]:
+    """Start drawing the figures ``make()`` returns on a second thread; the returned function waits for their
+    PNG bytes (and raises what the drawing raised). ``make`` must make its figures without pyplot and read only
+    what the caller leaves unchanged until it waits. The figures are the same bytes as drawn in the caller's
+    thread; what the thread gains is the caller's time in file writes, hashing and fsync (which leave Python)."""
+    out: dict = {}
+
+    def draw() -> None:
+        try:
+            out["pngs"] = pngs(make())
+        except BaseException as e:     # handed to the caller when it waits
+            out["error"] = e
+    thread = threading.Thread(target=draw, name="rcotorch-figures", daemon=True)   # a 2nd Ctrl-C quits at once
+    thread.start()
+
+    def wait() -> dict[str, bytes]:
+        thread.join()
+        if "error" in out:
+            raise out["error"]
+        return out["pngs"]
+    return wait

@@ -1,0 +1,570 @@
+"""Confidence intervals of a refinement's estimates, and whether the data determined them.
+
+The estimator's parameters eta (theta = T eta) near the end of a run follow the stochastic-approximation
+recursion of the RLS update,
+
+    eta~(k+1) = eta~(k) - P(k) Psi(k) W [Psi_true(k)^T eta~(k) + v(k)],      eta~ = eta - eta*,
+
+where Psi(k) is the regressor the update uses (the first nu Markov parameters of u -> z applied to phi, the
+open-loop filter) and Psi_true(k) = dz(k)/d eta the true sensitivity of the model error to the parameters:
+the same phi filtered by the whole closed loop of the simulated system (the known model with the identified
+subsystem in feedback), v(k) the part of z no parameter explains (measurement noise), W the cost's weight R.
+With A = E[Psi W Psi^T]^-1 E[Psi W Psi_true^T] and the gain P(k) ~ (n_k E[Psi W Psi^T])^-1,
+n_k = sum_j lam^j, the covariance X of eta~ at step N is the variance the recursion gathers over its time
+T = sum_{k<=N} 1 / n_k (ln N + 0.58 for lam = 1):
+
+    X = X_inf - exp(-M T) X_inf exp(-M T)^T,   M X_inf + X_inf M^T = Q,   M = A - c I,   c = lam^N / 2,
+    Q = sym(E[Psi W Psi^T]^-1 Omega P(N)),
+
+Omega the long-run covariance of the scores Psi W z (E[Psi W V W Psi^T], V = E[v v^T], for white residuals).
+For A = I and lam = 1 this is the ordinary least-squares covariance sigma^2 P; the open-loop filter usually
+makes A larger than I (the closed loop responds to a parameter error for longer than nu steps), so sigma^2 P
+alone is too wide. A direction with an eigenvalue of A near 0 was not excited by the data (``EXCITED``): the
+data did not determine it.
+
+``parameter_covariance`` measures A, V and the right-hand side by replaying a stretch of the run (from a
+snapshot of the graph's state) with theta frozen at its final value: once as it is, and once per parameter
+with that parameter moved by a small step, every copy fed the same excitation and noise (the sources are
+pure functions of their seeds and the step), so the differences of z are Psi_true. It works for any graph
+with an estimator role, on either engine's state. ``estimate_intervals`` carries X to any function of the
+graph's parameters (an estimate such as a DC gain or a physical parameter backed out of theta) by the delta
+method, with its gradient from central differences.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+
+LEVEL = 0.95             # the default confidence level
+REL_TOL = 0.5            # determined: each interval's half-width at most this fraction of max(|estimate|, scale)
+REPLAY_STEPS = 4000      # at most this many steps replayed (the convergence window's length, up to this)
+SETTLE = 0.25            # the first fraction of the replay lets the perturbed copies settle
+LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
+KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
+SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
+WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
+EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
+OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
+BIAS_TOL = 0.05          # a biased estimate that step moves by more than this fraction of its size is undetermined
+
+
+@dataclass
+class ParameterCovariance:
+    """The covariance of the estimator's parameters eta at the end of a run, per member.
+
+    Attributes:
+        cov: (B, n, n) float64 covariance X of eta (NaN for members that were frozen or did not settle).
+        gain: (B, n, n) the matrix A of the recursion (I when the open-loop filter is exact).
+        noise: (B, n_z, n_z) V, the mean z z^T of the frozen replay (the residual's covariance).
+        settles: (B,) bool, whether every eigenvalue of A has a real part above ``EXCITED`` (every direction of
+            the parameters was excited by the data).
+        replayed: steps replayed; ``measured`` of them entered the statistics.
+        offset: (B, n) the Gauss-Newton step of the window's output error from eta,
+            -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
+    """
+
+    cov: torch.Tensor
+    gain: torch.Tensor
+    noise: torch.Tensor
+    settles: torch.Tensor
+    replayed: int
+    measured: int
+    offset: torch.Tensor | None = None
+
+    @property
+    def std(self) -> torch.Tensor:
+        """(B, n) standard deviations of the parameters."""
+        return self.cov.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+
+
+def snapshot(graph) -> dict[str, torch.Tensor]:
+    """A copy of the graph's state (what ``parameter_covariance`` replays from)."""
+    return {k: v.detach().clone() for k, v in graph.state_dict().items()}
+
+
+def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor, engine: str = "torch"):
+    g = copy.deepcopy(graph)
+    g.load_state_dict(state)
+    g.engine = engine
+    est = g.role("estimator")
+    est.set_theta_free(eta)
+    est.set_state(P=torch.zeros_like(est.P))          # a zero gain: theta stays where it is
+    return g, est
+
+
+@dataclass
+class Residuals:
+    """Checks of the refined model on the replayed window (theta frozen at its final value), per member.
+
+    Attributes:
+        steps: samples the statistics hold (N).
+        autocorr: (B, L + 1, n_z) normalized autocorrelation of each channel of z at lags 0..L (1 at lag 0).
+        xcorr: (B, L + 1, n_z, n_w) normalized cross-correlation of z(k) with w(k - lag), lags 0..L, or None
+            when the graph declares no exogenous signal (role 'exogenous').
+        bound: the 95% band of a correlation of white, independent signals, 1.96 / sqrt(N).
+        whiteness_p: (B,) the Ljung-Box test's p-value that z is white (the smallest over z's channels).
+        fit, fit_initial: (B,) the fit in percent, 100 (1 - |y - y_hat| / |y - mean y|), of the refined model
+            and of the initial one (theta as the run started) on the same data.
+        series: the first members' measured, refined and initial outputs {name: (N, M, n_y)} for figures.
+    """
+
+    steps: int
+    autocorr: torch.Tensor
+    xcorr: torch.Tensor | None
+    bound: float
+    whiteness_p: torch.Tensor
+    fit: torch.Tensor
+    fit_initial: torch.Tensor
+    series: dict[str, torch.Tensor]
+
+
+@dataclass
+class Replay:
+    """What ``replay`` measures: the parameters' covariance and the residual checks."""
+
+    covariance: ParameterCovariance
+    residuals: Residuals
+
+
+def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
+                         rel_step: float | None = None) -> ParameterCovariance:
+    """The covariance of the parameters of ``graph``'s estimator (``replay(...).covariance``)."""
+    return replay(graph, state, steps, settle, rel_step).covariance
+
+
+def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
+           rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS,
+           score_lags: int = SCORE_LAGS) -> Replay:
+    """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
+    estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
+    and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
+    the initial theta. The first ``settle`` steps (default: a quarter) only let the copies settle.
+    ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
+    float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
+    figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). The graph itself is not
+    changed."""
+    steps = int(steps)
+    if steps < 2:
+        raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
+    settle = int(SETTLE * steps) if settle is None else int(settle)
+    if not 0 <= settle < steps:
+        raise ConfigError(f"intervals: settle must lie in [0, {steps}), got {settle}")
+    est = graph.role("estimator")
+    z_sig = graph.role_signal("error")
+    y_sig = graph.role_signal("measured") if "measured" in graph.roles else z_sig
+    w_sig = graph.role_signal("exogenous") if "exogenous" in graph.roles else None
+    eta = est.theta_free().detach()
+    B, n, n_z = eta.shape[0], eta.shape[1], est.n_z
+    f64, dev = torch.float64, eta.device
+    if rel_step is None:
+        rel_step = 1e-7 if eta.dtype == torch.float64 else 1e-3
+    size = eta.abs().amax(1, keepdim=True).expand(B, n)
+    size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
+    eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))            # (B, n)
+    # The base copy steps here, one step at a time, for its regressors; its outputs, and those of the copies
+    # with each parameter moved and with the initial theta, are recorded over the whole replay by ``advance``
+    # (the native engine where the graph has one), the same engine for all of them.
+    base, base_est = _frozen_copy(graph, state, eta)
+    theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
+    runs = [eta] + [eta + eps[:, j:j + 1] * torch.eye(n, dtype=eta.dtype, device=dev)[j] for j in range(n)]
+    runs.append(theta0.index_select(1, est.free_idx.to(theta0.device)))
+    recorded = []
+    for e in runs:
+        g = _frozen_copy(graph, state, e, engine=graph.engine)[0]
+        signals = [z_sig] + ([] if len(recorded) else [y_sig] + ([w_sig] if w_sig is not None else []))
+        names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
+        rec = g.run(steps, record={name: name for name in names})
+        recorded.append({names[name]: v.to(f64) for name, v in rec.items()})
+        del g
+    zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
+    weight = est.r_weight.to(f64)
+    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
+    cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
+    jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
+    jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
+    zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
+    scores = _ScoreSums(B, n, score_lags, dev)
+    res = _ResidualSums(B, lags, keep, dev)
+    measured = 0
+    first = recorded[0]
+    with torch.no_grad():
+        for k in range(steps):
+            base.step()
+            if k < settle:
+                continue
+            z = first[z_sig][k]
+            dz = zs[k] - z.unsqueeze(2)                                                  # (B, n_z, n)
+            z_init = recorded[-1][z_sig][k]
+            res.add(z, None if w_sig is None else first[w_sig][k], first[y_sig][k], z_init)
+            jac = dz / eps.to(f64).unsqueeze(1)                                  # (B, n_z, n)
+            jwj += torch.einsum("bzi,zy,byj->bij", jac, weight, jac)
+            jwz += torch.einsum("bzi,zy,by->bi", jac, weight, z)
+            psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
+            m = base_est.row_scale(psi)
+            if m is not None:                                                     # the rows as weighed
+                m = m.to(f64)
+                z, dz = z / m.reshape(-1, 1), dz / m.reshape(-1, 1, 1)
+                psi = psi / m.reshape(-1, 1, 1)
+            grams += torch.einsum("bzi,byj->bzyij", psi, psi)
+            cross += torch.einsum("bzi,zy,byj->bij", psi, weight, dz / eps.to(f64).unsqueeze(1))
+            zz += torch.einsum("bz,by->bzy", z, z)
+            scores.add(torch.einsum("bzi,zy,by->bi", psi, weight, z))
+            measured += 1
+    V = zz / measured
+    finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
+        torch.isfinite(V).flatten(1).all(1)
+    eye = torch.eye(n, dtype=f64, device=dev)
+    info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
+    residuals = res.result()
+    correlated = (residuals.whiteness_p < WHITE_P).to(dev)
+    noise_info = scores.long_run(correlated)          # sum Psi W z z^T W Psi^T, lagged terms where z is not white
+    finite = finite & torch.isfinite(noise_info).flatten(1).all(1)
+    info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
+    cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
+    noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
+    info_inv = torch.linalg.pinv(info)
+    A = info_inv @ cross
+    P = est.P.detach().to(f64)
+    rhs = info_inv @ noise_info @ P
+    rhs = 0.5 * (rhs + rhs.mT)
+    lam = est.lam.to(f64).reshape(-1, 1, 1).expand(B, 1, 1)
+    N = int(est.k)
+    c = 0.5 * lam ** N
+    M = A - c * torch.eye(n, dtype=f64, device=A.device)
+    X = _lyapunov(M, rhs)
+    # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
+    # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
+    # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
+    E = torch.linalg.matrix_exp(-M * _gain_time(est.lam.to(f64).cpu().reshape(-1).expand(B), N
+                                                 ).to(M.device).reshape(-1, 1, 1))
+    X = X - E @ X @ E.mT
+    X = 0.5 * (X + X.mT)
+    settles = torch.linalg.eigvals(torch.where(finite.reshape(-1, 1, 1), A, eye)).real.amin(1) > EXCITED
+    alive = est.alive.to(settles.device)
+    settles = settles & finite.to(settles.device)
+    ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
+    X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
+    # The output error's Gauss-Newton step over the window: where the frozen loop's error is smaller.
+    step_ok = ok & torch.isfinite(jwj).flatten(1).all(1) & torch.isfinite(jwz).all(1)
+    offset = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
+               torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
+    offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
+    pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
+                             offset=offset)
+    return Replay(covariance=pc, residuals=residuals)
+
+
+class _ScoreSums:
+    """The long-run covariance of the scores s(k) = Psi(k) W z(k): sum_k s(k) s(k)^T plus, for lags 1..L,
+    (1 - lag / (L + 1)) (G_lag + G_lag^T) with G_lag = sum_k s(k) s(k - lag)^T (Bartlett weights, as the
+    Newey-West estimator). For white z this is sum Psi W V W Psi^T; where z is correlated (dynamics the refined
+    model does not explain; its whiteness test's p-value below WHITE_P) the lagged terms widen the intervals."""
+
+    def __init__(self, B: int, n: int, lags: int, device):
+        self.L, self.n = lags, 0
+        self.ring = torch.zeros(lags + 1, B, n, dtype=torch.float64, device=device)
+        self.gram = torch.zeros(lags + 1, B, n, n, dtype=torch.float64, device=device)
+
+    def add(self, s: torch.Tensor) -> None:
+        L = self.L
+        pos = self.n % (L + 1)
+        self.ring[pos] = s
+        lags = torch.arange(min(self.n, L) + 1, device=s.device)
+        self.gram[: len(lags)] += torch.einsum("bi,lbj->lbij", s, self.ring[(pos - lags) % (L + 1)])
+        self.n += 1
+
+    def long_run(self, members: torch.Tensor) -> torch.Tensor:
+        """sum s s^T for every member, with the lagged terms for ``members`` ((B,) bool) only: where z is
+        white they have expectation zero and would only add their sampling noise."""
+        g = self.gram
+        lagged = torch.zeros_like(g[0])
+        for lag in range(1, self.L + 1):
+            lagged += (1 - lag / (self.L + 1)) * (g[lag] + g[lag].mT)
+        return g[0] + torch.where(members.reshape(-1, 1, 1), lagged, 0.0)
+
+
+class _ResidualSums:
+    """Running sums of the residual checks over the replay: lagged products of z and w (a ring of the last
+    ``lags`` samples), the fit's sums, and the first members' outputs."""
+
+    def __init__(self, B: int, lags: int, keep: int, device):
+        self.B, self.L, self.keep, self.dev = B, lags, keep, device
+        self.n = 0
+        self.series: dict[str, list[torch.Tensor]] = {"measured": [], "refined": [], "initial": []}
+
+    def add(self, z: torch.Tensor, w: torch.Tensor | None, y: torch.Tensor, z_init: torch.Tensor) -> None:
+        L, f64 = self.L, torch.float64
+        if self.n == 0:
+            B = self.B
+            self.z_ring = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
+            self.zz = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
+            self.z_sum = torch.zeros(B, z.shape[1], dtype=f64, device=self.dev)
+            if w is not None:
+                self.w_ring = torch.zeros(L + 1, B, w.shape[1], dtype=f64, device=self.dev)
+                self.zw = torch.zeros(L + 1, B, z.shape[1], w.shape[1], dtype=f64, device=self.dev)
+                self.w_sq = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
+                self.w_sum = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
+            self.w_on = w is not None
+            self.fit = {key: torch.zeros(B, dtype=f64, device=self.dev) for key in ("zz", "zi", "yy")}
+            self.fit["y"] = torch.zeros(B, y.shape[1], dtype=f64, device=self.dev)
+        pos = self.n % (L + 1)
+        self.z_ring[pos] = z
+        lags = torch.arange(min(self.n, L) + 1, device=self.dev)
+        rows = (pos - lags) % (L + 1)
+        self.zz[: len(lags)] += z.unsqueeze(0) * self.z_ring[rows]            # z(k) z(k - lag)
+        self.z_sum += z
+        if self.w_on:
+            self.w_ring[pos] = w
+            self.zw[: len(lags)] += z.unsqueeze(0).unsqueeze(-1) * self.w_ring[rows].unsqueeze(2)
+            self.w_sq += w * w
+            self.w_sum += w
+        f = self.fit
+        f["zz"] += (z * z).sum(1)
+        f["zi"] += (z_init * z_init).sum(1)
+        f["y"] += y
+        f["yy"] += (y * y).sum(1)
+        kept = slice(0, self.keep)
+        self.series["measured"].append(y[kept].cpu())
+        self.series["refined"].append((y - z)[kept].cpu())
+        self.series["initial"].append((y - z_init)[kept].cpu())
+        self.n += 1
+
+    def result(self) -> Residuals:
+        N, L = self.n, self.L
+        counts = (N - torch.arange(L + 1, dtype=torch.float64, device=self.dev)).clamp_min(1).reshape(-1, 1, 1)
+        mean_z = self.z_sum / N
+        cov_z = self.zz / counts - mean_z.unsqueeze(0) ** 2                     # (L + 1, B, n_z)
+        auto = (cov_z / cov_z[:1]).permute(1, 0, 2)                              # (B, L + 1, n_z)
+        xcorr = None
+        if self.w_on:
+            mean_w = self.w_sum / N
+            cov_zw = self.zw / counts.unsqueeze(-1) - (mean_z.unsqueeze(-1) * mean_w.unsqueeze(1)).unsqueeze(0)
+            var_w = self.w_sq / N - mean_w ** 2
+            scale = torch.sqrt(cov_z[0].unsqueeze(-1) * var_w.unsqueeze(1))         # (B, n_z, n_w)
+            xcorr = (cov_zw / scale.unsqueeze(0)).permute(1, 0, 2, 3)
+        r = auto[:, 1:]                                                          # lags 1..L
+        lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
+        q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
+        from scipy.stats import chi2
+        p = torch.as_tensor(chi2.sf(torch.nan_to_num(q, nan=math.inf).cpu().numpy(), L), dtype=torch.float64)
+        f = self.fit
+        spread = torch.sqrt(f["yy"] - (f["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
+        return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
+                         bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
+                         fit=(100 * (1 - torch.sqrt(f["zz"]) / spread)).cpu(),
+                         fit_initial=(100 * (1 - torch.sqrt(f["zi"]) / spread)).cpu(),
+                         series={k: torch.stack(v) for k, v in self.series.items()})
+
+
+def _gain_time(lam: torch.Tensor, N: int) -> torch.Tensor:
+    """sum_{k=1..N} 1 / n_k with n_k = sum_{j<k} lam^j (the RLS gain's time), per member."""
+    k = torch.arange(1, N + 1, dtype=torch.float64)
+    out = torch.empty_like(lam)
+    for value in torch.unique(lam):
+        n_k = k if value == 1 else (1 - value ** k) / (1 - value)
+        out[lam == value] = (1.0 / n_k).sum()
+    return out
+
+
+def _lyapunov(M: torch.Tensor, Q: torch.Tensor, chunk_bytes: int = 1 << 27) -> torch.Tensor:
+    """X with M X + X M^T = Q for each member (B, n, n) (NaN-free members only; the others get a solution
+    for M = I, Q = 0)."""
+    B, n, _ = M.shape
+    eye = torch.eye(n, dtype=M.dtype, device=M.device)
+    finite = torch.isfinite(M).flatten(1).all(1) & torch.isfinite(Q).flatten(1).all(1)
+    Ms = torch.where(finite.reshape(-1, 1, 1), M, eye)
+    X = torch.empty_like(M)
+    per = max(1, chunk_bytes // (8 * n ** 4))
+    for a in range(0, B, per):
+        m = Ms[a:a + per]
+        # row-major vec: vec(M X) = (M kron I) vec X, vec(X M^T) = (I kron M) vec X
+        K = torch.einsum("bik,jl->bijkl", m, eye) + torch.einsum("ik,bjl->bijkl", eye, m)
+        K = K.reshape(-1, n * n, n * n)
+        q = torch.where(finite[a:a + per].reshape(-1, 1, 1), Q[a:a + per], 0.0).reshape(-1, n * n, 1)
+        sol = torch.linalg.solve_ex(K, q)
+        X[a:a + per] = sol.result.reshape(-1, n, n)
+    return 0.5 * (X + X.mT)
+
+
+def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]],
+                       std: torch.Tensor) -> dict[str, torch.Tensor]:
+    """d estimate / d eta for every estimate (B,) of ``estimates(graph)``, by central differences with
+    steps of 1e-3 of each parameter's standard deviation ``std`` (B, n) (1e-6 of its size where that is not
+    finite or zero). Returns {key: (B, n)}; theta is restored."""
+    est = graph.role("estimator")
+    eta = est.theta_free().detach().clone()
+    theta = est.theta.clone()
+    B, n = eta.shape
+    h = 1e-3 * std.to(eta.dtype)
+    fallback = 1e-6 * torch.maximum(eta.abs(), eta.abs().amax(1, keepdim=True)).clamp_min(1e-12)
+    h = torch.where(torch.isfinite(h) & (h > 0), h, fallback)
+    grads: dict[str, list] = {}
+    try:
+        for j in range(n):
+            vals = []
+            for sign in (1.0, -1.0):
+                e = eta.clone()
+                e[:, j] += sign * h[:, j]
+                est.set_theta_free(e)
+                with torch.no_grad():
+                    vals.append({k: v.detach().to(torch.float64).reshape(B) for k, v in estimates(graph).items()})
+            for key in vals[0]:
+                grads.setdefault(key, []).append((vals[0][key] - vals[1][key]) / (2 * h[:, j].to(torch.float64)))
+    finally:
+        est.set_state(theta=theta)
+    return {k: torch.stack(v, dim=1) for k, v in grads.items()}
+
+
+def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: ParameterCovariance,
+                     p: float = 0.999) -> torch.Tensor:
+    """(B,) True where the parameters' change over the convergence window, eta(N) - eta(k0), is what their
+    own random error explains: d^T V^-1 d within the chi-square quantile ``p``, V = X (1 + n_N / n_k0) the
+    variance of the difference when the errors at k0 and N are taken as independent (X at k0 is X n_N / n_k0,
+    n_k = sum_{j<k} lam^j the RLS memory), so larger than the covariance it ignores. With forgetting the
+    estimate keeps moving by about its interval; the window's change then says nothing about convergence."""
+    from scipy.stats import chi2
+
+    B, n = pc.cov.shape[0], pc.cov.shape[1]
+    eta = est.theta_free().detach().to(torch.float64).cpu()
+    start = theta_start.reshape(B, -1).to(torch.float64).cpu().index_select(1, est.free_idx.cpu())
+    d = (eta - start).unsqueeze(-1)
+    lam = est.lam.to(torch.float64).cpu().reshape(-1).expand(B)
+    N = int(est.k)
+
+    def memory(k: int) -> torch.Tensor:
+        return torch.where(lam < 1, (1 - lam ** k) / (1 - lam).clamp_min(1e-300), torch.full_like(lam, float(k)))
+    ratio = memory(N) / memory(max(k_start, 1)).clamp_min(1e-300)
+    V = pc.cov.cpu() * (1 + ratio).reshape(-1, 1, 1)
+    ok = torch.isfinite(V).flatten(1).all(1)
+    Vs = torch.where(ok.reshape(-1, 1, 1), V, torch.eye(n, dtype=V.dtype))
+    stat = (d.mT @ torch.linalg.pinv(Vs) @ d).reshape(B)
+    return ok & (stat <= float(chi2.ppf(p, n)))
+
+
+def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, level: float = LEVEL
+         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The value of ``fn(graph)`` ((B, F) float, e.g. a frequency response's magnitude on a grid) and the
+    half-width of its confidence band (delta method, as ``estimate_intervals``), each (B, F)."""
+    value = fn(graph).detach().to(torch.float64).cpu()
+    F = value.shape[1]
+    grads = estimate_gradients(graph, lambda g: {str(i): c for i, c in enumerate(fn(g).unbind(1))}, pc.std)
+    g = torch.stack([grads[str(i)] for i in range(F)], dim=1).cpu()                    # (B, F, n)
+    var = torch.einsum("bfi,bij,bfj->bf", g, pc.cov.cpu(), g)
+    return value, quantile(level) * var.clamp_min(0).sqrt()
+
+
+def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, member: int = 0,
+                level: float = LEVEL) -> tuple[np.ndarray, np.ndarray] | None:
+    """``fn(graph)`` for one member ((F,) values computed from that member's parameters, e.g. a magnitude
+    response on a grid; any code) and the half-width of its confidence band (delta method, central differences
+    in that member's parameters), or None where its covariance is not finite."""
+    X = pc.cov[member].to(torch.float64).cpu()
+    if not bool(torch.isfinite(X).all()):
+        return None
+    est = graph.role("estimator")
+    eta, theta = est.theta_free().detach().clone(), est.theta.clone()
+    sd = pc.std[member].cpu()
+    h = torch.where(sd > 0, 1e-3 * sd, 1e-6 * eta[member].abs().clamp_min(1e-12).cpu())
+    value = np.asarray(fn(graph), dtype=float)
+    grads = []
+    try:
+        for j in range(eta.shape[1]):
+            sides = []
+            for sign in (1.0, -1.0):
+                e = eta.clone()
+                e[member, j] += sign * float(h[j])
+                est.set_theta_free(e)
+                sides.append(np.asarray(fn(graph), dtype=float))
+            grads.append((sides[0] - sides[1]) / (2 * float(h[j])))
+    finally:
+        est.set_state(theta=theta)
+    G = np.stack(grads, axis=-1)                                                    # (F, n)
+    var = np.einsum("fi,ij,fj->f", G, X.numpy(), G)
+    return value, quantile(level) * np.sqrt(np.clip(var, 0, None))
+
+
+def quantile(level: float) -> float:
+    """The two-sided normal quantile of a confidence level (1.96 for 0.95)."""
+    if not 0 < level < 1:
+        raise ConfigError(f"intervals: level must lie in (0, 1), got {level}")
+    return NormalDist().inv_cdf(0.5 + level / 2)
+
+
+@dataclass
+class Intervals:
+    """Confidence intervals of named estimates, per member (each value a (B,) float64 tensor)."""
+
+    level: float
+    estimate: dict[str, torch.Tensor]
+    half_width: dict[str, torch.Tensor]
+    determined: torch.Tensor              # (B,) bool
+    undetermined_keys: list[list[str]]    # per member, the estimates whose interval is too wide
+    offset: dict[str, torch.Tensor] | None = None   # the estimates' move by the output error's step (B,)
+    widened: torch.Tensor | None = None   # (B,) bool: an interval includes that move (``OFFSET_FACTOR``)
+    biased: torch.Tensor | None = None    # (B,) bool: an estimate undetermined for it (``BIAS_TOL``)
+
+    def lower(self, key: str) -> torch.Tensor:
+        return self.estimate[key] - self.half_width[key]
+
+    def upper(self, key: str) -> torch.Tensor:
+        return self.estimate[key] + self.half_width[key]
+
+
+def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]], pc: ParameterCovariance,
+                       level: float = LEVEL, scales: Mapping[str, float] | None = None,
+                       rel_tol: float = REL_TOL) -> Intervals:
+    """Intervals est +- q sd of every estimate, sd^2 = g X g^T with g its gradient in eta (delta method).
+
+    Where the window's output error is smaller away from the estimate by more than its random error (the
+    estimate's move d = g offset by the output error's Gauss-Newton step, ``pc.offset``, exceeds
+    ``OFFSET_FACTOR`` half-widths), the estimate is biased beyond its interval (a structure the refinement
+    cannot fit without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
+    q sd + |d|, so that the interval reaches the point the data favour; where |d| is also more than
+    ``BIAS_TOL`` times max(|estimate|, scale), the estimate is not determined (the refinement settled well away
+    from what the data determine).
+
+    A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
+    interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
+    user gives for an estimate that may be near zero (e.g. the nominal value a change is relative to)."""
+    q = quantile(level)
+    with torch.no_grad():
+        values = {k: v.detach().to(torch.float64).reshape(-1).cpu() for k, v in estimates(graph).items()}
+    grads = estimate_gradients(graph, estimates, pc.std)
+    X = pc.cov.cpu()
+    det = pc.settles.cpu().clone()
+    half, bad, moved = {}, [], {}
+    widened, far_off = torch.zeros_like(det), torch.zeros_like(det)
+    for key, v in values.items():
+        g = grads[key].cpu()
+        var = torch.einsum("bi,bij,bj->b", g, X, g)
+        hw = q * var.clamp_min(0).sqrt()
+        biased = torch.zeros_like(det)
+        if pc.offset is not None:
+            d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+            moved[key] = d
+            biased = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_FACTOR * hw)
+            hw = torch.where(biased, hw + d.abs(), hw)
+            widened |= biased
+        half[key] = torch.where(torch.isfinite(var), hw, math.nan)
+        scale = float((scales or {}).get(key, 0.0))
+        ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * torch.clamp(v.abs(), min=scale))
+        if key in moved:                      # the data favour a point well away from the estimate
+            away = biased & (moved[key].abs() > BIAS_TOL * torch.clamp(v.abs(), min=scale))
+            ok &= ~away
+            far_off |= away
+        bad.append(~ok)
+        det &= ok
+    keys = list(values)
+    undetermined = [[k for k, b in zip(keys, row) if b] for row in
+                    (torch.stack(bad, 1).tolist() if bad else [[]] * det.numel())]
+    return Intervals(level=level, estimate=values, half_width=half, determined=det, undetermined_keys=undetermined,
+                     offset=moved or None, widened=widened, biased=far_off)

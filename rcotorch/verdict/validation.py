@@ -1,0 +1,257 @@
+"""Held-out validation: the refined model, its parameters frozen, simulated on data the refinement did not use.
+
+In a refinement the known model with the identified subsystem in feedback is a free-run simulation driven by
+the exogenous input w alone; the measurements only move theta. Validation freezes theta (a zero RLS gain) and
+runs that simulation on other data:
+
+* a later window of the graph's recording (``rows=(start, stop)``),
+* another recording (``data=``, a block with the same output ports as the graph's data block), or
+* for a simulated physical system, a fresh stretch of its sources: the excitation and noise streams continue
+  from the step the refinement stopped at (samples it never drew), the physical system starting at rest.
+
+The model starts from an initial state fitted to the first ``fit_steps`` samples (least squares in the known
+model's state ``x``, by the outputs' sensitivity to each state entry; two Gauss-Newton passes, exact when the
+loop is linear in the state), and the error is measured on the samples after them:
+
+    rmse = sqrt(mean_k |y(k) - y_hat(k)|^2),     fit = 100 (1 - ||y - y_hat|| / ||y - mean(y)||)   [%],
+
+for the refined model and, in the same way, for the initial model (theta at its initial value).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import torch
+
+from ..errors import ConfigError
+
+FIT_STEPS = 50           # samples that fix the initial state (excluded from the scores)
+
+
+@dataclass
+class Validation:
+    """Scores of a refined model on held-out data, per member ((B,) tensors), and the traces they come from.
+
+    ``validate`` makes it.
+
+    Parameters
+    ----------
+    source : str
+        What the held-out data are.
+    steps : int
+        T, the samples simulated, the first ``fit_steps`` included.
+    fit_steps : int
+        The leading samples that fix the initial state (not scored).
+    rmse : torch.Tensor
+        (B,), sqrt(mean_k |y(k) - y_hat(k)|^2) of the refined model.
+    rmse_initial : torch.Tensor
+        (B,), the same for the initial model.
+    fit_percent : torch.Tensor
+        (B,), 100 (1 - ||y - y_hat|| / ||y - mean(y)||) of the refined model.
+    fit_percent_initial : torch.Tensor
+        (B,), the same for the initial model.
+    state_fitted : bool
+        False when the known model has no state ``x`` to fit (it starts as reset).
+    x0 : torch.Tensor or None
+        (B, n), the refined model's fitted initial state.
+    x0_initial : torch.Tensor or None
+        (B, n), the initial model's.
+    measured : torch.Tensor
+        (T, B, width), y.
+    refined : torch.Tensor
+        (T, B, width), y_hat of the refined model.
+    initial : torch.Tensor
+        (T, B, width), y_hat of the initial model.
+
+    Shape
+    -----
+    ``measured``, ``refined``, ``initial`` are (T, B, width), T = ``steps`` (the first ``fit_steps`` samples fix
+    the initial state and are not scored); the scores are (B,).
+    """
+
+    source: str              # what the held-out data are
+    steps: int
+    fit_steps: int
+    rmse: torch.Tensor
+    rmse_initial: torch.Tensor
+    fit_percent: torch.Tensor
+    fit_percent_initial: torch.Tensor
+    state_fitted: bool       # False when the known model has no state ``x`` to fit (it starts as reset)
+    x0: torch.Tensor | None = field(repr=False)           # the refined model's fitted initial state (B, n)
+    x0_initial: torch.Tensor | None = field(repr=False)   # the initial model's
+    measured: torch.Tensor = field(repr=False)
+    refined: torch.Tensor = field(repr=False)
+    initial: torch.Tensor = field(repr=False)
+
+    def summary(self) -> dict:
+        """The scores as plain numbers (B = 1) or lists, for ``summary.json``.
+
+        Returns
+        -------
+        dict
+            'source', 'steps', 'fit_steps', 'state_fitted', 'rmse', 'rmse_initial', 'fit_percent',
+            'fit_percent_initial'.
+        """
+        def plain(t: torch.Tensor):
+            values = [float(v) for v in t.cpu()]
+            return values[0] if len(values) == 1 else values
+        return {"source": self.source, "steps": self.steps, "fit_steps": self.fit_steps,
+                "state_fitted": self.state_fitted, "rmse": plain(self.rmse),
+                "rmse_initial": plain(self.rmse_initial), "fit_percent": plain(self.fit_percent),
+                "fit_percent_initial": plain(self.fit_percent_initial)}
+
+
+def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = None, data=None,
+             fit_steps: int = FIT_STEPS) -> Validation:
+    """Simulate ``graph``'s refined model (its present theta, frozen) and its initial model on held-out data.
+
+    Parameters
+    ----------
+    graph : Graph
+        A refinement (roles ``estimator``, ``known``, ``physical``, ``measured``, ``prediction``), e.g. made
+        by ``rcotorch.refinement``, after its run. It is not changed.
+    steps : int, optional
+        Samples to simulate, the first ``fit_steps`` included. Default: the window's length for ``rows``,
+        the recording's for ``data``, and as many steps as the refinement ran for a simulated system.
+    rows : (int, int), optional
+        A window [start, stop) of the graph's own recording (sample indices of its data block); it must not
+        overlap the samples the refinement read.
+    data : Block, optional
+        Another recording: a source block with the data block's output ports (e.g. ``rcotorch.Recorded``).
+    fit_steps : int
+        Leading samples that fix the initial state and are left out of the scores.
+
+    Returns
+    -------
+    Validation
+
+    Raises
+    ------
+    ConfigError
+        If the graph lacks one of the roles, ``rows`` or ``data`` does not fit the kind of refinement (both
+        given, a recording without either, a window outside the recording or overlapping the samples the
+        refinement read, a data block with other ports), or ``steps`` <= ``fit_steps``.
+    """
+    for role in ("estimator", "known", "physical", "measured", "prediction"):
+        if role not in graph.roles:
+            raise ConfigError(f"validate: the graph has no '{role}' role; build it with rcotorch.refinement or "
+                              f"declare roles= (it has {sorted(graph.roles)})")
+    recorded = graph.roles["physical"] in graph.blocks and not graph.blocks[graph.roles["physical"]].inputs
+    blocks = {name: copy.deepcopy(blk) for name, blk in graph.blocks.items()}
+    phys = graph.roles["physical"]
+    offset = None
+    if rows is not None or data is not None:
+        if not recorded:
+            raise ConfigError("validate: rows= and data= are for a refinement of recorded data; this graph "
+                              "simulates its physical system (validate it on a fresh excitation: no rows= or data=)")
+        if data is not None and rows is not None:
+            raise ConfigError("validate: give rows= or data=, not both")
+        old = graph.blocks[phys]
+        if data is not None:
+            missing = [p for p in old.outputs if p not in data.outputs or data.outputs[p] != old.outputs[p]]
+            if missing:
+                raise ConfigError(f"validate: data block '{data.name}' must have the output ports of '{phys}' "
+                                  f"{dict(old.outputs)}; it has {dict(data.outputs)}")
+            new = copy.deepcopy(data)
+            new.name = phys
+            source = f"block '{data.name}'" + (f" ({data.source})" if getattr(data, "source", None) else "")
+        else:
+            start, stop = (int(r) for r in rows)
+            used = int(old.k)
+            if not 0 <= start < stop <= old.length:
+                raise ConfigError(f"validate: rows=({start}, {stop}) must lie within the recording's {old.length} "
+                                  "samples")
+            if start < used:
+                raise ConfigError(f"validate: rows=({start}, {stop}) overlap the {used} samples the refinement "
+                                  "read; held-out rows start at or after them")
+            new = old.window(start, stop)
+            source = f"rows {start}-{stop} of block '{phys}'" + (f" ({old.source})" if old.source else "")
+        blocks[phys] = new
+        steps = new.max_steps if steps is None else int(steps)
+    else:
+        if recorded:
+            raise ConfigError("validate: this refinement reads recorded data; give rows=(start, stop) of a "
+                              "window it did not read, or data= another recording")
+        offset = int(graph.k)
+        steps = offset if steps is None else int(steps)
+        source = f"fresh excitation: the sources' steps {offset}-{offset + steps}, the physical system from rest"
+    if steps <= fit_steps:
+        raise ConfigError(f"validate: steps ({steps}) must exceed fit_steps ({fit_steps})")
+    conns = [(f"{s[0]}.{s[1]}", f"{d[0]}.{d[1]}") for d, s in graph.sources.items()]
+    base = type(graph)(list(blocks.values()), conns, batch_size=graph.batch_size, dtype=_dtype(graph),
+                       device=graph.k.device, engine=graph.engine, roles=graph.roles)
+    est = base.role("estimator")
+    refined_eta = graph.role("estimator").theta_free().detach().clone()
+    initial_eta = est.theta_free().detach().clone()        # after the reset: the initial parameters
+    if offset is not None:
+        _continue_sources(base, offset)
+    scored, traces, states = {}, {}, {}
+    for which, eta in (("refined", refined_eta), ("initial", initial_eta)):
+        g = copy.deepcopy(base)
+        _freeze(g, eta)
+        x0, fitted = _fit_state(g, fit_steps)
+        states[which] = x0
+        y, y_hat = _simulate(g, steps, x0)
+        traces[which], traces["measured"] = y_hat, y
+        z = (y - y_hat)[fit_steps:]
+        yy = y[fit_steps:]
+        spread = torch.sqrt(((yy - yy.mean(0)) ** 2).sum((0, 2))).clamp_min(1e-300)
+        scored[which] = (torch.sqrt((z * z).sum(2).mean(0)), 100 * (1 - torch.sqrt((z * z).sum((0, 2))) / spread))
+    return Validation(source=source, steps=steps, fit_steps=fit_steps, rmse=scored["refined"][0],
+                      rmse_initial=scored["initial"][0], fit_percent=scored["refined"][1],
+                      fit_percent_initial=scored["initial"][1], state_fitted=fitted, x0=states["refined"],
+                      x0_initial=states["initial"], measured=traces["measured"],
+                      refined=traces["refined"], initial=traces["initial"])
+
+
+def _dtype(graph) -> torch.dtype:
+    return graph.role("estimator").theta.dtype
+
+
+def _continue_sources(graph, offset: int) -> None:
+    """Sources that draw from a counter (the excitation, measurement noise) continue from ``offset``."""
+    for blk in graph.blocks.values():
+        if not blk.inputs and "k" in dict(blk.named_buffers()) and hasattr(blk, "stream"):
+            blk.k.fill_(offset)
+
+
+def _freeze(graph, eta: torch.Tensor) -> None:
+    est = graph.role("estimator")
+    est.set_theta_free(eta)
+    est.set_state(P=torch.zeros_like(est.P))          # a zero gain: theta stays where it is
+
+
+def _simulate(graph, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    g = copy.deepcopy(graph)
+    if x0 is not None:
+        g.role("known").x.copy_(x0)
+    tr = g.run(steps, record={"y": graph.roles["measured"], "y_hat": graph.roles["prediction"]})
+    return tr["y"].to(torch.float64), tr["y_hat"].to(torch.float64)
+
+
+def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None, bool]:
+    """The known model's initial state that best explains the first ``steps`` measured samples, per member."""
+    known = graph.role("known")
+    x = getattr(known, "x", None)
+    if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[1] == 0:
+        return None, False
+    x0 = x.detach().clone().to(torch.float64)
+    B, n = x0.shape
+    for _ in range(passes):
+        y, y_hat = _simulate(graph, steps, x0.to(x.dtype))
+        r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
+        scale = 1e-6 * torch.clamp(x0.abs().amax(1, keepdim=True), min=1.0)
+        S = torch.empty(B, r.shape[1], n, dtype=torch.float64, device=x0.device)
+        for i in range(n):
+            step = torch.zeros_like(x0)
+            step[:, i:i + 1] = scale
+            _, y_i = _simulate(graph, steps, (x0 + step).to(x.dtype))
+            S[:, :, i] = ((y_i - y_hat).permute(1, 0, 2).reshape(B, -1)) / scale
+        delta = torch.linalg.pinv(S, rtol=1e-10) @ r.unsqueeze(-1)               # unobservable directions: 0
+        x0 = x0 + delta.squeeze(-1)
+        if not bool(torch.isfinite(x0).all()):
+            return None, False
+    return x0.to(x.dtype), True
+
