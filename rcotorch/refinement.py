@@ -1,9 +1,10 @@
 """The seed paper's Figure 1 as one call: physical system, simulated system, z = y - y_hat, estimator.
 
 ``refinement`` wires the blocks and declares their roles (``Graph.roles``), so that the runner, monitor and
-figures find the estimator, the known model and the model error whatever the blocks are called. The blocks the
-figure names for their part (``excitation``, ``plant``, ``unknown``, ``noise``) enter the graph under those
-names; a block given under another name enters as a copy so named, so the caller's block keeps its name.
+figures find the estimator, the known model and the model error whatever the blocks are called. The blocks
+given enter the graph under the names their user gave them; one left with its class's default name enters as
+a copy named for its part of the figure (``excitation``, ``plant``, ``unknown``, ``noise``), so the caller's
+block is never renamed.
 ``derive_markov`` gives the Markov parameters of u -> z, with their sign and the relative degree, from the
 known model.
 """
@@ -11,6 +12,7 @@ known model.
 from __future__ import annotations
 
 import copy
+import inspect
 from collections.abc import Iterable, Mapping, Sequence
 
 import torch
@@ -36,8 +38,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     one of:
 
     * ``truth``: the true unknown subsystem (one input, one output port); the physical system is then a
-      copy of ``known`` (block ``plant``) with ``truth`` (block ``unknown``) in feedback from
-      ``plant.y0`` to ``plant.u``;
+      copy of ``known`` (block ``plant``) with ``truth`` in feedback from ``plant.y0`` to ``plant.u``;
     * ``physical``: any block with input ``w`` and output ``y`` (e.g. a continuous truth discretized whole);
     * ``data``: recorded measurements, a source with outputs ``w`` and ``y`` (and ``valid`` if it has gaps).
 
@@ -55,9 +56,10 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     estimator's window (``holdoff_samples``). A hold-off set on the data block itself is kept.
 
     The blocks given become parts of the graph, their names and sample times as given: ``excitation``, the
-    physical block, ``truth`` and ``noise`` are the graph's blocks ``excitation``, ``plant``, ``unknown`` and
-    ``noise``: the block itself where it already has that name, otherwise a copy of it so named (reach it
-    through ``graph.blocks`` or ``graph.role``). The known model, the estimator, the data block and ``blocks``
+    physical block, ``truth`` and ``noise`` enter as they are where their user named them (``graph.blocks[
+    name]``); one that still has its class's default name (or a name another block of the graph has) enters as
+    a copy named for its part, ``excitation``, ``plant``, ``unknown`` or ``noise`` (reach it through
+    ``graph.blocks`` or ``graph.role``). The known model, the estimator, the data block and ``blocks``
     enter as they are. Markov parameters derived here are set on the estimator with the known model's sample
     time (the estimator's ``sample_time`` where it has no ``dt``), and a hold-off set here on the data block.
 
@@ -144,9 +146,9 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     else:
         if excitation is None:
             raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
-        excitation = _role_block(excitation, "excitation")
+        excitation = _role_block(excitation, "excitation", parts)
         parts.append(excitation)
-        w_src = "excitation.out"
+        w_src = f"{excitation.name}.out"
         if truth is not None:
             if len(truth.inputs) != 1 or len(truth.outputs) != 1:
                 raise PortError(f"refinement: truth= must be a block with one input and one output port (the "
@@ -154,20 +156,22 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                                 f"inputs {list(truth.inputs)} and outputs {list(truth.outputs)}")
             plant = copy.deepcopy(known)
             plant.name = "plant"
-            truth = _role_block(truth, "unknown")
+            truth = _role_block(truth, "unknown", [*parts, plant])
             (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
             sees = [p for p in known.outputs if p != measured]
             if len(sees) != 1:
                 raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
                                   f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
             parts += [plant, truth]
-            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"unknown.{t_in}"),
-                      (f"unknown.{t_out}", f"plant.{actuation}")]
+            tn = truth.name
+            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"{tn}.{t_in}"),
+                      (f"{tn}.{t_out}", f"plant.{actuation}")]
             y_src = f"plant.{measured}"
         else:
-            parts.append(_role_block(physical, "plant"))
-            conns.append((w_src, f"plant.{exogenous}"))
-            y_src = f"plant.{measured}"
+            physical = _role_block(physical, "plant", parts)
+            parts.append(physical)
+            conns.append((w_src, f"{physical.name}.{exogenous}"))
+            y_src = f"{physical.name}.{measured}"
     width = known.outputs[measured]
     if noise is not None:
         if data is not None:
@@ -177,8 +181,9 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
             raise PortError(f"refinement: noise block '{noise.name}' must be a source with one output 'out' "
                             f"of width {width} (the width of '{measured}'); it has inputs {list(noise.inputs)} "
                             f"and outputs {dict(noise.outputs)}")
-        parts += [_role_block(noise, "noise"), Sum({"clean": 1, "noise": 1}, width, name="measurement")]
-        conns += [(y_src, "measurement.clean"), ("noise.out", "measurement.noise")]
+        noise = _role_block(noise, "noise", parts)
+        parts += [noise, Sum({"clean": 1, "noise": 1}, width, name="measurement")]
+        conns += [(y_src, "measurement.clean"), (f"{noise.name}.out", "measurement.noise")]
         y_src = "measurement.out"
     parts.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
     conns += [(y_src, "error.y"), (f"{kn}.{measured}", "error.y_hat"), (w_src, f"{kn}.{exogenous}"),
@@ -204,30 +209,36 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         data.set_holdoff({exogenous: n})
     if data is not None and "valid" in data.outputs:
         conns.append(("data.valid", f"{en}.valid"))
-    roles = {"estimator": en, "known": kn, "physical": "data" if data is not None else "plant",
+    physical_name = "data" if data is not None else "plant" if truth is not None else physical.name
+    roles = {"estimator": en, "known": kn, "physical": physical_name,
              "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}", "exogenous": w_src}
     if data is None:
-        roles["excitation"] = "excitation"
+        roles["excitation"] = excitation.name
     return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
 
 
-def _role_block(block: Block, name: str) -> Block:
-    """The block that plays a part of the figure under the graph's name for that part.
+def _role_block(block: Block, name: str, taken: Sequence[Block]) -> Block:
+    """The block that plays a part of the figure: the block itself under the name its user gave it, or, where it
+    carries its class's default name (or one another block of the graph has), a copy under the part's name.
 
     Parameters
     ----------
     block : Block
         The block given.
     name : str
-        The name the graph gives the part (``'plant'``, ``'unknown'``, ...).
+        The part's name (``'plant'``, ``'unknown'``, ``'excitation'``, ``'noise'``).
+    taken : Sequence[Block]
+        The blocks of the graph so far.
 
     Returns
     -------
     Block
-        ``block`` itself where it is so named; otherwise a copy of it (``copy.deepcopy``) with that name, so that
-        ``block`` keeps its own.
+        ``block`` itself where it is so named or named by its user uniquely; otherwise a copy of it
+        (``copy.deepcopy``) with the part's name, so that ``block`` keeps its own.
     """
-    if block.name == name:
+    own = inspect.signature(type(block).__init__).parameters.get("name")
+    chosen = own is not None and block.name != own.default
+    if block.name == name or (chosen and block.name not in {b.name for b in taken}):
         return block
     named = copy.deepcopy(block)
     named.name = name

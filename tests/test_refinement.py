@@ -1,5 +1,6 @@
-"""``rt.refinement`` leaves the caller's blocks as given: their names and sample times stay, the graph holds
-its parts under the figure's names, and the estimator's sample time comes with its Markov parameters."""
+"""``rt.refinement`` leaves the caller's blocks as given: the blocks their user named enter under those names,
+one left with its class's default name enters as a copy named for its part, and the estimator's sample time comes
+with its Markov parameters."""
 
 import control
 import numpy as np
@@ -32,18 +33,18 @@ def test_the_callers_blocks_keep_their_names_and_sample_times():
     assert (known.name, ident.name, truth.name, excitation.name, noise.name) == \
         ("known", "identified", "delta", "drive", "excitation")
     assert ident.dt is None and truth.dt == TS and known.dt == TS
-    assert set(g.blocks) == {"known", "identified", "excitation", "plant", "unknown", "noise", "measurement", "error"}
+    assert set(g.blocks) == {"known", "identified", "drive", "plant", "delta", "noise", "measurement", "error"}
     assert g.role("estimator") is ident and g.role("known") is known
-    assert g.blocks["unknown"].name == "unknown" and g.blocks["unknown"] is not truth
-    assert g.role("excitation").name == "excitation" and g.role("excitation") is not excitation
+    assert g.blocks["delta"] is truth and g.role("excitation") is excitation        # named by their user
+    assert g.blocks["noise"] is not noise and g.blocks["noise"].name == "noise"     # a default name: a copy
     g.run(50)
-    assert truth.batch_size == 0 and excitation.batch_size == 0      # never reset: the graph runs copies
-    assert int(g.blocks["excitation"].k) == 50
+    assert noise.batch_size == 0 and g.blocks["noise"].batch_size == 2    # the caller's noise block never reset
+    assert int(g.blocks["drive"].k) == 50
     # the estimator's sample time is the known model's, given with the Markov parameters
     assert ident.sample_time == TS and ident.markov_dt == TS and ident.to_control(0).dt == TS
 
 
-def test_a_block_already_named_for_its_part_is_the_graphs_own_and_the_run_is_the_same():
+def test_the_run_does_not_depend_on_the_names():
     g_copy, *_ = _build("delta", "drive")
     g_own, _, ident, truth, excitation, _ = _build("unknown", "excitation")
     assert g_own.blocks["unknown"] is truth and g_own.role("excitation") is excitation
@@ -53,14 +54,19 @@ def test_a_block_already_named_for_its_part_is_the_graphs_own_and_the_run_is_the
     assert torch.equal(g_copy.role("estimator").theta, ident.theta)
 
 
-def test_a_physical_block_under_another_name_enters_as_plant():
+def test_a_physical_block_keeps_its_name_and_one_with_the_default_name_enters_as_plant():
     A, B, C, D = np.array([[0.9]]), np.array([[1.0]]), np.array([[0.5]]), np.array([[0.0]])
-    physical = rt.LTI(A, B, C, D, ["w"], ["y"], dt=TS, name="rig")
     known = rt.LTI(A, np.array([[1.0, 1.0]]), np.vstack([C, C]), np.zeros((2, 2)), ["w", "u"],
                    {"y": 1, "y0": 1}, dt=TS, name="known")
+    rig = rt.LTI(A, B, C, D, ["w"], ["y"], dt=TS, name="rig")
+    g = rt.refinement(known, rt.RCOEstimator.static_gain({"y0": 1}, p0=10.0), physical=rig,
+                      excitation=rt.WhiteNoise(1, seed=5), nu=5)
+    assert g.role("physical") is rig and g.roles["measured"] == "rig.y"
+    physical = rt.LTI(A, B, C, D, ["w"], ["y"], dt=TS)                     # the class's default name
+    default_name = physical.name
     ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=10.0, dt=0.2)
     g = rt.refinement(known, ident, physical=physical, excitation=rt.WhiteNoise(1, seed=5), nu=5)
-    assert physical.name == "rig" and ident.dt == 0.2 and ident.sample_time == 0.2
+    assert physical.name == default_name and ident.dt == 0.2 and ident.sample_time == 0.2
     assert g.role("physical").name == "plant" and g.role("physical") is not physical
     # the same system: the copy's y equals the caller's block's on the same input
     physical.reset(1)

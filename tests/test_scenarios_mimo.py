@@ -84,7 +84,7 @@ def test_rlc_measurement_noise_is_one_percent_of_the_output_rms():
     assert abs(np.sqrt(np.mean(y ** 2)) / rms - 1) < 0.01       # Lyapunov rms vs a long simulation
     g = mod.SCENARIO.build(s, 2, torch.float64, "cpu")
     noise = g.run(20000, record={"n": "noise.out"})["n"]         # the measurement noise added to y
-    y = g.run(1, record={"y": "plant.y", "m": "measurement.out", "n": "noise.out"})
+    y = g.run(1, record={"y": f"{g.roles['physical']}.y", "m": "measurement.out", "n": "noise.out"})
     assert torch.equal(y["m"], y["y"] + y["n"])
     assert abs(float(noise.std()) / (0.01 * rms) - 1) < 0.02
     assert abs(float(noise.mean())) < 0.05 * 0.01 * rms
