@@ -258,3 +258,27 @@ def test_a_truth_history_that_disagrees_with_the_truth_is_refused():
     with pytest.raises(rt.ConfigError, match="not an estimate"):
         rt.refine(g, 10, {"dK": lambda gr: gr.role("estimator").theta[:, 0, 0]},
                   truth_history={"dC": [(0.0, 0.0)]}, progress=False, intervals=False)
+
+
+def test_a_run_whose_truth_changes_keeps_a_linear_time_axis(tmp_path):
+    """A motor whose bearing friction grows at half time and is re-identified at once: the estimate's logged
+    path settles early by the log-axis rule, but a run whose truth changes keeps a linear time axis (a log axis
+    would squeeze the change into its last decade)."""
+    from rcotorch.run.figures import log_time_axis, run_figures
+    J, b, Kt, Ts = 0.02, 0.05, 0.1, 0.005
+    known = rt.LTI.continuous([[-b / J]], [[Kt / J, 1 / J]], [[1.0], [1.0]], [[0, 0], [0, 0]],
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=Ts, name="motor")
+    det = rt.ChangeDetector(1, warmup=1000, window=1000, holdoff=2000, threshold=30.0)
+    g = rt.refinement(known, rt.RCOEstimator.static_gain({"y0": 1}, p0=1e3, lam=0.998),
+                      truth=rt.Gain(np.zeros((1, 1)), name="wear"), excitation=rt.WhiteNoise(1, std=2.0, seed=1),
+                      noise=rt.WhiteNoise(1, std=0.01, seed=5), nu=40, blocks=[det],
+                      connections=[("error.out", "detector.z")])
+    g.add_hook(rt.at_step(6000, lambda gr: gr.blocks["wear"].K.fill_(-0.03)))
+    g.add_hook(rt.ResetOnChange(g, every=5, p0=1e3, lam=0.99, hold=1000))
+    result = rt.refine(g, 12000, {"db": lambda gr: -gr.role("estimator").theta[:, 0, 0]},
+                       truth_history={"db": [(0.0, 0.0), (30.0, 0.03)]}, out=tmp_path / "run", intervals=False,
+                       validation=False, progress=False, figures=False)
+    h = result.run.history
+    t = np.asarray(h["step"], dtype=float) * Ts
+    assert log_time_axis(t, [torch.stack(h["db"]).numpy()])       # by its settling alone: a log axis
+    assert run_figures(result.run)["estimates"].axes[0].get_xscale() == "linear"

@@ -52,7 +52,8 @@ def run_figures(run) -> dict:
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
     series = {key: torch.stack(h[key]).numpy()[:, :MAX_LINES] for key in keys} if len(t) else {}
-    log_t = log_time_axis(t, series.values())
+    changes = any(len(pairs) > 1 for pairs in (getattr(run, "truth_history", None) or {}).values())
+    log_t = not changes and log_time_axis(t, series.values())          # a run with a change: linear time
     if keys and len(t):
         found = run.intervals() if hasattr(run, "intervals") else None
         start = run.health.window_start * (dt or 1.0) if found is not None else None
