@@ -81,3 +81,26 @@ def test_the_initial_state_is_fitted_to_the_first_samples():
         validate(gd)
     with pytest.raises(ConfigError, match="fresh excitation"):
         validate(g, rows=(0, 100))
+
+
+def test_a_member_whose_loop_overflows_is_scored_nan_and_the_others_as_before():
+    """theta of member 1 set to 1e200: its frozen loop overflows, so its outputs' sensitivity to the state is not
+    finite (the state fit's least squares would fail on it); it keeps its state and scores NaN, member 0 scores
+    as it did before, and the fit is reported as not done."""
+    import torch
+
+    import rcotorch as rt
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.8, 0.6, sees=["position", "velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=0.01, name="known")
+    g = rt.refinement(known, rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3),
+                      truth=rt.Gain(torch.tensor([[-0.5, 0.0]])), excitation=rt.WhiteNoise(1, seed=[1, 2]),
+                      nu=15, batch_size=2)
+    g.run(500)
+    before = rt.validate(g, steps=300)
+    assert before.state_fitted and bool(torch.isfinite(before.rmse).all())
+    theta = g.role("estimator").theta.clone()
+    theta[1] = 1e200
+    g.role("estimator").set_state(theta=theta)
+    v = rt.validate(g, steps=300)
+    assert torch.isnan(v.rmse[1]) and not v.state_fitted
+    assert float(v.rmse[0]) == pytest.approx(float(before.rmse[0]), rel=1e-12)

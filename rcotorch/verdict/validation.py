@@ -188,10 +188,12 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
     if offset is not None:
         _continue_sources(base, offset)
     scored, traces, states = {}, {}, {}
+    fitted_both = True
     for which, eta in (("refined", refined_eta), ("initial", initial_eta)):
         g = copy.deepcopy(base)
         _freeze(g, eta)
         x0, fitted = _fit_state(g, fit_steps)
+        fitted_both = fitted_both and fitted
         states[which] = x0
         y, y_hat = _simulate(g, steps, x0)
         traces[which], traces["measured"] = y_hat, y
@@ -201,7 +203,7 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
         scored[which] = (torch.sqrt((z * z).sum(2).mean(0)), 100 * (1 - torch.sqrt((z * z).sum((0, 2))) / spread))
     return Validation(source=source, steps=steps, fit_steps=fit_steps, rmse=scored["refined"][0],
                       rmse_initial=scored["initial"][0], fit_percent=scored["refined"][1],
-                      fit_percent_initial=scored["initial"][1], state_fitted=fitted, x0=states["refined"],
+                      fit_percent_initial=scored["initial"][1], state_fitted=fitted_both, x0=states["refined"],
                       x0_initial=states["initial"], measured=traces["measured"],
                       refined=traces["refined"], initial=traces["initial"])
 
@@ -239,6 +241,7 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
         return None, False
     x0 = x.detach().clone().to(torch.float64)
     B, n = x0.shape
+    fitted = torch.ones(B, dtype=torch.bool, device=x0.device)
     for _ in range(passes):
         y, y_hat = _simulate(graph, steps, x0.to(x.dtype))
         r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
@@ -249,9 +252,14 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
             step[:, i:i + 1] = scale
             _, y_i = _simulate(graph, steps, (x0 + step).to(x.dtype))
             S[:, :, i] = ((y_i - y_hat).permute(1, 0, 2).reshape(B, -1)) / scale
-        delta = torch.linalg.pinv(S, rtol=1e-10) @ r.unsqueeze(-1)               # unobservable directions: 0
+        # A member whose outputs do not respond finitely to its state (a diverged or stiff model) keeps its
+        # state; the others take their least-squares step (unobservable directions: 0).
+        ok = torch.isfinite(S).flatten(1).all(1) & torch.isfinite(r).all(1)
+        fitted &= ok
+        S = torch.where(ok.reshape(-1, 1, 1), S, 0.0)
+        delta = torch.linalg.pinv(S, rtol=1e-10) @ torch.where(ok.reshape(-1, 1), r, 0.0).unsqueeze(-1)
         x0 = x0 + delta.squeeze(-1)
         if not bool(torch.isfinite(x0).all()):
             return None, False
-    return x0.to(x.dtype), True
+    return x0.to(x.dtype), bool(fitted.all())
 
