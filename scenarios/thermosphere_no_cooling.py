@@ -160,16 +160,14 @@ class ThermosphereNoCooling(Scenario):
     # The estimates are the cooling rates of the last step (u, a function of the column's state as well as
     # of theta): the intervals' delta method in theta does not describe them.
     intervals = False
-    # Held-out data (what `rcotorch tune` scores): two more days of the same drivers after the run, the
-    # refined column (theta frozen) against the truth's; the free run on other storms is the scenario's replay.
-    validation_steps = 192
+    validation_steps = 0            # held-out data on request: setting validate_h (see ``validation``)
     settings = dict(Ts=900.0, substeps=2, dz_km=5.0, f107=150.0, storm_peak=4.0, storm_start_h=48.0,
                     storm_rise_h=6.0, latitude=30.0, local_time0=0.0, spinup_days=3.0, measured_km="407",
                     node1_km=120.0, node2_km=152.0, node3_km=200.0, structure="kockarts", strengths="one",
                     interpolate="auto", features="r2,lp12:r2,lp3:r3", shared=False, nc=2, p0=1.0, lam=1.0, nu=192,
                     theta_max=10.0, markov_method="autograd", refresh_every=24, cooling_window_start_h=24.0,
                     replay=True, replay_f107=110.0, replay_storm_peak=6.0, replay_storm_start_h=30.0,
-                    replay_storm_rise_h=4.0)
+                    replay_storm_rise_h=4.0, validate_h=0.0)
     requirements = (Requirement("metrics.density_err_ratio", "max", 0.25),
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
@@ -177,6 +175,9 @@ class ThermosphereNoCooling(Scenario):
     units = {"y": "1e-12 kg/m^3", **{f"cooling_{km}km": "nW/m^3" for km in (120, 152, 200)},
              "cooling_152km_true": "nW/m^3"}
     about = dict(
+        validate_h=("h", "held-out validation (what `rcotorch tune` scores): the refined column, theta frozen, run "
+                         "this long on the same drivers after the run against the truth's density (0: none; it "
+                         "fits the column's state, about 10 s for the default column)"),
         Ts=("s", "sample time (one refinement step)"),
         substeps=("", "backward-Euler substeps of the column per sample"),
         dz_km=("km", "altitude spacing of the column's levels"),
@@ -382,6 +383,13 @@ class ThermosphereNoCooling(Scenario):
         return tr
 
     # --- summary -----------------------------------------------------------------------------------------------
+    def validation(self, g, s):
+        """Held-out data where ``validate_h`` > 0: that many hours of the same drivers after the run (the
+        sources continue), the refined column against the truth's; the free run on other storms is the
+        scenario's replay (``replay``)."""
+        steps = int(round(float(s["validate_h"]) * 3600.0 / float(s["Ts"])))
+        return {"steps": steps} if steps > 0 else None
+
     def estimates(self, g, s):
         import torch
         ident, model, plant = g.role("estimator"), g.role("known").column, g.role("physical")

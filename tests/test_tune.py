@@ -249,3 +249,12 @@ def test_ray_backend_tunes_as_the_local_one(tmp_path):
         assert [(c["settings"], c["score"], c["rank"]) for c in a.candidates] == \
             [(c["settings"], c["score"], c["rank"]) for c in b.candidates]
         assert a.best == b.best and a.members == b.members
+
+
+def test_a_tuning_whose_scenario_validates_nothing_for_its_settings_says_so(tmp_path):
+    """The thermosphere validates on held-out data only when asked (validate_h > 0): a tuning without it
+    stops with an error naming the scenario, instead of ranking candidates that all score infinity."""
+    t = Tuning(scenario="thermosphere-no-cooling", method="grid", space={"p0": [1.0]}, seeds=1, steps=10,
+               fixed={"dz_km": 10.0, "nu": 8, "refresh_every": 0, "spinup_days": 1.0})
+    with pytest.raises(ConfigError, match="no candidate of scenario 'thermosphere-no-cooling' was validated"):
+        run_tune(t, out=tmp_path / "t", progress=False)

@@ -100,7 +100,7 @@ class Tuning:
         a list meaning a uniform choice among its values. Tpe: the sweep of one round's candidates ``points``
         (from ``ask``). A searched setting overrides its value in ``fixed`` (the start the search leaves)."""
         sc = scenarios.get(self.scenario)
-        if not sc.validation_steps:
+        if not sc.validation_steps and type(sc).validation is scenarios.Scenario.validation:
             raise ConfigError(f"tune: scenario '{sc.name}' has no held-out validation to score candidates on")
         fixed = {k: v for k, v in self.fixed.items() if k not in self.space}
         if self.method == "tpe":
@@ -326,6 +326,9 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
         candidates = rank(rows, searched)
         if not candidates:
             raise ConfigError("tune: no candidate ran")
+        if not any(r.get(SCORE) is not None for r in rows):
+            raise ConfigError(f"tune: no candidate of scenario '{name}' was validated on held-out data: the "
+                              f"scenario gives none for these settings (see `rcotorch show {name}`)")
         best = {**_plain(dict(tuning.fixed)), **candidates[0]["settings"]}
         write_text(out / "tune.csv", _csv(candidates, searched))
         write_text(out / "best.toml", best_toml(name, best, candidates[0]))
