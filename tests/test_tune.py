@@ -46,8 +46,11 @@ def test_a_tuning_config_is_checked():
     with pytest.raises(ConfigError, match="grid.*list"):
         Tuning.from_dict({"scenario": "sdof-stiffness", "space": {"p0": {"uniform": [1, 2]}},
                           "method": "grid"}).sweep()
+    from rcotorch.run import scenario as scenarios
+    unvalidated = type("Unvalidated", (type(scenarios.get("sdof-stiffness")),),
+                       {"name": "unvalidated", "validation_steps": 0})()     # no held-out data, none declared
     with pytest.raises(ConfigError, match="no held-out validation"):
-        Tuning.from_dict({"scenario": "thermosphere-no-cooling", "space": {"p0": [1.0]}}).sweep()
+        Tuning(scenario=unvalidated, space={"p0": [1.0]}).sweep()
 
 
 def test_tune_recovers_the_requirements_from_a_poor_start_on_held_out_data_only(tmp_path):
