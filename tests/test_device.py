@@ -104,7 +104,10 @@ def test_virtual_cuda_refuses_what_cuda_refuses():
     ("sdof-stiffness-damping", 200, 2, {}, True),                             # excitation streams, intervals
     ("twodof-stiffness", 200, 1, {}, False),                                  # masked static gain
     ("thermosphere-no-cooling", 30, 1, {"structure": "temperature", "shared": True}, True),  # tied, replay
-], ids=["sdof-stiffness-damping", "twodof-masked", "thermosphere-tied"])
+    ("mass-friction", 200, 2, {}, False),                                     # a NumPy function in the truth
+    ("shear-building-damage", 150, 2, {"t_change": 0.5, "warmup": 20, "window": 20, "holdoff": 50, "nu": 30,
+                                       "threshold": 5}, False),               # change detector and its figures
+], ids=["sdof-stiffness-damping", "twodof-masked", "thermosphere-tied", "numpy-function", "change-detector"])
 def test_a_whole_run_on_the_gpu(tmp_path, name, steps, batch, overrides, full):
     """Build, step, summary (intervals, validation, health, metrics, a scenario's replay) and figures of a run on
     the (virtual) GPU: a CPU tensor meeting the graph's anywhere fails here as it would on CUDA. (``full``: with
@@ -126,3 +129,40 @@ def test_an_estimator_built_from_gpu_tensors():
         est = rt.RCOEstimator.static_gain({"y": 2}, mask=[[True, False]], theta0=theta0,
                                           markov=torch.ones(3, 1, 1, device="cuda"), name="identified")
         assert not est.theta0.is_cuda and est.theta0.tolist() == [[[0.5, 0.0]]]
+
+
+def test_numpy_functions_on_the_gpu_match_the_cpu():
+    """A user's function written with NumPy cannot take a GPU tensor: a StaticMap and a Nonlinear block built on
+    one run it on host copies and give the CPU's numbers; a function's own TypeError still reaches the user."""
+    def friction(v):
+        return -(2.0 * np.sign(v) + 0.5 * v)
+
+    def f(x, u):
+        return np.concatenate([x[:, 1:2], -4.0 * x[:, :1] - 0.1 * x[:, 1:2] + u["u"]], axis=1)
+
+    def h(x):
+        return x[:, :1]
+
+    x = torch.linspace(-1, 1, 6, dtype=torch.float64).reshape(3, 2)
+    want_map = friction(x.numpy())
+    dyn = rt.Nonlinear(f, h, 2, {"u": 1}, {"y": 1}, dt=0.01, name="osc")
+    dyn.reset(3)
+    dyn.x = x.clone()
+    want_y = dyn.step(u=torch.ones(3, 1, dtype=torch.float64))["y"].numpy()
+    with virtual_cuda():
+        m = rt.StaticMap(friction, 2, name="friction")
+        got = m.output("out", {"in": x.to("cuda")})
+        assert got.is_cuda
+        np.testing.assert_allclose(got.cpu().numpy(), want_map, rtol=0, atol=0)
+        dyn = rt.Nonlinear(f, h, 2, {"u": 1}, {"y": 1}, dt=0.01, name="osc").to("cuda")
+        dyn.reset(3)
+        dyn.x = x.to("cuda")
+        got_y = dyn.step(u=torch.ones(3, 1, dtype=torch.float64, device="cuda"))["y"]
+        assert got_y.is_cuda
+        np.testing.assert_allclose(got_y.cpu().numpy(), want_y, rtol=0, atol=0)
+
+        def wrong(v):
+            return np.sign(v) + "a"                                  # the user's own TypeError
+
+        with pytest.raises(Exception, match="ufunc|str|add"):
+            rt.StaticMap(wrong, 1).output("out", {"in": torch.ones(2, 1, device="cuda")})

@@ -16,6 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -87,6 +88,35 @@ def test_sigterm_and_sighup_stop_a_run_like_ctrl_c(sig, code, tmp_path, monkeypa
     assert _estimates(out) == _estimates(tmp_path / "full")
     resumed, full = load_checkpoint(out / "checkpoint.pt"), load_checkpoint(tmp_path / "full" / "checkpoint.pt")
     assert all(torch.equal(resumed["graph"][k], v) for k, v in full["graph"].items())
+
+
+def test_a_signal_while_the_summary_is_written_stops_it_at_once(tmp_path, monkeypatch):
+    """The summary's replays (intervals, held-out validation, a scenario's test sets) can take minutes on a GPU:
+    a SIGTERM then stops the run at once with its final state saved, and the resume writes the summary that
+    an uninterrupted run writes."""
+    plain = rcotorch.run.runner.Run.summary
+    calls = []
+
+    def slow_summary(self):
+        calls.append(self.k)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:          # a long replay; the signal stops it
+                time.sleep(0.01)
+            raise AssertionError("the signal did not stop the summary")
+        return plain(self)
+
+    monkeypatch.setattr(rcotorch.run.runner.Run, "summary", slow_summary)
+    out, full = tmp_path / "run", tmp_path / "full"
+    previous = signal.getsignal(signal.SIGTERM)
+    assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 143
+    assert signal.getsignal(signal.SIGTERM) is previous
+    assert int(load_checkpoint(out / "checkpoint.pt")["graph"]["k"]) == 300 and not (out / "summary.json").exists()
+    assert "stopped by SIGTERM while writing the summary at step 300" in _last_log_line(out)
+    assert main(["run", "--resume", str(out), "--quiet", "--no-figures"]) in (0, 1)
+    assert main(["run", "sdof-stiffness", "--out", str(full), *QUICK]) in (0, 1)
+    assert _estimates(out) == _estimates(full) and calls == [300, 300, 300]
 
 
 def test_an_ignored_signal_stays_ignored():

@@ -9,13 +9,14 @@ would fail with "Expected all tensors to be on the same device" on CUDA fails th
 
 What it does not model: speed, float32 rounding on the GPU, the few operations that PyTorch lets mix devices
 beyond indexing and copies, ``nn.Parameter``s moved by ``Module.to`` (they keep their identity and so their
-CPU mark; rcotorch's blocks hold buffers only), and threads other than the one that entered it (modes are
-per thread).
+CPU mark; rcotorch's blocks hold buffers only). Modes are per thread: threads started inside ``virtual_cuda()``
+(the figures' drawing thread) enter it too, threads started before it do not.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 from unittest import mock
 
 import torch
@@ -134,5 +135,11 @@ def virtual_cuda():
                             ("reset_peak_memory_stats", lambda *a, **k: None),
                             ("current_device", lambda: 0), ("empty_cache", lambda: None)):
             stack.enter_context(mock.patch.object(torch.cuda, name, value))
+        plain_run = threading.Thread.run
+
+        def run(self):
+            with VirtualCuda():
+                plain_run(self)
+        stack.enter_context(mock.patch.object(threading.Thread, "run", run))
         stack.enter_context(VirtualCuda())
         yield

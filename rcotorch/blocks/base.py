@@ -489,7 +489,7 @@ def tensor_result(out, dtype, device=None):
     """A user function's result as a tensor.
 
     A NumPy array (a function written with NumPy, called by the PyTorch engine with CPU tensors) becomes one;
-    a tensor is returned as it is.
+    a tensor is returned as it is, on ``device`` where one is given.
 
     Parameters
     ----------
@@ -498,7 +498,7 @@ def tensor_result(out, dtype, device=None):
     dtype : torch.dtype
         Floating-point type of a converted array.
     device : torch.device, optional
-        Device of a converted array (the CPU by default).
+        Device of the result: a converted array's (the CPU by default); a tensor is moved there.
 
     Returns
     -------
@@ -506,4 +506,4 @@ def tensor_result(out, dtype, device=None):
     """
     if isinstance(out, np.ndarray):
         return torch.as_tensor(out, dtype=dtype, device=device)
-    return out
+    return out if device is None or not isinstance(out, torch.Tensor) else out.to(device)

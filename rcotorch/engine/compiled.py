@@ -36,6 +36,7 @@ import sys
 import threading
 import types
 import warnings
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,12 +66,51 @@ _cache: dict[tuple, tuple[Any, Compiled | str]] = {}
 _lock = threading.Lock()
 
 
+_host_only: weakref.WeakSet = weakref.WeakSet()     # functions that refused GPU tensors (NumPy ones)
+
+
+def _to_host(a):
+    """Tensors in ``a`` (a tensor, or a dict, tuple or list of them) as CPU tensors."""
+    if isinstance(a, torch.Tensor):
+        return a.cpu()
+    if isinstance(a, dict):
+        return {k: _to_host(v) for k, v in a.items()}
+    if isinstance(a, (tuple, list)):
+        return type(a)(_to_host(v) for v in a)
+    return a
+
+
+def _on_device(args) -> bool:
+    """Whether any tensor in ``args`` is off the CPU."""
+    if isinstance(args, torch.Tensor):
+        return args.device.type != "cpu"
+    if isinstance(args, dict):
+        return any(_on_device(v) for v in args.values())
+    if isinstance(args, (tuple, list)):
+        return any(_on_device(v) for v in args)
+    return False
+
+
 def call_user(fn, *args):
-    """A user function called with tensors. NumPy's functions applied to a tensor go through its
-    ``__array_wrap__``, whose old signature NumPy 2 warns about at each call; that says nothing to the user."""
+    """A user function called with tensors.
+
+    NumPy's functions applied to a tensor go through its ``__array_wrap__``, whose old signature NumPy 2 warns
+    about at each call; that says nothing to the user. A function written with NumPy cannot take a GPU tensor
+    (NumPy reads host memory only): called with GPU tensors it raises ``TypeError``, and from then on it is
+    called with CPU copies of its arguments (the caller moves the result to its device). A function of torch
+    operations runs on the GPU as it is."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*__array_wrap__.*", category=DeprecationWarning)
-        return fn(*args)
+        if fn in _host_only:
+            return fn(*_to_host(args))
+        try:
+            return fn(*args)
+        except TypeError:
+            if not _on_device(args):
+                raise
+        out = fn(*_to_host(args))               # the function's own TypeError, if it has one, is raised here
+        _host_only.add(fn)
+        return out
 
 
 def describe(fn) -> str:

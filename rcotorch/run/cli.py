@@ -5,8 +5,8 @@ Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requiremen
 environment (a setting, file, folder or checkpoint, a full disk, an output folder deleted during the run; one
 line on stderr names it and says what to do), 3 an internal error (out of memory included: one line on stderr,
 the traceback in the output folder's ``rcotorch.log``), 128 + the signal's number when stopped by a signal after
-saving a checkpoint: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (the message says how to resume). See
-docs/cli.md.
+saving a checkpoint: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (the message says how to resume; a signal
+while a finished run writes its summary stops that at once). See docs/cli.md.
 """
 
 from __future__ import annotations
@@ -151,6 +151,11 @@ def _say(text: str) -> None:
 
 
 # --- running a command --------------------------------------------------------------------------------------
+class StopSummary(KeyboardInterrupt):
+    """A stop signal while a finished run writes its summary: the summary's replays can take minutes, so it is
+    abandoned at once and the run's final state saved instead (its resume writes the summary)."""
+
+
 class Session:
     """What a command has open (its run and output folder, for the log and to release them), the stop request
     (a signal) and the command that resumes the work."""
@@ -160,6 +165,7 @@ class Session:
         self.resume: str | None = None          # the command that continues the work, once it has one
         self.stop = threading.Event()
         self.stop_signal = signal.SIGINT        # the last stop signal received
+        self.summarizing = False                # a stop signal abandons the summary at once (StopSummary)
 
     def command(self) -> str:
         return "rcotorch " + " ".join(shlex.quote(a) for a in self.argv)
@@ -188,6 +194,8 @@ class Session:
             self.stop.set()
             start, again = ("\nrcotorch:", "Ctrl-C again") if signum == signal.SIGINT else \
                 (f"rcotorch: {self.stopped_by} received:", "the signal again")
+            if self.summarizing:
+                raise StopSummary
             _say(f"{start} stopping after the current steps to save a checkpoint ({again} to quit at once)")
         previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN}
         try:
@@ -370,7 +378,18 @@ def cmd_run(args, session: Session) -> int:
             _say(f"rcotorch: stopped at step {e.step} of {r.steps}; checkpoint saved to {e.checkpoint}\n"
                  f"resume with: {session.resume}")
             return session.exit_stopped()
-        summary = r.finish(figures=not args.no_figures, close=False)
+        session.summarizing = True
+        try:
+            summary = r.finish(figures=not args.no_figures, close=False)
+        except StopSummary:
+            path = r.save()
+            session.log(f"stopped by {session.stopped_by} while writing the summary at step {r.k}; "
+                        f"resume with: {session.resume}")
+            _say(f"rcotorch: {session.stopped_by}: stopped while writing the summary (all {r.k} steps are done); "
+                 f"checkpoint saved to {path}\nresume with: {session.resume} (it writes the summary)")
+            return session.exit_stopped()
+        finally:
+            session.summarizing = False
     print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
           f"{summary['device']}, {summary['engine']} engine -> {r.out}")
     print(result_table(summary))

@@ -51,7 +51,7 @@ def run_figures(run) -> dict:
     members = list(getattr(run, "history_members", range(MAX_LINES)))
     figs = {}
     keys = [k for k in h if k not in ("step", "z_rms")]
-    series = {key: torch.stack(h[key]).numpy()[:, :MAX_LINES] for key in keys} if len(t) else {}
+    series = {key: torch.stack(h[key]).cpu().numpy()[:, :MAX_LINES] for key in keys} if len(t) else {}
     changes = any(len(pairs) > 1 for pairs in (getattr(run, "truth_history", None) or {}).values())
     log_t = not changes and log_time_axis(t, series.values())          # a run with a change: linear time
     if keys and len(t):
@@ -111,7 +111,7 @@ def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: l
     fig = Figure(figsize=(7.5, 5.6 if trace else 3.4), layout="constrained")
     axes = fig.subplots(2 if trace else 1, 1, squeeze=False)[:, 0]
     ax = axes[0]
-    z = torch.stack(h["z_rms"]).numpy()[:, :MAX_LINES]
+    z = torch.stack(h["z_rms"]).cpu().numpy()[:, :MAX_LINES]
     labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in members[:z.shape[1]]]
     ax.semilogy(t, z, lw=1, label=labels)
     _change_marks(ax, run, t, members)
@@ -150,18 +150,18 @@ def _initial_and_refined(run):
     the replayed window (its last 600 samples); None without either."""
     held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
     if held is not None:
-        y = held.measured[held.fit_steps:, 0, 0].numpy()
+        y = held.measured[held.fit_steps:, 0, 0].cpu().numpy()
         k = np.arange(len(y))
-        return ("held-out data", k, y - held.initial[held.fit_steps:, 0, 0].numpy(),
-                y - held.refined[held.fit_steps:, 0, 0].numpy())
+        return ("held-out data", k, y - held.initial[held.fit_steps:, 0, 0].cpu().numpy(),
+                y - held.refined[held.fit_steps:, 0, 0].cpu().numpy())
     res = run.residuals() if hasattr(run, "residuals") else None
     if res is None:
         return None
-    y = res.series["measured"][:, 0, 0].numpy()
+    y = res.series["measured"][:, 0, 0].cpu().numpy()
     n = min(len(y), 600)
     k = np.arange(len(y))[-n:]
-    return ("replayed window", k, y[-n:] - res.series["initial"][-n:, 0, 0].numpy(),
-            y[-n:] - res.series["refined"][-n:, 0, 0].numpy())
+    return ("replayed window", k, y[-n:] - res.series["initial"][-n:, 0, 0].cpu().numpy(),
+            y[-n:] - res.series["refined"][-n:, 0, 0].cpu().numpy())
 
 
 def residual_figures(run, res, dt: float | None) -> dict:
@@ -174,7 +174,7 @@ def residual_figures(run, res, dt: float | None) -> dict:
     fig = Figure(figsize=(7.5, 2.6 * n_panels + 1.0), layout="constrained")
     axes = fig.subplots(n_panels, 1, squeeze=False)[:, 0]
     ax = axes[0]
-    auto = res.autocorr[0].numpy()                               # (L + 1, n_z)
+    auto = res.autocorr[0].cpu().numpy()                               # (L + 1, n_z)
     for c in range(auto.shape[1]):
         ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=f"z[{c}]" if auto.shape[1] > 1 else "z")
     ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
@@ -186,7 +186,7 @@ def residual_figures(run, res, dt: float | None) -> dict:
     _legend_below(fig, ax, axes=ax)
     if res.xcorr is not None:
         ax = axes[1]
-        x = res.xcorr[0].numpy()                                  # (L + 1, n_z, n_w)
+        x = res.xcorr[0].cpu().numpy()                                  # (L + 1, n_z, n_w)
         for c in range(x.shape[1]):
             for d in range(x.shape[2]):
                 ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z[{c}], w[{d}]" if x.shape[1] * x.shape[2] > 1
@@ -197,15 +197,15 @@ def residual_figures(run, res, dt: float | None) -> dict:
         ax.grid(alpha=0.3)
         _legend_below(fig, ax, axes=ax)
     figs["residuals"] = fig
-    y = res.series["measured"][:, 0].numpy()
+    y = res.series["measured"][:, 0].cpu().numpy()
     n = min(len(y), 600)                                          # the last samples of the window
     t = (np.arange(len(y)) - len(y) + 1) * (dt or 1.0)            # 0 at the window's end
     fig = Figure(figsize=(7.5, 3.8), layout="constrained")
     ax = fig.subplots()
     ax.plot(t[-n:], y[-n:, 0], color="k", lw=1.6, label="measured", zorder=2)
-    ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].numpy(), color="tab:gray", ls=":", lw=1.3, zorder=3,
+    ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].cpu().numpy(), color="tab:gray", ls=":", lw=1.3, zorder=3,
             label=f"initial model (fit {float(res.fit_initial[0]):.1f}%)")
-    ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].numpy(), color="tab:orange", ls="--", lw=1.2, zorder=4,
+    ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].cpu().numpy(), color="tab:orange", ls="--", lw=1.2, zorder=4,
             label=f"refined model (fit {float(res.fit[0]):.1f}%)")
     ax.set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
     ax.set_ylabel(_with_unit("y", run.scenario.unit("y")))
@@ -224,8 +224,8 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
     found = run.intervals() if hasattr(run, "intervals") else None
     if found is not None and key in found.estimate and len(t):
         idx = [b for b in members[:lines.shape[1]] if b < found.half_width[key].shape[0]]
-        half = found.half_width[key].numpy()[idx]
-        est = found.estimate[key].numpy()[idx]
+        half = found.half_width[key].cpu().numpy()[idx]
+        est = found.estimate[key].cpu().numpy()[idx]
         ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
                     zorder=4, label=f"{found.level:.0%} interval at the end")
     truth = run.truth.get(key)
@@ -244,7 +244,7 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
     _change_marks(ax, run, t, members)
     initial = (run.monitor.initial or {}).get(key) if getattr(run, "monitor", None) is not None else None
     if initial is not None:
-        for i, iv in enumerate(np.unique(initial.numpy()[members])[:MAX_LINES]):
+        for i, iv in enumerate(np.unique(initial.cpu().numpy()[members])[:MAX_LINES]):
             ax.axhline(iv, **INITIAL_STYLE, label="initial model" if i == 0 else None)
     ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
     ax.grid(alpha=0.3, which="both")
@@ -261,7 +261,7 @@ def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
         ax.axvline(x, **CHANGE_STYLE, label="change" if i == 0 else None)
     labelled = False
     for name, found in change_report(run.graph).items():
-        first = found["first_alarm_step"].numpy()
+        first = found["first_alarm_step"].cpu().numpy()
         for b in members[:MAX_LINES]:
             if b < len(first) and first[b] >= 0:
                 x = first[b] * (dt or 1.0)
@@ -276,7 +276,7 @@ def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> Non
     lines = ax.plot(t, v[:, :MAX_LINES], lw=1.2, zorder=2)
     members = list(getattr(run, "history_members", range(len(lines))))
     if key in found.estimate:
-        lo, hi = found.lower(key).numpy(), found.upper(key).numpy()
+        lo, hi = found.lower(key).cpu().numpy(), found.upper(key).cpu().numpy()
         for b, line in zip(members, lines):
             if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
                 ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
