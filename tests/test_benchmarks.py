@@ -158,7 +158,7 @@ def test_the_batched_unscented_filter_is_filterpys():
     import numpy as np
     import ukf_peer
     sc = scenarios.get(ukf_peer.NAME)
-    s = sc.resolve({})
+    s = sc.resolve(ukf_peer.VELOCITY)
     A, Bw, Bu, Cy, Cd = ukf_peer.model(sc, s)
     R = np.eye(Cy.shape[0]) * s["noise"] ** 2
     w, y = ukf_peer.record(sc, s, 2)[:2]

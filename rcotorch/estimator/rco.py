@@ -106,8 +106,11 @@ class RCOEstimator(Block):
         beta_d..beta_(d+nu-1) of u -> z as (nu, n_z, n_u) or (B, nu, n_z, n_u), with the relative degree
         ``first_delay`` = d. Usually left out and derived by ``refinement`` from the known model.
     first_delay : int, optional
-        d, the delay of the first Markov parameter in ``markov`` (>= 0; 0 only for a strictly proper
-        identified subsystem).
+        d, the delay of the first Markov parameter in ``markov`` (>= 0). d = 0 where u reaches z at once (an
+        accelerometer's reading of a force): u(k) = Theta(k) phi(k) is made from theta(k) before z(k) is known,
+        and the update then weighs beta_0 [u(k) - Theta phi(k)] like the later terms. A loop through a signal
+        the identified subsystem sees at once (a proper estimator on a port that u reaches at once) is refused
+        by the graph.
     dt : float, optional
         Sample time [s] (for transfer functions and frequency responses). Left out, the identified subsystem
         has the sample time that comes with its Markov parameters (``set_markov``; ``refinement`` gives the
@@ -459,7 +462,7 @@ class RCOEstimator(Block):
         markov : array_like
             (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1.
         first_delay : int, optional
-            d, the delay of the first one (>= 0; 0 only for an estimator that is not ``proper``).
+            d, the delay of the first one (>= 0; 0 where u reaches z at once).
         dt : float, optional
             The sample time [s] of the model they are taken from, the identified subsystem's ``sample_time``
             where the estimator has no ``dt`` of its own; None keeps the one given before.
@@ -469,7 +472,7 @@ class RCOEstimator(Block):
         DimensionError
             If ``markov`` has the wrong shape.
         ConfigError
-            If ``first_delay`` is negative, or 0 for a proper estimator (an algebraic loop).
+            If ``first_delay`` is negative.
         """
         beta = torch.as_tensor(markov, dtype=self.theta0.dtype, device=self.theta0.device)
         beta = beta.unsqueeze(0) if beta.dim() == 3 else beta
@@ -478,9 +481,6 @@ class RCOEstimator(Block):
                                  f"(nu, {self.n_z}, {self.n_u}) with nu >= 1, got {tuple(beta.shape)}")
         if first_delay < 0:
             raise ConfigError(f"block '{self.name}': first_delay must be >= 0, got {first_delay}")
-        if first_delay == 0 and self.proper:
-            raise ConfigError(f"block '{self.name}': u acts on z at once (beta_0 != 0) and the identified "
-                              "subsystem is proper: the step has an algebraic loop")
         same = self._buffers["beta"].shape == beta.shape and self.__dict__.get("first_delay") == first_delay
         self.beta = beta
         self.beta_t = beta.flatten(2).mT.contiguous()

@@ -123,7 +123,7 @@ def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: l
     if log_t:
         ax.set_xscale("log")
     ax.set_xlabel(xlabel + (", log scale" if log_t else ""))
-    y_unit = run.scenario.unit("y")
+    y_unit = run.scenario.unit("y", run.settings)
     ax.set_ylabel(_with_unit("rms of z = y - y_hat", y_unit))
     shown = _members_shown(len(members), run.batch)
     _title(ax, f"{run.scenario.name}: model error (rms over each log interval){shown}")
@@ -208,7 +208,7 @@ def residual_figures(run, res, dt: float | None) -> dict:
     ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].cpu().numpy(), color="tab:orange", ls="--", lw=1.2, zorder=4,
             label=f"refined model (fit {float(res.fit[0]):.1f}%)")
     ax.set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
-    ax.set_ylabel(_with_unit("y", run.scenario.unit("y")))
+    ax.set_ylabel(_with_unit("y", run.scenario.unit("y", run.settings)))
     _title(ax, f"{run.scenario.name}: measured and model outputs, member 0 (theta frozen)")
     ax.grid(alpha=0.3)
     _legend_below(fig, ax)

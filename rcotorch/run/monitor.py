@@ -169,7 +169,7 @@ class Monitor:
         keys = list(dict.fromkeys([*run.truth, *(self.initial or {})]))
         self.scales = estimate_scales(run.scenario, keys, run.truth)
         self._tags: dict[str, _KeyTags] = {}
-        y_unit = run.scenario.unit("y")
+        y_unit = run.scenario.unit("y", run.settings)
         self.z_tag = f"{MODEL_ERROR}/z rms [{y_unit or '-'}]"
         self.z_members = {b: f"members/z rms m{b} [{y_unit or '-'}]" for b in self.traced}
         self.ident = run.graph.role("estimator")

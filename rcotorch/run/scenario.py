@@ -190,8 +190,9 @@ class Scenario:
             out[key] = values[0]
         return out
 
-    def unit(self, key: str) -> str:
-        """The unit of an estimate, metric or setting ('' where none is declared)."""
+    def unit(self, key: str, settings: dict | None = None) -> str:
+        """The unit of an estimate, metric or setting ('' where none is declared); ``settings``, where given, lets
+        a scenario whose units depend on its settings (a sensor's kind) say which."""
         if key in self.units:
             return self.units[key]
         return self.setting(key).unit if key in self.settings else ""
