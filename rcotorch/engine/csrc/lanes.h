@@ -573,9 +573,12 @@ static inline ALWAYS void FN(win_row)(const int64_t *restrict e, double *restric
  * every row of the ring: row r holds delay (pr - r) mod W, weighed by beta_rev[(r - pr - 1) mod W] and by 0
  * below the first delay as on the PyTorch engine. The weights hold that ring twice ([beta_rev, 0 *
  * first_delay] twice, 2W entries), so this step's weights of rows 0 .. W - 1 are the W entries from W - pr - 1
- * on. Rows in memory order, in four chains. */
+ * on. Rows in memory order, in four chains. With lanes (VL > 1) and a parameter map (param_of, weights
+ * q = z n_u + a), only the sums that the update reads are made: phi column j of weight (z, a) where Theta's
+ * entry (a, j) is a parameter, and u column a; a masked static gain on n signals skips most of them. */
 static inline ALWAYS void FN(markov)(const int64_t *restrict e, double *restrict S, double *restrict prod,
-                                     int64_t nq, int64_t m, int64_t W, int64_t pr) {
+                                     int64_t nq, int64_t m, int64_t W, int64_t pr, int64_t n_u,
+                                     const int64_t *restrict param_of) {
     const double *restrict win = SL(e[E_WIN]);
     const int64_t sh = e[E_SHARED];
     for (int64_t q = 0; q < nq; q++) {
@@ -603,7 +606,9 @@ static inline ALWAYS void FN(markov)(const int64_t *restrict e, double *restrict
 #undef COLUMNS
             continue;
         }
+        const int64_t a = q % n_u, n_phi = m - n_u;
         for (int64_t j = 0; j < m; j++) {
+            if (param_of && (j < n_phi ? param_of[a * n_phi + j] < 0 : j - n_phi != a)) continue; /* not read */
             double a0[VL], a1[VL], a2[VL], a3[VL];
             LANES a0[l] = a1[l] = a2[l] = a3[l] = 0.0;
             int64_t r = 0;
@@ -652,7 +657,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
      * made again with the row stored, as in the general case. */
     const int row_after_filter = own_scratch && theta_is_eta && SL(e[E_BETA])[W - 1] == 0.0;
     if (!row_after_filter) FN(win_row)(e, S, pr, n_phi, m);
-    FN(markov)(e, S, prod, n_z * n_u, m, W, pr);
+    FN(markov)(e, S, prod, n_z * n_u, m, W, pr, n_u, e[E_IDENT] ? 0 : param_of);
     if (row_after_filter) {
         FN(win_row)(e, S, pr, n_phi, m);
         /* t is finite where the m sums and the row are (or else overflows): then the sums are those of the
@@ -660,7 +665,7 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         const double *row = SL(e[E_WIN] + pr * m);
         double t = 0.0;
         for (int64_t j = 0; j < m; j++) t += prod[j] + row[j];
-        if (__builtin_expect(!(t - t == 0.0), 0)) FN(markov)(e, S, prod, 1, m, W, pr);
+        if (__builtin_expect(!(t - t == 0.0), 0)) FN(markov)(e, S, prod, 1, m, W, pr, n_u, 0);
     }
     for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
         double *o = AT(zr, z), d[VL];
