@@ -158,10 +158,16 @@ def test_a_single_run_draws_estimate_and_truth_under_one_tag_in_simulated_second
     for run_name in (name, f"{name}/truth"):
         for e in _events(mux, run_name, "Estimates/dK [mN/m]"):
             assert e.wall_time - origin == pytest.approx(e.step * 0.01, abs=1e-5)
-    # the final interval as a band over the logged steps (the same steps as the estimate: a margin chart needs them)
+    # the band over the logged steps (the same steps as the estimate: a margin chart needs them): about the estimate
+    # at each step, ending at the final interval, and wider early on (the RLS covariance shrinks as data arrive)
     lower = _values(mux, name, "intervals/dK lower [mN/m]")
+    upper = dict(_values(mux, name, "intervals/dK upper [mN/m]"))
     assert [s for s, _ in lower] == steps
-    assert all(v * 1e-3 == pytest.approx(summary["intervals"]["dK"]["lower"], rel=1e-6) for _, v in lower)
+    assert lower[-1][1] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["lower"], rel=1e-6)
+    assert upper[steps[-1]] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["upper"], rel=1e-6)
+    values = dict(est)
+    assert all(v <= values[s] <= upper[s] for s, v in lower[1:])
+    assert upper[steps[1]] - lower[1][1] > 2 * (upper[steps[-1]] - lower[-1][1])
     assert "figures/estimates" in _tags(mux, name, "images")
     hp = _sessions(mux)[name]
     assert hp["scenario"] == name and hp["p0"] == 1000.0 and hp["dK [N/m]"] == 0.5 and hp["Ts [s]"] == 0.01

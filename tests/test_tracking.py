@@ -282,3 +282,21 @@ def test_a_run_whose_truth_changes_keeps_a_linear_time_axis(tmp_path):
     t = np.asarray(h["step"], dtype=float) * Ts
     assert log_time_axis(t, [torch.stack(h["db"]).numpy()])       # by its settling alone: a log axis
     assert run_figures(result.run)["estimates"].axes[0].get_xscale() == "linear"
+
+
+def test_the_band_over_time_widens_at_the_change_and_narrows_again(tmp_path):
+    """The confidence band through a run: wide at the start, narrow before the change, wide again after it (the
+    restarted P and the model error the old estimate leaves), as narrow as the final interval at the end."""
+    run = Run("shear-building-damage", batch=2, out=tmp_path)
+    run.advance(progress=False)
+    summary = run.finish(figures=False)
+    steps, bands = run.band_over_time()
+    steps = np.asarray(steps)
+    hw = bands["dk2"].numpy()                                                     # (T, members)
+    kd = run.scenario.change_step(run.settings)
+    before = np.flatnonzero(steps < kd)[-1]
+    after = np.flatnonzero(steps > kd)[0]
+    assert np.all(hw[0] > 10 * hw[before]) and np.all(hw[after] > 10 * hw[before])
+    final = np.asarray(summary["intervals"]["dk2"]["upper"]) - np.asarray(summary["estimates"]["dk2"])
+    np.testing.assert_allclose(hw[-1], final, rtol=1e-9)
+    assert np.all(hw[-1] < hw[after] / 10)

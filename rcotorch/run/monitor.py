@@ -340,22 +340,37 @@ class Monitor:
                 summary = histogram(f"spread/{key} {scaled.label}", v / scaled.scale, self.writer.default_bins)
                 self.writer.file_writer.add_summary(summary, step, self.wall(step))
 
-    def final_intervals(self, found, steps: list[int]) -> None:
-        """The final confidence intervals (``rcotorch.verdict.intervals.Intervals``, or None; batch means of their
-        bounds) as ``intervals/<key> lower|upper`` at each of ``steps`` (the logged steps), so that the Custom
-        Scalars chart draws the estimate's path into its final band."""
+    def final_intervals(self, found, steps: list[int], band=None) -> None:
+        """The confidence band as ``intervals/<key> lower|upper`` at each of ``steps`` (the logged steps), so that
+        the Custom Scalars chart draws the estimate's path inside it. ``found``: the final intervals
+        (``rcotorch.verdict.intervals.Intervals``, or None; batch means of their bounds). ``band``: the band over
+        time of the history's members (``Run.band_over_time``: (steps, {key: (T, members) half-widths})), drawn
+        about their mean estimate at each of its steps, where it is finite; the final bounds elsewhere."""
         if found is None:
             return
         steps = sorted({0, *steps, *self.logged})    # every step the estimates have: the margin chart needs them
         bounds = []
         for key in found.estimate:
-            lo, hi = _finite(found.lower(key).numpy()), _finite(found.upper(key).numpy())
+            lo, hi = _finite(found.lower(key).cpu().numpy()), _finite(found.upper(key).cpu().numpy())
             if lo.size and hi.size:
                 t = self.tags(key)
                 bounds += [(t.lower, float(lo.mean()) / t.scaled.scale), (t.upper, float(hi.mean()) / t.scaled.scale)]
+        over_time: dict[int, dict[str, float]] = {}
+        if band is not None:
+            band_steps, widths = band
+            for key, hw in widths.items():
+                t = self.tags(key)
+                values = torch.stack(self.run.history[key]).to(torch.float64)[:, :hw.shape[1]]
+                for i, step in enumerate(band_steps):
+                    ok = torch.isfinite(hw[i]) & torch.isfinite(values[i])
+                    if bool(ok.any()):
+                        mid, half = float(values[i][ok].mean()), float(hw[i][ok].mean())
+                        over_time.setdefault(step, {})[t.lower] = (mid - half) / t.scaled.scale
+                        over_time[step][t.upper] = (mid + half) / t.scaled.scale
         if bounds:
             for step in steps:
-                _scalars(self.writer, step, self.wall(step), bounds)
+                values = dict(bounds) | over_time.get(step, {})
+                _scalars(self.writer, step, self.wall(step), list(values.items()))
 
     def figures(self, pngs: dict[str, bytes], out: Path) -> None:
         """Save the figures (PNG bytes, ``rcotorch.run.figures.png``) in ``out`` and as images under ``figures/``

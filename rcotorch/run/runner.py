@@ -188,6 +188,9 @@ class Run:
                      for k in ("z", "y", "log_z", "mark_z", "z_rms_last")}
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
+        # the uncalibrated half-widths of the estimates at each logged step (``_remember``), for the band over time
+        self.band_history: dict[str, list] = {}
+        self._band: tuple[int, Any] | None = None        # band_over_time at a step, made once
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
@@ -302,19 +305,65 @@ class Run:
         est = {k: v.detach().to(torch.float64).cpu() for k, v in
                self.scenario.estimates(self.graph, self.settings).items()}
         z_cpu = z_rms.cpu()
-        self._remember(z_cpu, est)
+        self._remember(z_cpu, est, self._rls_band())
         self.monitor.log(self.k, z_cpu, est)
 
-    def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor]) -> None:
+    def _rls_band(self) -> dict[str, torch.Tensor]:
+        """The estimates' uncalibrated half-widths now (``rcotorch.verdict.intervals.rls_half_widths`` with a unit
+        noise variance: the noise is taken as constant over the run, so its size cancels when ``band_over_time``
+        scales the band to the final interval), where the run computes intervals."""
+        if not self.intervals_on:
+            return {}
+        ones = torch.ones(self.batch, dtype=torch.float64, device=self.device)
+        return ci.rls_half_widths(self.graph, lambda g: self.scenario.estimates(g, self.settings), ones,
+                                  level=self.level)
+
+    def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor],
+                  band: dict[str, torch.Tensor] | None = None) -> None:
         """Append the first members' values to the history (thinned by two when it is full)."""
         h, members = self.history, self.history_members
         h["step"].append(self.k)
         h["z_rms"].append(z_rms[members].clone())
         for key, v in est.items():
             h.setdefault(key, []).append(v[members].clone())
+        for key, v in (band or {}).items():
+            self.band_history.setdefault(key, []).append(v[members].clone())
         if len(h["step"]) >= 2 * HISTORY_MAX:
             for key in h:
                 h[key] = h[key][1::2]
+            for key in self.band_history:
+                self.band_history[key] = self.band_history[key][1::2]
+
+    def band_over_time(self) -> tuple[list[int], dict[str, torch.Tensor]] | None:
+        """The confidence band of the history's members at each logged step: the final interval's half-width
+        times sqrt(g^T P(k) g / g^T P(N) g) max(1, z_rms(k) / z_rms(N)), g the estimate's gradient in the
+        parameters, P(k) the RLS covariance at step k (``_rls_band``) and z_rms the model error's rms over the
+        log interval: wide where P is (the start, a restart of P, forgetting) and where the model error is larger
+        than at the end (a change the estimate has not yet followed), as narrow as the final interval at the end.
+        It is calibrated at the end only (by the replay of the convergence window).
+        Returns (steps, {key: (T, members) half-widths}), or None without final intervals or a band history.
+        Where the final interval is not finite (an undetermined estimate), that member's band is NaN."""
+        found = self.intervals()
+        steps = self.history["step"]
+        if found is None or not self.band_history or not steps:
+            return None
+        if self._band is not None and self._band[0] == self.k:
+            return self._band[1]
+        now = self._rls_band()
+        members = self.history_members
+        z = torch.stack(self.history["z_rms"]).to(torch.float64)                       # (T, members)
+        excess = (z / z[-1]).clamp_min(1.0)
+        excess = torch.where(torch.isfinite(excess), excess, torch.ones_like(excess))
+        out = {}
+        for key, series in self.band_history.items():
+            if key not in found.half_width or key not in now or len(series) != len(steps):
+                continue
+            final = found.half_width[key].detach().to(torch.float64).cpu()[members]
+            factor = final / now[key][members]
+            factor = torch.where(torch.isfinite(factor) & (factor > 0), factor, torch.full_like(factor, math.nan))
+            out[key] = torch.stack(series) * factor * excess
+        self._band = (self.k, (list(steps), out) if out else None)
+        return self._band[1]
 
     def _pending_log(self) -> int:
         c = self.counters
@@ -331,6 +380,7 @@ class Run:
             "trace": self.trace, "graph": self.graph.state_dict(),
             "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
             "history_members": self.history_members, "counters": dict(self.counters),
+            "band_history": {k: torch.stack(v) for k, v in self.band_history.items() if v},
             "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
             "snapshot": None if self.snapshot is None else {k: v.cpu() for k, v in self.snapshot.items()},
             "intervals": self.intervals_on, "level": self.level, "validation": self.validation_on,
@@ -402,6 +452,7 @@ class Run:
         run.history = {k: list(v.unbind(0)) if isinstance(v, torch.Tensor) else list(v)
                        for k, v in state["history"].items()}
         run.history_members = list(state["history_members"])
+        run.band_history = {k: list(v.unbind(0)) for k, v in state.get("band_history", {}).items()}
         run.tb_origin = state.get("tb_origin")
         run.counters = {k: int(v) for k, v in state["counters"].items()}
         run.sums = {k: v.to(run.device) for k, v in state["sums"].items()}
@@ -560,7 +611,7 @@ class Run:
         self.save()
         if figures:
             self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
-        self.monitor.final_intervals(self.intervals(), sorted({*self.history["step"], self.k}))
+        self.monitor.final_intervals(self.intervals(), sorted({*self.history["step"], self.k}), self.band_over_time())
         self.monitor.close(summary)
         self.folder.register()
         if close:
