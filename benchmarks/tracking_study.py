@@ -6,14 +6,15 @@ graph with other settings.
     python benchmarks/tracking_study.py                    # 200 seeds, a few minutes: the scenario as shipped
     python benchmarks/tracking_study.py --sensor velocity  # the three floors' velocities instead
 
-The building: floors of 2e4 kg, storeys of 2e7 N/m, 2% Rayleigh damping (periods 0.446, 0.159, 0.110 s), the
-ground acceleration white noise of 1 m/s^2 at Ts = 0.01 s; the scenario's accelerometers on floors 2 and 3 with
-noise of 0.01 m/s^2 (detector reference window from 2,000 to 3,000 steps), or (``--sensor velocity``) the three
-floors' velocities measured with noise of 2e-4 m/s (window from 500 to 1,000 steps); the identified subsystem is a static gain from the storey drifts to the storey force pairs, masked to
-its diagonal (dk_j = -theta_jj / k); nu = 100 (other values as variants), p0 = 1e20. Storey 2 changes at t_d = 60 s (134 periods); the
-estimate is judged 50 periods after it. A variant without a detector sets its alarm level out of reach. Writes
-benchmarks/results/tracking_study_acceleration.json (tracking_study.json for velocities); docs/tracking.md has
-the tables.
+The building: floors of 2e4 kg, storeys of 2e7 N/m, 2% Rayleigh damping (periods 0.446, 0.159, 0.110 s), the ground
+acceleration white noise of 1 m/s^2 at Ts = 0.01 s; the scenario's accelerometers on floors 2 and 3 with noise of
+0.01 m/s^2 (detector reference window from 2,000 to 3,000 steps), or (``--sensor velocity``) the three floors'
+velocities measured with noise of 2e-4 m/s (window from 500 to 1,000 steps); the identified subsystem is a static
+gain from the storey drifts to the storey force pairs, masked to its diagonal (dk_j = -theta_jj / k); nu = 100
+(other values as variants), p0 = 1e20. Storey 2 changes at t_d = 60 s (134 periods); the estimate is judged 50
+periods after it. A variant without a detector sets its alarm level out of reach. Writes
+benchmarks/results/tracking_study_acceleration.json (tracking_study.json for velocities); docs/tracking.md has the
+tables.
 """
 
 from __future__ import annotations

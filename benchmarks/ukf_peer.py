@@ -8,15 +8,15 @@ it), and the same unscented filter batched over the members in torch, as a perfo
 The data: the scenario's graph with the three floors' velocities measured (``sensor=velocity``, noise 2e-4 m/s, the
 detector's reference window from 500 to 1,000 steps; the scenario's own accelerometers would give the filters a
 measurement that the inputs reach at once) run for B members (seeds 1..B), its ground acceleration w and measured
-velocities y recorded by the native engine. Both filters get w and y and know the building (the discrete model the truth is
-made of): augmented state [floor displacements and velocities (6), dk1, dk2, dk3], dynamics x(k+1) = A x + B_w w
-+ B_u u with u_j = -dk_j k d_j(x), the parameters a random walk of variance q per step, y = C x with the
-measurement noise's variance as R. Tuning: q = 1e-7 (a change of 0.2 is followed within a few hundred steps,
-and the estimate's noise before the change stays near 1e-3), P0 = 1e-8 on the floors' states and 1e-2 on the
-parameters, Merwe's sigma points (alpha = 0.1, beta = 2, kappa = 0). A filter's "detection" is the first step,
-from the 1,000th on (where rcotorch's detector arms), where an estimate moves more than half the change (0.1)
-from zero; before the change that is a false alarm. rcotorch's detection is its detector's alarm. The batched
-filter is filterpy's algorithm step for step (a test checks it against filterpy to rounding).
+velocities y recorded by the native engine. Both filters get w and y and know the building (the discrete model the
+truth is made of): augmented state [floor displacements and velocities (6), dk1, dk2, dk3], dynamics x(k+1) = A x +
+B_w w + B_u u with u_j = -dk_j k d_j(x), the parameters a random walk of variance q per step, y = C x with the
+measurement noise's variance as R. Tuning: q = 1e-7 (a change of 0.2 is followed within a few hundred steps, and
+the estimate's noise before the change stays near 1e-3), P0 = 1e-8 on the floors' states and 1e-2 on the
+parameters, Merwe's sigma points (alpha = 0.1, beta = 2, kappa = 0). A filter's "detection" is the first step, from
+the 1,000th on (where rcotorch's detector arms), where an estimate moves more than half the change (0.1) from zero;
+before the change that is a false alarm. rcotorch's detection is its detector's alarm. The batched filter is
+filterpy's algorithm step for step (a test checks it against filterpy to rounding).
 
 Compared: detection delay, false alarms, the largest error over the storeys 50 periods after the change, and the
 cost per member-step (rcotorch: the graph's steps with the detector; filterpy: its predict and update; batched:

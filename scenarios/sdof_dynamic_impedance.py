@@ -108,7 +108,8 @@ class SdofDynamicImpedance(Scenario):
         cov = getattr(est, "covariance", None)                   # set by the run's intervals
         if cov is not None and bool(torch.isfinite(cov.cov[0]).all()):
             mag, half = band(g, lambda g: g.role("estimator").frequency_response(w)[:, :, 0, 0].abs(), cov)
-            bands = {"95% confidence band (member 0)": ((mag[0] - half[0]).cpu().numpy(), (mag[0] + half[0]).cpu().numpy())}
+            lo, hi = (mag[0] - half[0]).cpu().numpy(), (mag[0] + half[0]).cpu().numpy()
+            bands = {"95% confidence band (member 0)": (lo, hi)}
         return {"frequency_response": frequency_figure(
             w, {"identified (member 0)": ident, "true ZOH(10/(s+2))": self.truth_tf(s)(np.exp(1j * w * s["Ts"]))},
             "Identified vs true unknown subsystem (velocity -> force)", nyquist=np.pi / s["Ts"], unit="N s/m",
