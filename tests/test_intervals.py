@@ -210,3 +210,30 @@ def test_a_biased_refinement_is_not_called_converged(tmp_path):
         assert (truth - est[key]) * move > 0, key                            # the step points at the truth
         assert float(found.half_width[key][0]) >= abs(move)                  # the interval reaches its end
     assert "biased: the output error favours estimates more than 5% away" in health_line(s)
+
+
+def test_the_replays_lagged_sums_in_chunks_equal_the_sums_written_out():
+    """The replay sums its scores and residuals in chunks of steps: the lagged products G_lag = sum_t s(t)
+    s(t - lag)^T and z(t) w(t - lag) equal the sums written out in NumPy, whatever the chunks."""
+    from rcotorch.verdict import intervals as ci
+    rng = np.random.default_rng(7)
+    T, B, n, L = 53, 3, 2, 5
+    s = rng.standard_normal((T, B, n))
+    want = np.zeros((L + 1, B, n, n))
+    for lag in range(L + 1):
+        for t in range(lag, T):
+            want[lag] += np.einsum("bi,bj->bij", s[t], s[t - lag])
+    for cuts in ([T], [1, 7, 20, T], [L - 1, L, T]):
+        sums = ci._ScoreSums(B, n, L, "cpu")
+        start = 0
+        for end in cuts:
+            sums.add(torch.as_tensor(s[start:end]))
+            start = end
+        np.testing.assert_allclose(sums.gram.numpy(), want, rtol=1e-12, atol=1e-12)
+    w = rng.standard_normal((T, B, 1))
+    z = rng.standard_normal((T, B, 2))
+    zw = ci._lag_sums(torch.as_tensor(z), torch.as_tensor(w), L, outer=True).numpy()
+    zz = ci._lag_sums(torch.as_tensor(z), torch.as_tensor(z), L, outer=False).numpy()
+    for lag in range(L + 1):
+        np.testing.assert_allclose(zw[lag], np.einsum("tbi,tbj->bij", z[lag:], w[:T - lag]), rtol=1e-12)
+        np.testing.assert_allclose(zz[lag], (z[lag:] * z[:T - lag]).sum(0), rtol=1e-12)

@@ -51,6 +51,7 @@ SETTLE = 0.25            # the first fraction of the replay lets the perturbed c
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
+CHUNK_BYTES = 1 << 26    # the replay's regressors are summed in chunks of steps of at most this many bytes
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
@@ -186,39 +187,59 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
         recorded.append({names[name]: v.to(f64) for name, v in rec.items()})
         del g
     zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
+    first = recorded[0]
     weight = est.r_weight.to(f64)
-    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
-    cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
+    eps64 = eps.to(f64)
+    # The residual checks and the output error's Gauss-Newton sums need only the recorded outputs: all at once.
+    z_all = first[z_sig][settle:]                                                       # (T, B, n_z)
+    res = _ResidualSums(B, lags, keep, dev)
+    res.add(z_all, None if w_sig is None else first[w_sig][settle:], first[y_sig][settle:],
+            recorded[-1][z_sig][settle:])
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
+    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
+    cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
     scores = _ScoreSums(B, n, score_lags, dev)
-    res = _ResidualSums(B, lags, keep, dev)
-    measured = 0
-    first = recorded[0]
+    # The base copy's regressors, a step at a time, summed in chunks of steps (each sum over a chunk is one
+    # batched product): chunk x B x n_z x n values at most CHUNK_BYTES.
+    chunk = max(1, min(steps - settle, CHUNK_BYTES // max(1, 8 * B * n_z * n * 2)))
+    psis = torch.empty(chunk, B, n_z, n, dtype=f64, device=dev)
+    held = 0
+
+    def flush(upto: int) -> None:
+        """Add the ``held`` regressors of the measured steps ending before ``upto`` (relative to settle)."""
+        nonlocal jwj, jwz, grams, cross, zz
+        t0, C = upto - held, held
+        psi = psis[:held].transpose(0, 1)                                          # (B, C, n_z, n)
+        z = z_all[t0:upto].transpose(0, 1)                                         # (B, C, n_z)
+        jac = (zs[settle + t0:settle + upto].transpose(0, 1) - z.unsqueeze(3)) / eps64.reshape(B, 1, 1, n)
+        jac_w = weight @ jac                                                       # W J (W symmetric)
+        jwj += _tsum(jac, jac_w)
+        jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
+        m = base_est.row_scale(psi.reshape(-1, n_z, n))
+        if m is not None:                                                     # the rows as weighed
+            m = m.to(f64).reshape(B, C)
+            z = z / m.unsqueeze(-1)
+            jac_w = jac_w / m.reshape(B, C, 1, 1)
+            psi = psi / m.reshape(B, C, 1, 1)
+        flat = psi.reshape(B, C, n_z * n)
+        grams += (flat.mT @ flat).reshape(B, n_z, n, n_z, n).permute(0, 1, 3, 2, 4)
+        cross += _tsum(psi, jac_w)
+        zz += z.mT @ z
+        scores.add(_tsum_rows(psi, z @ weight))
+
     with torch.no_grad():
         for k in range(steps):
             base.step()
             if k < settle:
                 continue
-            z = first[z_sig][k]
-            dz = zs[k] - z.unsqueeze(2)                                                  # (B, n_z, n)
-            z_init = recorded[-1][z_sig][k]
-            res.add(z, None if w_sig is None else first[w_sig][k], first[y_sig][k], z_init)
-            jac = dz / eps.to(f64).unsqueeze(1)                                  # (B, n_z, n)
-            jwj += torch.einsum("bzi,zy,byj->bij", jac, weight, jac)
-            jwz += torch.einsum("bzi,zy,by->bi", jac, weight, z)
-            psi = base_est.last_regressor().to(f64)                               # (B, n_z, n)
-            m = base_est.row_scale(psi)
-            if m is not None:                                                     # the rows as weighed
-                m = m.to(f64)
-                z, dz = z / m.reshape(-1, 1), dz / m.reshape(-1, 1, 1)
-                psi = psi / m.reshape(-1, 1, 1)
-            grams += torch.einsum("bzi,byj->bzyij", psi, psi)
-            cross += torch.einsum("bzi,zy,byj->bij", psi, weight, dz / eps.to(f64).unsqueeze(1))
-            zz += torch.einsum("bz,by->bzy", z, z)
-            scores.add(torch.einsum("bzi,zy,by->bi", psi, weight, z))
-            measured += 1
+            psis[held] = base_est.last_regressor().to(f64)
+            held += 1
+            if held == chunk or k == steps - 1:
+                flush(k + 1 - settle)
+                held = 0
+    measured = steps - settle
     V = zz / measured
     finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
         torch.isfinite(V).flatten(1).all(1)
@@ -271,16 +292,19 @@ class _ScoreSums:
 
     def __init__(self, B: int, n: int, lags: int, device):
         self.L, self.n = lags, 0
-        self.ring = torch.zeros(lags + 1, B, n, dtype=torch.float64, device=device)
+        self.ring = torch.zeros(B, lags, n, dtype=torch.float64, device=device)      # the last L scores
         self.gram = torch.zeros(lags + 1, B, n, n, dtype=torch.float64, device=device)
 
     def add(self, s: torch.Tensor) -> None:
-        L = self.L
-        pos = self.n % (L + 1)
-        self.ring[pos] = s
-        lags = torch.arange(min(self.n, L) + 1, device=s.device)
-        self.gram[: len(lags)] += torch.einsum("bi,lbj->lbij", s, self.ring[(pos - lags) % (L + 1)])
-        self.n += 1
+        """Add the scores of consecutive steps, (C, B, n): G_lag += sum_t s(t) s(t - lag)^T, the last L scores
+        of the previous chunk (zeros before the first) supplying s(t - lag) at the chunk's start."""
+        L, C = self.L, s.shape[0]
+        x = torch.cat([self.ring, s.transpose(0, 1)], dim=1)                   # (B, L + C, n), batch first
+        now = x[:, L:].mT                                                      # (B, n, C)
+        for lag in range(L + 1):
+            self.gram[lag] += now @ x[:, L - lag:L - lag + C]
+        self.ring = x[:, x.shape[1] - L:].contiguous()
+        self.n += C
 
     def long_run(self, members: torch.Tensor) -> torch.Tensor:
         """sum s s^T for every member, with the lagged terms for ``members`` ((B,) bool) only: where z is
@@ -292,51 +316,61 @@ class _ScoreSums:
         return g[0] + torch.where(members.reshape(-1, 1, 1), lagged, 0.0)
 
 
+def _tsum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """sum over steps t and rows z of a[:, t, z, i] b[:, t, z, j]: a (B, C, n_z, n), b (B, C, n_z, m) -> (B, n, m),
+    one batched product."""
+    B = a.shape[0]
+    return a.reshape(B, -1, a.shape[-1]).mT @ b.reshape(B, -1, b.shape[-1])
+
+
+def _tsum_rows(psi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The scores of each step, s(t) = Psi(t) v(t): psi (B, C, n_z, n), v (B, C, n_z) -> (C, B, n)."""
+    return (psi * v.unsqueeze(-1)).sum(2).transpose(0, 1)
+
+
+def _lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch.Tensor:
+    """sum over t = lag .. T-1 of a(t) * b(t - lag) (``outer``: the outer product a(t) b(t - lag)^T) for
+    lag = 0 .. ``lags``, stacked: a (T, B, n), b (T, B, m) -> (lags + 1, B, n) or (lags + 1, B, n, m). Time is
+    taken in blocks of at most CHUNK_BYTES."""
+    T, B, n, m = a.shape[0], a.shape[1], a.shape[2], b.shape[2]
+    block = max(1, CHUNK_BYTES // (8 * B * (n * m if outer else n)))
+    out = []
+    for lag in range(lags + 1):
+        acc = torch.zeros((B, n, m) if outer else (B, n), dtype=a.dtype, device=a.device)
+        for t0 in range(lag, T, block):
+            t1 = min(T, t0 + block)
+            x, y = a[t0:t1], b[t0 - lag:t1 - lag]
+            acc += (x.unsqueeze(-1) * y.unsqueeze(-2)).sum(0) if outer else (x * y).sum(0)
+        out.append(acc)
+    return torch.stack(out)
+
+
 class _ResidualSums:
-    """Running sums of the residual checks over the replay: lagged products of z and w (a ring of the last
-    ``lags`` samples), the fit's sums, and the first members' outputs."""
+    """The sums of the residual checks over the replay: lagged products of z and w, the fit's sums, and the first
+    members' outputs."""
 
     def __init__(self, B: int, lags: int, keep: int, device):
         self.B, self.L, self.keep, self.dev = B, lags, keep, device
         self.n = 0
-        self.series: dict[str, list[torch.Tensor]] = {"measured": [], "refined": [], "initial": []}
 
     def add(self, z: torch.Tensor, w: torch.Tensor | None, y: torch.Tensor, z_init: torch.Tensor) -> None:
-        L, f64 = self.L, torch.float64
-        if self.n == 0:
-            B = self.B
-            self.z_ring = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
-            self.zz = torch.zeros(L + 1, B, z.shape[1], dtype=f64, device=self.dev)
-            self.z_sum = torch.zeros(B, z.shape[1], dtype=f64, device=self.dev)
-            if w is not None:
-                self.w_ring = torch.zeros(L + 1, B, w.shape[1], dtype=f64, device=self.dev)
-                self.zw = torch.zeros(L + 1, B, z.shape[1], w.shape[1], dtype=f64, device=self.dev)
-                self.w_sq = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
-                self.w_sum = torch.zeros(B, w.shape[1], dtype=f64, device=self.dev)
-            self.w_on = w is not None
-            self.fit = {key: torch.zeros(B, dtype=f64, device=self.dev) for key in ("zz", "zi", "yy")}
-            self.fit["y"] = torch.zeros(B, y.shape[1], dtype=f64, device=self.dev)
-        pos = self.n % (L + 1)
-        self.z_ring[pos] = z
-        lags = torch.arange(min(self.n, L) + 1, device=self.dev)
-        rows = (pos - lags) % (L + 1)
-        self.zz[: len(lags)] += z.unsqueeze(0) * self.z_ring[rows]            # z(k) z(k - lag)
-        self.z_sum += z
+        """The sums of the replay's measured steps, from its recorded outputs: z and z_init (T, B, n_z), w
+        (T, B, n_w) or None, y (T, B, n_y)."""
+        f64, L, kept = torch.float64, self.L, slice(0, self.keep)
+        z, y, z_init = z.to(f64), y.to(f64), z_init.to(f64)
+        self.n = z.shape[0]
+        self.zz = _lag_sums(z, z, L, outer=False)                              # z(k) z(k - lag)
+        self.z_sum = z.sum(0)
+        self.w_on = w is not None
         if self.w_on:
-            self.w_ring[pos] = w
-            self.zw[: len(lags)] += z.unsqueeze(0).unsqueeze(-1) * self.w_ring[rows].unsqueeze(2)
-            self.w_sq += w * w
-            self.w_sum += w
-        f = self.fit
-        f["zz"] += (z * z).sum(1)
-        f["zi"] += (z_init * z_init).sum(1)
-        f["y"] += y
-        f["yy"] += (y * y).sum(1)
-        kept = slice(0, self.keep)
-        self.series["measured"].append(y[kept].cpu())
-        self.series["refined"].append((y - z)[kept].cpu())
-        self.series["initial"].append((y - z_init)[kept].cpu())
-        self.n += 1
+            w = w.to(f64)
+            self.zw = _lag_sums(z, w, L, outer=True)                           # z(k) w(k - lag)
+            self.w_sq = (w * w).sum(0)
+            self.w_sum = w.sum(0)
+        self.fit = {"zz": (z * z).sum((0, 2)), "zi": (z_init * z_init).sum((0, 2)), "y": y.sum(0),
+                    "yy": (y * y).sum((0, 2))}
+        self.series = {"measured": y[:, kept].cpu(), "refined": (y[:, kept] - z[:, kept]).cpu(),
+                       "initial": (y[:, kept] - z_init[:, kept]).cpu()}
 
     def result(self) -> Residuals:
         N, L = self.n, self.L
@@ -362,7 +396,7 @@ class _ResidualSums:
                          bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
                          fit=(100 * (1 - torch.sqrt(f["zz"]) / spread)).cpu(),
                          fit_initial=(100 * (1 - torch.sqrt(f["zi"]) / spread)).cpu(),
-                         series={k: torch.stack(v) for k, v in self.series.items()})
+                         series=dict(self.series))
 
 
 def _gain_time(lam: torch.Tensor, N: int) -> torch.Tensor:
