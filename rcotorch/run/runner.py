@@ -188,7 +188,7 @@ class Run:
                      for k in ("z", "y", "log_z", "mark_z", "z_rms_last")}
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
-        # the uncalibrated half-widths of the estimates at each logged step (``_remember``), for the band over time
+        # the history members' RLS covariance at each logged step (``_remember``), for the band over time
         self.band_history: dict[str, list] = {}
         self._band: tuple[int, Any] | None = None        # band_over_time at a step, made once
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
@@ -305,29 +305,26 @@ class Run:
         est = {k: v.detach().to(torch.float64).cpu() for k, v in
                self.scenario.estimates(self.graph, self.settings).items()}
         z_cpu = z_rms.cpu()
-        self._remember(z_cpu, est, self._rls_band())
+        self._remember(z_cpu, est, self._covariance_now())
         self.monitor.log(self.k, z_cpu, est)
 
-    def _rls_band(self) -> dict[str, torch.Tensor]:
-        """The estimates' uncalibrated half-widths now (``rcotorch.verdict.intervals.rls_half_widths`` with a unit
-        noise variance: the noise is taken as constant over the run, so its size cancels when ``band_over_time``
-        scales the band to the final interval), where the run computes intervals."""
-        if not self.intervals_on:
-            return {}
-        ones = torch.ones(self.batch, dtype=torch.float64, device=self.device)
-        return ci.rls_half_widths(self.graph, lambda g: self.scenario.estimates(g, self.settings), ones,
-                                  level=self.level)
+    def _covariance_now(self) -> torch.Tensor | None:
+        """The history members' RLS covariance P now, (members, n, n) on the CPU, where the run computes
+        intervals (the band over time, ``band_over_time``)."""
+        est = self.graph.role("estimator")
+        if not self.intervals_on or getattr(est, "P", None) is None or est.P.shape[0] == 0:
+            return None
+        return est.P.detach()[self.history_members].to(torch.float64).cpu()
 
-    def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor],
-                  band: dict[str, torch.Tensor] | None = None) -> None:
+    def _remember(self, z_rms: torch.Tensor, est: dict[str, torch.Tensor], P: torch.Tensor | None = None) -> None:
         """Append the first members' values to the history (thinned by two when it is full)."""
         h, members = self.history, self.history_members
         h["step"].append(self.k)
         h["z_rms"].append(z_rms[members].clone())
         for key, v in est.items():
             h.setdefault(key, []).append(v[members].clone())
-        for key, v in (band or {}).items():
-            self.band_history.setdefault(key, []).append(v[members].clone())
+        if P is not None:
+            self.band_history.setdefault("P", []).append(P)
         if len(h["step"]) >= 2 * HISTORY_MAX:
             for key in h:
                 h[key] = h[key][1::2]
@@ -337,7 +334,7 @@ class Run:
     def band_over_time(self) -> tuple[list[int], dict[str, torch.Tensor]] | None:
         """The confidence band of the history's members at each logged step: the final interval's half-width
         times sqrt(g^T P(k) g / g^T P(N) g) max(1, z_rms(k) / z_rms(N)), g the estimate's gradient in the
-        parameters, P(k) the RLS covariance at step k (``_rls_band``) and z_rms the model error's rms over the
+        parameters, P(k) the RLS covariance at step k (``_covariance_now``) and z_rms the model error's rms over the
         log interval: wide where P is (the start, a restart of P, forgetting) and where the model error is larger
         than at the end (a change the estimate has not yet followed), as narrow as the final interval at the end.
         It is calibrated at the end only (by the replay of the convergence window).
@@ -349,19 +346,24 @@ class Run:
             return None
         if self._band is not None and self._band[0] == self.k:
             return self._band[1]
-        now = self._rls_band()
+        covariances = self.band_history.get("P", [])
+        if len(covariances) != len(steps):
+            return None
         members = self.history_members
+        now = self._covariance_now()
+        widths = ci.rls_half_widths(self.graph, lambda g: self.scenario.estimates(g, self.settings),
+                                    torch.stack([*covariances, now]), members, level=self.level)
         z = torch.stack(self.history["z_rms"]).to(torch.float64)                       # (T, members)
         excess = (z / z[-1]).clamp_min(1.0)
         excess = torch.where(torch.isfinite(excess), excess, torch.ones_like(excess))
         out = {}
-        for key, series in self.band_history.items():
-            if key not in found.half_width or key not in now or len(series) != len(steps):
+        for key, hw in widths.items():
+            if key not in found.half_width:
                 continue
             final = found.half_width[key].detach().to(torch.float64).cpu()[members]
-            factor = final / now[key][members]
+            factor = final / hw[-1]
             factor = torch.where(torch.isfinite(factor) & (factor > 0), factor, torch.full_like(factor, math.nan))
-            out[key] = torch.stack(series) * factor * excess
+            out[key] = hw[:-1] * factor * excess
         self._band = (self.k, (list(steps), out) if out else None)
         return self._band[1]
 

@@ -458,37 +458,36 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
     return {k: torch.stack(v, dim=1) for k, v in grads.items()}
 
 
-def rls_half_widths(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]], noise_var: torch.Tensor,
-                    level: float = LEVEL) -> dict[str, torch.Tensor]:
-    """Half-widths of the estimates' intervals at the current step from the RLS covariance alone: eta's
-    covariance taken as s^2 P(k), s^2 = ``noise_var`` (B,) (the mean square of z over the last stretch), carried
-    to each estimate by the delta method. It is not calibrated (the open-loop filter and forgetting make it too
-    wide or too narrow; ``Run`` scales it to the final interval): what it shows is how the uncertainty moves
-    over the run, wide at the start and after a restart of P, narrowing as data arrive. Returns {key: (B,)};
-    the graph's state is left as it was (the same tensors, the same values).
+def rls_half_widths(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]], covariances: torch.Tensor,
+                    members: list[int], level: float = LEVEL) -> dict[str, torch.Tensor]:
+    """Half-widths of the estimates' intervals from RLS covariances: each of ``covariances`` (T, M, n, n) (the
+    estimator's P at T steps for the M ``members``, or any covariance of eta) carried to each estimate by the
+    delta method with the gradient at the graph's current parameters. It is not calibrated (the open-loop
+    filter and forgetting make sigma^2 P too wide or too narrow; ``Run.band_over_time`` scales it to the final
+    interval). Returns {key: (T, M) float64 on the CPU}; the graph's state is left as it was (the same
+    tensors, the same values).
 
     Parameters
     ----------
     graph : rcotorch.graph.Graph
-        A graph with an estimator role that has a covariance ``P``.
+        A graph with an estimator role.
     estimates : callable
         ``estimates(graph)`` -> {key: (B,) tensor}.
-    noise_var : torch.Tensor
-        (B,) the variance of z's noise per channel.
+    covariances : torch.Tensor
+        (T, M, n, n).
+    members : list of int
+        The members the covariances belong to.
     level : float, optional
         Confidence level.
 
     Returns
     -------
     dict[str, torch.Tensor]
-        {key: (B,) float64 half-widths on the CPU}; empty where the estimator has no ``P``.
+        {key: (T, M)}.
     """
     est = graph.role("estimator")
-    if getattr(est, "P", None) is None or est.P.shape[0] == 0:
-        return {}
-    P = est.P.detach().to(torch.float64)
-    cov = noise_var.to(P).reshape(-1, 1, 1) * P
-    std = torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0).sqrt()
+    cov = covariances.to(torch.float64).cpu()
+    std = torch.diagonal(est.P.detach().to(torch.float64), dim1=1, dim2=2).clamp_min(0).sqrt()
     theta = est._buffers["theta"]
     try:
         grads = estimate_gradients(graph, estimates, std)
@@ -497,9 +496,9 @@ def rls_half_widths(graph, estimates: Callable[[object], Mapping[str, torch.Tens
         est.set_state(theta=theta)
     out = {}
     for key, g in grads.items():
-        g = g.to(P)
-        var = torch.einsum("bi,bij,bj->b", g, cov, g)
-        out[key] = (quantile(level) * var.clamp_min(0).sqrt()).cpu()
+        g = g.to(torch.float64).cpu()[members]                                      # (M, n)
+        var = torch.einsum("mi,tmij,mj->tm", g, cov, g)
+        out[key] = quantile(level) * var.clamp_min(0).sqrt()
     return out
 
 
