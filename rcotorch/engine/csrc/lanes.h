@@ -625,6 +625,154 @@ static inline ALWAYS void FN(markov)(const int64_t *restrict e, double *restrict
     }
 }
 
+/* The stages of the estimator's update (FN(rco_upd_n)), in its order. prod holds the Markov filter's sums
+ * prod[z, a, j] = sum_i beta_i[z, a] [phi, u](k - i)[j] (m = n_phi + n_u columns). */
+
+/* zeta(k) = z(k) - sum_i beta_i u(k - i), into zr */
+static inline ALWAYS void FN(upd_zeta)(const int64_t *restrict e, double *restrict S, const double *restrict prod,
+                                       double *restrict zr, int64_t n_u, int64_t n_z, int64_t n_phi) {
+    const int64_t m = n_phi + n_u;
+    for (int64_t z = 0; z < n_z; z++) {
+        double *o = AT(zr, z), d[VL];
+        const double *zi = SL(e[E_Z] + z);
+        LANES d[l] = 0.0;
+        for (int64_t a = 0; a < n_u; a++) {
+            const double *p = AT(prod, (z * n_u + a) * m + n_phi + a);
+            if (a == 0) { LANES d[l] = p[l]; } else { LANES d[l] += p[l]; }
+        }
+        LANES o[l] = zi[l] - d[l];
+    }
+}
+
+/* eta (each parameter's value, read at its representative entry) and its regressor T^T Psi (the entries of one
+ * parameter summed), psi[p, z] */
+static inline ALWAYS void FN(upd_over_parameters)(const int64_t *restrict e, double *restrict S,
+                                                  const double *restrict prod, double *restrict psi,
+                                                  double *restrict eta, const int64_t *restrict param_of,
+                                                  const int64_t *restrict rep, int64_t n_u, int64_t n_z,
+                                                  int64_t n_phi, int64_t n, int64_t nent, int64_t nl) {
+    const int64_t m = n_phi + n_u;
+    for (int64_t p = 0; p < n; p++) {
+        const double *th = SL(e[E_THETA] + rep[p]);
+        double *et = AT(eta, p);
+        LANES et[l] = th[l];
+        for (int64_t z = 0; z < n_z; z++) {
+            double *ps = AT(psi, p * nl + z);
+            int first = 1;
+            for (int64_t en = 0; en < nent; en++) {
+                if (param_of[en] != p) continue;
+                const double *v = AT(prod, (z * n_u + en / n_phi) * m + en % n_phi);
+                if (first) { LANES ps[l] = v[l]; } else { LANES ps[l] += v[l]; }
+                first = 0;
+            }
+        }
+    }
+}
+
+/* z_R = zeta + Psi_eta^T eta, in place in zr */
+static inline ALWAYS void FN(upd_retrospective)(const double *restrict psi, const double *restrict eta,
+                                                double *restrict zr, int64_t n_z, int64_t n, int64_t nl) {
+    for (int64_t z = 0; z < n_z; z++) {
+        double *o = AT(zr, z), d[VL];
+        LANES d[l] = 0.0;
+        for (int64_t p = 0; p < n; p++) {
+            const double *ps = AT(psi, p * nl + z), *et = AT(eta, p);
+            LANES d[l] += ps[l] * et[l];
+        }
+        LANES o[l] += d[l];
+    }
+}
+
+/* the members that update: alive, and valid > 0.5 where the estimator has a valid input */
+static inline ALWAYS void FN(upd_active)(const int64_t *restrict e, double *restrict S, const double *restrict alive,
+                                         double *restrict act) {
+    const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
+    if (valid) { /* & and |, not && and ||, in lane loops: no conditional (masked) loads */
+        LANES act[l] = (alive[l] != 0.0) & (valid[l] > 0.5);
+    } else {
+        LANES act[l] = alive[l] != 0.0;
+    }
+}
+
+/* Theta = T eta: each parameter's value into every entry it holds (pinned entries stay 0) */
+static inline ALWAYS void FN(upd_write_theta)(const int64_t *restrict e, double *restrict S,
+                                              const double *restrict eta, const int64_t *restrict param_of,
+                                              int64_t nent) {
+    for (int64_t en = 0; en < nent; en++) {
+        if (param_of[en] < 0) continue;
+        double *th = SL(e[E_THETA] + en);
+        const double *et = AT(eta, param_of[en]);
+        LANES th[l] = et[l];
+    }
+}
+
+/* theta projected onto its box (P unchanged) */
+static inline ALWAYS void FN(upd_project_theta)(const int64_t *restrict e, double *restrict S, int64_t nent) {
+    for (int64_t en = 0; en < nent; en++) {
+        double *th = SL(e[E_THETA] + en);
+        const double *lo = SL(e[E_TLO] + en), *hi = SL(e[E_THI] + en);
+        LANES th[l] = clampd(th[l], lo[l], hi[l]);
+    }
+}
+
+/* the trace bound: P scaled by p_max / trace(P) where a living member whose step succeeded exceeds it */
+static inline ALWAYS void FN(upd_bound_covariance)(const int64_t *restrict e, double *restrict S,
+                                                   const double *restrict okv, const double *restrict act,
+                                                   const double *restrict alive, int64_t n) {
+    double *P = SL(e[E_P]), tr[VL], c[VL];
+    const double *pm = SL(e[E_PMAX]);
+    LANES tr[l] = 0.0;
+    for (int64_t i = 0; i < n; i++) {
+        const double *pii = AT(P, i * n + i);
+        LANES tr[l] += pii[l];
+    }
+    LANES {
+        int fine = (okv[l] != 0.0) | (act[l] == 0.0);
+        c[l] = (alive[l] != 0.0) & fine & (tr[l] > pm[l]) ? pm[l] / tr[l] : 1.0;
+    }
+    for (int64_t i = 0; i < n * n; i++) {
+        double *pij = AT(P, i);
+        LANES pij[l] *= c[l];
+    }
+}
+
+/* a member whose step failed while it was active is frozen, the step recorded */
+static inline ALWAYS void FN(upd_freeze_failed)(const int64_t *restrict e, double *restrict S,
+                                                const double *restrict okv, const double *restrict act,
+                                                double *restrict alive, int64_t k) {
+    double *dv = SL(e[E_DIV]);
+    LANES {
+        int fine = (okv[l] != 0.0) | (act[l] == 0.0), dies = (alive[l] != 0.0) & !fine;
+        dv[l] = dies ? (double)k : dv[l];
+        alive[l] = dies ? 0.0 : alive[l];
+    }
+}
+
+/* the regressor signals and u move one step into the past: s(k) and u(k) become s(k - 1) and u(k - 1) */
+static inline ALWAYS void FN(upd_shift_histories)(const int64_t *restrict e, double *restrict S, int64_t n_u) {
+    int64_t nc1 = e[E_NC1], n_sig = e[E_NSIG], ps = e[E_PAST], us = e[E_PASTU];
+    for (int64_t c = (nc1 - 1) * n_sig - 1; c >= 0; c--) {
+        double *d = SL(ps + n_sig + c);
+        const double *v = SL(ps + c);
+        LANES d[l] = v[l];
+    }
+    for (int64_t c = 0; c < n_sig; c++) {
+        double *d = SL(ps + c);
+        const double *v = SL(e[E_CUR] + c);
+        LANES d[l] = v[l];
+    }
+    for (int64_t c = (nc1 - 1) * n_u - 1; c >= 0; c--) {
+        double *d = SL(us + n_u + c);
+        const double *v = SL(us + c);
+        LANES d[l] = v[l];
+    }
+    for (int64_t c = 0; c < n_u; c++) {
+        double *d = SL(us + c);
+        const double *v = SL(e[E_UNOW] + c);
+        LANES d[l] = v[l];
+    }
+}
+
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
  * the theta box, the member's health and the regressor histories. */
 static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
@@ -667,109 +815,19 @@ static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restr
         for (int64_t j = 0; j < m; j++) t += prod[j] + row[j];
         if (__builtin_expect(!(t - t == 0.0), 0)) FN(markov)(e, S, prod, 1, m, W, pr, n_u, 0);
     }
-    for (int64_t z = 0; z < n_z; z++) { /* zeta = z - sum_i beta_i u(k - i) */
-        double *o = AT(zr, z), d[VL];
-        const double *zi = SL(e[E_Z] + z);
-        LANES d[l] = 0.0;
-        for (int64_t a = 0; a < n_u; a++) {
-            const double *p = AT(prod, (z * n_u + a) * m + n_phi + a);
-            if (a == 0) { LANES d[l] = p[l]; } else { LANES d[l] += p[l]; }
-        }
-        LANES o[l] = zi[l] - d[l];
-    }
-    /* eta and its regressor T^T Psi (entries of one parameter summed) */
-    if (!theta_is_eta) for (int64_t p = 0; p < n; p++) {
-        const double *th = SL(e[E_THETA] + rep[p]);
-        double *et = AT(eta, p);
-        LANES et[l] = th[l];
-        for (int64_t z = 0; z < n_z; z++) {
-            double *ps = AT(psi, p * nl + z);
-            int first = 1;
-            for (int64_t en = 0; en < nent; en++) {
-                if (param_of[en] != p) continue;
-                const double *v = AT(prod, (z * n_u + en / n_phi) * m + en % n_phi);
-                if (first) { LANES ps[l] = v[l]; } else { LANES ps[l] += v[l]; }
-                first = 0;
-            }
-        }
-    }
-    for (int64_t z = 0; z < n_z; z++) { /* z_R = zeta + Psi_eta^T eta */
-        double *o = AT(zr, z), d[VL];
-        LANES d[l] = 0.0;
-        for (int64_t p = 0; p < n; p++) {
-            const double *ps = AT(psi, p * nl + z), *et = AT(eta, p);
-            LANES d[l] += ps[l] * et[l];
-        }
-        LANES o[l] += d[l];
-    }
+    FN(upd_zeta)(e, S, prod, zr, n_u, n_z, n_phi);
+    if (!theta_is_eta) FN(upd_over_parameters)(e, S, prod, psi, eta, param_of, rep, n_u, n_z, n_phi, n, nent, nl);
+    FN(upd_retrospective)(psi, eta, zr, n_z, n, nl);
     FN(rco_rows)(e, S, n, n_z, nl, psi, zr, zrx);
     if (own_scratch)
         for (int64_t z = 0; z < n_z; z++) SL(e[E_ZR])[z] = zr[z];
-    const double *valid = e[E_VALID] >= 0 ? SL(e[E_VALID]) : 0;
-    if (valid) { /* & and |, not && and ||, in lane loops: no conditional (masked) loads */
-        LANES act[l] = (alive[l] != 0.0) & (valid[l] > 0.5);
-    } else {
-        LANES act[l] = alive[l] != 0.0;
-    }
+    FN(upd_active)(e, S, alive, act);
     FN(rls)(n, nl, eta, SL(e[E_P]), psi, zrx, SL(e[E_LAM]), (int)e[E_LAM_ONE], SL(e[E_RINV]), act, okv, rls_scr);
-    if (!theta_is_eta) for (int64_t en = 0; en < nent; en++) { /* Theta = T eta */
-        if (param_of[en] < 0) continue;
-        double *th = SL(e[E_THETA] + en);
-        const double *et = AT(eta, param_of[en]);
-        LANES th[l] = et[l];
-    }
-    if (e[E_TLO] >= 0) /* projection onto the box (P unchanged) */
-        for (int64_t en = 0; en < nent; en++) {
-            double *th = SL(e[E_THETA] + en);
-            const double *lo = SL(e[E_TLO] + en), *hi = SL(e[E_THI] + en);
-            LANES th[l] = clampd(th[l], lo[l], hi[l]);
-        }
-    if (e[E_PMAX] >= 0) { /* trace bound: P scaled by p_max / trace(P) where a living member exceeds it */
-        double *P = SL(e[E_P]), tr[VL], c[VL];
-        const double *pm = SL(e[E_PMAX]);
-        LANES tr[l] = 0.0;
-        for (int64_t i = 0; i < n; i++) {
-            const double *pii = AT(P, i * n + i);
-            LANES tr[l] += pii[l];
-        }
-        LANES {
-            int fine = (okv[l] != 0.0) | (act[l] == 0.0);
-            c[l] = (alive[l] != 0.0) & fine & (tr[l] > pm[l]) ? pm[l] / tr[l] : 1.0;
-        }
-        for (int64_t i = 0; i < n * n; i++) {
-            double *pij = AT(P, i);
-            LANES pij[l] *= c[l];
-        }
-    }
-    double *dv = SL(e[E_DIV]);
-    LANES { /* a member that fails while active is frozen, its step recorded */
-        int fine = (okv[l] != 0.0) | (act[l] == 0.0), dies = (alive[l] != 0.0) & !fine;
-        dv[l] = dies ? (double)k : dv[l];
-        alive[l] = dies ? 0.0 : alive[l];
-    }
-    if (e[E_NC]) { /* shift the regressor histories */
-        int64_t nc1 = e[E_NC1], n_sig = e[E_NSIG], ps = e[E_PAST], us = e[E_PASTU];
-        for (int64_t c = (nc1 - 1) * n_sig - 1; c >= 0; c--) {
-            double *d = SL(ps + n_sig + c);
-            const double *v = SL(ps + c);
-            LANES d[l] = v[l];
-        }
-        for (int64_t c = 0; c < n_sig; c++) {
-            double *d = SL(ps + c);
-            const double *v = SL(e[E_CUR] + c);
-            LANES d[l] = v[l];
-        }
-        for (int64_t c = (nc1 - 1) * n_u - 1; c >= 0; c--) {
-            double *d = SL(us + n_u + c);
-            const double *v = SL(us + c);
-            LANES d[l] = v[l];
-        }
-        for (int64_t c = 0; c < n_u; c++) {
-            double *d = SL(us + c);
-            const double *v = SL(e[E_UNOW] + c);
-            LANES d[l] = v[l];
-        }
-    }
+    if (!theta_is_eta) FN(upd_write_theta)(e, S, eta, param_of, nent);
+    if (e[E_TLO] >= 0) FN(upd_project_theta)(e, S, nent);
+    if (e[E_PMAX] >= 0) FN(upd_bound_covariance)(e, S, okv, act, alive, n);
+    FN(upd_freeze_failed)(e, S, okv, act, alive, k);
+    if (e[E_NC]) FN(upd_shift_histories)(e, S, n_u);
 }
 
 static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
