@@ -748,8 +748,8 @@ def _members(settings: Mapping[str, Any], batch: int) -> list[dict[str, Any]] | 
 
 def to_json(obj: Any, indent: int = 0) -> str:
     """JSON with one key per line and every list on one line (readable, and fast for large batches: orjson
-    writes a float in the fewest digits that read back as the same float64, about 20x faster than the json
-    module; a value that is not finite becomes null)."""
+    writes a float in the fewest digits that read back as the same float64, in C; a value that is not finite
+    becomes null)."""
     if isinstance(obj, Mapping) and obj:
         pad = " " * (indent + 2)
         items = [f"{pad}{_dumps(str(k))}: {to_json(v, indent + 2)}" for k, v in obj.items()]
