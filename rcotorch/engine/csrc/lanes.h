@@ -748,29 +748,26 @@ static inline ALWAYS void FN(upd_freeze_failed)(const int64_t *restrict e, doubl
     }
 }
 
+/* one history moves one step into the past: slots past .. past + nc1 * width hold x(k - 1) .. x(k - nc1) of a
+ * signal of ``width`` entries, and x(k) (at cur) becomes x(k - 1) */
+static inline ALWAYS void FN(shift_history)(double *restrict S, int64_t past, int64_t cur, int64_t width,
+                                            int64_t nc1) {
+    for (int64_t c = (nc1 - 1) * width - 1; c >= 0; c--) {
+        double *d = SL(past + width + c);
+        const double *v = SL(past + c);
+        LANES d[l] = v[l];
+    }
+    for (int64_t c = 0; c < width; c++) {
+        double *d = SL(past + c);
+        const double *v = SL(cur + c);
+        LANES d[l] = v[l];
+    }
+}
+
 /* the regressor signals and u move one step into the past: s(k) and u(k) become s(k - 1) and u(k - 1) */
 static inline ALWAYS void FN(upd_shift_histories)(const int64_t *restrict e, double *restrict S, int64_t n_u) {
-    int64_t nc1 = e[E_NC1], n_sig = e[E_NSIG], ps = e[E_PAST], us = e[E_PASTU];
-    for (int64_t c = (nc1 - 1) * n_sig - 1; c >= 0; c--) {
-        double *d = SL(ps + n_sig + c);
-        const double *v = SL(ps + c);
-        LANES d[l] = v[l];
-    }
-    for (int64_t c = 0; c < n_sig; c++) {
-        double *d = SL(ps + c);
-        const double *v = SL(e[E_CUR] + c);
-        LANES d[l] = v[l];
-    }
-    for (int64_t c = (nc1 - 1) * n_u - 1; c >= 0; c--) {
-        double *d = SL(us + n_u + c);
-        const double *v = SL(us + c);
-        LANES d[l] = v[l];
-    }
-    for (int64_t c = 0; c < n_u; c++) {
-        double *d = SL(us + c);
-        const double *v = SL(e[E_UNOW] + c);
-        LANES d[l] = v[l];
-    }
+    FN(shift_history)(S, e[E_PAST], e[E_CUR], e[E_NSIG], e[E_NC1]);
+    FN(shift_history)(S, e[E_PASTU], e[E_UNOW], n_u, e[E_NC1]);
 }
 
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
