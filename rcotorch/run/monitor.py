@@ -234,7 +234,7 @@ class Monitor:
                 charts[f"{key}: {'' if self.batch == 1 else 'mean '}|estimate - truth|"] = [
                     "Multiline", [_regex(t.error)]]
             if getattr(self.run, "intervals_on", False):
-                charts[f"{key}: {what} within its final {self.run.level:.0%} interval"] = [
+                charts[f"{key}: {what} within its {self.run.level:.0%} band (the final interval at the end)"] = [
                     "Margin", [t.estimate, t.lower, t.upper]]
             tol = t.tolerance
             if tol:
