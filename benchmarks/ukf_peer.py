@@ -53,7 +53,7 @@ def model(sc, s):
 def record(sc, s, batch: int):
     """w (K, B) and y (K, B, n_y) of the scenario's run, the rcotorch estimates at the end, its detection steps, and
     its cost per member-step."""
-    g = sc.build(sc.resolve({**VELOCITY, "seed": s["seed"]}), batch, torch.float64, "cpu")
+    g = sc.build(sc.resolve({**VELOCITY, "nu": s["nu"], "seed": s["seed"]}), batch, torch.float64, "cpu")
     K = sc.steps
     w_sig, y_sig = g.role_signal("exogenous"), g.role_signal("measured")
     w = torch.zeros(K, batch, 1, dtype=torch.float64)
@@ -166,11 +166,13 @@ def main(argv=None) -> None:
     ap.add_argument("--filterpy-members", type=int, default=4, help="members run through filterpy (slow)")
     ap.add_argument("--batch", type=int, default=4096, help="batch of the cost comparison")
     ap.add_argument("--cost-steps", type=int, default=200, help="steps timed at --batch")
+    ap.add_argument("--nu", type=int, default=None, help="rcotorch's Markov window (default: the scenario's)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     sc = scenarios.get(NAME)
-    s = sc.resolve(VELOCITY)
+    settings = {**VELOCITY, **({} if args.nu is None else {"nu": args.nu})}
+    s = sc.resolve(settings)
     T1 = first_period(s)
     kd, judge_step = sc.change_step(s), sc.steps
     settle = int(s["warmup"] + s["window"])           # the filters' estimates count from where the detector arms
@@ -194,7 +196,7 @@ def main(argv=None) -> None:
                            *judge(np.stack(trajs, 1), kd, judge_step, truth, settle), kd, T1, float(np.median(costs)),
                            m))
     # The cost at a large batch: rcotorch's graph and the batched filter, a few hundred steps each.
-    big = sc.build(sc.resolve(VELOCITY), args.batch, torch.float64, "cpu")
+    big = sc.build(sc.resolve(settings), args.batch, torch.float64, "cpu")
     big.advance(10)
     t = time.perf_counter()
     big.advance(args.cost_steps)
