@@ -206,9 +206,9 @@ class Session:
 
     @contextlib.contextmanager
     def thread_errors_logged(self) -> Iterator[None]:
-        """While the command runs, the traceback of an exception in a background thread (TensorBoard's writer,
-        whose error the main thread meets again at its next write) goes to the output folder's log instead of
-        stderr. One that cannot be logged goes to stderr as usual, unless it is an OSError (a full disk, say,
+        """While the command runs, the traceback of an exception in a background thread (the figures' drawing
+        thread, whose error the main thread meets again when it waits for it) goes to the output folder's log
+        instead of stderr. One that cannot be logged goes to stderr as usual, unless it is an OSError (a full disk, say,
         which the main thread reports)."""
         previous = threading.excepthook
 
@@ -282,8 +282,8 @@ class Session:
 
     def folder_fault(self, e: OSError) -> OutputError | None:
         """``e`` as an ``OutputError`` when it comes from the output folder: the folder deleted or replaced, a
-        file in it that cannot be written, or a write fault without a file name (a full disk, met by
-        TensorBoard's writer thread); None when it does not (an internal error)."""
+        file in it that cannot be written, or a write fault without a file name (a full disk, met by a buffered
+        write of an event file); None when it does not (an internal error)."""
         from .outputs import WRITE_FAULTS, write_error
         if self.folder is None:
             return None

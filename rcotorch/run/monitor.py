@@ -48,16 +48,13 @@ from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from ..estimator.tracking import change_report
 from .scenario import truth_at
-
-if TYPE_CHECKING:
-    from torch.utils.tensorboard import SummaryWriter
 
 TRACED_DEFAULT = 8     # members traced individually when the run does not choose them (the figures draw them)
 HISTOGRAM_MIN = 16     # histograms across the batch from this batch size
@@ -179,13 +176,11 @@ class Monitor:
         if getattr(run, "tb_origin", None) is None:
             run.tb_origin = time.time() - run.k * (self.dt or 0.0)
         self.origin = float(run.tb_origin)
-        install_fast_checksum()
         out.mkdir(parents=True, exist_ok=True)
         # A resumed run continues from its checkpoint at step k, saved after the log at k: TensorBoard drops what
         # the earlier writers wrote after it (a run stopped between its checkpoint and its end).
         purge = run.k + 1 if run.k > 0 else None
-        from torch.utils.tensorboard import SummaryWriter
-        self.writer = SummaryWriter(log_dir=str(out), purge_step=purge)
+        self.writer = EventFile(out, purge)
         names = ([TRUTH] if self.shared_truth else []) + (list(BAND) if self.batch > 1 else [])
         self.siblings = {name: EventFile(out / name, purge) for name in names}
         self.n_logs = 0
@@ -404,7 +399,7 @@ class Monitor:
             w.close()
 
 
-def _scalars(writer: SummaryWriter, step: int, wall: float, values: Iterable[tuple[str, float]]) -> None:
+def _scalars(writer: EventFile, step: int, wall: float, values: Iterable[tuple[str, float]]) -> None:
     """One event holding every (tag, value) pair at ``step`` and wall time ``wall``."""
     writer.file_writer.add_event(_scalar_event(values), step, wall)
 
@@ -415,11 +410,21 @@ def _scalar_event(values: Iterable[tuple[str, float]]):
     return Event(summary=Summary(value=[Summary.Value(tag=tag, simple_value=value) for tag, value in values]))
 
 
+def _growing_edges(start: float = 1e-12, stop: float = 1e20, factor: float = 1.1) -> list[float]:
+    """start, start * factor, ... below stop."""
+    edges, v = [], start
+    while v < stop:
+        edges.append(v)
+        v *= factor
+    return edges
+
+
 class EventFile:
-    """A TensorBoard event file of scalars written in the calling thread: each event framed as a record (its
-    length, the masked CRC-32C of the length, the serialized event, the masked CRC-32C of the event) into a
-    buffered file, flushed every ``FLUSH_S`` seconds and by ``flush`` and ``close``. The sibling runs are written
-    so: an event costs its serialization and checksum, with no writer thread to hand it to.
+    """A TensorBoard event file written in the calling thread: each event framed as a record (its length, the
+    masked CRC-32C of the length, the serialized event, the masked CRC-32C of the event) into a buffered file,
+    flushed every ``FLUSH_S`` seconds and by ``flush`` and ``close``. Every run's events are written so (the run,
+    its siblings, a sweep's sessions): an event costs its serialization and checksum, with no writer thread to
+    hand it to. Summaries are made by TensorBoard's and PyTorch's summary functions (``add_summary``).
 
     Args:
         folder: the run's folder (made if missing).
@@ -445,11 +450,49 @@ class EventFile:
             self._write(Event(wall_time=time.time(), step=purge_step, session_log=SessionLog(status=SessionLog.START)))
         self.flush()
 
+    # The histograms' bin edges: TensorBoard's convention, +-1e-12 growing by 10% a bin up to 1e20, and 0.
+    default_bins = [-e for e in reversed(_growing_edges())] + [0.0] + _growing_edges()
+
     def scalars(self, step: int, wall: float, values: Iterable[tuple[str, float]]) -> None:
         """One event holding every (tag, value) pair at ``step`` and wall time ``wall``."""
         event = _scalar_event(values)
         event.step, event.wall_time = step, wall
         self._write(event)
+
+    def add_event(self, event, step: int | None = None, wall: float | None = None) -> None:
+        """An event at ``step`` (none: the event's own) and wall time ``wall`` (none: now)."""
+        event.wall_time = time.time() if wall is None else wall
+        if step is not None:
+            event.step = int(step)
+        self._write(event)
+
+    def add_summary(self, summary, step: int | None = None, wall: float | None = None) -> None:
+        """A ``Summary`` protocol buffer as an event (``add_event``)."""
+        from tensorboard.compat.proto.event_pb2 import Event
+        self.add_event(Event(summary=summary), step, wall)
+
+    def add_scalar(self, tag: str, value: float, step: int, wall: float | None = None) -> None:
+        self.scalars(step, time.time() if wall is None else wall, [(tag, float(value))])
+
+    def add_text(self, tag: str, text: str, step: int, walltime: float | None = None) -> None:
+        """Markdown text under ``tag`` (TensorBoard's Text tab)."""
+        from torch.utils.tensorboard.summary import text as text_summary
+        self.add_summary(text_summary(tag, text), step, walltime)
+
+    def add_custom_scalars(self, layout: Mapping[str, Any]) -> None:
+        """The Custom Scalars layout ({section: {title: ['Multiline' or 'Margin', tags]}})."""
+        from torch.utils.tensorboard.summary import custom_scalars
+        self.add_summary(custom_scalars(layout))
+
+    @property
+    def file_writer(self) -> EventFile:
+        return self
+
+    def __enter__(self) -> EventFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def _write(self, event) -> None:
         import struct
@@ -497,7 +540,7 @@ def _finite(v: np.ndarray) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
-def write_images(writer: SummaryWriter, pngs: Mapping[str, bytes], step: int, wall: float | None = None) -> None:
+def write_images(writer: EventFile, pngs: Mapping[str, bytes], step: int, wall: float | None = None) -> None:
     """PNG bytes as images ``figures/<name>`` (TensorBoard gets the PNG file's bytes)."""
     import io
 
@@ -524,9 +567,7 @@ def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: l
         atomic_write(out / f"{name}.png", lambda f, data=data: f.write(data))
         paths.append(out / f"{name}.png")
     if drawn:
-        from torch.utils.tensorboard import SummaryWriter
-        install_fast_checksum()
-        with SummaryWriter(str(out)) as w:
+        with EventFile(out) as w:
             write_images(w, drawn, 0)
     return paths
 
@@ -669,7 +710,7 @@ def hparam_names(hparams: Mapping[str, Any], scenario=None) -> dict[str, Any]:
     return out
 
 
-def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], summary: Mapping[str, Any],
+def write_session(writer: EventFile, hparams: Mapping[str, Any], summary: Mapping[str, Any],
                   scenario=None) -> None:
     """Make the writer's run an HParams session with these hyperparameters (settings named with their units,
     ``hparam_names``), the status of ``summary``'s members (``STATUS_HPARAM``, ``status_text``; the session's
@@ -695,9 +736,8 @@ def write_session(writer: SummaryWriter, hparams: Mapping[str, Any], summary: Ma
 
 
 # --- the event files' checksum ---------------------------------------------------------------------------------
-# TensorBoard's event writer checksums every record (its length and its bytes) with CRC-32C, computed in pure
-# Python a byte at a time, which dominated the cost of a log. google-crc32c computes the same checksum in C; it
-# replaces TensorBoard's in its record writer and checksums the records written here.
+# TensorBoard's event records are checksummed (their length and their bytes) with CRC-32C; google-crc32c computes it
+# in C.
 def crc32c(data: bytes) -> int:
     """The CRC-32C (Castagnoli) of ``data``."""
     import google_crc32c
@@ -708,10 +748,3 @@ def masked_crc32c(data: bytes) -> int:
     """The masked CRC-32C of TensorBoard's record format."""
     x = crc32c(data)
     return (((x >> 15) | (x << 17)) + 0xA282EAD8) & 0xFFFFFFFF
-
-
-def install_fast_checksum() -> None:
-    """Let TensorBoard's record writer use ``masked_crc32c`` (where its module has the name it calls)."""
-    from tensorboard.summary.writer import record_writer
-    if getattr(record_writer, "masked_crc32c", None) not in (None, masked_crc32c):
-        record_writer.masked_crc32c = masked_crc32c

@@ -59,7 +59,7 @@ _ADVICE = {errno.ENOSPC: "free space on its disk or choose another --out",
            errno.EROFS: "choose a folder on a writable disk with --out",
            errno.ELOOP: "fix the link or choose another --out"}
 # Errors that only writing to a full or read-only disk causes: an OSError without a file name and one of these
-# comes from the output folder (a write of TensorBoard's writer thread, say).
+# comes from the output folder (a buffered write of an event file, say).
 WRITE_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
 
 

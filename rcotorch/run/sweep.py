@@ -529,9 +529,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     (settings, ranges of the per-member ones, counts of each status, batch means) and says so in a text card
     (``sweep``): the per-member table is ``sweep.csv``.
     """
-    from torch.utils.tensorboard import SummaryWriter
-
-    from .monitor import final_values, setting_text, write_session
+    from .monitor import EventFile, final_values, setting_text, write_session
     sc = sweep.scenario
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
@@ -540,7 +538,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
             summary = _member_summary(r, settings)
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
             hp.update(scenario=sweep.scenario_name, shard=r["shard"], member=r["member"])
-            with SummaryWriter(str(out / "members" / f"member_{r['member']:06d}")) as w:
+            with EventFile(out / "members" / f"member_{r['member']:06d}") as w:
                 write_session(w, hp, summary, scenario=sc)
                 for tag, value in final_values(summary, scenario=sc).items():
                     w.add_scalar(tag, value, 0)
@@ -558,7 +556,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
               for k, v in summary["settings"].items()}
         hp.update(scenario=sweep.scenario_name, members=f"{part[0]['member']}..{part[-1]['member']}")
-        with SummaryWriter(str(folder)) as w:
+        with EventFile(folder) as w:
             write_session(w, hp, summary, scenario=sc)
             for tag, value in final_values(summary, logged=True).items():
                 w.add_scalar(tag, value, summary["steps"])
