@@ -471,7 +471,6 @@ def test_a_log_writes_one_event_per_writer(tmp_path, monkeypatch):
     run = Run("sdof-stiffness", steps=100, batch=4, out=tmp_path / "r", log_every=50)
     run.advance(until=50, progress=False)
     calls = []
-    monkeypatch.setattr(monitor, "_scalars", lambda writer, step, wall, values: calls.append(writer))
     monkeypatch.setattr(monitor.EventFile, "scalars", lambda self, step, wall, values: calls.append(self))
     est = {k: v.detach().to(torch.float64).cpu() for k, v in run.scenario.estimates(run.graph, run.settings).items()}
     run.monitor.log(60, torch.ones(4, dtype=torch.float64), est)

@@ -311,7 +311,7 @@ class Monitor:
             if band is not None:
                 self._spread(ok, a, t.members, scale, t.estimate, main, band)
         wall = self.wall(step)
-        _scalars(self.writer, step, wall, main)
+        self.writer.scalars(step, wall, main)
         if truth_run:
             self.siblings[TRUTH].scalars(step, wall, truth_run)
         for name, values in (band or {}).items():
@@ -333,7 +333,7 @@ class Monitor:
             if v.size:
                 scaled = Scaled(1.0, self.z_tag.rsplit(" [", 1)[1][:-1]) if key == "z rms" else self.tags(key).scaled
                 summary = histogram(f"spread/{key} {scaled.label}", v / scaled.scale, self.writer.default_bins)
-                self.writer.file_writer.add_summary(summary, step, self.wall(step))
+                self.writer.add_summary(summary, step, self.wall(step))
 
     def final_intervals(self, found, steps: list[int], band=None) -> None:
         """The confidence band as ``intervals/<key> lower|upper`` at each of ``steps`` (the logged steps), so that
@@ -365,7 +365,7 @@ class Monitor:
         if bounds:
             for step in steps:
                 values = dict(bounds) | over_time.get(step, {})
-                _scalars(self.writer, step, self.wall(step), list(values.items()))
+                self.writer.scalars(step, self.wall(step), list(values.items()))
 
     def figures(self, pngs: dict[str, bytes], out: Path) -> None:
         """Save the figures (PNG bytes, ``rcotorch.run.figures.png``) in ``out`` and as images under ``figures/``
@@ -390,18 +390,13 @@ class Monitor:
         if getattr(self.run, "hparams_session", True):      # a sweep writes its own sessions (rcotorch.run.sweep)
             values += final_values(summary, logged=True).items()
         if values:
-            _scalars(self.writer, k, wall, values)
+            self.writer.scalars(k, wall, values)
         if getattr(self.run, "hparams_session", True):
             hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
             hparams.update(scenario=summary["scenario"], batch=summary["batch"])
             write_session(self.writer, hparams, summary, scenario=self.run.scenario)
         for w in (self.writer, *self.siblings.values()):
             w.close()
-
-
-def _scalars(writer: EventFile, step: int, wall: float, values: Iterable[tuple[str, float]]) -> None:
-    """One event holding every (tag, value) pair at ``step`` and wall time ``wall``."""
-    writer.file_writer.add_event(_scalar_event(values), step, wall)
 
 
 def _scalar_event(values: Iterable[tuple[str, float]]):
@@ -484,10 +479,6 @@ class EventFile:
         from torch.utils.tensorboard.summary import custom_scalars
         self.add_summary(custom_scalars(layout))
 
-    @property
-    def file_writer(self) -> EventFile:
-        return self
-
     def __enter__(self) -> EventFile:
         return self
 
@@ -550,7 +541,7 @@ def write_images(writer: EventFile, pngs: Mapping[str, bytes], step: int, wall: 
         im = Image.open(io.BytesIO(data))
         image = Summary.Image(height=im.height, width=im.width, colorspace=len(im.getbands()),
                               encoded_image_string=data)
-        writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=f"figures/{name}", image=image)]), step,
+        writer.add_summary(Summary(value=[Summary.Value(tag=f"figures/{name}", image=image)]), step,
                                        wall)
 
 
@@ -730,8 +721,8 @@ def write_session(writer: EventFile, hparams: Mapping[str, Any], summary: Mappin
         version=metadata.PLUGIN_DATA_VERSION)
     meta = SummaryMetadata(plugin_data=SummaryMetadata.PluginData(plugin_name=metadata.PLUGIN_NAME,
                                                                   content=end.SerializeToString()))
-    writer.file_writer.add_summary(start)
-    writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=metadata.SESSION_END_INFO_TAG,
+    writer.add_summary(start)
+    writer.add_summary(Summary(value=[Summary.Value(tag=metadata.SESSION_END_INFO_TAG,
                                                                 metadata=meta)]))
 
 

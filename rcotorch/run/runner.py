@@ -189,7 +189,7 @@ class Run:
         self.sums["z_rms_last"].fill_(math.nan)
         self.history: dict[str, list] = {"step": [], "z_rms": []}
         # the history members' RLS covariance at each logged step (``_remember``), for the band over time
-        self.band_history: dict[str, list] = {}
+        self.p_history: list[torch.Tensor] = []
         self._band: tuple[int, Any] | None = None        # band_over_time at a step, made once
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
@@ -324,12 +324,11 @@ class Run:
         for key, v in est.items():
             h.setdefault(key, []).append(v[members].clone())
         if P is not None:
-            self.band_history.setdefault("P", []).append(P)
+            self.p_history.append(P)
         if len(h["step"]) >= 2 * HISTORY_MAX:
             for key in h:
                 h[key] = h[key][1::2]
-            for key in self.band_history:
-                self.band_history[key] = self.band_history[key][1::2]
+            self.p_history = self.p_history[1::2]
 
     def band_over_time(self) -> tuple[list[int], dict[str, torch.Tensor]] | None:
         """The confidence band of the history's members at each logged step: the final interval's half-width
@@ -342,17 +341,14 @@ class Run:
         Where the final interval is not finite (an undetermined estimate), that member's band is NaN."""
         found = self.intervals()
         steps = self.history["step"]
-        if found is None or not self.band_history or not steps:
+        if found is None or len(self.p_history) != len(steps) or not steps:
             return None
         if self._band is not None and self._band[0] == self.k:
             return self._band[1]
-        covariances = self.band_history.get("P", [])
-        if len(covariances) != len(steps):
-            return None
         members = self.history_members
         now = self._covariance_now()
         widths = ci.rls_half_widths(self.graph, lambda g: self.scenario.estimates(g, self.settings),
-                                    torch.stack([*covariances, now]), members, level=self.level)
+                                    torch.stack([*self.p_history, now]), members, level=self.level)
         z = torch.stack(self.history["z_rms"]).to(torch.float64)                       # (T, members)
         excess = (z / z[-1]).clamp_min(1.0)
         excess = torch.where(torch.isfinite(excess), excess, torch.ones_like(excess))
@@ -382,7 +378,7 @@ class Run:
             "trace": self.trace, "graph": self.graph.state_dict(),
             "history": {k: torch.stack(v) if k != "step" and v else v for k, v in self.history.items()},
             "history_members": self.history_members, "counters": dict(self.counters),
-            "band_history": {k: torch.stack(v) for k, v in self.band_history.items() if v},
+            "p_history": torch.stack(self.p_history) if self.p_history else None,
             "sums": {k: v.cpu() for k, v in self.sums.items()}, "health": self.health.state_dict(),
             "snapshot": None if self.snapshot is None else {k: v.cpu() for k, v in self.snapshot.items()},
             "intervals": self.intervals_on, "level": self.level, "validation": self.validation_on,
@@ -454,7 +450,7 @@ class Run:
         run.history = {k: list(v.unbind(0)) if isinstance(v, torch.Tensor) else list(v)
                        for k, v in state["history"].items()}
         run.history_members = list(state["history_members"])
-        run.band_history = {k: list(v.unbind(0)) for k, v in state.get("band_history", {}).items()}
+        run.p_history = [] if state.get("p_history") is None else list(state["p_history"].unbind(0))
         run.tb_origin = state.get("tb_origin")
         run.counters = {k: int(v) for k, v in state["counters"].items()}
         run.sums = {k: v.to(run.device) for k, v in state["sums"].items()}

@@ -433,10 +433,12 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
                        std: torch.Tensor) -> dict[str, torch.Tensor]:
     """d estimate / d eta for every estimate (B,) of ``estimates(graph)``, by central differences with
     steps of 1e-3 of each parameter's standard deviation ``std`` (B, n) (1e-6 of its size where that is not
-    finite or zero). Returns {key: (B, n)}; theta is restored."""
+    finite or zero). Returns {key: (B, n)}; theta is restored, in the tensor the graph held (the same tensor, the
+    same values), so that the graph can go on stepping."""
     est = graph.role("estimator")
     eta = est.theta_free().detach().clone()
-    theta = est.theta.clone()
+    held = est._buffers["theta"]
+    theta = held.clone()
     B, n = eta.shape
     h = 1e-3 * std.to(eta.dtype)
     fallback = 1e-6 * torch.maximum(eta.abs(), eta.abs().amax(1, keepdim=True)).clamp_min(1e-12)
@@ -454,7 +456,8 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
             for key in vals[0]:
                 grads.setdefault(key, []).append((vals[0][key] - vals[1][key]) / (2 * h[:, j].to(torch.float64)))
     finally:
-        est.set_state(theta=theta)
+        held.copy_(theta)
+        est.set_state(theta=held)
     return {k: torch.stack(v, dim=1) for k, v in grads.items()}
 
 
@@ -488,12 +491,7 @@ def rls_half_widths(graph, estimates: Callable[[object], Mapping[str, torch.Tens
     est = graph.role("estimator")
     cov = covariances.to(torch.float64).cpu()
     std = torch.diagonal(est.P.detach().to(torch.float64), dim1=1, dim2=2).clamp_min(0).sqrt()
-    theta = est._buffers["theta"]
-    try:
-        grads = estimate_gradients(graph, estimates, std)
-    finally:
-        theta.copy_(est.theta)                 # the values estimate_gradients restored, in the tensor the graph holds
-        est.set_state(theta=theta)
+    grads = estimate_gradients(graph, estimates, std)
     out = {}
     for key, g in grads.items():
         g = g.to(torch.float64).cpu()[members]                                      # (M, n)
@@ -549,7 +547,8 @@ def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, 
     if not bool(torch.isfinite(X).all()):
         return None
     est = graph.role("estimator")
-    eta, theta = est.theta_free().detach().clone(), est.theta.clone()
+    eta, held = est.theta_free().detach().clone(), est._buffers["theta"]
+    theta = held.clone()
     sd = pc.std[member].cpu()
     h = torch.where(sd > 0, 1e-3 * sd, 1e-6 * eta[member].abs().clamp_min(1e-12).cpu())
     value = np.asarray(fn(graph), dtype=float)
@@ -564,7 +563,8 @@ def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, 
                 sides.append(np.asarray(fn(graph), dtype=float))
             grads.append((sides[0] - sides[1]) / (2 * float(h[j])))
     finally:
-        est.set_state(theta=theta)
+        held.copy_(theta)
+        est.set_state(theta=held)
     G = np.stack(grads, axis=-1)                                                    # (F, n)
     var = np.einsum("fi,ij,fj->f", G, X.numpy(), G)
     return value, quantile(level) * np.sqrt(np.clip(var, 0, None))
