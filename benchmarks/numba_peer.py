@@ -3,8 +3,8 @@
 The same equations as ``benchmarks/numpy_reference.py`` (and rcotorch's Figure-1 graph): ZOH-discretized known
 model and truth (scipy ``expm``, in Python, outside the loop), Markov parameters beta_i = -C_y A^(i-1) B_u, the
 retrospective cost over a ring buffer of [phi, u], the scalar RLS update, and the excitation drawn inside the
-loop from the same counter-based stream as ``rcotorch.engine.rng`` (seed, member, step, component; the hash written
-out in uint32 arithmetic, Box-Muller with ``math.log`` / ``math.cos``).
+loop from the same counter-based stream as ``rcotorch.engine.rng`` (seed, member, pair of steps, component; the
+hash written out in uint32 arithmetic, Box-Muller with ``math.log``, ``math.cos`` and ``math.sin``).
 
 Three variants, each compiled once (``numba.njit``, not cached):
 
@@ -13,12 +13,13 @@ Three variants, each compiled once (``numba.njit``, not cached):
 * ``refine_lanes``: B members in chunks of 16 lanes (state as (…, 16) arrays, every operation a loop over the
   lanes, which LLVM vectorizes), ``prange`` over chunks.
 
-Each variant also draws its normals two at a time (``pairs=True``: one log and one square root, a cosine and a
-sine for two steps, from the same counter-based hash keyed by the pair), as a user writing for speed would;
-that is another stream than rcotorch's, so those runs are compared for cost, not for numbers.
+The stream pairs its steps: steps 2p and 2p + 1 take r cos(2 pi u2) and r sin(2 pi u2) of the uniforms of pair
+p. Each variant draws it either one normal a step (``pairs=False``: a log, a square root and a cosine or a sine
+each step) or two at a time (``pairs=True``: one log and one square root, a cosine and a sine for two steps, the
+sine kept for the next step), as a user writing for speed would; both give the same numbers.
 
-``tests/test_numba_peer.py`` checks every variant against the NumPy loop to 1e-9, the paired variants against
-each other and their normals against N(0, 1) (skipped without numba).
+``tests/test_numba_peer.py`` checks every variant, either way, against the NumPy loop to 1e-9 and the stream's
+normals against N(0, 1) (skipped without numba).
 Needs the ``bench`` extra (``pip install -e .[bench]``): numba is not a dependency of rcotorch.
 """
 
@@ -73,23 +74,25 @@ def _stream(seed, member):
 
 
 @numba.njit(inline="always")
-def _normal(h0, k):
-    """rng.normal(seed, member, k, 0) from the stream prefix h0."""
-    h = _mix(_mix(h0 ^ _mix_key(U32(k & 0xFFFFFFFF))) ^ _mix_key(U32(0)))
+def _uniforms(h0, p):
+    """The two uniforms of the pair p of the stream with prefix h0 (component 0)."""
+    h = _mix(_mix(h0 ^ _mix_key(U32(p & 0xFFFFFFFF))) ^ _mix_key(U32(0)))
     c1, c2 = _mix_key(U32(0x1B873593)), _mix_key(U32(0x5BD1E995))
-    u1 = _uniform(_mix(h ^ _mix_key(U32(1))), c1, c2)
-    u2 = _uniform(_mix(h ^ _mix_key(U32(2))), c1, c2)
-    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+    return _uniform(_mix(h ^ _mix_key(U32(1))), c1, c2), _uniform(_mix(h ^ _mix_key(U32(2))), c1, c2)
+
+
+@numba.njit(inline="always")
+def _normal(h0, k):
+    """rng.normal(seed, member, k, 0) from the stream prefix h0, alone."""
+    u1, u2 = _uniforms(h0, k // 2)
+    r = math.sqrt(-2.0 * math.log(u1))
+    return r * math.cos(2.0 * math.pi * u2) if k % 2 == 0 else r * math.sin(2.0 * math.pi * u2)
 
 
 @numba.njit(inline="always")
 def _normal_pair(h0, p):
-    """Two normals from one pair of uniforms (Box-Muller, cos and sin): the pair p of a stream whose normals are
-    drawn two at a time, steps 2p and 2p + 1 (the same hash chain as ``_normal``, keyed by p)."""
-    h = _mix(_mix(h0 ^ _mix_key(U32(p & 0xFFFFFFFF))) ^ _mix_key(U32(0)))
-    c1, c2 = _mix_key(U32(0x1B873593)), _mix_key(U32(0x5BD1E995))
-    u1 = _uniform(_mix(h ^ _mix_key(U32(1))), c1, c2)
-    u2 = _uniform(_mix(h ^ _mix_key(U32(2))), c1, c2)
+    """rng.normal(seed, member, k, 0) at the steps k = 2p and 2p + 1 from the stream prefix h0, together."""
+    u1, u2 = _uniforms(h0, p)
     r = math.sqrt(-2.0 * math.log(u1))
     return r * math.cos(2.0 * math.pi * u2), r * math.sin(2.0 * math.pi * u2)
 
@@ -97,8 +100,8 @@ def _normal_pair(h0, p):
 @numba.njit(inline="always")
 def _member(steps, h0, w_std, Ad, Bw, Bu, Atd, Btd, beta, p0, lam, theta_out, P_out, pairs=False):
     """One refinement (nc = 1: phi = [x(k-1), x'(k-1), u(k-1)]), the NumPy loop's equations. With ``pairs`` the
-    excitation draws its normals two at a time (``_normal_pair``), as a user writing for speed would: another
-    stream than rcotorch's, the same cost per step otherwise."""
+    excitation draws its normals two at a time (``_normal_pair``), as a user writing for speed would: the same
+    numbers."""
     nu = beta.shape[0]
     W = nu + 1
     theta = np.zeros(3)
@@ -295,7 +298,7 @@ def streams(B: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def run(variant: str, steps: int, B: int = 1, settings: dict | None = None,
         pairs: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Final theta (B, 3) and P (B, 3, 3) of ``variant`` ('one', 'prange', 'lanes') for B members; ``pairs``:
-    normals drawn two at a time (another stream)."""
+    normals drawn two at a time (the same numbers)."""
     m = model(settings)
     seed = m.pop("seed")
     args = [m[k] for k in ("w_std", "Ad", "Bw", "Bu", "Atd", "Btd", "beta", "p0", "lam")]

@@ -10,8 +10,8 @@ which the native engine uses; numba: ``numba.set_num_threads``) and batch B, the
 * numba ``one``: the single-member jitted loop, called once per member (B = 1 only: it has no threads);
 * numba ``prange``: members in parallel, each its own loop;
 * numba ``lanes``: 16-lane chunks (vectorized), chunks in parallel;
-* each numba variant also with its normals drawn two at a time (``pairs``: another stream, the same cost
-  otherwise);
+* each numba variant also with its normals drawn two at a time (``pairs``: the same numbers, one log and
+  square root per two steps);
 
 the numba variants called on precomputed matrices (the scipy discretization outside the timing), each call a
 whole refinement from step 0. The sides are interleaved, best of 3 rounds. Goal: rcotorch at least as fast as

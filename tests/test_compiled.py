@@ -41,9 +41,16 @@ def test_a_numpy_static_map_runs_natively_and_equals_the_pytorch_engine():
     assert native.ran_engine == "native"
     a, b = native.role("estimator").theta, torch_.role("estimator").theta
     assert torch.allclose(a, b, rtol=1e-12, atol=1e-12), (a - b).abs().max()
-    # the refinement is on its way to the friction law (Coulomb 2, viscous 0.5): within 10% after 3000 steps
-    est = -native.role("estimator").theta[:, 0]
-    assert ((est - torch.tensor([2.0, 0.5], dtype=torch.float64)).abs() / torch.tensor([2.0, 0.5]) < 0.1).all()
+    # the refinement converges to the friction law (Coulomb 2, viscous 0.5): within 25% after 3000 steps, within
+    # 5% after 10,000
+    truth = torch.tensor([2.0, 0.5], dtype=torch.float64)
+
+    def error():
+        return (-native.role("estimator").theta[:, 0] - truth).abs() / truth
+
+    assert (error() < 0.25).all()
+    native.advance(7000)
+    assert (error() < 0.05).all()
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")

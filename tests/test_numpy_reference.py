@@ -61,7 +61,12 @@ def test_other_member_and_order_agree(engine):
 
 @pytest.mark.slow
 def test_full_run_agrees():
+    """20,000 steps: the NumPy loop and rcotorch agree to 1e-9, and both land on the paper's result (dK -0.40131,
+    dC 0.49911, from its own noise sequence) within three standard deviations of the estimates' spread over
+    noise sequences (64 members, each its own stream)."""
     est, e = _rcotorch(20000)
     ref = nr.refine(20000)
     np.testing.assert_allclose(est.theta[0].numpy(), ref["theta"], rtol=1e-9, atol=0)
-    assert abs(ref["dK"] - (-0.40131)) < 1e-4 and abs(ref["dC"] - 0.49911) < 1e-4
+    _, spread = _rcotorch(20000, batch=64)
+    for key, paper in (("dK", -0.40131), ("dC", 0.49911)):
+        assert abs(ref[key] - paper) < 3 * spread[key].std(), (key, ref[key], spread[key].std())

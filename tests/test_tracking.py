@@ -233,7 +233,8 @@ def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
     for k in est:                                              # |error| against the truth of its step (B = 2)
         assert err[k] == pytest.approx(abs(est[k] - truth[k]), abs=0.5)
     before = [k for k in est if 1000 < k < 2000]
-    assert before and all(err[k] < 0.05 for k in before)       # it tracked 0 before the change
+    # it tracked 0 before the change, within a few hundredths (lam = 0.998 remembers about 500 steps)
+    assert before and all(err[k] < 0.1 for k in before)
     alarmed = values(".", "detection/detector alarmed members [%]")
     assert all(v == 0.0 for k, v in alarmed.items() if k <= 2000) and alarmed[max(alarmed)] == 100.0
 

@@ -120,37 +120,42 @@ class WhiteNoise(Block):
         keys = memo.derived(self, "keys", (self.stream,), lambda: rng.hash32(
             self.stream[:, 0], self.stream[:, 1]).to(torch.float64).reshape(-1, 1))   # (seed, member) prefix
         b.emit("NOISE", port="out", WIDTH=self.width, COUNTER=b.counter(), KEY=b.param(keys), STD=b.param(self.std),
-               MEAN=b.param(self.mean), OUT=b.output("out"), BUFFER=b.scratch(kernels.NOISE_AHEAD * self.width))
+               MEAN=b.param(self.mean), OUT=b.output("out"), BUFFER=b.scratch(kernels.NOISE_SLOTS * self.width))
 
 
 def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int,
                  dtype: torch.dtype) -> torch.Tensor:
     """``rng.normal(seeds, members, steps, comp)`` on the grid (B, steps start..start+length-1, comp
-    0..width-1), bit for bit, with the hash chain's common prefixes computed once: (seed, member) per member,
-    (seed, member, step, comp) once for the four hashes behind a normal sample, not once per hash."""
-    fast = kernels.uniform_grid(seeds, members, start, length, width)
+    0..width-1), bit for bit: the uniforms of each pair of steps drawn once, with the hash chain's common
+    prefixes computed once: (seed, member) per member, (seed, member, pair, comp) once for the four hashes
+    behind a pair, not once per hash."""
+    first = start // 2
+    pairs = (start + length - 1) // 2 - first + 1
+    fast = kernels.uniform_grid(seeds, members, first, pairs, width)
     if fast is not None:                                     # the integer hashing in C, same bits
-        u1, u2 = fast                                        # the transform below, in place
-        return u1.log_().mul_(-2.0).sqrt_().mul_(u2.mul_(2.0 * math.pi).cos_()).to(dtype)
-    mix, mask = rng._mix32, rng._MASK32
-    dev = seeds.device
+        u1, u2 = fast
+    else:
+        mix, mask = rng._mix32, rng._MASK32
+        dev = seeds.device
 
-    def chain(h: torch.Tensor, key) -> torch.Tensor:         # one step of rng.hash32 after the first key
-        k = torch.as_tensor(key, dtype=torch.int64, device=dev) & mask
-        return mix(h ^ mix(k + 0x632BE5AB))
+        def chain(h: torch.Tensor, key) -> torch.Tensor:     # one step of rng.hash32 after the first key
+            k = torch.as_tensor(key, dtype=torch.int64, device=dev) & mask
+            return mix(h ^ mix(k + 0x632BE5AB))
 
-    h = mix((seeds.reshape(-1, 1, 1).long() & mask) ^ 0x9E3779B9)
-    h = chain(h, members.reshape(-1, 1, 1).long())
-    h = chain(h, torch.arange(start, start + length, device=dev).reshape(1, -1, 1))
-    h = chain(h, torch.arange(width, device=dev).reshape(1, 1, -1))   # (B, length, width)
+        h = mix((seeds.reshape(-1, 1, 1).long() & mask) ^ 0x9E3779B9)
+        h = chain(h, members.reshape(-1, 1, 1).long())
+        h = chain(h, torch.arange(first, first + pairs, device=dev).reshape(1, -1, 1))
+        h = chain(h, torch.arange(width, device=dev).reshape(1, 1, -1))   # (B, pairs, width)
 
-    def uniform(h: torch.Tensor) -> torch.Tensor:            # rng.uniform's last two keys and its mantissa
-        hi = (chain(h, 0x1B873593) >> 5).to(torch.float64)
-        lo = (chain(h, 0x5BD1E995) >> 6).to(torch.float64)
-        return (hi * 67108864.0 + lo + 0.5) / 9007199254740992.0
+        def uniform(h: torch.Tensor) -> torch.Tensor:        # rng.uniform's last two keys and its mantissa
+            hi = (chain(h, 0x1B873593) >> 5).to(torch.float64)
+            lo = (chain(h, 0x5BD1E995) >> 6).to(torch.float64)
+            return (hi * 67108864.0 + lo + 0.5) / 9007199254740992.0
 
-    u1, u2 = uniform(chain(h, 1)), uniform(chain(h, 2))
-    return (torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)).to(dtype)
+        u1, u2 = uniform(chain(h, 1)), uniform(chain(h, 2))
+    r, angle = torch.sqrt(-2.0 * torch.log(u1)), 2.0 * math.pi * u2          # (B, pairs, width)
+    both = torch.stack([r * torch.cos(angle), r * torch.sin(angle)], 2)       # (B, pairs, 2, width)
+    return both.reshape(both.shape[0], 2 * pairs, width)[:, start % 2:start % 2 + length].to(dtype)
 
 
 class Recorded(Block):

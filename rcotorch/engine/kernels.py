@@ -59,7 +59,7 @@ KIND = _names("KINDS")                         # element kinds of a binding (RCO
 OBS_FIELD = _names("OBS_FIELDS")               # fields of an observer record (RCO_OBS_FIELDS)
 OBSERVER = _names("OBSERVERS")                 # kinds of observers (RCO_OBSERVERS)
 HEADER = getattr(_engine, "HEADER", 2)         # ints before an instruction's arguments (op, length)
-NOISE_AHEAD = getattr(_engine, "NOISE_AHEAD", 1)  # steps of noise drawn at a time (a buffer per channel)
+NOISE_SLOTS = getattr(_engine, "NOISE_SLOTS", 1)  # slots of a noise channel's buffer (steps drawn ahead, in pairs)
 LANE_WIDTHS: tuple[int, ...] = getattr(_engine, "LANE_WIDTHS", (1,))
 
 _ALLOWED = contextvars.ContextVar("rcotorch_kernels_allowed", default=True)
@@ -166,8 +166,9 @@ def rls_(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Ten
 
 def uniform_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int
                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The two uniforms behind ``rng.normal(seed, member, step, comp)`` on the grid (B, length, width), bit
-    for bit, or None where the kernels are not allowed (or off the CPU)."""
+    """The two uniforms behind ``rng.normal(seed, member, step, comp)`` on the grid (B, length, width) of pairs
+    of steps (pair p: the steps 2p and 2p + 1; the pairs start..start+length-1), bit for bit, or None where the
+    kernels are not allowed (or off the CPU)."""
     if not allowed() or seeds.device.type != "cpu":
         return None
     seeds = seeds.reshape(-1).long().contiguous()

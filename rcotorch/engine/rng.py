@@ -75,15 +75,18 @@ def uniform(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
     return u.to(dtype)
 
 
-def normal(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
-    """Standard normal samples by the Box-Muller transform of two keyed uniforms.
+def normal(seed: torch.Tensor | int, member: torch.Tensor | int, step: torch.Tensor | int,
+           component: torch.Tensor | int = 0, dtype=torch.float64) -> torch.Tensor:
+    """Standard normal samples of a stream, drawn in pairs of steps by the Box-Muller transform.
 
-    x = sqrt(-2 ln u1) cos(2 pi u2), with u1 = uniform(*keys, 1) and u2 = uniform(*keys, 2).
+    The steps 2p and 2p + 1 share the uniforms u1 = uniform(seed, member, p, component, 1) and
+    u2 = uniform(seed, member, p, component, 2): with r = sqrt(-2 ln u1), step 2p draws r cos(2 pi u2) and step
+    2p + 1 draws r sin(2 pi u2), two independent N(0, 1) samples for one logarithm and one square root.
 
     Parameters
     ----------
-    *keys : torch.Tensor or int
-        Integer keys, broadcast together; equal keys give equal samples.
+    seed, member, step, component : torch.Tensor or int
+        Integer keys, broadcast together (steps >= 0); equal keys give equal samples.
     dtype : torch.dtype, optional
         Floating-point type of the result (float64 by default).
 
@@ -92,6 +95,9 @@ def normal(*keys: torch.Tensor | int, dtype=torch.float64) -> torch.Tensor:
     torch.Tensor
         Of the keys' broadcast shape.
     """
-    u1 = uniform(*keys, 1, dtype=torch.float64)
-    u2 = uniform(*keys, 2, dtype=torch.float64)
-    return (torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)).to(dtype)
+    step = torch.as_tensor(step, dtype=torch.int64)
+    pair = torch.div(step, 2, rounding_mode="floor")
+    u1 = uniform(seed, member, pair, component, 1, dtype=torch.float64)
+    u2 = uniform(seed, member, pair, component, 2, dtype=torch.float64)
+    r, angle = torch.sqrt(-2.0 * torch.log(u1)), 2.0 * math.pi * u2
+    return torch.where(step % 2 == 0, r * torch.cos(angle), r * torch.sin(angle)).to(dtype)

@@ -55,6 +55,7 @@ CHUNK_BYTES = 1 << 26    # the replay's regressors are summed in chunks of steps
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
+OFFSET_FACTOR_CORRELATED = 1.0  # the same where the residuals are not white (WHITE_P)
 BIAS_TOL = 0.05          # a biased estimate that step moves by more than this fraction of its size is undetermined
 
 
@@ -71,6 +72,7 @@ class ParameterCovariance:
         replayed: steps replayed; ``measured`` of them entered the statistics.
         offset: (B, n) the Gauss-Newton step of the window's output error from eta,
             -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
+        correlated: (B,) bool, whether the whiteness test rejected white residuals (p-value below ``WHITE_P``).
     """
 
     cov: torch.Tensor
@@ -80,6 +82,7 @@ class ParameterCovariance:
     replayed: int
     measured: int
     offset: torch.Tensor | None = None
+    correlated: torch.Tensor | None = None
 
     @property
     def std(self) -> torch.Tensor:
@@ -280,7 +283,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
                torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
     offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
-                             offset=offset)
+                             offset=offset, correlated=correlated)
     return Replay(covariance=pc, residuals=residuals)
 
 
@@ -604,9 +607,12 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
 
     Where the window's output error is smaller away from the estimate by more than its random error (the
     estimate's move d = g offset by the output error's Gauss-Newton step, ``pc.offset``, exceeds
-    ``OFFSET_FACTOR`` half-widths), the estimate is biased beyond its interval (a structure the refinement
-    cannot fit without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
-    q sd + |d|, so that the interval reaches the point the data favour; where |d| is also more than
+    ``OFFSET_FACTOR`` half-widths, or ``OFFSET_FACTOR_CORRELATED`` where the residuals are not white: the model
+    leaves dynamics unexplained, and a step beyond the interval is then the bias they cause, significant at the
+    interval's level), the estimate is biased beyond its interval (a structure the refinement cannot fit
+    without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
+    q sd + |d|, so that the interval reaches the point the data favour (as it does wherever the residuals are
+    not white); where |d| is also more than
     ``BIAS_TOL`` times max(|estimate|, scale), the estimate is not determined (the refinement settled well away
     from what the data determine).
 
@@ -621,6 +627,9 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     det = pc.settles.cpu().clone()
     half, bad, moved = {}, [], {}
     widened, far_off = torch.zeros_like(det), torch.zeros_like(det)
+    factor = torch.full(det.shape, OFFSET_FACTOR, dtype=torch.float64)
+    if pc.correlated is not None:
+        factor = torch.where(pc.correlated.cpu(), OFFSET_FACTOR_CORRELATED, factor)
     for key, v in values.items():
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
@@ -629,9 +638,10 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         if pc.offset is not None:
             d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
             moved[key] = d
-            biased = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_FACTOR * hw)
-            hw = torch.where(biased, hw + d.abs(), hw)
-            widened |= biased
+            biased = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
+            widen = biased if pc.correlated is None else biased | (pc.correlated.cpu() & torch.isfinite(d))
+            hw = torch.where(widen, hw + d.abs(), hw)
+            widened |= widen
         half[key] = torch.where(torch.isfinite(var), hw, math.nan)
         scale = float((scales or {}).get(key, 0.0))
         ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * torch.clamp(v.abs(), min=scale))

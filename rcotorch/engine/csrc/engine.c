@@ -2,7 +2,7 @@
  *
  *   run          a graph lowered to instructions (rcotorch/engine/lowering.py), run for T steps
  *   rls          rls_update on batched tensors, through the same RLS code as the estimator's step
- *   uniform_grid the integer part of rcotorch.engine.rng.normal on a (member, step, component) grid
+ *   uniform_grid the integer part of rcotorch.engine.rng.normal on a (member, pair of steps, component) grid
  *   health_bounds the member health checks' bounds (definiteness, windup, runaway) of every member
  *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
  *
@@ -64,9 +64,9 @@ static inline ALWAYS double uniform53(uint32_t h) {
     return ((double)a * 67108864.0 + (double)b + 0.5) / 9007199254740992.0;
 }
 
-/* log and cos for the noise, in plain double arithmetic without branches or calls, so that a loop over
+/* log, cos and sin for the noise, in plain double arithmetic without branches or calls, so that a loop over
  * lanes vectorizes and every lane width gives the same bits (libm's scalar functions would serialize the
- * lanes). Accurate to about an ulp; the PyTorch engine's samples (torch.log, torch.cos) agree to rounding. */
+ * lanes). Accurate to about an ulp; the PyTorch engine's samples (torch.log, torch.cos, torch.sin) agree to rounding. */
 static inline ALWAYS double as_double(uint64_t b) {
     double d;
     memcpy(&d, &b, sizeof d);
@@ -103,11 +103,14 @@ static inline ALWAYS double log_pos(double x) {
     return e * 6.93147180369123816490e-01 + (e * 1.90821492927058770002e-10 + (two_f + two_f * (p * s)));
 }
 
-/* cos(2 pi u) for u in [0, 1]: reduced exactly to t in [-1/8, 1/8] and a quadrant, then Taylor polynomials
- * of cos and sin on [-pi/4, pi/4]. */
-static inline ALWAYS double cos_2pi(double u) {
+/* cos(2 pi u) and sin(2 pi u) for u in [0, 1]: d = u - round(u) in [-1/2, 1/2] (exact), |d| reduced exactly to
+ * t in [-1/8, 1/8] and a quadrant q, Taylor polynomials of cos t and sin t on [-pi/4, pi/4]; then
+ * cos(2 pi |d|) = cos t, -sin t, -cos t and sin(2 pi |d|) = sin t, cos t, -sin t for q = 0, 1, 2, the sine
+ * taking the sign of d. */
+static inline ALWAYS void sincos_2pi(double u, double *cs, double *sn) {
     const double big = 6755399441055744.0;            /* 1.5 * 2^52: x + big - big rounds x to an integer */
-    double r = fabs(u - ((u + big) - big));           /* |u - round(u)| in [0, 1/2], exact */
+    double d = u - ((u + big) - big);                 /* u - round(u) in [-1/2, 1/2], exact */
+    double r = fabs(d);
     double q = (r * 4.0 + big) - big;                 /* quadrant 0, 1 or 2 */
     double t = (r - q * 0.25) * 6.283185307179586, t2 = t * t;
     double c = -1.0 / 20922789888000.0;
@@ -119,24 +122,29 @@ static inline ALWAYS double cos_2pi(double u) {
     c = c * t2 - 1.0 / 24.0;
     c = c * t2 + 0.5;
     c = 1.0 - c * t2;
-    double sn = 1.0 / 355687428096000.0;
-    sn = sn * t2 - 1.0 / 1307674368000.0;
-    sn = sn * t2 + 1.0 / 6227020800.0;
-    sn = sn * t2 - 1.0 / 39916800.0;
-    sn = sn * t2 + 1.0 / 362880.0;
-    sn = sn * t2 - 1.0 / 5040.0;
-    sn = sn * t2 + 1.0 / 120.0;
-    sn = sn * t2 - 1.0 / 6.0;
-    sn = t + t * (sn * t2);
-    return q == 0.0 ? c : q == 1.0 ? -sn : -c;
+    double s = 1.0 / 355687428096000.0;
+    s = s * t2 - 1.0 / 1307674368000.0;
+    s = s * t2 + 1.0 / 6227020800.0;
+    s = s * t2 - 1.0 / 39916800.0;
+    s = s * t2 + 1.0 / 362880.0;
+    s = s * t2 - 1.0 / 5040.0;
+    s = s * t2 + 1.0 / 120.0;
+    s = s * t2 - 1.0 / 6.0;
+    s = t + t * (s * t2);
+    *cs = q == 0.0 ? c : q == 1.0 ? -s : -c;
+    *sn = copysign(q == 0.0 ? s : q == 1.0 ? c : -s, d);
 }
 
 /* A 32-bit key held exactly in a double slot, back as an integer (the low bits of key + 2^52). */
 static inline ALWAYS uint32_t key_u32(double key) { return (uint32_t)as_bits(key + 4503599627370496.0); }
 
-/* Box-Muller, in the order of sources._normal_grid: sqrt(log(u1) * -2) * cos(u2 * 2 pi). */
-static inline ALWAYS double normal_from(double u1, double u2) {
-    return sqrt(log_pos(u1) * -2.0) * cos_2pi(u2);
+/* Box-Muller, in the order of sources._normal_grid: the normals of a pair of steps, r cos(2 pi u2) and
+ * r sin(2 pi u2) with r = sqrt(log(u1) * -2). */
+static inline ALWAYS void normal_pair(double u1, double u2, double *even, double *odd) {
+    double r = sqrt(log_pos(u1) * -2.0), c, s;
+    sincos_2pi(u2, &c, &s);
+    *even = r * c;
+    *odd = r * s;
 }
 
 /* torch.clamp: NaN stays NaN. */
@@ -392,7 +400,8 @@ static PyObject *py_rls(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* u1, u2 (B, length, width): the two uniforms behind rng.normal(seed_b, member_b, start + t, c). */
+/* u1, u2 (B, length, width): the two uniforms behind rng.normal(seed_b, member_b, step, c) at the steps
+ * 2 (start + t) and 2 (start + t) + 1, the pair start + t. */
 static void uniform_grid(int64_t B, const int64_t *seeds, const int64_t *members, int64_t start, int64_t length,
                          int64_t width, double *u1, double *u2, int nthreads) {
 #ifdef _OPENMP
@@ -641,6 +650,7 @@ PyMODINIT_FUNC PyInit__engine(void) {
         add_names(m, "OBSERVERS", OBSERVER_NAMES, OBS_N) || PyModule_AddObject(m, "LANE_WIDTHS", lanes) ||
         PyModule_AddIntConstant(m, "HEADER", HDR) || PyModule_AddIntConstant(m, "OPENMP", openmp) ||
         PyModule_AddIntConstant(m, "NOISE_AHEAD", NOISE_AHEAD) ||
+        PyModule_AddIntConstant(m, "NOISE_SLOTS", NOISE_SLOTS) ||
         PyModule_AddStringConstant(m, "ISA", ISA_NAME)) {
         Py_DECREF(m);
         return NULL;

@@ -22,8 +22,8 @@
 /* PLAYBACK: out[c] = table[member * MSTRIDE + k * TSTRIDE + OFFSET + c] for c < WIDTH, k the step counter
  * COUNTER, the table at entry TABLE of the pointer table (a recording read where it is). */
 #define RCO_PLAYBACK_FIELDS(X) X(TABLE) X(MSTRIDE) X(TSTRIDE) X(OFFSET) X(WIDTH) X(COUNTER) X(OUT)
-/* NOISE: out = MEAN + STD N(KEY, k, c) for c < WIDTH (KEY the member's hashed (seed, member)), drawn
- * NOISE_AHEAD steps at a time into BUFFER (NOISE_AHEAD * WIDTH slots). */
+/* NOISE: out = MEAN + STD N(KEY, k, c) for c < WIDTH (KEY the member's hashed (seed, member)), drawn in pairs
+ * of steps, NOISE_AHEAD steps at a time, into BUFFER (NOISE_SLOTS * WIDTH slots). */
 #define RCO_NOISE_FIELDS(X) X(WIDTH) X(COUNTER) X(KEY) X(STD) X(MEAN) X(OUT) X(BUFFER)
 /* LTI_OUT: out = C x + sum_f D[:, COLUMN_f] u_f for ROWS rows of C (NX states, at STATE) and of D (MT input
  * columns), over the NFT feedthrough columns of the table FEEDTHROUGH (a column of D and its input slot). */
@@ -157,8 +157,11 @@ _Static_assert(0 RCO_ESTIMATOR_PHI_FIELDS(X_ONE_FIELD) == 1 && 0 RCO_ESTIMATOR_E
 /* Instruction header: op and length. */
 #define HDR 2
 
-/* Noise is drawn for NOISE_AHEAD steps at a time (vectorized over steps and lanes) into a buffer of
- * NOISE_AHEAD * width slots. */
+/* Noise is drawn for NOISE_AHEAD steps at a time (vectorized over pairs of steps and lanes) into a buffer of
+ * NOISE_SLOTS slots a channel: NOISE_PAIRS pairs, the first starting at the even step at or before the first
+ * step drawn. */
 #define NOISE_AHEAD 32
+#define NOISE_PAIRS (NOISE_AHEAD / 2 + 1)
+#define NOISE_SLOTS (2 * NOISE_PAIRS)
 
 #endif

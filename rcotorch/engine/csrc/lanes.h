@@ -294,26 +294,30 @@ static inline void FN(playback)(const int64_t *restrict a, double *restrict S, c
     }
 }
 
+/* The buffer of a channel holds the normals of pairs of steps, from the even step at or before the step of its
+ * fill: [parity][pair][lane], NOISE_PAIRS pairs, so that one log, one square root, a cosine and a sine make two
+ * steps' normals. */
 static inline void FN(noise)(const int64_t *restrict a, double *restrict S, const int64_t *restrict ctr,
                              int64_t t, int64_t T) {
-    int64_t w = a[NOISE_WIDTH], k0 = ctr[a[NOISE_COUNTER]] + t, ahead = t % NOISE_AHEAD;
+    int64_t w = a[NOISE_WIDTH], k = ctr[a[NOISE_COUNTER]] + t, ahead = t % NOISE_AHEAD;
+    int64_t odd = (k - ahead) & 1; /* the filling step was odd: the buffer starts one step before it */
     const double *key = SL(a[NOISE_KEY]), *sd = SL(a[NOISE_STD]), *mean = SL(a[NOISE_MEAN]);
     double *buf = SL(a[NOISE_BUFFER]);
-    if (ahead == 0) { /* N(0, 1) of the next steps (at most NOISE_AHEAD, no further than the call's last step),
-                       * channel-major: [c][step][lane] */
+    if (ahead == 0) { /* the pairs of the next steps (at most NOISE_AHEAD, no further than the call's last step) */
         uint32_t k1 = mix32_key(1u), k2 = mix32_key(2u);
-        int64_t n = (T - t < NOISE_AHEAD ? T - t : NOISE_AHEAD) * VL;
+        int64_t p0 = (k - odd) >> 1, n = ((T - t < NOISE_AHEAD ? T - t : NOISE_AHEAD) + odd + 1) / 2 * VL;
         for (int64_t c = 0; c < w; c++) {
             uint32_t kc = mix32_key((uint32_t)c);
-            double *o = buf + c * NOISE_AHEAD * VL;
+            double *even = buf + c * 2 * NOISE_PAIRS * VL, *next = even + NOISE_PAIRS * VL;
             _Pragma("omp simd") for (int64_t j = 0; j < n; j++) {
-                uint32_t h = mix32(mix32(key_u32(key[j % VL]) ^ mix32_key((uint32_t)(k0 + j / VL))) ^ kc);
-                o[j] = normal_from(uniform53(mix32(h ^ k1)), uniform53(mix32(h ^ k2)));
+                uint32_t h = mix32(mix32(key_u32(key[j % VL]) ^ mix32_key((uint32_t)(p0 + j / VL))) ^ kc);
+                normal_pair(uniform53(mix32(h ^ k1)), uniform53(mix32(h ^ k2)), even + j, next + j);
             }
         }
     }
+    int64_t s = ahead + odd; /* the step in the buffer */
     for (int64_t c = 0; c < w; c++) {
-        const double *n = buf + (c * NOISE_AHEAD + ahead) * VL;
+        const double *n = buf + (c * 2 * NOISE_PAIRS + (s & 1) * NOISE_PAIRS + (s >> 1)) * VL;
         double *o = SL(a[NOISE_OUT] + c);
         LANES o[l] = n[l] * sd[l] + mean[l];
     }
