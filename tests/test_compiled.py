@@ -133,11 +133,55 @@ def test_a_numpy_nonlinear_block_runs_natively_and_equals_the_pytorch_engine(con
     assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
 
 
-def test_a_torch_nonlinear_block_stays_on_pytorch_and_says_which_function():
+def test_a_torch_nonlinear_block_compiles_and_equals_the_pytorch_engine():
+    """``torch.cat`` and ``torch.tanh`` in a state function compile through their NumPy stand-ins; the native
+    run equals the PyTorch engine's (which calls torch itself)."""
     def f(x, ins):
-        return torch.cat((x[:, 1:2], -K * x[:, 0:1] - C * x[:, 1:2] + ins["w"]), dim=1)
+        q, v = x[:, 0:1], x[:, 1:2]
+        return torch.cat((v, -K * q - C * v - A * torch.tanh(q) ** 3 + ins["w"]), dim=1)
+    native, torch_ = _duffing_graph(True, f=f), _duffing_graph(True, "torch", f=f)
+    assert native.native_status() is None
+    rec_n = native.run(1500, record={"y": "plant.y"})["y"]
+    rec_t = torch_.run(1500, record={"y": "plant.y"})["y"]
+    assert native.ran_engine == "native" and torch_.ran_engine == "torch"
+    assert torch.allclose(rec_n, rec_t, rtol=1e-11, atol=1e-12), (rec_n - rec_t).abs().max()
+
+
+def test_a_nonlinear_block_with_tensor_methods_stays_on_pytorch_and_says_which_function():
+    def f(x, ins):
+        return torch.cat((x[:, 1:2], -K * x[:, 0:1] - C * x[:, 1:2].clamp(-5, 5) + ins["w"]), dim=1)
     why = _duffing_graph(True, f=f).native_status()
     assert "(Nonlinear)" in why and "state function f" in why and "test_compiled.py" in why, why
+    assert "clamp" in why, why
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@pytest.mark.parametrize("fn", [
+    lambda v: -(2.0 * torch.sign(v) + 0.5 * v),
+    lambda v: torch.clamp(3.0 * v, -1.0, 1.0) + torch.clamp(v, min=0.5) + torch.clip(v, max=-2.0),
+    lambda v: torch.where(v > 0, torch.sqrt(torch.abs(v)), torch.sigmoid(v)) + torch.relu(v) * torch.pi,
+    lambda x: torch.stack((x[:, 0] * torch.tanh(x[:, 1]), torch.exp(-x[:, 0] ** 2)), dim=1),
+], ids=["sign", "clamp", "where", "stack"])
+def test_torch_functions_compile_and_equal_torch_itself(fn):
+    """A StaticMap written with torch functions runs natively, its outputs equal to torch's own on the same
+    inputs (the PyTorch engine's run), and the reason is None."""
+    n = 2 if "stack" in fn.__code__.co_names else 1
+    def graph(engine):
+        g = rt.Graph([rt.WhiteNoise(n, std=3.0, seed=5, name="src"), rt.StaticMap(fn, n)], [("src.out", "map.in")],
+                     batch_size=3)
+        g.engine = engine
+        return g
+    native, torch_ = graph("auto"), graph("torch")
+    assert native.native_status() is None
+    a = native.run(300, record={"y": "map.out"})["y"]
+    b = torch_.run(300, record={"y": "map.out"})["y"]
+    assert native.ran_engine == "native"
+    assert torch.allclose(a, b, rtol=1e-13, atol=1e-13), (a - b).abs().max()
+
+
+def test_torch_functions_imported_by_name_compile_too():
+    from torch import tanh
+    assert isinstance(compiled.compile_map(lambda v: 2.0 * tanh(v), 1, 1), compiled.Compiled)
 
 
 G_L, DAMP, K_TRUE = 9.0, 1.0, 3.0

@@ -418,9 +418,10 @@ class StaticMap(Block):
     ``lambda x: x.clamp(-1, 1)``. The function is probed with batches of 1 and 2 when the block is built, so a
     wrong shape fails here, not in the middle of a run.
 
-    Written with NumPy or ``math`` operations, ``fn`` runs compiled in the native engine (``rcotorch.engine.compiled``:
-    numba); the PyTorch engine calls it with tensors (a NumPy result is taken back as a tensor, on the CPU).
-    Written with torch operations, it runs on the PyTorch engine, on the CPU or a GPU.
+    Written with NumPy, ``math`` or torch's functions (``torch.tanh``, ``torch.clamp``, ...), ``fn`` runs compiled in
+    the native engine (``rcotorch.engine.compiled``: numba); the PyTorch engine calls it with tensors (a NumPy
+    result is taken back as a tensor, on the CPU). Written with tensor methods (``x.clamp(-1, 1)``), it runs on
+    the PyTorch engine, on the CPU or a GPU.
 
     Parameters
     ----------

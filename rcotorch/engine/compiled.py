@@ -15,13 +15,15 @@ with a batch. The compiled function
 is checked against the function itself on test inputs before it is used: a function that compiles but
 computes something else (an operation that treats a float and a tensor differently) stays on PyTorch.
 
-What cannot be compiled (torch operations, Python objects, an unsupported NumPy function) runs on the PyTorch
-engine, and the reason names the block, the function and numba's word on the operation. Compilations are
-kept for the process (copies of a graph, a sweep's shards in one process, the intervals' replay reuse them)
-and on disk for later processes (``cache_folder``): each function's wrappers are a small module file named by
-a hash of everything its code depends on, which numba caches beside it; a function whose globals have no
-stable description (an arbitrary object) is compiled in every process. What is loaded from the disk is
-checked like a fresh compilation, and compiled afresh if it does not reproduce the function.
+torch's elementwise functions (``torch.tanh``, ``torch.clamp``, ``torch.where``, ``torch.cat``, ...) compile
+through NumPy stand-ins (``_torch_stand_in``). What cannot be compiled (tensor methods, Python objects, an
+unsupported NumPy function) runs on the PyTorch engine, and the reason names the block, the function and
+numba's word on the operation. Compilations are kept for the process (copies of a graph, a sweep's shards in
+one process, the intervals' replay reuse them) and on disk for later processes (``cache_folder``): each
+function's wrappers are a small module file named by a hash of everything its code depends on, which numba
+caches beside it; a function whose globals have no stable description (an arbitrary object) is compiled in
+every process. What is loaded from the disk is checked like a fresh compilation, and compiled afresh if it
+does not reproduce the function.
 """
 
 from __future__ import annotations
@@ -299,15 +301,81 @@ def _jit(f):
         return f
 
 
+# torch's functions that a compiled function may call as ``torch.NAME``: their NumPy namesakes (numba compiles
+# those), or a NumPy expression of the same value (below, in _torch_stand_in).
+_TORCH_AS_NUMPY = {
+    "abs": "abs", "absolute": "abs", "sign": "sign", "sgn": "sign", "exp": "exp", "exp2": "exp2", "expm1": "expm1",
+    "log": "log", "log2": "log2", "log10": "log10", "log1p": "log1p", "sqrt": "sqrt", "square": "square",
+    "sin": "sin", "cos": "cos", "tan": "tan", "asin": "arcsin", "arcsin": "arcsin", "acos": "arccos",
+    "arccos": "arccos", "atan": "arctan", "arctan": "arctan", "atan2": "arctan2", "arctan2": "arctan2",
+    "sinh": "sinh", "cosh": "cosh", "tanh": "tanh", "asinh": "arcsinh", "arcsinh": "arcsinh", "acosh": "arccosh",
+    "arccosh": "arccosh", "atanh": "arctanh", "arctanh": "arctanh", "floor": "floor", "ceil": "ceil",
+    "trunc": "trunc", "maximum": "maximum", "minimum": "minimum", "fmax": "fmax", "fmin": "fmin",
+    "hypot": "hypot", "copysign": "copysign", "pow": "power", "where": "where", "sinc": "sinc",
+    "heaviside": "heaviside", "zeros_like": "zeros_like", "ones_like": "ones_like",
+}
+
+
+@functools.cache
+def _torch_stand_in() -> types.ModuleType:
+    """What a compiled function sees as ``torch``: a module of the same name whose functions compute with
+    NumPy what torch's namesakes compute with tensors (``_TORCH_AS_NUMPY``; clamp / clip, sigmoid, relu,
+    reciprocal, rsqrt, stack and cat written out; the constants pi, e, inf and nan). A function that uses
+    anything else of torch (a tensor method, ``torch.nn``) does not compile, and numba's reason names it."""
+    numba = _numba()
+    mod = types.ModuleType("torch")
+    for name, np_name in _TORCH_AS_NUMPY.items():
+        setattr(mod, name, getattr(np, np_name))
+
+    def clamp(x, min=None, max=None):                      # noqa: A002  (torch's own argument names)
+        if min is not None:
+            x = np.maximum(x, min)
+        if max is not None:
+            x = np.minimum(x, max)
+        return x
+
+    def stack(tensors, dim=0):
+        return np.stack(tensors, dim)
+
+    def cat(tensors, dim=0):
+        return np.concatenate(tensors, dim)
+
+    extra = {"clamp": clamp, "clip": clamp, "sigmoid": lambda x: 1.0 / (1.0 + np.exp(-x)),
+             "relu": lambda x: np.maximum(x, 0.0), "reciprocal": lambda x: 1.0 / x,
+             "rsqrt": lambda x: 1.0 / np.sqrt(x), "stack": stack, "cat": cat, "concatenate": cat, "concat": cat}
+    for name, f in extra.items():
+        setattr(mod, name, numba.njit(f))
+    for name in ("pi", "e", "inf", "nan"):
+        setattr(mod, name, float(getattr(torch, name)))
+    return mod
+
+
+@functools.cache
+def _torch_functions() -> dict:
+    """torch's functions that have a stand-in, by identity: ``from torch import tanh`` compiles too."""
+    stand_in = _torch_stand_in()
+    return {getattr(torch, name): getattr(stand_in, name) for name in vars(stand_in)
+            if not name.startswith("_") and callable(getattr(torch, name, None))}
+
+
 def _with_helpers_jitted(fn, depth: int = 4):
     """A copy of ``fn`` whose plain Python helpers (functions it names as globals or closes over) are numba
-    dispatchers, compiled the same way, so that a user's function may call functions of its own."""
+    dispatchers, compiled the same way, so that a user's function may call functions of its own; ``torch`` and
+    the torch functions it names are replaced by their NumPy stand-ins (``_torch_stand_in``)."""
 
     import numba
     if not isinstance(fn, types.FunctionType) or depth == 0:
         return fn
 
     def ready(v):
+        if v is torch:
+            return _torch_stand_in()
+        try:
+            stand_in = _torch_functions().get(v)
+        except TypeError:                      # an unhashable value
+            stand_in = None
+        if stand_in is not None:
+            return stand_in
         if isinstance(v, types.FunctionType) and v is not fn and v.__module__ != "numpy" and \
                 not v.__module__.startswith(("numpy.", "math")):
             return numba.njit(_with_helpers_jitted(v, depth - 1))
@@ -454,9 +522,18 @@ def _fingerprint(fn, depth: int = 4) -> str | None:
             parts.append(f"{type(v).__name__} {v!r}")
         elif callable(v) and getattr(v, "__module__", "") and str(v.__module__).startswith(("numpy", "math")):
             parts.append(f"{v.__module__}.{getattr(v, '__qualname__', '')}")
+        elif _is_torch_function(v):
+            parts.append(f"torch.{v.__name__}")
         else:
             return None
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _is_torch_function(v) -> bool:
+    try:
+        return v in _torch_functions()
+    except TypeError:                          # an unhashable value
+        return False
 
 
 def _code_text(code) -> str:

@@ -464,19 +464,11 @@ static int health_bounds(int64_t B, int64_t n, int64_t n_u, int64_t n_phi, const
                 int64_t c = 0;
                 double trace = 0.0;
                 for (int64_t i = 0; i < n * n; i++) ok = ok && fabs(p[i]) < INFINITY;
-                for (int64_t j = 0; j < n && ok; j++) { /* Cholesky of the lower triangle */
-                    double d = p[j * n + j];
-                    for (int64_t k = 0; k < j; k++) d -= L[j * n + k] * L[j * n + k];
-                    if (!(d > 0.0)) {
-                        ok = 0;
-                        break;
-                    }
-                    L[j * n + j] = sqrt(d);
-                    for (int64_t i = j + 1; i < n; i++) {
-                        double x = p[i * n + j];
-                        for (int64_t k = 0; k < j; k++) x -= L[i * n + k] * L[j * n + k];
-                        L[i * n + j] = x / L[j * n + j];
-                    }
+                if (ok) { /* positive definite: every pivot of the RLS step's Cholesky factorization is positive */
+                    double pivots_ok = 1.0;
+                    memcpy(L, p, (size_t)(n * n) * sizeof(double));
+                    cholesky_1base(n, L, &pivots_ok);
+                    ok = pivots_ok != 0.0;
                 }
                 for (int64_t i = 0; i < n; i++) trace += p[i * n + i];
                 if (!ok) c = reason[REASON_NOT_PD];

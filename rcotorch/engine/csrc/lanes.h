@@ -942,6 +942,32 @@ static inline void FN(sums_store)(const int64_t *obs, int64_t nobs, const double
     }
 }
 
+#ifndef SIZED_COPY_DECLARED
+#define SIZED_COPY_DECLARED
+/* The copy compiled for its sizes that an instruction runs at one lane (the table at the top of this file):
+ * its kind and the indices of its sizes in lti_out_sized / lti_upd_sized [n - 1][w - 1] or rco_out_sized
+ * [n_phi - 1]; SIZED_NONE for the general copy. */
+enum { SIZED_NONE, SIZED_LTI_OUT, SIZED_LTI_UPD, SIZED_SUM_1_2, SIZED_RCO_OUT };
+typedef struct {
+    int kind;
+    int64_t i, j;
+} sized_t;
+
+static inline int in_range(int64_t v, int64_t hi) { return v >= 1 && v <= hi; }
+
+static inline sized_t sized_copy(int64_t op, const int64_t *x) {
+    if (op == OP_LTI_OUT && x[LTI_OUT_NFT] == 0 && in_range(x[LTI_OUT_NX], LTI_SMALL_N) &&
+        in_range(x[LTI_OUT_ROWS], LTI_SMALL_W))
+        return (sized_t){SIZED_LTI_OUT, x[LTI_OUT_NX] - 1, x[LTI_OUT_ROWS] - 1};
+    if (op == OP_LTI_UPD && in_range(x[LTI_UPD_NX], LTI_SMALL_N) && in_range(x[LTI_UPD_MT], LTI_SMALL_W))
+        return (sized_t){SIZED_LTI_UPD, x[LTI_UPD_NX] - 1, x[LTI_UPD_MT] - 1};
+    if (op == OP_SUM && x[SUM_WIDTH] == 1 && x[SUM_NIN] == 2) return (sized_t){SIZED_SUM_1_2, 0, 0};
+    if (op == OP_RCO_OUT && x[E_NU] == 1 && in_range(x[E_NPHI], SMALL))
+        return (sized_t){SIZED_RCO_OUT, x[E_NPHI] - 1, 0};
+    return (sized_t){SIZED_NONE, 0, 0};
+}
+#endif
+
 /* One chunk of members [b0, b0 + nb) for T steps: load, step, store. */
 static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
     double *acc = SL(r->nslots);
@@ -981,15 +1007,11 @@ static void FN(chunk)(const run_t *r, double *S, int64_t b0, int64_t nb) {
         prog[i].to = labels[op];
         prog[i].args = x;
 #if VL == 1
-        if (op == OP_LTI_OUT && x[LTI_OUT_NFT] == 0 && x[LTI_OUT_NX] >= 1 && x[LTI_OUT_NX] <= LTI_SMALL_N &&
-            x[LTI_OUT_ROWS] >= 1 && x[LTI_OUT_ROWS] <= LTI_SMALL_W)
-            prog[i].to = lti_out_sized[x[LTI_OUT_NX] - 1][x[LTI_OUT_ROWS] - 1];
-        if (op == OP_LTI_UPD && x[LTI_UPD_NX] >= 1 && x[LTI_UPD_NX] <= LTI_SMALL_N && x[LTI_UPD_MT] >= 1 &&
-            x[LTI_UPD_MT] <= LTI_SMALL_W)
-            prog[i].to = lti_upd_sized[x[LTI_UPD_NX] - 1][x[LTI_UPD_MT] - 1];
-        if (op == OP_SUM && x[SUM_WIDTH] == 1 && x[SUM_NIN] == 2) prog[i].to = &&sum_1_2;
-        if (op == OP_RCO_OUT && x[E_NU] == 1 && x[E_NPHI] >= 1 && x[E_NPHI] <= SMALL)
-            prog[i].to = rco_out_sized[x[E_NPHI] - 1];
+        sized_t z = sized_copy(op, x);
+        if (z.kind == SIZED_LTI_OUT) prog[i].to = lti_out_sized[z.i][z.j];
+        if (z.kind == SIZED_LTI_UPD) prog[i].to = lti_upd_sized[z.i][z.j];
+        if (z.kind == SIZED_SUM_1_2) prog[i].to = &&sum_1_2;
+        if (z.kind == SIZED_RCO_OUT) prog[i].to = rco_out_sized[z.i];
 #endif
     }
     prog[nops].to = &&step_done;
