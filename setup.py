@@ -42,6 +42,7 @@ class BuildEngine(build_ext):
 
 setup(
     ext_modules=[Extension("rcotorch.engine._engine", sources=["rcotorch/engine/csrc/engine.c"],
-                           depends=["rcotorch/engine/csrc/engine.h", "rcotorch/engine/csrc/lanes.h"], optional=True)],
+                           depends=["rcotorch/engine/csrc/engine.h", "rcotorch/engine/csrc/lanes.h",
+                                    "rcotorch/engine/csrc/widths.h"], optional=True)],
     cmdclass={"build_ext": BuildEngine},
 )

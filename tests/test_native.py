@@ -644,3 +644,29 @@ def test_a_composite_block_lowers_the_blocks_it_holds_and_equals_pytorch():
     assert native.ran_engine == "native"
     assert torch.allclose(a, b, rtol=1e-12, atol=1e-14)
     assert "blocks.plant.noise.k" in native.state_dict() and int(native.blocks["plant"].noise.k) == 500
+
+
+@pytest.mark.parametrize("nu", [15, 22])
+def test_the_ring_row_past_two_to_the_32_steps_agrees_with_the_torch_engine(nu):
+    """The native update takes a step's ring row k mod W by a multiply and a shift below 2^32 steps and by a
+    division beyond (kernels.ring_multiplier): started 40 steps before 2^32, both engines agree, across the
+    switch, for W = nu + 1 a power of two and not."""
+    sc = scenarios.get("sdof-stiffness-damping")
+    s = sc.resolve({"nu": nu})
+    graphs = []
+    for engine in ("native", "torch"):
+        g = sc.build(s, 2, torch.float64, "cpu")
+        g.engine = engine
+        g.run(200)
+        for blk in g.blocks.values():                 # every counter moved forward, as after 2^32 steps
+            if "k" in dict(blk.named_buffers()):
+                blk.k += 2 ** 32 - 240
+        g.run(80)
+        graphs.append(g)
+    a, b = (g.role("estimator") for g in graphs)
+    assert int(a.k) == 2 ** 32 + 40
+    assert torch.allclose(a.theta, b.theta, rtol=1e-10, atol=0) and torch.allclose(a.P, b.P, rtol=1e-10, atol=0)
+    for W in (1, 2, 3, 16, 23, 1000, 2 ** 31 + 11, 2 ** 32 - 1):
+        m = kernels.ring_multiplier(W) % 2 ** 64
+        for k in (0, 1, W - 1, W, 12345, 2 ** 31, 2 ** 32 - 1):
+            assert (m * k % 2 ** 64) * W >> 64 == k % W, (W, k)

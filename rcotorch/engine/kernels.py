@@ -164,6 +164,23 @@ def rls_(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: torch.Ten
     return ok.bool()
 
 
+def ring_multiplier(W: int) -> int:
+    """The multiplier with which the engine takes a step's row k mod W of an estimator's ring without a division
+    (engine.c, ring_row): 2**64 // W + 1, as the int64 of its 64 bits.
+
+    Parameters
+    ----------
+    W : int
+        The ring's rows, 1 <= W < 2**32.
+
+    Returns
+    -------
+    int
+    """
+    m = ((1 << 64) // W + 1) & ((1 << 64) - 1)
+    return m - (1 << 64) if m >= 1 << 63 else m
+
+
 def uniform_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length: int, width: int
                  ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The two uniforms behind ``rng.normal(seed, member, step, comp)`` on the grid (B, length, width) of pairs

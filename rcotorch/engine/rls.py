@@ -12,9 +12,10 @@ sum_j |Psi_j^T theta + zeta_j|^2_R + |theta - theta_0|^2 / p0, where z_R,j = Psi
 
 Shapes: theta (B, n), P (B, n, n), psi (B, n, l), z_r (B, l), lam () or (B,), r_inv () or (l, l).
 
-Cost: the covariance update is written as one fused pass over P, ``P - W W^T`` with W = P Psi L^-T
-(S = L L^T; for l = 1, W = P Psi / sqrt(s)), applied in place with ``inplace=True`` (the estimator's hot path:
-no P-sized temporaries), and the division by lambda is skipped when lambda is 1. Every operation acts on each
+Cost: the covariance update is written as ``P - W W^T`` with W = P Psi L^-T (S = L L^T), for l = 1 as
+``P - (a a^T) / s`` with a = P Psi (the products a_i a_j times 1 / s: no square root, and exactly symmetric),
+applied in place with ``inplace=True`` (the estimator's hot path), and the division by lambda is skipped when
+lambda is 1. Every operation acts on each
 member separately, so a member's result does not depend on the batch it runs in.
 """
 
@@ -126,20 +127,20 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
     ok = ok & finite
     go = go & finite.reshape(B, 1, 1)
     if l == 1:
-        w = a.mul_(torch.where(go, s.rsqrt(), 0.0))                        # W = P Psi s^-1/2, zero if not go
+        s_inv = torch.where(go, 1.0 / s, 0.0)                              # s^-1, zero if not go
         step.masked_fill_(~go.reshape(B, 1), 0.0)                          # (the step was not finite)
     else:
         w = torch.where(go, w, 0.0)
         step = torch.where(go.reshape(B, 1), step, 0.0)
     div = None if lam_one else torch.where(go, lam, 1.0)
     if inplace:
-        _downdate_(P, w)                                                   # P - W W^T, one pass
+        _downdate_(P, a, s_inv) if l == 1 else _downdate_(P, w)            # P - W W^T
         if div is not None:
             P.div_(div)
         theta.sub_(step)
         theta_new, P_new = theta, P
     else:
-        P_new = _downdate_(P.clone(), w)
+        P_new = _downdate_(P.clone(), a, s_inv) if l == 1 else _downdate_(P.clone(), w)
         if div is not None:
             P_new = P_new / div
         theta_new = theta - step                                           # theta - 0 is theta
@@ -155,9 +156,10 @@ def _ones(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     return torch.ones(n, dtype=dtype, device=device)
 
 
-def _downdate_(P: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """P <- P - W W^T in place for W (B, n, l): entry (i, j) subtracts sum_c w_ic w_jc, so P stays symmetric.
-    Members with W = 0 are left exactly as they were (x - 0 = x)."""
-    if w.shape[-1] == 1:
-        return P.addcmul_(w, w.mT, value=-1.0)                              # P_ij + (-w_i) w_j, one fused pass
+def _downdate_(P: torch.Tensor, w: torch.Tensor, s_inv: torch.Tensor | None = None) -> torch.Tensor:
+    """P <- P - W W^T in place for W (B, n, l): entry (i, j) subtracts sum_c w_ic w_jc; with ``s_inv`` (B, 1, 1)
+    and W = a (B, n, 1), it subtracts (a_i a_j) s_inv. Either way P stays exactly symmetric, and members with
+    W = 0 (or s_inv = 0) are left exactly as they were (x - 0 = x)."""
+    if s_inv is not None:
+        return P.sub_((w * w.mT).mul_(s_inv))                              # (a_i a_j) / s
     return P.sub_(w @ w.mT)

@@ -820,7 +820,7 @@ class RCOEstimator(Block):
             torch.block_diag(self.r_inv, torch.eye(self.n_theta, dtype=self.r_inv.dtype))
         nl = r_inv.shape[0]
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
-                      W=W, NC=self.nc, NC1=nc1, NSIG=self.n_sig,
+                      W=W, WMOD=kernels.ring_multiplier(W), NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
                       SHARED=b.shared(self.beta_t),
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],

@@ -172,13 +172,16 @@ class Health:
         return gram, n
 
     def set_target(self, steps: int) -> None:
-        """The run ends at ``steps``: the window starts at the check step at or after steps - window * steps
-        (a window already under way is kept when that step has passed)."""
-        W = max(self.every, round(self.criteria.window * steps))
-        start = self.every * math.ceil(max(steps - W, 0) / self.every)
+        """The run ends at ``steps``: the checks come every ``check_every(steps)`` steps and the window starts at
+        the check step at or after steps - window * steps, so that a run extended to ``steps`` (a resume with
+        more steps) checks from here on at the steps of a run made that long at once; a window already under
+        way is kept, with its checks, when its start has passed."""
+        every = check_every(steps)
+        W = max(every, round(self.criteria.window * steps))
+        start = every * math.ceil(max(steps - W, 0) / every)
         k = int(self.graph.k)
         if start > k or k == 0:
-            self.window_start = start
+            self.every, self.window_start = every, start
 
     # --- along the run ------------------------------------------------------------------------------------
     def is_check(self, k: int) -> bool:

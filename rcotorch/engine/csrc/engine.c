@@ -147,6 +147,13 @@ static inline ALWAYS void normal_pair(double u1, double u2, double *even, double
     *odd = r * s;
 }
 
+/* k mod W without a division, m = 2^64 / W + 1 rounded down (exact for k and W below 2^32: the multiply-shift
+ * remainder of Lemire, Kaser and Kurz, "Faster remainder by direct computation", 2019); a division beyond. */
+static inline ALWAYS int64_t ring_row(int64_t k, int64_t W, uint64_t m) {
+    if ((uint64_t)k >> 32) return k % W;
+    return (int64_t)(((unsigned __int128)(m * (uint64_t)k) * (uint64_t)W) >> 64);
+}
+
 /* torch.clamp: NaN stays NaN. */
 static inline ALWAYS double clampd(double x, double lo, double hi) {
     double v = x < lo ? lo : x;
@@ -233,18 +240,7 @@ typedef struct {
 #define FN(name) CAT(CAT(name, _), CAT(VL, ISA))
 
 #define ISA base
-#define VL 1
-#include "lanes.h"
-#undef VL
-#define VL 4
-#include "lanes.h"
-#undef VL
-#define VL 8
-#include "lanes.h"
-#undef VL
-#define VL 16
-#include "lanes.h"
-#undef VL
+#include "widths.h"
 #undef ISA
 
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
@@ -252,35 +248,13 @@ typedef struct {
 #pragma GCC push_options
 #pragma GCC target("avx2")
 #define ISA avx2
-#define VL 1
-#include "lanes.h"
-#undef VL
-#define VL 4
-#include "lanes.h"
-#undef VL
-#define VL 8
-#include "lanes.h"
-#undef VL
-#define VL 16
-#include "lanes.h"
-#undef VL
+#include "widths.h"
 #undef ISA
 #pragma GCC pop_options
 #pragma GCC push_options
 #pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,avx2")
 #define ISA avx512
-#define VL 1
-#include "lanes.h"
-#undef VL
-#define VL 4
-#include "lanes.h"
-#undef VL
-#define VL 8
-#include "lanes.h"
-#undef VL
-#define VL 16
-#include "lanes.h"
-#undef VL
+#include "widths.h"
 #undef ISA
 #pragma GCC pop_options
 #endif

@@ -88,11 +88,12 @@ static inline ALWAYS void FN(rls_p_psi)(int64_t n, int64_t nl, const double *res
         }
 }
 
-/* One row (nl = 1): S = lam R^-1 + psi^T P psi, a scalar; the step P psi S^-1 z_R and W = P psi S^-1/2 (in
- * place of a), 0 where the member does not go (go: active, S > 0 and finite, the step finite). */
+/* One row (nl = 1): S = lam R^-1 + psi^T P psi, a scalar; the step P psi S^-1 z_R and si = S^-1, a = P psi and
+ * both 0 where the member does not go (go: active, S > 0 and finite, the step finite). */
 static inline ALWAYS void FN(rls_gain_row)(int64_t n, double *restrict a, double *restrict step,
         const double *restrict psi, const double *restrict zr, const double *restrict lam, int lam_one,
-        const double *restrict rinv, const double *restrict active, double *restrict ok, double *restrict go) {
+        const double *restrict rinv, const double *restrict active, double *restrict ok, double *restrict go,
+        double *restrict si) {
     double s[VL], g[VL], sum[VL];
     LANES s[l] = 0.0;
     for (int64_t i = 0; i < n; i++) {
@@ -121,14 +122,11 @@ static inline ALWAYS void FN(rls_gain_row)(int64_t n, double *restrict a, double
         int fin = fabs(sum[l]) < INFINITY;
         ok[l] = (ok[l] != 0.0) & fin;
         go[l] = (go[l] != 0.0) & fin;
-        g[l] = go[l] != 0.0 ? 1.0 / sqrt(s[l]) : 0.0;
+        si[l] = go[l] != 0.0 ? 1.0 / s[l] : 0.0;
     }
     for (int64_t i = 0; i < n; i++) {
-        double *ai = AT(a, i), *st = AT(step, i);
-        LANES {
-            ai[l] *= g[l]; /* W = P psi s^-1/2 */
-            st[l] = go[l] != 0.0 ? st[l] : 0.0;
-        }
+        double *st = AT(step, i);
+        LANES st[l] = go[l] != 0.0 ? st[l] : 0.0;
     }
 }
 
@@ -230,16 +228,17 @@ static inline ALWAYS void FN(rls_gain_rows)(int64_t n, int64_t nl, const double 
     }
 }
 
-/* P <- (P - W W^T) / lam where the member goes; theta <- theta - step. */
+/* P <- (P - W W^T) / lam where the member goes, W W^T = (a a^T) S^-1 for one row (Wm = a, si = S^-1: (a_i a_j)
+ * si, exactly symmetric); theta <- theta - step. */
 static inline ALWAYS void FN(rls_apply)(int64_t n, int64_t nl, double *restrict th, double *restrict P,
-        const double *restrict Wm, const double *restrict step, const double *restrict lam, int lam_one,
-        const double *restrict go) {
+        const double *restrict Wm, const double *restrict si, const double *restrict step,
+        const double *restrict lam, int lam_one, const double *restrict go) {
     for (int64_t i = 0; i < n; i++)
         for (int64_t j = 0; j < n; j++) {
             double *p = AT(P, i * n + j);
             if (nl == 1) {
-                const double *wi = AT(Wm, i), *wj = AT(Wm, j);
-                LANES p[l] -= wi[l] * wj[l];
+                const double *ai = AT(Wm, i), *aj = AT(Wm, j);
+                LANES p[l] -= (ai[l] * aj[l]) * si[l];
             } else {
                 double d[VL];
                 LANES d[l] = 0.0;
@@ -261,22 +260,23 @@ static inline ALWAYS void FN(rls_apply)(int64_t n, int64_t nl, double *restrict 
     }
 }
 
-/* The RLS step: a = P Psi, the gain (one row, or nl rows through S's Cholesky factor), then P and theta. */
+/* The RLS step: a = P Psi, the gain (one row with S^-1, or nl rows through S's Cholesky factor), then P and
+ * theta. */
 static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
         double *restrict P, const double *restrict psi, const double *restrict zr, const double *restrict lam,
         int lam_one, const double *restrict rinv, const double *restrict active, double *restrict ok,
         double *restrict scr) {
     const rls_scratch_t at = rls_scratch_at(n, nl);
     double *a = AT(scr, at.a), *step = AT(scr, at.step), *Lm = AT(scr, at.L), *Wm = AT(scr, at.W), *v = AT(scr, at.v);
-    double go[VL];
+    double go[VL], si[VL] = {0}; /* si: S^-1 of one row (nl = 1) */
     FN(rls_p_psi)(n, nl, P, psi, a);
     if (nl == 1) {
-        FN(rls_gain_row)(n, a, step, psi, zr, lam, lam_one, rinv, active, ok, go);
+        FN(rls_gain_row)(n, a, step, psi, zr, lam, lam_one, rinv, active, ok, go, si);
         Wm = a;
     } else {
         FN(rls_gain_rows)(n, nl, a, step, Lm, Wm, v, psi, zr, lam, lam_one, rinv, active, ok, go);
     }
-    FN(rls_apply)(n, nl, th, P, Wm, step, lam, lam_one, go);
+    FN(rls_apply)(n, nl, th, P, Wm, si, step, lam, lam_one, go);
 }
 
 /* ------------------------------------------------------------------------------------------------------ */
@@ -779,7 +779,7 @@ static inline ALWAYS void FN(upd_shift_histories)(const int64_t *restrict e, dou
 static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                         int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
                                         int64_t nl) {
-    int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = k % W;
+    int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = ring_row(k, W, (uint64_t)e[E_WMOD]);
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent; /* the tables PARAM_OF and REP */
     /* own_scratch: one member keeps its scratch and z_R (stored to its slot once computed) in an array of its
      * own when they fit: the compiler then holds them in registers where the sizes are constants, where slots in
