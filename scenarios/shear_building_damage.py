@@ -46,7 +46,7 @@ class ShearBuildingDamage(Scenario):
     settings = dict(Ts=0.01, m=2.0e4, k=2.0e7, zeta=0.02, storey=2, change=-0.2, t_change=60.0, w_std=1.0,
                     noise=0.01, sensor="acceleration", measured="2,3", nu=100, p0=1e20, lam=1.0, threshold=30.0,
                     drift=1.0, warmup=2000, window=1000, holdoff=3000, restart_p0=1e14, track_lam=0.99, track_hold=3000,
-                    seed=1)
+                    restart_every=50, seed=1)
     about = dict(
         Ts=("s", "sample time"),
         m=("kg", "mass of each floor"),
@@ -69,6 +69,8 @@ class ShearBuildingDamage(Scenario):
         restart_p0=("", "P = restart_p0 I for a member whose detector alarmed (0: keep P)"),
         track_lam=("", "forgetting factor for track_hold steps after an alarm"),
         track_hold=("steps", "how long the forgetting lasts after an alarm"),
+        restart_every=("steps", "the restart acts every this many steps, on the alarms since it last acted (each "
+                                "time it acts, the native engine stops: a pass over every member's state)"),
         seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
     )
     per_member = frozenset({"p0", "lam", "seed"})
@@ -110,8 +112,9 @@ class ShearBuildingDamage(Scenario):
             g.blocks["unknown"].K.copy_(damage.to(g.blocks["unknown"].K))
 
         graph.add_hook(rt.at_step(self.change_step(s), change))
-        graph.add_hook(rt.ResetOnChange(graph, every=5, p0=s["restart_p0"] or None, restart=bool(s["restart_p0"]),
-                                        lam=s["track_lam"], hold=int(s["track_hold"])))
+        graph.add_hook(rt.ResetOnChange(graph, every=int(s["restart_every"]), p0=s["restart_p0"] or None,
+                                        restart=bool(s["restart_p0"]), lam=s["track_lam"],
+                                        hold=int(s["track_hold"])))
         return graph
 
     @staticmethod
