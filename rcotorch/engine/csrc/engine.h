@@ -161,8 +161,9 @@ _Static_assert(0 RCO_ESTIMATOR_PHI_FIELDS(X_ONE_FIELD) == 1 && 0 RCO_ESTIMATOR_E
 /* Noise is drawn for NOISE_AHEAD steps at a time (vectorized over pairs of steps and lanes) into a buffer of
  * NOISE_SLOTS slots a channel: NOISE_PAIRS pairs, the first starting at the even step at or before the first
  * step drawn. */
-#define NOISE_AHEAD 32
+#define NOISE_AHEAD 64
 #define NOISE_PAIRS (NOISE_AHEAD / 2 + 1)
 #define NOISE_SLOTS (2 * NOISE_PAIRS)
+_Static_assert(NOISE_AHEAD % 2 == 0, "the noise buffer holds whole pairs of steps");
 
 #endif
