@@ -15,8 +15,8 @@ Shapes: theta (B, n), P (B, n, n), psi (B, n, l), z_r (B, l), lam () or (B,), r_
 Cost: the covariance update is written as ``P - W W^T`` with W = P Psi L^-T (S = L L^T), for l = 1 as
 ``P - (a a^T) / s`` with a = P Psi (the products a_i a_j times 1 / s: no square root, and exactly symmetric),
 applied in place with ``inplace=True`` (the estimator's hot path), and the division by lambda is skipped when
-lambda is 1. Every operation acts on each
-member separately, so a member's result does not depend on the batch it runs in.
+lambda is 1. Every operation acts on each member separately, so a member's result does not depend on the
+batch it runs in.
 """
 
 from __future__ import annotations
