@@ -107,27 +107,27 @@ def _add_run(sub) -> None:
     _add_common(run)
 
 
+def _add_shards(p, what: str, kind: str) -> None:
+    """The options of a command that runs shards (sweep, tune): backend, Ray cluster, output folder, resume."""
+    p.add_argument("--backend", default="local", choices=["local", "ray"])
+    p.add_argument("--ray-address", help="address of an existing Ray cluster, HOST:PORT (default: start a "
+                   "local one)")
+    p.add_argument("--out", help=f"output folder (default runs/{kind}-SCENARIO)")
+    p.add_argument("--resume", action="store_true", help=f"continue an interrupted {what} in --out")
+    _add_common(p)
+
+
 def _add_sweep(sub) -> None:
     sw = sub.add_parser("sweep", help="run a parameter sweep (TOML/JSON config) as batched shards")
     sw.add_argument("config", help="sweep config file (.toml or .json)")
-    sw.add_argument("--backend", default="local", choices=["local", "ray"])
-    sw.add_argument("--ray-address", help="address of an existing Ray cluster, HOST:PORT (default: start a "
-                    "local one)")
-    sw.add_argument("--out", help="output folder (default runs/sweep-SCENARIO)")
-    sw.add_argument("--resume", action="store_true", help="continue an interrupted sweep in --out")
-    _add_common(sw)
+    _add_shards(sw, "sweep", "sweep")
 
 
 def _add_tune(sub) -> None:
     tu = sub.add_parser("tune", help="choose a scenario's tuning (p0, nu, lam, ...) from held-out data")
     tu.add_argument("config", help="tuning config file (.toml or .json): scenario, method, samples, seeds, "
                     "[fixed], [space]; see docs/tuning.md")
-    tu.add_argument("--backend", default="local", choices=["local", "ray"])
-    tu.add_argument("--ray-address", help="address of an existing Ray cluster, HOST:PORT (default: start a "
-                    "local one)")
-    tu.add_argument("--out", help="output folder (default runs/tune-SCENARIO)")
-    tu.add_argument("--resume", action="store_true", help="continue an interrupted tuning in --out")
-    _add_common(tu)
+    _add_shards(tu, "tuning", "tune")
 
 
 def build_parser() -> argparse.ArgumentParser:
