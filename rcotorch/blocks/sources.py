@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -153,8 +152,7 @@ def _normal_grid(seeds: torch.Tensor, members: torch.Tensor, start: int, length:
             return (hi * 67108864.0 + lo + 0.5) / 9007199254740992.0
 
         u1, u2 = uniform(chain(h, 1)), uniform(chain(h, 2))
-    r, angle = torch.sqrt(-2.0 * torch.log(u1)), 2.0 * math.pi * u2          # (B, pairs, width)
-    both = torch.stack([r * torch.cos(angle), r * torch.sin(angle)], 2)       # (B, pairs, 2, width)
+    both = torch.stack(rng.box_muller(u1, u2), 2)                              # (B, pairs, 2, width)
     return both.reshape(both.shape[0], 2 * pairs, width)[:, start % 2:start % 2 + length].to(dtype)
 
 

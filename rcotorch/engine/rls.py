@@ -133,14 +133,15 @@ def rls_update(theta: torch.Tensor, P: torch.Tensor, psi: torch.Tensor, z_r: tor
         w = torch.where(go, w, 0.0)
         step = torch.where(go.reshape(B, 1), step, 0.0)
     div = None if lam_one else torch.where(go, lam, 1.0)
+    factors = (a, s_inv) if l == 1 else (w,)
     if inplace:
-        _downdate_(P, a, s_inv) if l == 1 else _downdate_(P, w)            # P - W W^T
+        _downdate_(P, *factors)                                            # P - W W^T
         if div is not None:
             P.div_(div)
         theta.sub_(step)
         theta_new, P_new = theta, P
     else:
-        P_new = _downdate_(P.clone(), a, s_inv) if l == 1 else _downdate_(P.clone(), w)
+        P_new = _downdate_(P.clone(), *factors)
         if div is not None:
             P_new = P_new / div
         theta_new = theta - step                                           # theta - 0 is theta

@@ -97,7 +97,23 @@ def normal(seed: torch.Tensor | int, member: torch.Tensor | int, step: torch.Ten
     """
     step = torch.as_tensor(step, dtype=torch.int64)
     pair = torch.div(step, 2, rounding_mode="floor")
-    u1 = uniform(seed, member, pair, component, 1, dtype=torch.float64)
-    u2 = uniform(seed, member, pair, component, 2, dtype=torch.float64)
+    even, odd = box_muller(uniform(seed, member, pair, component, 1, dtype=torch.float64),
+                           uniform(seed, member, pair, component, 2, dtype=torch.float64))
+    return torch.where(step % 2 == 0, even, odd).to(dtype)
+
+
+def box_muller(u1: torch.Tensor, u2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two normals of a pair of uniforms: r cos(2 pi u2) and r sin(2 pi u2), r = sqrt(-2 ln u1).
+
+    Parameters
+    ----------
+    u1, u2 : torch.Tensor
+        Uniforms in (0, 1), float64, of one shape.
+
+    Returns
+    -------
+    tuple of torch.Tensor
+        The even step's and the odd step's samples, of that shape.
+    """
     r, angle = torch.sqrt(-2.0 * torch.log(u1)), 2.0 * math.pi * u2
-    return torch.where(step % 2 == 0, r * torch.cos(angle), r * torch.sin(angle)).to(dtype)
+    return r * torch.cos(angle), r * torch.sin(angle)
