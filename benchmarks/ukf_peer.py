@@ -20,7 +20,9 @@ filterpy's algorithm step for step (a test checks it against filterpy to roundin
 
 Compared: detection delay, false alarms, the largest error over the storeys 50 periods after the change, and the
 cost per member-step (rcotorch: the graph's steps with the detector; filterpy: its predict and update; batched:
-one predict and update of all members). Writes benchmarks/results/ukf_peer.json.
+one predict and update of all members); and, member by member against the batched filter on the same data, how
+often rcotorch's error is the smaller and bootstrap intervals of the differences of the median and largest
+errors (``compare``). Writes benchmarks/results/ukf_peer.json.
 """
 
 from __future__ import annotations
@@ -160,9 +162,26 @@ def summary(name, first, err, kd, T1, seconds, members):
             "within_0.016": float((err < 0.016).mean())}
 
 
+def compare(err_a, err_b, resamples: int = 4000) -> dict:
+    """Two methods' errors on the same members, paired: the share of members where a's is the smaller, and 95 %
+    bootstrap intervals (members resampled with their pairs) of the differences of the medians and of the
+    largest errors, a minus b. An interval that holds 0 says that these members cannot tell the two apart."""
+    rng = np.random.default_rng(0)
+    idx = rng.integers(0, len(err_a), (resamples, len(err_a)))
+    a, b = err_a[idx], err_b[idx]
+
+    def interval(d):
+        return [float(np.quantile(d, 0.025)), float(np.quantile(d, 0.975))]
+    return {"a_smaller_share": float((err_a < err_b).mean()),
+            "median_difference": float(np.median(err_a) - np.median(err_b)),
+            "median_difference_95": interval(np.median(a, 1) - np.median(b, 1)),
+            "max_difference": float(err_a.max() - err_b.max()),
+            "max_difference_95": interval(a.max(1) - b.max(1))}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--members", type=int, default=64, help="members for the accuracy comparison")
+    ap.add_argument("--members", type=int, default=200, help="members for the accuracy comparison")
     ap.add_argument("--filterpy-members", type=int, default=4, help="members run through filterpy (slow)")
     ap.add_argument("--batch", type=int, default=4096, help="batch of the cost comparison")
     ap.add_argument("--cost-steps", type=int, default=200, help="steps timed at --batch")
@@ -181,11 +200,12 @@ def main(argv=None) -> None:
     A, Bw, Bu, Cy, Cd = model(sc, s)
     R = np.eye(Cy.shape[0]) * s["noise"] ** 2
     w, y, dk, first_rco, cost_rco, engine = record(sc, s, args.members)
-    results = [summary(f"rcotorch ({engine})", first_rco, np.abs(dk - truth).max(1), kd, T1, cost_rco,
-                       args.members)]
+    err_rco = np.abs(dk - truth).max(1)
+    results = [summary(f"rcotorch ({engine})", first_rco, err_rco, kd, T1, cost_rco, args.members)]
     traj, cost_b = batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w, y, R)
-    results.append(summary("UKF batched (torch)", *judge(traj, kd, judge_step, truth, settle), kd, T1,
-                           cost_b / args.members, args.members))
+    first_ukf, err_ukf = judge(traj, kd, judge_step, truth, settle)
+    results.append(summary("UKF batched (torch)", first_ukf, err_ukf, kd, T1, cost_b / args.members, args.members))
+    paired = compare(err_rco, err_ukf)
     m = args.filterpy_members
     trajs, costs = [], []
     for b in range(m):
@@ -215,6 +235,11 @@ def main(argv=None) -> None:
     print(f"{NAME}: change at step {kd}, judged at step {judge_step} (50 periods of {T1:.4f} s later)")
     print(table(rows, ["method", "members", "detected", "false alarms", "delay max [T1]", "error median",
                        "error max", "within 0.016", "us / member-step"]))
+    print(f"rcotorch against the batched UKF on the same {args.members} members: smaller error in "
+          f"{100 * paired['a_smaller_share']:.0f}%, median difference {paired['median_difference']:+.5f} (95%: "
+          f"{paired['median_difference_95'][0]:+.5f} .. {paired['median_difference_95'][1]:+.5f}), largest "
+          f"{paired['max_difference']:+.5f} ({paired['max_difference_95'][0]:+.5f} .. "
+          f"{paired['max_difference_95'][1]:+.5f})")
     print(f"cost at B = {args.batch}: rcotorch {cost['rcotorch_us']:.3g} us, batched UKF {cost['ukf_batched_us']:.3g} "
           f"us, filterpy {cost['ukf_filterpy_us']:.3g} us per member-step: filterpy / rcotorch "
           f"{cost['filterpy_over_rcotorch']:.0f}x (goal 1000x), batched / rcotorch "
@@ -222,7 +247,7 @@ def main(argv=None) -> None:
     write_json({"benchmark": "ukf_peer", "machine": machine(torch.device("cpu")), "scenario": NAME,
                 "settings": {"q_theta": Q_THETA, "p0_x": P0_X, "p0_theta": P0_THETA, "alpha": ALPHA, "beta": BETA,
                              "kappa": KAPPA, "move": MOVE},
-                "results": results, "cost": cost}, "ukf_peer", args.out)
+                "results": results, "rcotorch_against_batched_ukf": paired, "cost": cost}, "ukf_peer", args.out)
 
 
 if __name__ == "__main__":

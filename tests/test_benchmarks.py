@@ -169,3 +169,21 @@ def test_the_batched_unscented_filter_is_filterpys():
         # the first steps divide tiny innovations by tiny variances (P0 of the states 1e-8): rounding grows to 1e-8
         np.testing.assert_allclose(batched[:, b], one, rtol=1e-6, atol=1e-7)
         assert np.abs(one).max() > 0.01
+
+
+def test_the_paired_comparison_of_errors_tells_apart_only_what_differs():
+    """ukf_peer.compare: identical errors differ by 0 with an interval of 0; errors larger by 1e-3 in every member
+    give median and largest differences of -1e-3 whose intervals exclude 0; two independent draws of one
+    distribution have intervals that hold 0."""
+    import numpy as np
+    import ukf_peer
+    e = np.random.default_rng(5).exponential(1e-3, 64)
+    same = ukf_peer.compare(e, e)
+    assert same["a_smaller_share"] == 0 and same["median_difference_95"] == [0.0, 0.0]
+    better = ukf_peer.compare(e, e + 1e-3)
+    assert better["a_smaller_share"] == 1
+    assert better["median_difference"] == pytest.approx(-1e-3) and better["max_difference"] == pytest.approx(-1e-3)
+    assert better["median_difference_95"][1] < 0 and better["max_difference_95"][1] < 0
+    f = np.random.default_rng(6).exponential(1e-3, 64)
+    tie = ukf_peer.compare(e, f)
+    assert tie["median_difference_95"][0] < 0 < tie["median_difference_95"][1]

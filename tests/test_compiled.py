@@ -394,6 +394,57 @@ def test_a_discrete_components_block_with_wide_ports_and_several_outputs():
     assert torch.allclose(rec["y"], rect["y"], rtol=1e-13, atol=1e-14)
 
 
+def test_a_components_function_that_returns_lists_is_compiled_returning_tuples_with_the_same_values(
+        monkeypatch):
+    def f(x, ins):                          # lists, as scipy.integrate.solve_ivp users write them
+        a, b = x
+        return [0.9 * a + 0.1 * ins["u"][0], 0.8 * b - 0.05 * np.sin(a)]
+
+    def h(x):
+        return [x[0] + x[1]]
+
+    def g_mixed(x, ins):                    # one return is a list display, the other a list made before:
+        out = [0.7 * x[0] + ins["u"][0], x[1]]     # as tuples they would not unify, so it compiles as it is
+        if len(out) > 2:
+            return [x[0], x[1]]
+        return out
+
+    import dis
+    ops = {i.opname for i in dis.get_instructions(compiled._returning_tuples(f))}
+    assert "BUILD_TUPLE" in ops and "BUILD_LIST" not in ops
+    assert compiled._returning_tuples(friction) is friction          # no list returned: itself
+
+    def run(fn, engine):
+        blk = rt.Nonlinear(fn, h, 2, inputs={"u": 1}, outputs={"y": 1}, dt=1.0, name="plant", form="components")
+        g = rt.Graph([rt.WhiteNoise(1, seed=[4, 5, 6], name="u"), blk], [("u.out", "plant.u")], batch_size=3)
+        g.engine = engine
+        return g, g.run(300, record={"u": "u.out", "y": "plant.y"})
+
+    tried = []
+    real = compiled._compile
+
+    def recording(*args):
+        result = real(*args)
+        tried.append((str(args[6]).endswith(" tuples"), isinstance(result, str)))
+        return result
+    monkeypatch.setattr(compiled, "_compile", recording)
+    for fn in (f, g_mixed):
+        tried.clear()
+        g, rec = run(fn, "auto")
+        # f: compiled returning tuples at once; g_mixed: that fails, then compiled as it is
+        assert tried[0] == (True, fn is g_mixed) and tried[-1] == (fn is f, False), (fn.__name__, tried)
+        assert g.native_status() is None and g.ran_engine == "native", fn.__name__
+        _, rect = run(fn, "torch")
+        assert torch.allclose(rec["y"], rect["y"], rtol=1e-13, atol=1e-14), fn.__name__
+    # the written-out map, with NumPy over the batch
+    u = run(f, "auto")[1]["u"][:, :, 0].numpy()
+    x, y = np.zeros((3, 2)), []
+    for k in range(u.shape[0]):
+        y.append(x[:, 0] + x[:, 1])
+        x = np.stack((0.9 * x[:, 0] + 0.1 * u[k], 0.8 * x[:, 1] - 0.05 * np.sin(x[:, 0])), 1)
+    assert np.allclose(run(f, "auto")[1]["y"][:, :, 0].numpy(), np.array(y), rtol=1e-13, atol=1e-14)
+
+
 def test_a_components_function_of_the_wrong_size_is_refused_naming_the_block():
     with pytest.raises(rt.DimensionError, match=r"block 'plant': f \(form 'components'\) returned 1 components"):
         rt.Nonlinear(lambda x, ins: (x[1],), lambda x: x[0], 2, inputs=["w"], outputs=["y"], dt=0.1, name="plant",

@@ -28,6 +28,7 @@ does not reproduce the function.
 
 from __future__ import annotations
 
+import dis
 import functools
 import hashlib
 import importlib.util
@@ -159,9 +160,13 @@ def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | st
             source = f"def call({args}):\n    return f(({args},))\n"
             reference: dict = {"f": fn}
             exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
-            result = _compile(lambda module: _numba().njit(module.call), _batch_reference(reference["call"], n_out),
-                              n_in, n_out, source, {"f": _jit(fn), "item": _numba_item()},
-                              None if fp is None else f"components map {n_in} {n_out} {fp}", ("member",))
+            for jf, tag in _member_forms(fn):
+                result = _compile(lambda module: _numba().njit(module.call),
+                                  _batch_reference(reference["call"], n_out), n_in, n_out, source,
+                                  {"f": jf, "item": _numba_item()},
+                                  None if fp is None else f"components map {n_in} {n_out} {fp}{tag}", ("member",))
+                if not isinstance(result, str):
+                    break
         else:
             result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
                               None if fp is None else f"map {n_in} {n_out} {fp}")
@@ -251,9 +256,12 @@ def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuou
         reference: dict = {"f": f, "item": _item}
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
         fp = _fingerprint(f)
-        result = _compile(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
-                          n + m, n, source, {"f": _jit(f), "item": _numba_item()},
-                          None if fp is None else f"member step {fp}", ("member",))
+        for jf, tag in _member_forms(f):
+            result = _compile(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
+                              n + m, n, source, {"f": jf, "item": _numba_item()},
+                              None if fp is None else f"member step {fp}{tag}", ("member",))
+            if not isinstance(result, str):
+                break
         _cache[key] = (f, result)
         return result
 
@@ -299,6 +307,40 @@ def _jit(f):
         return numba.njit(_with_helpers_jitted(f))
     except Exception:
         return f
+
+
+def _member_forms(f):
+    """The compiled forms of a components-form function to try, the faster first, each with the tag its disk
+    cache key carries: ``f`` with the lists it returns built as tuples (``_returning_tuples``), then ``f`` as it
+    is (when that one fails to compile or to reproduce ``f``: a function that also returns a list from
+    elsewhere, say)."""
+    as_tuples = _returning_tuples(f)
+    if as_tuples is not f:
+        yield _jit(as_tuples), " tuples"
+    yield _jit(f), ""
+
+
+_BUILD_LIST, _BUILD_TUPLE, _RETURN = (dis.opmap[name] for name in ("BUILD_LIST", "BUILD_TUPLE", "RETURN_VALUE"))
+
+
+def _returning_tuples(f):
+    """A copy of ``f`` in which each list display that is returned at once (``return [a, b]``) is built as a
+    tuple: the same components, read the same way (``item``), without the heap allocation that numba makes for
+    a list at every call, for every member and step (four times the cost of a small state map). ``f`` itself
+    when it returns no list display."""
+    if not isinstance(f, types.FunctionType):
+        return f
+    code = bytearray(f.__code__.co_code)
+    changed = False
+    for i in range(0, len(code) - 2, 2):                 # instructions are (opcode, argument) byte pairs
+        if code[i] == _BUILD_LIST and code[i + 2] == _RETURN:
+            code[i], changed = _BUILD_TUPLE, True
+    if not changed:
+        return f
+    out = types.FunctionType(f.__code__.replace(co_code=bytes(code)), f.__globals__, f.__name__, f.__defaults__,
+                             f.__closure__)
+    out.__kwdefaults__, out.__qualname__ = f.__kwdefaults__, f.__qualname__
+    return out
 
 
 # torch's functions that a compiled function may call as ``torch.NAME``: their NumPy namesakes (numba compiles

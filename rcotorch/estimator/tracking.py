@@ -50,47 +50,47 @@ def _cusum(n_z: int) -> Callable:
     arithmetic and comparisons times 1.0, which floats, numba and torch tensors all accept. Its settings are
     entries of the state (the ``N_SETTINGS`` after the reference sums, carried unchanged), so one compilation
     serves every setting. The phase counts the steps since the start (from 0) or since the last alarm (from
-    warmup - holdoff, so that the reference window starts holdoff steps after it)."""
-    inv_n = 1.0 / n_z
-    p = N_STATE + n_z
-    size = p + N_SETTINGS
+    warmup - holdoff, so that the reference window starts holdoff steps after it).
 
-    def step(x, ins):
-        z = ins["z"]
-        phase, t = x[PHASE], x[TIME] + 1.0
-        start, armed_at, restart = x[p], x[p + 1], x[p + 2]
-        drift, threshold, inv_window = x[p + 3], x[p + 4], x[p + 5]
-        in_ref = (phase >= start) * (phase < armed_at) * 1.0
-        armed = (phase >= armed_at) * 1.0
-        out = [x[i] for i in range(size)]
-        s = phase * 0.0
-        for i in range(n_z):
-            zi, ref = z[i], x[N_STATE + i]
-            sigma2 = ref * inv_window + (ref <= 0.0) * 1.0          # 1 until the reference window has data
-            s = s + zi * zi / sigma2 * inv_n
-            out[N_STATE + i] = ref + in_ref * zi * zi
-        g = x[G] + s - 1.0 - drift
-        g = armed * g * (g > 0.0)                                    # max(0, g) once armed, else 0
-        alarm = (g > threshold) * 1.0
-        keep = 1.0 - alarm
-        first = x[FIRST]
-        out[PHASE] = (phase + 1.0) * keep + restart * alarm
-        out[TIME] = t
-        out[POWER] = s
-        out[G] = g * keep
-        out[FIRST] = first + (first < 0.0) * alarm * (t - first)
-        out[LAST] = x[LAST] + alarm * (t - x[LAST])
-        out[COUNT] = x[COUNT] + alarm
-        out[PENDING] = x[PENDING] + alarm
-        for i in range(n_z):
-            out[N_STATE + i] = out[N_STATE + i] * keep
-        return out
+    The sums over the channels are written out for this n_z and the new state is returned as one tuple: a list
+    built in compiled code is allocated on the heap for every member and step, which cost the detector more
+    than the whole refinement it watches."""
+    p = N_STATE + n_z
+    ref = [f"x[{N_STATE + i}]" for i in range(n_z)]
+    lines = [
+        "def step(x, ins):",
+        "    z = ins['z']",
+        f"    phase, t = x[{PHASE}], x[{TIME}] + 1.0",
+        f"    start, armed_at, restart = x[{p}], x[{p + 1}], x[{p + 2}]",
+        f"    drift, threshold, inv_window = x[{p + 3}], x[{p + 4}], x[{p + 5}]",
+        "    in_ref = (phase >= start) * (phase < armed_at) * 1.0",
+        "    armed = (phase >= armed_at) * 1.0",
+        "    s = phase * 0.0",
+    ]
+    # sigma_i^2 is 1 until the reference window has data
+    lines += [f"    s = s + z[{i}] * z[{i}] / ({r} * inv_window + ({r} <= 0.0) * 1.0) * {1.0 / n_z!r}"
+              for i, r in enumerate(ref)]
+    lines += [
+        f"    g = x[{G}] + s - 1.0 - drift",
+        "    g = armed * g * (g > 0.0)",                                 # max(0, g) once armed, else 0
+        "    alarm = (g > threshold) * 1.0",
+        "    keep = 1.0 - alarm",
+        f"    first = x[{FIRST}]",
+        "    return ((phase + 1.0) * keep + restart * alarm, t, s, g * keep,",
+        f"            first + (first < 0.0) * alarm * (t - first), x[{LAST}] + alarm * (t - x[{LAST}]),",
+        f"            x[{COUNT}] + alarm, x[{PENDING}] + alarm,",
+    ]
+    lines += [f"            ({r} + in_ref * z[{i}] * z[{i}]) * keep," for i, r in enumerate(ref)]
+    lines.append("            " + " ".join(f"x[{p + j}]," for j in range(N_SETTINGS)) + ")")
+    namespace: dict = {"__name__": __name__}
+    exec(compile("\n".join(lines) + "\n", f"<rcotorch CUSUM of {n_z} channels>", "exec"), namespace)
+    step = namespace["step"]
+    step.__qualname__ = f"_cusum.step_{n_z}"
     return step
 
 
 def _statistic(x):
     return x[G]
-
 
 
 class ChangeDetector(Nonlinear):
