@@ -1,6 +1,7 @@
 """Shared models for the rcotorch tests."""
 
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -55,6 +56,13 @@ def zoh_first_order():
         return rt.LTI.from_control(control.tf([10.0], [1.0, 2.0]), inputs=["in"], outputs=["out"], dt=dt)
 
     return make
+
+
+def default_signals() -> None:
+    """Give a subprocess the default SIGINT, SIGTERM and SIGHUP (``preexec_fn``): a test run started under nohup or
+    in the background of a shell inherits them ignored, and a run leaves an ignored signal ignored."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
 
 
 def wait_for(predicate, timeout: float = 120.0) -> None:

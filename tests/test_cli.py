@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import wait_for
+from conftest import default_signals, wait_for
 
 import rcotorch
 from rcotorch.run.cli import Session, main
@@ -30,7 +30,7 @@ QUICK = ["--steps", "300", "--quiet", "--no-figures"]
 def _cli(*args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "rcotorch", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, **kw)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=default_signals, **kw)
 
 
 def test_version_and_python_m():
@@ -173,11 +173,15 @@ def test_ctrl_c_saves_a_checkpoint_exits_130_and_the_resume_is_bitwise(tmp_path)
 
 
 def test_a_second_ctrl_c_stops_at_once(capsys):
-    session = Session(["run"])
-    with pytest.raises(KeyboardInterrupt), session.interruptible() as stop:
-        os.kill(os.getpid(), signal.SIGINT)
-        assert stop.is_set()
-        os.kill(os.getpid(), signal.SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)     # as in a terminal, even under nohup
+    try:
+        session = Session(["run"])
+        with pytest.raises(KeyboardInterrupt), session.interruptible() as stop:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert stop.is_set()
+            os.kill(os.getpid(), signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert "Ctrl-C again to quit at once" in capsys.readouterr().err
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import wait_for
+from conftest import default_signals, wait_for
 
 import rcotorch.run.runner
 from rcotorch.errors import OutputError
@@ -33,15 +33,10 @@ QUICK = ["--steps", "300", "--quiet", "--no-figures"]
 ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
 
-def _default_signals() -> None:
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):    # not ignored, as under nohup or `&`
-        signal.signal(sig, signal.SIG_DFL)
-
-
 def _cli(*args) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "rcotorch", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_default_signals)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=default_signals)
 
 
 def _stepping(proc: subprocess.Popen, folder: Path) -> None:
