@@ -29,8 +29,14 @@ QUICK = ["--steps", "300", "--quiet", "--no-figures"]
 
 def _cli(*args, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    then = kw.pop("preexec_fn", None)
+
+    def start():
+        default_signals()
+        if then is not None:
+            then()
     return subprocess.Popen([sys.executable, "-m", "rcotorch", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=default_signals, **kw)
+                            stderr=subprocess.PIPE, text=True, env=env, preexec_fn=start, **kw)
 
 
 def test_version_and_python_m():

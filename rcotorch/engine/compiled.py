@@ -326,8 +326,7 @@ _BUILD_LIST, _BUILD_TUPLE, _RETURN = (dis.opmap[name] for name in ("BUILD_LIST",
 def _returning_tuples(f):
     """A copy of ``f`` in which each list display that is returned at once (``return [a, b]``) is built as a
     tuple: the same components, read the same way (``item``), without the heap allocation that numba makes for
-    a list at every call, for every member and step (four times the cost of a small state map). ``f`` itself
-    when it returns no list display."""
+    a list at every call, for every member and step. ``f`` itself when it returns no list display."""
     if not isinstance(f, types.FunctionType):
         return f
     code = bytearray(f.__code__.co_code)

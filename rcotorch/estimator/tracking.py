@@ -53,8 +53,7 @@ def _cusum(n_z: int) -> Callable:
     warmup - holdoff, so that the reference window starts holdoff steps after it).
 
     The sums over the channels are written out for this n_z and the new state is returned as one tuple: a list
-    built in compiled code is allocated on the heap for every member and step, which cost the detector more
-    than the whole refinement it watches."""
+    built in compiled code would be allocated on the heap for every member and step."""
     p = N_STATE + n_z
     ref = [f"x[{N_STATE + i}]" for i in range(n_z)]
     lines = [
