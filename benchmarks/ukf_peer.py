@@ -22,7 +22,10 @@ Compared: detection delay, false alarms, the largest error over the storeys 50 p
 cost per member-step (rcotorch: the graph's steps with the detector; filterpy: its predict and update; batched:
 one predict and update of all members); and, member by member against the batched filter on the same data, how
 often rcotorch's error is the smaller and bootstrap intervals of the differences of the median and largest
-errors (``compare``). Writes benchmarks/results/ukf_peer.json.
+errors (``compare``). The run goes on past the scenario's end, and the same members are judged again ``--later``
+(63, 75 and 100 periods after the change): rcotorch's estimate keeps re-converging as the known model follows
+the truth again, the filters' stays at the noise level their random walk allows. Writes
+benchmarks/results/ukf_peer.json.
 """
 
 from __future__ import annotations
@@ -52,21 +55,24 @@ def model(sc, s):
     return A, B[:, :1], B[:, 1:], C[:n_y], C[n_y:]
 
 
-def record(sc, s, batch: int):
-    """w (K, B) and y (K, B, n_y) of the scenario's run, the rcotorch estimates at the end, its detection steps, and
-    its cost per member-step."""
+def record(sc, s, batch: int, marks: list[int]):
+    """w (K, B) and y (K, B, n_y) of the scenario's run to the last of ``marks`` (steps, increasing), the rcotorch
+    estimates (B, 3) at each mark, its detection steps, and its cost per member-step."""
     g = sc.build(sc.resolve({**VELOCITY, "nu": s["nu"], "seed": s["seed"]}), batch, torch.float64, "cpu")
-    K = sc.steps
+    K = marks[-1]
     w_sig, y_sig = g.role_signal("exogenous"), g.role_signal("measured")
     w = torch.zeros(K, batch, 1, dtype=torch.float64)
     y = torch.zeros(K, batch, len(str(s["measured"]).split(",")), dtype=torch.float64)
-    t = time.perf_counter()
-    g.advance(K, record={w_sig: w, y_sig: y})
-    seconds = time.perf_counter() - t
-    est = sc.estimates(g, s)
-    dk = torch.stack([est[f"dk{j}"] for j in (1, 2, 3)], 1)
-    return w[:, :, 0].numpy(), y.numpy(), dk.numpy(), g.blocks["detector"].first_alarm().numpy(), \
-        seconds / (K * batch), g.ran_engine
+    dk, done, seconds = [], 0, 0.0
+    for mark in marks:
+        t = time.perf_counter()
+        g.advance(mark - done, record={w_sig: w[done:mark], y_sig: y[done:mark]})
+        seconds += time.perf_counter() - t
+        done = mark
+        est = sc.estimates(g, s)
+        dk.append(torch.stack([est[f"dk{j}"] for j in (1, 2, 3)], 1).numpy())
+    return w[:, :, 0].numpy(), y.numpy(), dk, g.blocks["detector"].first_alarm().numpy(), seconds / (K * batch), \
+        g.ran_engine
 
 
 def filterpy_run(A, Bw, Bu, Cy, Cd, k, w, y, R):
@@ -186,6 +192,8 @@ def main(argv=None) -> None:
     ap.add_argument("--batch", type=int, default=4096, help="batch of the cost comparison")
     ap.add_argument("--cost-steps", type=int, default=200, help="steps timed at --batch")
     ap.add_argument("--nu", type=int, default=None, help="rcotorch's Markov window (default: the scenario's)")
+    ap.add_argument("--later", default="63,75,100",
+                    help="first-mode periods after the change at which the errors are compared again")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -194,13 +202,16 @@ def main(argv=None) -> None:
     s = sc.resolve(settings)
     T1 = first_period(s)
     kd, judge_step = sc.change_step(s), sc.steps
+    later = [float(p) for p in args.later.split(",") if p]
+    marks = [judge_step] + [kd + round(p * T1 / s["Ts"]) for p in later]
     settle = int(s["warmup"] + s["window"])           # the filters' estimates count from where the detector arms
     truth = np.zeros(3)
     truth[int(s["storey"]) - 1] = s["change"]
     A, Bw, Bu, Cy, Cd = model(sc, s)
     R = np.eye(Cy.shape[0]) * s["noise"] ** 2
-    w, y, dk, first_rco, cost_rco, engine = record(sc, s, args.members)
-    err_rco = np.abs(dk - truth).max(1)
+    w, y, dks, first_rco, cost_rco, engine = record(sc, s, args.members, marks)
+    errs_rco = [np.abs(dk - truth).max(1) for dk in dks]
+    err_rco = errs_rco[0]
     results = [summary(f"rcotorch ({engine})", first_rco, err_rco, kd, T1, cost_rco, args.members)]
     traj, cost_b = batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w, y, R)
     first_ukf, err_ukf = judge(traj, kd, judge_step, truth, settle)
@@ -212,9 +223,21 @@ def main(argv=None) -> None:
         tr, c = filterpy_run(A, Bw, Bu, Cy, Cd, s["k"], w[:, b], y[:, b], R)
         trajs.append(tr)
         costs.append(c)
-    results.append(summary("UKF filterpy (one member at a time)",
-                           *judge(np.stack(trajs, 1), kd, judge_step, truth, settle), kd, T1, float(np.median(costs)),
-                           m))
+    traj_fp = np.stack(trajs, 1)
+    results.append(summary("UKF filterpy (one member at a time)", *judge(traj_fp, kd, judge_step, truth, settle), kd,
+                           T1, float(np.median(costs)), m))
+    # The same members judged again later: rcotorch's re-convergence against the filters' noise floors.
+    after = []
+    for mark, e_rco in zip(marks, errs_rco):
+        periods = (mark - kd) * s["Ts"] / T1
+        e_ukf = np.abs(traj[mark - 1] - truth).max(1)
+        e_fp = np.abs(traj_fp[mark - 1] - truth).max(1)
+        after.append({"periods": periods, "step": mark,
+                      "error_median": {"rcotorch": float(np.median(e_rco)), "ukf_batched": float(np.median(e_ukf)),
+                                       "ukf_filterpy": float(np.median(e_fp))},
+                      "error_max": {"rcotorch": float(e_rco.max()), "ukf_batched": float(e_ukf.max()),
+                                    "ukf_filterpy": float(e_fp.max())},
+                      "rcotorch_against_batched_ukf": compare(e_rco, e_ukf)})
     # The cost at a large batch: rcotorch's graph and the batched filter, a few hundred steps each.
     big = sc.build(sc.resolve(settings), args.batch, torch.float64, "cpu")
     big.advance(10)
@@ -240,6 +263,14 @@ def main(argv=None) -> None:
           f"{paired['median_difference_95'][0]:+.5f} .. {paired['median_difference_95'][1]:+.5f}), largest "
           f"{paired['max_difference']:+.5f} ({paired['max_difference_95'][0]:+.5f} .. "
           f"{paired['max_difference_95'][1]:+.5f})")
+    print(table([[f"{a['periods']:.0f}", a["step"], *(f"{a[key][who]:.5f}" for key in ("error_median", "error_max")
+                                                      for who in ("rcotorch", "ukf_batched", "ukf_filterpy")),
+                  f"{a['rcotorch_against_batched_ukf']['median_difference_95'][0]:+.5f} .. "
+                  f"{a['rcotorch_against_batched_ukf']['median_difference_95'][1]:+.5f}",
+                  f"{a['rcotorch_against_batched_ukf']['max_difference_95'][0]:+.5f} .. "
+                  f"{a['rcotorch_against_batched_ukf']['max_difference_95'][1]:+.5f}"] for a in after],
+                ["periods after", "step", "median: rcotorch", "UKF batched", "filterpy", "max: rcotorch", "UKF batched",
+                 "filterpy", "median diff 95%", "max diff 95%"]))
     print(f"cost at B = {args.batch}: rcotorch {cost['rcotorch_us']:.3g} us, batched UKF {cost['ukf_batched_us']:.3g} "
           f"us, filterpy {cost['ukf_filterpy_us']:.3g} us per member-step: filterpy / rcotorch "
           f"{cost['filterpy_over_rcotorch']:.0f}x (goal 1000x), batched / rcotorch "
@@ -247,7 +278,8 @@ def main(argv=None) -> None:
     write_json({"benchmark": "ukf_peer", "machine": machine(torch.device("cpu")), "scenario": NAME,
                 "settings": {"q_theta": Q_THETA, "p0_x": P0_X, "p0_theta": P0_THETA, "alpha": ALPHA, "beta": BETA,
                              "kappa": KAPPA, "move": MOVE},
-                "results": results, "rcotorch_against_batched_ukf": paired, "cost": cost}, "ukf_peer", args.out)
+                "results": results, "rcotorch_against_batched_ukf": paired, "after": after, "cost": cost},
+               "ukf_peer", args.out)
 
 
 if __name__ == "__main__":

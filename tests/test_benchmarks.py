@@ -161,7 +161,7 @@ def test_the_batched_unscented_filter_is_filterpys():
     s = sc.resolve(ukf_peer.VELOCITY)
     A, Bw, Bu, Cy, Cd = ukf_peer.model(sc, s)
     R = np.eye(Cy.shape[0]) * s["noise"] ** 2
-    w, y = ukf_peer.record(sc, s, 2)[:2]
+    w, y = ukf_peer.record(sc, s, 2, [sc.steps])[:2]
     steps = 600
     batched = ukf_peer.batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w[:steps], y[:steps], R)[0]
     for b in range(2):

@@ -75,6 +75,7 @@ def _cusum(n_z: int) -> Callable:
         "    alarm = (g > threshold) * 1.0",
         "    keep = 1.0 - alarm",
         f"    first = x[{FIRST}]",
+        # the new state in its order: PHASE, TIME, POWER, G, FIRST, LAST, COUNT, PENDING, the sums, the settings
         "    return ((phase + 1.0) * keep + restart * alarm, t, s, g * keep,",
         f"            first + (first < 0.0) * alarm * (t - first), x[{LAST}] + alarm * (t - x[{LAST}]),",
         f"            x[{COUNT}] + alarm, x[{PENDING}] + alarm,",
