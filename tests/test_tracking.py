@@ -10,6 +10,7 @@ import rcotorch as rt
 from rcotorch.engine import kernels
 from rcotorch.estimator.tracking import FIRST, LAST, PENDING, G
 from rcotorch.run.runner import Run
+from rcotorch.run.scenario import Requirement
 
 needs_native = pytest.mark.skipif(not kernels.available(), reason="the compiled engine is not built")
 
@@ -246,6 +247,24 @@ def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
     assert list(ys) == [0.0, 0.5, 0.5] and xs[1] == pytest.approx(20.0)
     assert lines["change"].get_xdata()[0] == pytest.approx(20.0)
     assert lines["detector: first alarm"].get_xdata()[0] == pytest.approx(first[0] * 0.01)
+
+
+def test_a_run_that_ends_before_a_change_is_judged_against_the_truth_before_it(tmp_path):
+    """A truth history whose change (20 s, step 2000) comes after the run's end: summary.json's truth, the
+    requirement and the figures' final truth are the value before the change (0), not the final one (0.5); a
+    run past the change is judged against 0.5."""
+    est = {"dK": lambda gr: -gr.role("estimator").theta[:, 0, 0]}
+    for steps, truth in ((1500, 0.0), (2600, 0.5)):
+        result = rt.refine(_stiffness_change_graph(), steps, est, truth_history={"dK": [(0.0, 0.0), (20.0, 0.5)]},
+                           scales={"dK": 1.0}, requirements=[Requirement("estimates.dK", "abs_err", 0.1)],
+                           out=tmp_path / f"run{steps}", intervals=False, validation=False, progress=False)
+        assert result.summary["truth"] == {"dK": truth}
+        values = result.summary["estimates"]["dK"]
+        check = result.summary["requirements"]["estimates.dK"]
+        assert check["value"] == pytest.approx([abs(v - truth) for v in values])
+        assert result.run.truth_now() == {"dK": truth} and result.run.truth == {"dK": 0.5}
+        if steps == 1500:                    # it tracked 0 before the change: the requirement holds against 0
+            assert check["pass"] and max(abs(v) for v in values) < 0.1
 
 
 def test_a_truth_history_that_disagrees_with_the_truth_is_refused():

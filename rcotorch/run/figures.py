@@ -290,7 +290,7 @@ def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> Non
         for b, line in zip(members, lines):
             if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
                 ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
-    truth = run.truth.get(key)
+    truth = (run.truth_now() if hasattr(run, "truth_now") else run.truth).get(key)
     if truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
         for tv in np.unique(values[np.isfinite(values)])[:MAX_LINES]:

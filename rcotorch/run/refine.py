@@ -232,8 +232,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     truth_history : {name: [(time, value), ...]}, optional
         A truth that changes during the run (a simulated fault): the value from each time on, in time order
         (seconds where the graph has a sample time, else steps), e.g. ``{'dk2': [(0, 0.0), (60, -0.2)]}``. Its
-        last value is the truth at the end; TensorBoard and the figures draw it as it was at each time and mark
-        each change (and each change detector's alarms).
+        last value is its ``truth``; the summary and the requirements take the value at the run's end (a run
+        that stops before a change is judged against the value before it); TensorBoard and the figures draw it
+        as it was at each time and mark each change (and each change detector's alarms).
 
     Returns
     -------

@@ -509,7 +509,7 @@ class Run:
             ("torch" if self.graph.native_status() else "native"),
             "engine_reason": self.graph.engine_reason if self.graph.ran_engine else self.graph.native_status(),
             "estimates": {k: self._values(v) for k, v in est.items()},
-            "truth": self.truth, "metrics": {k: self._values(v) for k, v in met.items()},
+            "truth": self.truth_now(), "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
             "warnings": tuning_warnings(self.graph),
@@ -577,14 +577,26 @@ class Run:
     def _values(self, t: torch.Tensor):
         return self._plain(finite_list(t.reshape(self.batch)))
 
+    def truth_now(self) -> dict[str, Any]:
+        """The truths at the run's current step: a truth that changes during the run (``truth_history``) at its
+        value then (a run that ends before a change is judged against the truth before it), the others as
+        given. The history's times are in the known model's sample time (seconds), else in steps."""
+        if not self.truth_history:
+            return dict(self.truth)
+        known = self.graph.role("known") if "known" in self.graph.roles else None
+        dt = float(known.dt) if known is not None and getattr(known, "dt", None) else 1.0
+        return {k: scenarios.truth_at(self.truth_history[k], self.k * dt) if k in self.truth_history else v
+                for k, v in self.truth.items()}
+
     def _requirements(self, est: dict[str, torch.Tensor], met: dict[str, torch.Tensor]) -> dict[str, Any]:
         checks = {}
+        truths = self.truth_now()
         for req in self.scenario.requirements:
             group, key = req.key.split(".", 1)
             t = (est if group == "estimates" else met).get(key)
             if t is None:
                 continue
-            truth = self.truth.get(key)
+            truth = truths.get(key)
             q, ok = req.check(t.reshape(-1).to(torch.float64),
                               None if truth is None else torch.tensor(member_truth(truth, self.batch),
                                                                       dtype=torch.float64))

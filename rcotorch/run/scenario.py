@@ -223,8 +223,8 @@ class Scenario:
     def truth_history(self, settings: Mapping[str, Any]) -> dict[str, list[tuple[float, float]]]:
         """The truths that change during a run: key -> [(time, value from that time on), ...] in time order
         (time in seconds where the graph has a sample time, else in steps), the last value the one ``truth``
-        gives. TensorBoard and the figures draw such a truth as it was at each time and mark its changes. By
-        default nothing changes."""
+        gives. TensorBoard and the figures draw such a truth as it was at each time and mark its changes; the
+        summary and the requirements take its value at the run's end. By default nothing changes."""
         return {}
 
     def estimates(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, torch.Tensor]:
