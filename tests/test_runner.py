@@ -158,6 +158,52 @@ def test_a_checkpoint_of_another_format_is_refused_with_exit_2(tmp_path, capsys)
     assert path.read_bytes() == before
 
 
+def test_a_refined_model_that_fits_worse_than_the_initial_one_is_warned_about():
+    """fit_warnings: a member whose refined fit is more than FIT_WORSE points below the initial model's, on the
+    last window or on held-out data, is named with both fits; one within the margin or better is not."""
+    from rcotorch.run.runner import FIT_WORSE, fit_warnings
+    met = {"fit_percent": torch.tensor([90.0, 50.0, 76.0]), "fit_percent_initial": torch.tensor([80.0, 70.0, 80.0])}
+    assert 80.0 - 76.0 < FIT_WORSE
+    (w,) = fit_warnings(met)
+    assert "over the run's last window in member 1 (fit 50.0 % against 70.0 %)" in w
+    met.update(validation_fit_percent=torch.tensor([10.0, 20.0, 99.0]),
+               validation_fit_percent_initial=torch.tensor([60.0, 60.0, 60.0]))
+    assert "on the held-out data in 2 of 3 members (fit 10.0..20.0 % against 60.0..60.0 %)" in fit_warnings(met)[1]
+    assert fit_warnings({"fit_percent": torch.tensor([90.0]), "fit_percent_initial": torch.tensor([90.0])}) == []
+
+
+def _softening_spring(nu: int):
+    """A mass on a spring (k = 3, c = 0.4, Ts = 0.01 s: a decay time of 5 s) that softens by 0.5 at step 3000,
+    refined with forgetting at 0.997 from its position."""
+    import rcotorch as rt
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.4, 3.0, measured=["position"], sees=["position"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.01, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=100.0, lam=0.997)
+    g = rt.refinement(known, ident, truth=rt.Gain(0.0, name="unknown"), excitation=rt.WhiteNoise(1, seed=[1, 2, 3]),
+                      noise=rt.WhiteNoise(1, std=1e-3, seed=[7, 8, 9]), nu=nu, batch_size=3)
+    g.add_hook(rt.at_step(3000, lambda gr: gr.blocks["unknown"].K.fill_(0.5)))
+    return g
+
+
+def test_a_refinement_that_went_astray_is_told_so_and_a_good_one_is_not(tmp_path):
+    """A Markov window of 0.4 s on a spring whose response lasts 5 s, with forgetting: after the change the
+    adaptation goes astray (theta far below -1 against 0.5) and the refined model fits worse than the initial
+    one; the run says not converged and warns, on the last window and on held-out data. With nu = 100 it finds
+    0.5 (within 0.05 after 30 s) and nothing is said."""
+    import rcotorch as rt
+    est = {"dK": lambda g: g.role("estimator").theta[:, 0, 0]}
+    bad = rt.refine(_softening_spring(40), 6000, est, truth={"dK": 0.5}, scales={"dK": 1.0}, out=tmp_path / "bad",
+                    progress=False)
+    assert max(bad.summary["estimates"]["dK"]) < -1.0
+    assert set(bad.summary["health"]["status"]) == {"not_converged"}
+    worse = [w for w in bad.summary["warnings"] if "fits the data worse than the initial model" in w]
+    assert len(worse) == 2 and "last window in 3 of 3 members" in worse[0] and "held-out data" in worse[1]
+    good = rt.refine(_softening_spring(100), 6000, est, truth={"dK": 0.5}, scales={"dK": 1.0}, out=tmp_path / "good",
+                     progress=False)
+    assert good.summary["estimates"]["dK"] == pytest.approx([0.5] * 3, abs=0.05)   # 30 s after the change
+    assert not any("fits the data worse" in w for w in good.summary["warnings"])
+
+
 def test_no_p0_warning_for_members_that_forget(tmp_path):
     """With lam < 1 P is renewed from the data, so P_ii / p0 says nothing about p0: a run with p0 = 1 and
     lam = 0.98 whose P ends above p0 is not told that p0 is small; with lam = 1 the same p0 is (P stays near p0 I

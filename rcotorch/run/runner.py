@@ -512,7 +512,7 @@ class Run:
             "truth": self.truth_now(), "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
-            "warnings": tuning_warnings(self.graph),
+            "warnings": tuning_warnings(self.graph) + fit_warnings(met),
             "changes": {name: {k: self._values(v.detach().to(torch.float64).cpu()) for k, v in found_.items()}
                         for name, found_ in change_report(self.graph).items()},
             "validation": None if held_out is None else {
@@ -656,6 +656,38 @@ def tuning_warnings(graph) -> list[str]:
     return [f"p0 = {float(p0[members[0], 0]):.3g} is small for the regressors ({where}): the data moved P by less "
             f"than half from p0 I for {', '.join(which)}, so theta stays near its initial value; "
             f"try p0 of about {suggest:.2g}"]
+
+
+FIT_WORSE = 5.0        # percentage points: a refined model this much below the initial model's fit went astray
+
+
+def fit_warnings(met: Mapping[str, torch.Tensor]) -> list[str]:
+    """Members whose refined model fits the data worse than the initial (known) model did: on the run's last
+    window (``fit_percent`` against ``fit_percent_initial``) or on held-out data (``validation_fit_percent``),
+    by more than ``FIT_WORSE`` points. A refinement exists to explain the data better; one that explains it
+    worse went astray (an unstable adaptation, a Markov window much shorter than the known model's response),
+    whatever its estimates' intervals say."""
+    out = []
+    for what, refined, initial in (("over the run's last window", "fit_percent", "fit_percent_initial"),
+                                   ("on the held-out data", "validation_fit_percent",
+                                    "validation_fit_percent_initial")):
+        if refined not in met or initial not in met:
+            continue
+        r, i = met[refined].to(torch.float64).reshape(-1), met[initial].to(torch.float64).reshape(-1)
+        worse = r < i - FIT_WORSE
+        if not bool(worse.any()):
+            continue
+        members = worse.nonzero().flatten().tolist()
+        where = f"member {members[0]}" if len(members) == 1 else f"{len(members)} of {len(r)} members"
+        out.append(f"the refined model fits the data worse than the initial model {what} in {where} (fit "
+                   f"{_span(r[worse])} % against {_span(i[worse])} %): the refinement went astray there; a longer "
+                   f"Markov window (nu), forgetting nearer 1 or a smaller p0 may help")
+    return out
+
+
+def _span(t: torch.Tensor) -> str:
+    """A value, or the range of several, in percent with one decimal."""
+    return f"{float(t.min()):.1f}" if len(t) == 1 else f"{float(t.min()):.1f}..{float(t.max()):.1f}"
 
 
 def residual_metrics(res: ci.Residuals) -> dict[str, torch.Tensor]:
