@@ -172,6 +172,31 @@ def test_a_refined_model_that_fits_worse_than_the_initial_one_is_warned_about():
     assert fit_warnings({"fit_percent": torch.tensor([90.0]), "fit_percent_initial": torch.tensor([90.0])}) == []
 
 
+def test_a_member_whose_refined_model_fits_worse_is_not_converged(tmp_path, monkeypatch):
+    """The fault reproduced: member 0's refined fit over the last window made 10 points worse than its initial
+    model's. That member is not_converged (it was converged), flagged in health.fits_worse and warned about;
+    member 1 keeps its status."""
+    import rcotorch.run.runner as runner
+    real = runner.residual_metrics
+
+    def lowered(res):
+        out = real(res)
+        out["fit_percent"] = out["fit_percent"].clone()
+        out["fit_percent"][0] = out["fit_percent_initial"][0] - 10.0
+        return out
+    honest = Run("sdof-stiffness", batch=2, out=tmp_path / "a", validation=False)
+    honest.advance(progress=False)
+    assert honest.summary()["health"]["status"] == ["converged", "converged"]
+    monkeypatch.setattr(runner, "residual_metrics", lowered)
+    run = Run("sdof-stiffness", batch=2, out=tmp_path / "b", validation=False)
+    run.advance(progress=False)
+    summary = run.summary()
+    assert summary["health"]["status"] == ["not_converged", "converged"]
+    assert summary["health"]["fits_worse"] == [True, False]
+    assert any("worse than the initial model over the run's last window in member 0" in w
+               for w in summary["warnings"])
+
+
 def _softening_spring(nu: int):
     """A mass on a spring (k = 3, c = 0.4, Ts = 0.01 s: a decay time of 5 s) that softens by 0.5 at step 3000,
     refined with forgetting at 0.997 from its position."""

@@ -491,7 +491,15 @@ class Run:
             determined = found.determined.to(converged.device) & converged   # a member still moving is not
             verdict["status"] = torch.where(converged & ~determined, STATUSES.index("undetermined"),
                                             verdict["status"])
+        worse = fits_worse(met)
+        if worse is not None:
+            worse = worse.to(verdict["status"].device)
+            trusted = (verdict["status"] == STATUSES.index("converged")) | \
+                (verdict["status"] == STATUSES.index("undetermined"))
+            verdict["status"] = torch.where(worse & trusted, STATUSES.index("not_converged"), verdict["status"])
         health = self.health.report(verdict)
+        if worse is not None:
+            health["fits_worse"] = self._plain(worse.tolist())
         if found is not None:
             health["determined"] = self._plain(determined.tolist())
             health["change_explained"] = self._plain(explained.tolist())
@@ -659,18 +667,29 @@ def tuning_warnings(graph) -> list[str]:
 
 
 FIT_WORSE = 5.0        # percentage points: a refined model this much below the initial model's fit went astray
+_FITS = (("over the run's last window", "fit_percent", "fit_percent_initial"),
+         ("on the held-out data", "validation_fit_percent", "validation_fit_percent_initial"))
+
+
+def fits_worse(met: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+    """(B,) bool: the members whose refined model fits the data worse than the initial (known) model did, on the
+    run's last window (``fit_percent`` against ``fit_percent_initial``) or on held-out data
+    (``validation_fit_percent``), by more than ``FIT_WORSE`` points; None where no fit was computed. A
+    refinement exists to explain the data better; one that explains it worse went astray (an unstable
+    adaptation, a Markov window much shorter than the known model's response), whatever its estimates'
+    intervals say, so such a member is not ``converged``."""
+    out = None
+    for _, refined, initial in _FITS:
+        if refined in met and initial in met:
+            worse = met[refined].to(torch.float64).reshape(-1) < met[initial].to(torch.float64).reshape(-1) - FIT_WORSE
+            out = worse if out is None else out | worse
+    return out
 
 
 def fit_warnings(met: Mapping[str, torch.Tensor]) -> list[str]:
-    """Members whose refined model fits the data worse than the initial (known) model did: on the run's last
-    window (``fit_percent`` against ``fit_percent_initial``) or on held-out data (``validation_fit_percent``),
-    by more than ``FIT_WORSE`` points. A refinement exists to explain the data better; one that explains it
-    worse went astray (an unstable adaptation, a Markov window much shorter than the known model's response),
-    whatever its estimates' intervals say."""
+    """The warnings for ``fits_worse``: for each fit, the members below the initial model's and both fits."""
     out = []
-    for what, refined, initial in (("over the run's last window", "fit_percent", "fit_percent_initial"),
-                                   ("on the held-out data", "validation_fit_percent",
-                                    "validation_fit_percent_initial")):
+    for what, refined, initial in _FITS:
         if refined not in met or initial not in met:
             continue
         r, i = met[refined].to(torch.float64).reshape(-1), met[initial].to(torch.float64).reshape(-1)
