@@ -681,8 +681,8 @@ def fits_worse(met: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
     out = None
     for _, refined, initial in _FITS:
         if refined in met and initial in met:
-            worse = met[refined].to(torch.float64).reshape(-1) < met[initial].to(torch.float64).reshape(-1) - FIT_WORSE
-            out = worse if out is None else out | worse
+            r, i = (met[key].detach().to(torch.float64).cpu().reshape(-1) for key in (refined, initial))
+            out = r < i - FIT_WORSE if out is None else out | (r < i - FIT_WORSE)
     return out
 
 
@@ -692,7 +692,7 @@ def fit_warnings(met: Mapping[str, torch.Tensor]) -> list[str]:
     for what, refined, initial in _FITS:
         if refined not in met or initial not in met:
             continue
-        r, i = met[refined].to(torch.float64).reshape(-1), met[initial].to(torch.float64).reshape(-1)
+        r, i = (met[key].detach().to(torch.float64).cpu().reshape(-1) for key in (refined, initial))
         worse = r < i - FIT_WORSE
         if not bool(worse.any()):
             continue
