@@ -671,6 +671,15 @@ _FITS = (("over the run's last window", "fit_percent", "fit_percent_initial"),
          ("on the held-out data", "validation_fit_percent", "validation_fit_percent_initial"))
 
 
+def _fit_pairs(met: Mapping[str, torch.Tensor]):
+    """For each fit the run computed: what it is over, the refined and the initial model's fits (B,) and where
+    the refined one is more than ``FIT_WORSE`` points below."""
+    for what, refined, initial in _FITS:
+        if refined in met and initial in met:
+            r, i = (met[key].detach().to(torch.float64).cpu().reshape(-1) for key in (refined, initial))
+            yield what, r, i, r < i - FIT_WORSE
+
+
 def fits_worse(met: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
     """(B,) bool: the members whose refined model fits the data worse than the initial (known) model did, on the
     run's last window (``fit_percent`` against ``fit_percent_initial``) or on held-out data
@@ -679,21 +688,15 @@ def fits_worse(met: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
     adaptation, a Markov window much shorter than the known model's response), whatever its estimates'
     intervals say, so such a member is not ``converged``."""
     out = None
-    for _, refined, initial in _FITS:
-        if refined in met and initial in met:
-            r, i = (met[key].detach().to(torch.float64).cpu().reshape(-1) for key in (refined, initial))
-            out = r < i - FIT_WORSE if out is None else out | (r < i - FIT_WORSE)
+    for _, _, _, worse in _fit_pairs(met):
+        out = worse if out is None else out | worse
     return out
 
 
 def fit_warnings(met: Mapping[str, torch.Tensor]) -> list[str]:
     """The warnings for ``fits_worse``: for each fit, the members below the initial model's and both fits."""
     out = []
-    for what, refined, initial in _FITS:
-        if refined not in met or initial not in met:
-            continue
-        r, i = (met[key].detach().to(torch.float64).cpu().reshape(-1) for key in (refined, initial))
-        worse = r < i - FIT_WORSE
+    for what, r, i, worse in _fit_pairs(met):
         if not bool(worse.any()):
             continue
         members = worse.nonzero().flatten().tolist()
