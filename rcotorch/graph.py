@@ -229,6 +229,13 @@ class Graph(nn.Module):
                               "build the graph with rcotorch.refinement or pass roles= to Graph")
         return self.blocks[self.roles[role]]
 
+    def known_sample_time(self) -> float | None:
+        """The sample time [s] of the block in the ``'known'`` role; None where there is no such block or it has
+        no sample time (times are then counted in steps)."""
+        known = self.blocks[self.roles["known"]] if "known" in self.roles else None
+        dt = getattr(known, "dt", None)
+        return float(dt) if dt else None
+
     def role_signal(self, role: str) -> Signal:
         """The signal that plays a role.
 

@@ -337,10 +337,9 @@ def change_report(graph) -> dict[str, dict[str, torch.Tensor]]:
         and time [s] of its first and last alarm (-1 / NaN: none) and the number of alarms.
     """
     out = {}
-    known = graph.blocks[graph.roles["known"]] if "known" in getattr(graph, "roles", {}) else None
     for name, blk in graph.blocks.items():
         if isinstance(blk, ChangeDetector) and blk.x.shape[0]:
-            dt = blk.sample_time or getattr(known, "dt", None) or 1.0
+            dt = blk.sample_time or graph.known_sample_time() or 1.0
             first, last = blk.x[:, FIRST].round(), blk.x[:, LAST].round()
             nan = torch.full_like(first, math.nan)
             out[name] = {"first_alarm_step": first, "first_alarm_s": torch.where(first >= 0, first * dt, nan),

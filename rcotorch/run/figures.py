@@ -45,7 +45,7 @@ def run_figures(run) -> dict:
     intervals) and the model error: the rms of z over each log interval, and z of the initial model beside the
     refined one's on held-out data (or on the replayed window), with units and legends below the axes."""
     h = run.history
-    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    dt = run.graph.known_sample_time()
     t = np.asarray(h["step"], dtype=float) * (dt or 1.0)
     xlabel = "time [s]" if dt else "step"
     members = list(getattr(run, "history_members", range(MAX_LINES)))
@@ -265,7 +265,7 @@ def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
     alarm of a change detector (``rcotorch.estimator.tracking.change_report``), within the plotted times."""
     if not len(t):
         return
-    dt = run.graph.role("known").dt if "known" in run.graph.roles else None
+    dt = run.graph.known_sample_time()
     changes = sorted({x for pairs in (getattr(run, "truth_history", None) or {}).values() for x, _ in pairs[1:]})
     for i, x in enumerate(c for c in changes if t[0] <= c <= t[-1]):
         ax.axvline(x, **CHANGE_STYLE, label="change" if i == 0 else None)
@@ -290,7 +290,7 @@ def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> Non
         for b, line in zip(members, lines):
             if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
                 ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
-    truth = (run.truth_now() if hasattr(run, "truth_now") else run.truth).get(key)
+    truth = run.truth_now().get(key)
     if truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
         for tv in np.unique(values[np.isfinite(values)])[:MAX_LINES]:

@@ -171,8 +171,7 @@ class Monitor:
         self.z_members = {b: f"members/z rms m{b} [{y_unit or '-'}]" for b in self.traced}
         self.ident = run.graph.role("estimator")
         self.theta_tags = [f"theta/{name}" for name in self.ident.theta_names]
-        known = run.graph.role("known") if "known" in run.graph.roles else None
-        self.dt = float(known.dt) if known is not None and getattr(known, "dt", None) else None
+        self.dt = run.graph.known_sample_time()
         if getattr(run, "tb_origin", None) is None:
             run.tb_origin = time.time() - run.k * (self.dt or 0.0)
         self.origin = float(run.tb_origin)

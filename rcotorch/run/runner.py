@@ -591,8 +591,7 @@ class Run:
         given. The history's times are in the known model's sample time (seconds), else in steps."""
         if not self.truth_history:
             return dict(self.truth)
-        known = self.graph.role("known") if "known" in self.graph.roles else None
-        dt = float(known.dt) if known is not None and getattr(known, "dt", None) else 1.0
+        dt = self.graph.known_sample_time() or 1.0
         return {k: scenarios.truth_at(self.truth_history[k], self.k * dt) if k in self.truth_history else v
                 for k, v in self.truth.items()}
 
