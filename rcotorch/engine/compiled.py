@@ -160,13 +160,9 @@ def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | st
             source = f"def call({args}):\n    return f(({args},))\n"
             reference: dict = {"f": fn}
             exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
-            for jf, tag in _member_forms(fn):
-                result = _compile(lambda module: _numba().njit(module.call),
-                                  _batch_reference(reference["call"], n_out), n_in, n_out, source,
-                                  {"f": jf, "item": _numba_item()},
-                                  None if fp is None else f"components map {n_in} {n_out} {fp}{tag}", ("member",))
-                if not isinstance(result, str):
-                    break
+            result = _compile_member(lambda module: _numba().njit(module.call),
+                                     _batch_reference(reference["call"], n_out), n_in, n_out, source, fn,
+                                     None if fp is None else f"components map {n_in} {n_out} {fp}")
         else:
             result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
                               None if fp is None else f"map {n_in} {n_out} {fp}")
@@ -256,12 +252,8 @@ def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuou
         reference: dict = {"f": f, "item": _item}
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
         fp = _fingerprint(f)
-        for jf, tag in _member_forms(f):
-            result = _compile(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
-                              n + m, n, source, {"f": jf, "item": _numba_item()},
-                              None if fp is None else f"member step {fp}{tag}", ("member",))
-            if not isinstance(result, str):
-                break
+        result = _compile_member(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
+                                 n + m, n, source, f, None if fp is None else f"member step {fp}")
         _cache[key] = (f, result)
         return result
 
@@ -309,15 +301,18 @@ def _jit(f):
         return f
 
 
-def _member_forms(f):
-    """The compiled forms of a components-form function to try, the faster first, each with the tag its disk
-    cache key carries: ``f`` with the lists it returns built as tuples (``_returning_tuples``), then ``f`` as it
-    is (when that one fails to compile or to reproduce ``f``: a function that also returns a list from
-    elsewhere, say)."""
+def _compile_member(entry, reference, n_in: int, n_out: int, source: str, f, key: str | None) -> Compiled | str:
+    """``_compile`` of the member-by-member wrapper of a components-form ``f``, bound as ``f`` (and ``item``) in
+    ``source``: first ``f`` with the lists it returns built as tuples (``_returning_tuples``; its disk cache key
+    says so), then, when that fails to compile or to reproduce ``f`` (a function that also returns a list made
+    elsewhere, say), ``f`` as it is."""
     as_tuples = _returning_tuples(f)
     if as_tuples is not f:
-        yield _jit(as_tuples), " tuples"
-    yield _jit(f), ""
+        result = _compile(entry, reference, n_in, n_out, source, {"f": _jit(as_tuples), "item": _numba_item()},
+                          None if key is None else key + " tuples", ("member",))
+        if not isinstance(result, str):
+            return result
+    return _compile(entry, reference, n_in, n_out, source, {"f": _jit(f), "item": _numba_item()}, key, ("member",))
 
 
 _BUILD_LIST, _BUILD_TUPLE, _RETURN = (dis.opmap[name] for name in ("BUILD_LIST", "BUILD_TUPLE", "RETURN_VALUE"))
