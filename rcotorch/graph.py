@@ -230,8 +230,14 @@ class Graph(nn.Module):
         return self.blocks[self.roles[role]]
 
     def known_sample_time(self) -> float | None:
-        """The sample time [s] of the block in the ``'known'`` role; None where there is no such block or it has
-        no sample time (times are then counted in steps)."""
+        """The sample time of the block in the ``'known'`` role.
+
+        Returns
+        -------
+        float or None
+            Seconds; None where no block has the role or it has no sample time (times are then counted in
+            steps).
+        """
         known = self.blocks[self.roles["known"]] if "known" in self.roles else None
         dt = getattr(known, "dt", None)
         return float(dt) if dt else None
