@@ -231,14 +231,15 @@ def test_batch_members_thread_count_and_call_lengths_are_bitwise_invariant():
         torch.set_num_threads(2)
         big = sc.build(s, len(members), torch.float64, "cpu")
         big.engine = "native"
-        big.advance(300)
+        assert kernels.threads(len(members), 3200) == 2             # enough work for the second thread
+        big.advance(3200)
     finally:
         torch.set_num_threads(threads)
     for b in (0, 17, 20):
         one = sc.build(sc.resolve(members[b]), 1, torch.float64, "cpu")
         one.engine = "native"
-        one.advance(123)
-        one.advance(177)
+        one.advance(1234)
+        one.advance(1966)
         e1, eb = one.blocks["identified"], big.blocks["identified"]
         for key in ("theta", "P", "past", "past_u", "z_r"):
             assert torch.equal(getattr(e1, key)[0], getattr(eb, key)[b]), (b, key)
@@ -303,8 +304,8 @@ def test_one_member_sums_the_markov_filter_before_storing_the_current_row_with_t
     members with infinite samples, each alone and in a batch of 16 lanes (the general order): phi infinite
     while active (member 0 fails there); phi infinite while inactive, that row the oldest of the ring, where
     the current row goes, when the member is active again (member 1 lives on); u infinite from a finite phi
-    (member 2 fails). Each member alone equals its batch member bit for bit; the batch equals the PyTorch
-    engine to rounding."""
+    (member 2 fails); a finite z so large that the step is not finite while S is (member 3 fails). Each member
+    alone equals its batch member bit for bit; the batch equals the PyTorch engine to rounding."""
     T, k1, B = 120, 40, 16
     rng = np.random.default_rng(5)
     data = np.zeros((B, T, 3))
@@ -315,10 +316,13 @@ def test_one_member_sums_the_markov_filter_before_storing_the_current_row_with_t
     data[1, k1, 0] = 1e308
     data[1, k1 - 2:k1 + 7, 2] = 0.0                               # inactive while that row has a weight
     data[2, k1, 0] = 1e306                                        # finite; u = 1000 x 1e307 overflows
+    data[3, :, 0] *= 1e-5                                         # Psi ~ 1e-4, P ~ p0: P Psi ~ 100, S ~ 1
+    data[3, k1, 1] = 1e308                                        # z_R finite, the step P Psi z_R / S not
     theta0 = np.full((B, 1, 1), -0.5)
     theta0[2] = 1e3
     p0 = np.ones(B)
     p0[2] = 1e-30                                                 # member 2's theta stays near 1000
+    p0[3] = 1e6
 
     def build(members):
         src = rt.Recorded(data[members], {"s": 0, "z": 1, "v": 2}, name="data")
@@ -332,11 +336,11 @@ def test_one_member_sums_the_markov_filter_before_storing_the_current_row_with_t
     a.advance(T)
     b.advance(T)
     ea, eb = a.blocks["identified"], b.blocks["identified"]
-    assert eb.alive[:3].tolist() == [False, True, False] and bool(eb.alive[3:].all())
-    assert eb.diverged_at[:3].tolist() == [k1 + 1, -1, k1 + 1] and torch.equal(ea.diverged_at, eb.diverged_at)
+    assert eb.alive[:4].tolist() == [False, True, False, False] and bool(eb.alive[4:].all())
+    assert eb.diverged_at[:4].tolist() == [k1 + 1, -1, k1 + 1, k1] and torch.equal(ea.diverged_at, eb.diverged_at)
     for key in ("theta", "P"):
         np.testing.assert_allclose(getattr(eb, key).numpy(), getattr(ea, key).numpy(), rtol=1e-9, atol=1e-12)
-    for m in range(4):
+    for m in range(5):
         one = build([m])
         one.engine = "native"
         one.advance(T)

@@ -97,13 +97,12 @@ def disabled():
 #: Work (members times steps of one call) below which a call runs on one thread: starting and joining the other
 #: threads costs more than they give, most of all on a busy machine.
 PARALLEL_WORK = 1 << 16
-PARALLEL_BATCH = 1024
 
 
 def threads(batch: int | None = None, steps: int = 1) -> int:
     """Threads for a call on ``batch`` members for ``steps`` steps: torch's thread count where the work is
-    large enough to share (``PARALLEL_BATCH`` members and ``PARALLEL_WORK`` member-steps), else one."""
-    if batch is not None and (batch < PARALLEL_BATCH or batch * steps < PARALLEL_WORK):
+    large enough to share (two members or more and ``PARALLEL_WORK`` member-steps), else one."""
+    if batch is not None and (batch < 2 or batch * steps < PARALLEL_WORK):
         return 1
     return max(1, torch.get_num_threads())
 

@@ -270,6 +270,33 @@ static inline ALWAYS void FN(rls)(int64_t n, int64_t nl, double *restrict th,
     double *a = AT(scr, at.a), *step = AT(scr, at.step), *Lm = AT(scr, at.L), *Wm = AT(scr, at.W), *v = AT(scr, at.v);
     double go[VL], si[VL] = {0}; /* si: S^-1 of one row (nl = 1) */
     FN(rls_p_psi)(n, nl, P, psi, a);
+    if (VL == 1 && nl == 1) {
+        /* One member, one row: the step the member takes when it goes, with the checks as predicted branches
+         * (a selection would put them on the path from one step's theta and P to the next). The same
+         * operations as below; a member that does not go takes the general path. */
+        double s = 0.0;
+        for (int64_t i = 0; i < n; i++) s += psi[i] * a[i];
+        const double sv = (lam_one ? rinv[0] : lam[0] * rinv[0]) + s;
+        if (__builtin_expect((sv > 0.0) & (sv < INFINITY) & (active[0] != 0.0), 1)) {
+            const double q = zr[0] / sv;
+            double sum = 0.0;
+            for (int64_t i = 0; i < n; i++) {
+                step[i] = a[i] * q;
+                sum += step[i];
+            }
+            if (__builtin_expect(fabs(sum) < INFINITY, 1)) {
+                const double inv = 1.0 / sv;
+                for (int64_t i = 0; i < n; i++)
+                    for (int64_t j = 0; j < n; j++) {
+                        double p = P[i * n + j] - (a[i] * a[j]) * inv;
+                        P[i * n + j] = lam_one ? p : p / lam[0];
+                    }
+                for (int64_t i = 0; i < n; i++) th[i] -= step[i];
+                ok[0] = 1.0;
+                return;
+            }
+        }
+    }
     if (nl == 1) {
         FN(rls_gain_row)(n, a, step, psi, zr, lam, lam_one, rinv, active, ok, go, si);
         Wm = a;
