@@ -8,6 +8,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 import rcotorch as rt
+from rcotorch.engine import kernels
 
 A = np.array([[0.9, 0.2, 0.0], [-0.1, 0.8, 0.1], [0.0, 0.05, 0.7]])
 B = np.array([[0.0, 1.0], [1.0, 0.5], [0.3, 0.0]])
@@ -122,3 +123,101 @@ def test_markov_refresh_linearizes_at_the_inputs_received():
     assert refresh()
     # H_i = C A^(i-1) B with A = 0.5, B = w = 3: beta_1 = -3
     assert ident.beta[0, 0, 0, 0].item() == pytest.approx(-3.0)
+
+
+def numpy_linear_block(form):
+    """The linear map of ``linear_block`` written with NumPy (so it compiles), in either form."""
+    if form == "components":
+        def f(x, s):
+            w, u = s["w"][0], s["u"][0]
+            return (A[0, 0] * x[0] + A[0, 1] * x[1] + A[0, 2] * x[2] + B[0, 0] * w + B[0, 1] * u,
+                    A[1, 0] * x[0] + A[1, 1] * x[1] + A[1, 2] * x[2] + B[1, 0] * w + B[1, 1] * u,
+                    A[2, 0] * x[0] + A[2, 1] * x[1] + A[2, 2] * x[2] + B[2, 0] * w + B[2, 1] * u)
+        return rt.Nonlinear(f, lambda x: C[0, 0] * x[0] + C[0, 2] * x[2], 3, ["w", "u"], ["y"], dt=0.1,
+                            x0=[0.3, -0.2, 0.1], name="known", form="components")
+    return rt.Nonlinear(lambda x, s: x @ A.T + np.concatenate((s["w"], s["u"]), 1) @ B.T, lambda x: x @ C.T, 3,
+                        ["w", "u"], ["y"], dt=0.1, x0=[0.3, -0.2, 0.1], name="known")
+
+
+@pytest.mark.skipif(not kernels.available(), reason="no native engine")
+@pytest.mark.parametrize("form", ["batch", "components"])
+@pytest.mark.parametrize("along", ["trajectory", "point"])
+def test_compiled_finite_differences_of_a_linear_map_are_c_a_b(form, along):
+    """The central differences in the native engine, of f and h compiled (``compiled=True``), give C A^(i-1) B
+    for each input port, as the same differences of the Python functions do."""
+    blk = numpy_linear_block(form)
+    assert blk.compiled_maps() is not None
+    for port, col in (("w", 0), ("u", 1)):
+        H = blk.markov(port, "y", 8, method="fd", along=along, compiled=True)
+        ref = [np.zeros((1, 1))] + [C @ np.linalg.matrix_power(A, i - 1) @ B[:, col:col + 1] for i in range(1, 8)]
+        np.testing.assert_allclose(H[0].numpy(), np.stack(ref), rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(H.numpy(), blk.markov(port, "y", 8, method="fd", along=along).numpy(),
+                                   rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.skipif(not kernels.available(), reason="no native engine")
+def test_compiled_finite_differences_of_a_nonlinear_map_with_wide_ports_equal_pythons():
+    """Three states, an input port of width 2 after one of width 1, two output ports (one of width 2), members
+    at states of their own: the differences in the native engine equal those of the Python functions to
+    rounding, along the free motion and at the point."""
+    def f(x, s):
+        q, v, r = x
+        return (v, -9.81 * np.sin(q) + s["w"][0] + 2.0 * s["u"][0] - 0.3 * s["u"][1] * r,
+                -r + s["u"][1] + q * v)
+
+    blk = rt.Nonlinear(f, lambda x: (x[0], x[1] * x[2], np.cos(x[2])), 3, inputs={"w": 1, "u": 2},
+                       outputs={"y": 1, "y0": 2}, dt=0.01, continuous=True, substeps=2, form="components",
+                       x0=[0.3, -0.2, 0.5])
+    blk.reset(5)
+    g = torch.Generator().manual_seed(1)
+    blk.set_state(x=torch.randn(5, 3, dtype=torch.float64, generator=g))
+    held = {"w": torch.randn(5, 1, dtype=torch.float64, generator=g),
+            "u": torch.randn(5, 2, dtype=torch.float64, generator=g)}
+    for along in ("trajectory", "point"):
+        for port, out in (("u", "y0"), ("u", "y"), ("w", "y0")):
+            want = blk.markov(port, out, 40, inputs=held, method="fd", along=along)
+            got = blk.markov(port, out, 40, inputs=held, method="fd", along=along, compiled=True)
+            assert got.shape == want.shape and float(want.abs().max()) > 1e-3
+            np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=1e-9, atol=1e-12 * float(want.abs().max()))
+
+
+@pytest.mark.skipif(not kernels.available(), reason="no native engine")
+def test_markov_refresh_on_the_native_engine_calls_no_python(monkeypatch):
+    """A NumPy known model refreshed every 50 steps on the native engine: after the compilation's checks, its
+    Python functions are not called (the steps and the linearizations run compiled), and the refreshed beta
+    equals the PyTorch engine's to rounding."""
+    from rcotorch.blocks import nonlinear
+
+    calls = [0]
+
+    def counted(fn, *args):
+        calls[0] += 1
+        return call_user(fn, *args)
+
+    call_user = nonlinear.call_user
+    monkeypatch.setattr(nonlinear, "call_user", counted)
+
+    def f(x, s):
+        q, v = x
+        return v, -4.0 * np.sin(q) - 0.2 * v + s["w"][0] + s["u"][0]
+
+    def build():
+        known = rt.Nonlinear(f, lambda x: (x[0], x[1]), 2, inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.02,
+                             continuous=True, substeps=2, form="components", name="known")
+        ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=10.0)
+        g = rt.refinement(known, ident, truth=rt.Gain([[-0.5]]), excitation=rt.WhiteNoise(1, seed=[1, 2]), nu=40,
+                          batch_size=2)
+        g.add_hook(rt.MarkovRefresh(g, 50))
+        return g
+
+    a, b = build(), build()
+    a.engine, b.engine = "torch", "native"
+    a.advance(300)
+    assert calls[0] > 300                           # the PyTorch engine calls f from Python
+    b.advance(1)                                    # compiles
+    calls[0] = 0
+    b.advance(299)
+    assert calls[0] == 0
+    ea, eb = a.role("estimator"), b.role("estimator")
+    assert float(eb.beta.abs().max()) > 1e-4 and not torch.equal(eb.beta[:, 0], eb.beta[:, 5])
+    np.testing.assert_allclose(eb.beta.numpy(), ea.beta.numpy(), rtol=1e-7, atol=1e-12)

@@ -32,12 +32,14 @@ linearized by central differences.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Mapping
 
 import torch
 from torch.autograd.functional import jvp
 
-from ..engine.compiled import call_user, components
+from ..engine import kernels
+from ..engine.compiled import Compiled, call_user, components
 from ..errors import ConfigError, DimensionError
 from .base import DEFAULT_DTYPE, Block, tensor_result
 
@@ -260,9 +262,24 @@ class Nonlinear(Block):
                 self._differentiable = False
         return self._differentiable
 
+    def compiled_maps(self) -> tuple[Compiled, Compiled] | None:
+        """The step map and h compiled as the native engine runs them (``rcotorch.engine.compiled``), or None
+        where either does not compile (the reason is the native engine's to give).
+
+        Returns
+        -------
+        tuple of (Compiled, Compiled) or None
+            The step map, [x, inputs in port order] -> x(k+1), and h.
+        """
+        from ..engine.compiled import compile_map, compile_step
+        n, n_out = self.n_states, sum(self.outputs.values())
+        c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form)
+        h = compile_map(self.h, n, n_out, self.form)
+        return None if isinstance(c, str) or isinstance(h, str) else (c, h)
+
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
                inputs: Mapping[str, torch.Tensor] | None = None, method: str = "auto",
-               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
+               along: str = "trajectory", eps: float = 1e-6, compiled: bool = False) -> torch.Tensor:
         """Markov parameters H_0..H_(n-1) of ``input -> output``, linearized at a state.
 
         ``along='trajectory'`` linearizes along the free motion from x (H_i = C_i A_(i-1) .. A_1 B_0);
@@ -288,6 +305,10 @@ class Nonlinear(Block):
             Linearize along the free motion from x, or at the fixed point x.
         eps : float, optional
             The relative step of the central differences.
+        compiled : bool, optional
+            With 'fd' on float64 CPU tensors and the native engine at hand, the same differences in the native
+            engine, of f and h compiled as it runs them (``compiled_maps``; the Python functions where they do
+            not compile): the same derivatives to rounding, without Python in the loop.
 
         Returns
         -------
@@ -316,6 +337,10 @@ class Nonlinear(Block):
         xs = x.repeat(W, 1)
         stacked = {p: v.repeat(W, 1) for p, v in ins.items()}
         direction = torch.eye(W, dtype=x.dtype, device=x.device).repeat_interleave(B, 0)
+        # Central differences evaluate a function at the point and on both sides of it in one call: the rows
+        # three times over (each row's value does not depend on the others).
+        copies = 1 if method == "autograd" else 3
+        xs_c, stacked_c = xs.repeat(copies, 1), {p: v.repeat(copies, 1) for p, v in stacked.items()}
 
         def tangent(fun, at, v):
             if method == "autograd":
@@ -324,16 +349,26 @@ class Nonlinear(Block):
                 value, jv = jvp(fun, at, v)
                 return value.detach(), jv.detach()
             with torch.no_grad():
-                scale = eps * max(1.0, float(at.abs().max()))
-                return fun(at), (fun(at + scale * v) - fun(at - scale * v)) / (2 * scale)
+                scale, N = eps * max(1.0, float(at.abs().max())), at.shape[0]
+                y = fun(torch.cat([at, at + scale * v, at - scale * v]))
+                return y[:N], (y[N:2 * N] - y[2 * N:]) / (2 * scale)
 
+        if compiled and method == "fd" and x.device.type == "cpu" and x.dtype == torch.float64 and \
+                kernels.available():
+            maps = self.compiled_maps()
+            if maps is not None:
+                col = sum(w for p, w in itertools.takewhile(lambda pw: pw[0] != input, self.inputs.items()))
+                u = torch.cat([ins[p] for p in self.inputs], 1)
+                return kernels.markov_fd(maps[0].address, maps[1].address, x, u, col, W,
+                                         sum(self.outputs.values()), rows, n, eps, along == "trajectory")
+        step_map, h = self.step_map, self._h
         H = x.new_zeros(B, n, rows.stop - rows.start, W)
-        xi, dx = tangent(lambda uu: self.step_map(xs, {**stacked, input: uu}), stacked[input], direction)
+        xi, dx = tangent(lambda uu: step_map(xs_c, {**stacked_c, input: uu}), stacked[input], direction)
         for i in range(1, n):
             base = xi if along == "trajectory" else xs
-            H[:, i] = tangent(lambda xx: self._h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
+            H[:, i] = tangent(lambda xx: h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
             if i + 1 < n:
-                xn, dx = tangent(lambda xx: self.step_map(xx, stacked), base, dx)
+                xn, dx = tangent(lambda xx: step_map(xx, stacked_c), base, dx)
                 if along == "trajectory":
                     xi = xn
         return H
@@ -400,7 +435,8 @@ class MarkovRefresh:
         g = self.graph
         held = {p: g.last[g.sources[(self.known_name, p)]] for p in self.known.inputs
                 if (self.known_name, p) in g.sources and g.last}
-        H = self.known.markov(self.actuation, self.measured, d + nu, inputs=held, method=self.method)
+        H = self.known.markov(self.actuation, self.measured, d + nu, inputs=held, method=self.method,
+                              compiled=g.native_status() is None)
         self.ident.set_markov(-H[:, d:d + nu], d)
         return True
 

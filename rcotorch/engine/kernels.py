@@ -230,6 +230,19 @@ def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     return out
 
 
+def markov_fd(step: int, h: int, x: torch.Tensor, u: torch.Tensor, col: int, width: int, n_out: int, rows: slice,
+              n: int, eps: float, trajectory: bool) -> torch.Tensor:
+    """Markov parameters (B, n, rows, width) of compiled maps at the addresses ``step`` ([x, u] -> x) and ``h``
+    (x -> n_out values) by central differences (``Nonlinear.markov``): input columns col .. col + width - 1 of
+    u, output rows ``rows``, at x (B, n_x) with the inputs held at u (B, m), along the free motion or at x."""
+    x, u = x.detach().to(torch.float64).contiguous(), u.detach().to(torch.float64).contiguous()
+    B, nx = x.shape
+    H = torch.empty(B, n, rows.stop - rows.start, width, dtype=torch.float64)
+    _engine.markov_fd(step, h, B, nx, u.shape[1], col, width, n_out, rows.start, rows.stop, n, float(eps),
+                      int(bool(trajectory)), x.data_ptr(), u.data_ptr(), H.data_ptr())
+    return H
+
+
 _HUGE = 2 << 20              # the huge page size of x86-64 and arm64 Linux
 _MADV_HUGEPAGE = 14
 

@@ -566,9 +566,10 @@ class ColumnBlock(Nonlinear):
 
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
                inputs: Mapping[str, torch.Tensor] | None = None, method: str = "auto",
-               along: str = "trajectory", eps: float = 1e-6) -> torch.Tensor:
-        """``Nonlinear.markov``: by the native code where it may run (``native_here``) and the output is an
-        ``Observation``, else with torch on one intra-op thread for small columns (see ``few_threads``)."""
+               along: str = "trajectory", eps: float = 1e-6, compiled: bool = False) -> torch.Tensor:
+        """``Nonlinear.markov``: by the column's own native code where it may run (``native_here``) and the output
+        is an ``Observation``, else with torch on one intra-op thread for small columns (see ``few_threads``);
+        ``compiled`` changes nothing (the column is not compiled from its Python functions)."""
         obs = self.observations.get(output)
         if isinstance(obs, Observation) and input in self.inputs and method in ("auto", "autograd", "fd") and \
                 along in ("trajectory", "point") and native_here(self.x0.dtype, self.x0.device):

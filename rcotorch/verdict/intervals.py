@@ -174,10 +174,10 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     size = eta.abs().amax(1, keepdim=True).expand(B, n)
     size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
     eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))            # (B, n)
-    # The base copy steps here, one step at a time, for its regressors; its outputs, and those of the copies
-    # with each parameter moved and with the initial theta, are recorded over the whole replay by ``advance``
-    # (the native engine where the graph has one), the same engine for all of them.
-    base, base_est = _frozen_copy(graph, state, eta)
+    # The base copy advances here one step at a time, for its regressors (read from the estimator's state after
+    # each step); its outputs, and those of the copies with each parameter moved and with the initial theta, are
+    # recorded over the whole replay by ``advance``: every copy on the graph's engine (native where it can).
+    base, base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
     theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
     runs = [eta] + [eta + eps[:, j:j + 1] * torch.eye(n, dtype=eta.dtype, device=dev)[j] for j in range(n)]
     runs.append(theta0.index_select(1, est.free_idx.to(theta0.device)))
@@ -234,7 +234,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
 
     with torch.no_grad():
         for k in range(steps):
-            base.step()
+            base.advance(1)
             if k < settle:
                 continue
             psis[held] = base_est.last_regressor().to(f64)

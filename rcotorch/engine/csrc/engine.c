@@ -511,6 +511,100 @@ static PyObject *py_window_gram(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* Markov parameters H_0 .. H_(nh-1) of a compiled discrete map and output function (blocks/nonlinear.py,
+ * Nonlinear.markov with method 'fd'; step: [x, u] (n + m) -> x (n), h: x -> (n_out), each called for L lanes,
+ * slot-major), of the W input columns from col on to output rows r0 .. r1 - 1, by central differences along the
+ * free motion from x (trajectory) or at x, with the inputs held at u: the same operations as that method, whose
+ * rows q = j B + b (direction j, member b) are the lanes here, the point and both sides of it in one call of
+ * 3 NB lanes. x (B, n) and u (B, m) row-major; H (B, nh, r1 - r0, W), H_0 zero. Returns 1 when out of memory. */
+static int markov_fd(rco_fn_t step, rco_fn_t h, int64_t B, int64_t n, int64_t m, int64_t col, int64_t W,
+                     int64_t n_out, int64_t r0, int64_t r1, int64_t nh, double eps, int trajectory, const double *x,
+                     const double *u, double *H) {
+    const int64_t NB = W * B, L = 3 * NB, nr = r1 - r0;
+    double *XU = malloc(sizeof(double) * (size_t)((n + m) * L)), *XN = malloc(sizeof(double) * (size_t)(n * L));
+    double *HO = malloc(sizeof(double) * (size_t)(n_out * L)), *XI = malloc(sizeof(double) * (size_t)(n * NB));
+    double *DX = malloc(sizeof(double) * (size_t)(n * NB));
+    int fail = !XU || !XN || !HO || !XI || !DX;
+    if (!fail) {
+        memset(H, 0, sizeof(double) * (size_t)(B * nh * nr * W));
+        for (int64_t c = 0; c < m; c++) /* the held inputs, and the state x, in each copy */
+            for (int64_t q = 0; q < L; q++) XU[(n + c) * L + q] = u[(q % B) * m + c];
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t q = 0; q < NB; q++) {
+                XI[i * NB + q] = x[(q % B) * n + i];
+                for (int k = 0; k < 3; k++) XU[i * L + k * NB + q] = XI[i * NB + q];
+            }
+        /* the input's tangent: at = u's columns, v = the unit vector of direction j */
+        double big = 1.0;
+        for (int64_t b = 0; b < B; b++)
+            for (int64_t c = 0; c < W; c++)
+                if (fabs(u[b * m + col + c]) > big) big = fabs(u[b * m + col + c]);
+        double s = eps * big;
+        for (int64_t c = 0; c < W; c++)
+            for (int64_t q = 0; q < NB; q++) {
+                double at = u[(q % B) * m + col + c], v = q / B == c ? 1.0 : 0.0;
+                XU[(n + col + c) * L + NB + q] = at + s * v;
+                XU[(n + col + c) * L + 2 * NB + q] = at - s * v;
+            }
+        step(XU, XN, L);
+        for (int64_t c = 0; c < W; c++) /* the inputs held from here on, in every copy */
+            for (int64_t q = NB; q < L; q++) XU[(n + col + c) * L + q] = u[(q % B) * m + col + c];
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t q = 0; q < NB; q++) {
+                DX[i * NB + q] = (XN[i * L + NB + q] - XN[i * L + 2 * NB + q]) / (2 * s);
+                if (trajectory) XI[i * NB + q] = XN[i * L + q];
+            }
+        for (int64_t k = 1; k < nh; k++) {
+            big = 1.0; /* XI holds the point: the free motion, or x */
+            for (int64_t e = 0; e < n * NB; e++)
+                if (fabs(XI[e]) > big) big = fabs(XI[e]);
+            s = eps * big;
+            for (int64_t i = 0; i < n; i++)
+                for (int64_t q = 0; q < NB; q++) {
+                    double p = XI[i * NB + q], d = DX[i * NB + q];
+                    XU[i * L + q] = p;
+                    XU[i * L + NB + q] = p + s * d;
+                    XU[i * L + 2 * NB + q] = p - s * d;
+                }
+            h(XU, HO, L); /* h reads the first n slots: the states */
+            for (int64_t r = r0; r < r1; r++)
+                for (int64_t q = 0; q < NB; q++)
+                    H[(((q % B) * nh + k) * nr + r - r0) * W + q / B] =
+                        (HO[r * L + NB + q] - HO[r * L + 2 * NB + q]) / (2 * s);
+            if (k + 1 < nh) {
+                step(XU, XN, L);
+                for (int64_t i = 0; i < n; i++)
+                    for (int64_t q = 0; q < NB; q++) {
+                        DX[i * NB + q] = (XN[i * L + NB + q] - XN[i * L + 2 * NB + q]) / (2 * s);
+                        if (trajectory) XI[i * NB + q] = XN[i * L + q];
+                    }
+            }
+        }
+    }
+    free(XU);
+    free(XN);
+    free(HO);
+    free(XI);
+    free(DX);
+    return fail;
+}
+
+static PyObject *py_markov_fd(PyObject *self, PyObject *args) {
+    unsigned long long step, h, x, u, H;
+    long long B, n, m, col, W, n_out, r0, r1, nh;
+    double eps;
+    int trajectory, fail;
+    if (!PyArg_ParseTuple(args, "KKLLLLLLLLLdiKKK", &step, &h, &B, &n, &m, &col, &W, &n_out, &r0, &r1, &nh, &eps,
+                          &trajectory, &x, &u, &H))
+        return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    fail = markov_fd((rco_fn_t)ADDR(step), (rco_fn_t)ADDR(h), B, n, m, col, W, n_out, r0, r1, nh, eps, trajectory,
+                     ADDR(x), ADDR(u), ADDR(H));
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
     long long n_u, n_z, n_phi, n, nl;
     if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
@@ -530,6 +624,9 @@ static PyMethodDef METHODS[] = {
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
+    {"markov_fd", py_markov_fd, METH_VARARGS,
+     "markov_fd(step, h, B, n, m, col, W, n_out, r0, r1, nh, eps, trajectory, x, u, H): Markov parameters of "
+     "compiled maps by central differences"},
     {NULL, NULL, 0, NULL},
 };
 
