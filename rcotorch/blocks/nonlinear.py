@@ -299,16 +299,18 @@ class Nonlinear(Block):
             Input port -> its value, (B, width) or (1, width), held during the linearization; zero by default.
         method : {'auto', 'autograd', 'fd'}, optional
             'autograd' (forward-mode Jacobian-vector products through ``step_map`` and ``h``), 'fd' (central
-            differences, step eps relative to the size of x and u) or 'auto' (autograd where f and h are torch
-            functions, else 'fd').
+            differences, step eps relative to the size of x and u) or 'auto' (with ``compiled``, the native
+            central differences where f and h compile; otherwise autograd where f and h are torch functions,
+            else 'fd').
         along : {'trajectory', 'point'}, optional
             Linearize along the free motion from x, or at the fixed point x.
         eps : float, optional
             The relative step of the central differences.
         compiled : bool, optional
-            With 'fd' on float64 CPU tensors and the native engine at hand, the same differences in the native
-            engine, of f and h compiled as it runs them (``compiled_maps``; the Python functions where they do
-            not compile): the same derivatives to rounding, without Python in the loop.
+            With 'fd' or 'auto' on float64 CPU tensors and the native engine at hand, the central differences in
+            the native engine, of f and h compiled as it runs them (``compiled_maps``), without Python in the
+            loop: those of 'fd' to rounding, and within about 1e-9 of autograd's derivatives. Where f or h do not
+            compile, the method as without it.
 
         Returns
         -------
@@ -327,12 +329,20 @@ class Nonlinear(Block):
             raise ConfigError(f"block '{self.name}': method must be 'auto', 'autograd' or 'fd' and along "
                               f"'trajectory' or 'point', got {method!r}, {along!r}")
         x = ((self.x if self.x.shape[0] else self.x0) if x is None else x).detach()
-        if method == "auto":
-            method = "autograd" if self.differentiable() else "fd"
         B, W = x.shape[0], self.inputs[input]
         ins = {p: x.new_zeros(B, w) for p, w in self.inputs.items()}
         ins.update({p: v.detach().to(x).expand(B, -1) for p, v in dict(inputs or {}).items()})
         rows = self._out_slices[output]
+        if compiled and method in ("auto", "fd") and x.device.type == "cpu" and x.dtype == torch.float64 and \
+                kernels.available():
+            maps = self.compiled_maps()
+            if maps is not None:
+                col = sum(w for p, w in itertools.takewhile(lambda pw: pw[0] != input, self.inputs.items()))
+                u = torch.cat([ins[p] for p in self.inputs], 1)
+                return kernels.markov_fd(maps[0].address, maps[1].address, x, u, col, W,
+                                         sum(self.outputs.values()), rows, n, eps, along == "trajectory")
+        if method == "auto":
+            method = "autograd" if self.differentiable() else "fd"
         # All W input directions at once: direction j of member b is row j * B + b (members are independent).
         xs = x.repeat(W, 1)
         stacked = {p: v.repeat(W, 1) for p, v in ins.items()}
@@ -353,14 +363,6 @@ class Nonlinear(Block):
                 y = fun(torch.cat([at, at + scale * v, at - scale * v]))
                 return y[:N], (y[N:2 * N] - y[2 * N:]) / (2 * scale)
 
-        if compiled and method == "fd" and x.device.type == "cpu" and x.dtype == torch.float64 and \
-                kernels.available():
-            maps = self.compiled_maps()
-            if maps is not None:
-                col = sum(w for p, w in itertools.takewhile(lambda pw: pw[0] != input, self.inputs.items()))
-                u = torch.cat([ins[p] for p in self.inputs], 1)
-                return kernels.markov_fd(maps[0].address, maps[1].address, x, u, col, W,
-                                         sum(self.outputs.values()), rows, n, eps, along == "trajectory")
         step_map, h = self.step_map, self._h
         H = x.new_zeros(B, n, rows.stop - rows.start, W)
         xi, dx = tangent(lambda uu: step_map(xs_c, {**stacked_c, input: uu}), stacked[input], direction)
@@ -399,7 +401,8 @@ class MarkovRefresh:
     measured : str, optional
         The known model's output port y.
     method : {'auto', 'autograd', 'fd'}, optional
-        How ``Nonlinear.markov`` linearizes the known model.
+        How ``Nonlinear.markov`` linearizes the known model; on a graph that runs natively, 'auto' and 'fd'
+        linearize in the native engine where the model's functions compile (``compiled=True``).
 
     Raises
     ------
