@@ -363,14 +363,13 @@ class Nonlinear(Block):
                 y = fun(torch.cat([at, at + scale * v, at - scale * v]))
                 return y[:N], (y[N:2 * N] - y[2 * N:]) / (2 * scale)
 
-        step_map, h = self.step_map, self._h
         H = x.new_zeros(B, n, rows.stop - rows.start, W)
-        xi, dx = tangent(lambda uu: step_map(xs_c, {**stacked_c, input: uu}), stacked[input], direction)
+        xi, dx = tangent(lambda uu: self.step_map(xs_c, {**stacked_c, input: uu}), stacked[input], direction)
         for i in range(1, n):
             base = xi if along == "trajectory" else xs
-            H[:, i] = tangent(lambda xx: h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
+            H[:, i] = tangent(lambda xx: self._h(xx)[:, rows], base, dx)[1].reshape(W, B, -1).permute(1, 2, 0)
             if i + 1 < n:
-                xn, dx = tangent(lambda xx: step_map(xx, stacked_c), base, dx)
+                xn, dx = tangent(lambda xx: self.step_map(xx, stacked_c), base, dx)
                 if along == "trajectory":
                     xi = xn
         return H
