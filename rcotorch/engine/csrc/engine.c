@@ -511,6 +511,17 @@ static PyObject *py_window_gram(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* From the step map's values at the point and on both sides of it (XN, n x 3 NB lanes, step s): the tangent
+ * DX, and along the free motion the next point XI. */
+static void step_tangent(const double *XN, double *DX, double *XI, int64_t n, int64_t NB, double s, int trajectory) {
+    const int64_t L = 3 * NB;
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t q = 0; q < NB; q++) {
+            DX[i * NB + q] = (XN[i * L + NB + q] - XN[i * L + 2 * NB + q]) / (2 * s);
+            if (trajectory) XI[i * NB + q] = XN[i * L + q];
+        }
+}
+
 /* Markov parameters H_0 .. H_(nh-1) of a compiled discrete map and output function (blocks/nonlinear.py,
  * Nonlinear.markov with method 'fd'; step: [x, u] (n + m) -> x (n), h: x -> (n_out), each called for L lanes,
  * slot-major), of the W input columns from col on to output rows r0 .. r1 - 1, by central differences along the
@@ -549,11 +560,7 @@ static int markov_fd(rco_fn_t step, rco_fn_t h, int64_t B, int64_t n, int64_t m,
         step(XU, XN, L);
         for (int64_t c = 0; c < W; c++) /* the inputs held from here on, in every copy */
             for (int64_t q = NB; q < L; q++) XU[(n + col + c) * L + q] = u[(q % B) * m + col + c];
-        for (int64_t i = 0; i < n; i++)
-            for (int64_t q = 0; q < NB; q++) {
-                DX[i * NB + q] = (XN[i * L + NB + q] - XN[i * L + 2 * NB + q]) / (2 * s);
-                if (trajectory) XI[i * NB + q] = XN[i * L + q];
-            }
+        step_tangent(XN, DX, XI, n, NB, s, trajectory);
         for (int64_t k = 1; k < nh; k++) {
             big = 1.0; /* XI holds the point: the free motion, or x */
             for (int64_t e = 0; e < n * NB; e++)
@@ -573,11 +580,7 @@ static int markov_fd(rco_fn_t step, rco_fn_t h, int64_t B, int64_t n, int64_t m,
                         (HO[r * L + NB + q] - HO[r * L + 2 * NB + q]) / (2 * s);
             if (k + 1 < nh) {
                 step(XU, XN, L);
-                for (int64_t i = 0; i < n; i++)
-                    for (int64_t q = 0; q < NB; q++) {
-                        DX[i * NB + q] = (XN[i * L + NB + q] - XN[i * L + 2 * NB + q]) / (2 * s);
-                        if (trajectory) XI[i * NB + q] = XN[i * L + q];
-                    }
+                step_tangent(XN, DX, XI, n, NB, s, trajectory);
             }
         }
     }
