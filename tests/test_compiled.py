@@ -161,11 +161,21 @@ def test_a_nonlinear_block_with_tensor_methods_stays_on_pytorch_and_says_which_f
     lambda v: torch.clamp(3.0 * v, -1.0, 1.0) + torch.clamp(v, min=0.5) + torch.clip(v, max=-2.0),
     lambda v: torch.where(v > 0, torch.sqrt(torch.abs(v)), torch.sigmoid(v)) + torch.relu(v) * torch.pi,
     lambda x: torch.stack((x[:, 0] * torch.tanh(x[:, 1]), torch.exp(-x[:, 0] ** 2)), dim=1),
-], ids=["sign", "clamp", "where", "stack"])
+    lambda x: torch.stack([x[:, 0] * torch.tanh(x[:, 1]), torch.exp(-x[:, 0] ** 2)], dim=-1),
+    lambda x: torch.cat([x[:, :1] * x[:, 1:], torch.tanh(x)], dim=1),
+    lambda x: np.concatenate([np.abs(x[:, :1]), np.sin(x)], axis=1),
+    lambda x: np.concatenate([x[:, 1], np.cos(x[:, 0])]).reshape(2, x.shape[0]).T.copy(),
+    lambda x: np.hstack([x[:, 1:], np.sign(x[:, :1]) * x[:, 1:] ** 2]),
+    lambda x: np.column_stack([x[:, 0] * x[:, 1], np.exp(-x[:, 1] ** 2)]),
+    lambda x: np.vstack([x[:, 0], np.tanh(x[:, 1])]).T.copy(),
+    lambda x: np.stack([np.tanh(x[:, 0]), x[:, 1] ** 3], axis=1),
+], ids=["sign", "clamp", "where", "stack", "stack list", "cat list", "np concatenate list",
+        "np concatenate 1-d list", "np hstack list", "np column_stack list", "np vstack list", "np stack list"])
 def test_torch_functions_compile_and_equal_torch_itself(fn):
     """A StaticMap written with torch functions runs natively, its outputs equal to torch's own on the same
-    inputs (the PyTorch engine's run), and the reason is None."""
-    n = 2 if "stack" in fn.__code__.co_names else 1
+    inputs (the PyTorch engine's run), and the reason is None; so do NumPy's joins given a list of arrays, as
+    NumPy takes them (numba's own take a tuple)."""
+    n = 2 if {"stack", "cat", "concatenate", "hstack", "vstack", "column_stack"} & set(fn.__code__.co_names) else 1
     def graph(engine):
         g = rt.Graph([rt.WhiteNoise(n, std=3.0, seed=5, name="src"), rt.StaticMap(fn, n)], [("src.out", "map.in")],
                      batch_size=3)

@@ -61,3 +61,70 @@ def test_mistakes_are_named_when_the_block_is_built():
 def test_python_functions_stay_allowed_on_pytorch():
     est = rt.RCOEstimator({"y0": 1}, features={"cube": lambda s: s["y0"] ** 3, "sat": F.saturation("y0", -1, 1)})
     assert est.signal_names == ["cube", "sat"] and est.terms is None
+
+
+def _mass_with_friction(features, batch=3, engine="auto", force=10.0, bump=0.8):
+    """A mass on a spring whose known model has no friction; the truth's friction is Coulomb, Stribeck and
+    viscous (a NumPy StaticMap of the velocity); the identified subsystem sees y0 = [position, velocity] and
+    the excitation w."""
+    A, B, C, D = rt.models.sdof_matrices(1.0, 0.0, 4.0, measured=["velocity"], sees=["position", "velocity"])
+    known = rt.LTI.continuous(A, B, C, D, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=0.01, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 2, "w": 1}, features=features, p0=1e3)
+    truth = rt.StaticMap(lambda x: -(np.sign(x[:, 1:]) * (1.0 + bump * np.exp(-(x[:, 1:] / 0.5) ** 2))
+                                     + 0.3 * x[:, 1:]), 2)
+    g = rt.refinement(known, ident, truth=truth, nu=30, batch_size=batch,
+                      excitation=rt.WhiteNoise(1, std=force, seed=list(range(1, batch + 1))))
+    g.engine = engine
+    return g
+
+
+def _stribeck(s):
+    v = s["y0"][:, 1:]
+    return np.sign(v) * np.exp(-(v / 0.5) ** 2)
+
+
+def _wide(s):                       # two signals from both ports, in the components a NumPy user writes
+    q, v = s["y0"][:, :1], s["y0"][:, 1:]
+    return np.concatenate([np.tanh(q / 0.2) * s["w"], q * np.abs(v)], axis=1)
+
+
+def test_a_users_feature_functions_run_natively_and_agree_with_pytorch():
+    """Feature functions written with NumPy (one of width 2, reading both ports), between terms, are compiled
+    into the native engine: the regressors and theta equal the PyTorch engine's, which calls the functions
+    themselves, to rounding, and the built-in term tanh(v / 0.5) written as a function gives the term's theta."""
+    features = {"sign": F.sign("y0[1]"), "stribeck": _stribeck, "wide": _wide, "v": F.port("y0[1]")}
+    fast, ref = _mass_with_friction(features), _mass_with_friction(features, engine="torch")
+    assert fast.native_status() is None
+    assert fast.role("estimator").theta_names == ["sign(k)", "stribeck(k)", "wide[0](k)", "wide[1](k)", "v(k)"]
+    for g in (fast, ref):
+        g.advance(400)
+    est, est_ref = fast.role("estimator"), ref.role("estimator")
+    assert est.theta.abs().max() > 0.1
+    torch.testing.assert_close(est.phi_now, est_ref.phi_now, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(est.theta, est_ref.theta, rtol=1e-9, atol=1e-10)
+    as_term = _mass_with_friction([F.sign("y0[1]"), F.tanh("y0[1]", 0.5)])
+    as_function = _mass_with_friction({"sign": F.sign("y0[1]"), "t": lambda s: np.tanh(s["y0"][:, 1:] / 0.5)})
+    assert as_function.native_status() is None
+    for g in (as_term, as_function):
+        g.advance(400)
+    torch.testing.assert_close(as_function.role("estimator").theta, as_term.role("estimator").theta,
+                               rtol=1e-12, atol=1e-13)
+
+
+def test_friction_identified_with_feature_functions():
+    """Coulomb and viscous friction identified natively with the user's own basis functions, written with
+    NumPy, against the truth's Fc = 1.0 and c = 0.3 (the force keeps the mass sliding most of the time)."""
+    g = _mass_with_friction({"coulomb": lambda s: np.sign(s["y0"][:, 1:]), "viscous": lambda s: s["y0"][:, 1:]},
+                            batch=2, force=20.0, bump=0.0)
+    assert g.native_status() is None
+    g.advance(20000)
+    theta = g.role("estimator").theta[:, 0]
+    torch.testing.assert_close(-theta, torch.tensor([[1.0, 0.3]] * 2, dtype=theta.dtype), rtol=0, atol=0.005)
+
+
+def test_a_feature_function_that_does_not_compile_names_itself_and_runs_on_pytorch():
+    g = _mass_with_friction({"sign": F.sign("y0[1]"), "sat": lambda s: s["y0"].clamp(-1.0, 1.0)}, batch=2)
+    why = g.native_status()
+    assert "feature 'sat'" in why and "is not compiled" in why and "test_features.py" in why
+    g.advance(5)
+    assert int(g.k) == 5

@@ -102,8 +102,11 @@ def test_refinement_of_a_nonlinear_known_model_recovers_a_stiffness():
     assert abs(float(ident.theta[0, 0, 0]) + dk) < 0.02 * dk
     assert int(g.k) % 200 == 0  # refreshed after the last step, at the known model's present state
     held = {"w": g.last[("excitation", "out")], "u": g.last[("identified", "u")]}
-    np.testing.assert_allclose(ident.beta[:, :, 0, 0].numpy(),
-                               -g.blocks["known"].markov("u", "y", 61, inputs=held)[:, 1:, 0, 0].numpy(), rtol=1e-12)
+    # The graph runs natively (torch.stack compiles), so the refresh took the engine's central differences:
+    # autograd's Markov parameters at the same state to 1e-7 of their size.
+    assert g.ran_engine == "native"
+    exact = -g.blocks["known"].markov("u", "y", 61, inputs=held)[:, 1:, 0, 0].numpy()
+    np.testing.assert_allclose(ident.beta[:, :, 0, 0].numpy(), exact, rtol=0, atol=1e-7 * np.abs(exact).max())
 
 
 def test_markov_refresh_linearizes_at_the_inputs_received():

@@ -28,8 +28,9 @@ is w features, one per channel; the whole-port factors of one term must have the
 regressor vector, in order; the names (the last column) label theta's entries (``theta_names``).
 
 The PyTorch engine evaluates a term with tensor operations in the order the native engine uses
-(``csrc/lanes.h``, ``feature``), so the two agree to rounding. Arbitrary Python functions stay possible
-(``features={'name': callable}``); they run on the PyTorch engine only.
+(``csrc/lanes.h``, ``feature``), so the two agree to rounding. Functions of the user's own are possible too
+(``features={'name': callable}``); written with NumPy, they are compiled for the native engine
+(``rcotorch.engine.compiled.compile_features``).
 """
 
 from __future__ import annotations

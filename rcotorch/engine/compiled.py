@@ -215,6 +215,32 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         return result
 
 
+def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
+    """An estimator's feature function compiled: ``fn`` takes the dict of its ports, each (B, w), and returns
+    the (B, width) feature signals; compiled, it takes the ports stacked in one (B, sum w) array, in the order of
+    ``ports``, and is called once per chunk of members. Written as Python source with the port names as
+    literals, as ``compile_step`` does, so numba builds the dict as the PyTorch engine passes it."""
+    key = ("features", id(fn), tuple(ports.items()), int(width))
+    with _lock:
+        hit = _cache.get(key)
+        if hit is not None and hit[0] is fn:
+            return hit[1]
+        cols, start = [], 0
+        for port, w in ports.items():
+            cols.append(f"{port!r}: s[:, {start}:{start + w}]")
+            start += w
+        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        source = f"def features(s):\n    return f({ins})\n"
+        reference: dict = {"f": fn}
+        exec(compile(source, f"<rcotorch features of {describe(fn)}>", "exec"), reference)
+        fp = _fingerprint(fn)
+        result = _compile(lambda module: _numba().njit(module.features), reference["features"], start, width,
+                          source, {"f": _jit(fn)}, None if fp is None else f"features {ports} {width} {fp}",
+                          ("array",))
+        _cache[key] = (fn, result)
+        return result
+
+
 def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
                          substeps: int) -> Compiled | str:
     """``compile_step`` for a components-form ``f``: one member at a time, the state and the inputs as tuples
@@ -370,11 +396,13 @@ def _torch_stand_in() -> types.ModuleType:
             x = np.minimum(x, max)
         return x
 
+    joins = _numpy_stand_in()
+
     def stack(tensors, dim=0):
-        return np.stack(tensors, dim)
+        return joins.stack(tensors, dim)
 
     def cat(tensors, dim=0):
-        return np.concatenate(tensors, dim)
+        return joins.concatenate(tensors, dim)
 
     extra = {"clamp": clamp, "clip": clamp, "sigmoid": lambda x: 1.0 / (1.0 + np.exp(-x)),
              "relu": lambda x: np.maximum(x, 0.0), "reciprocal": lambda x: 1.0 / x,
@@ -384,6 +412,122 @@ def _torch_stand_in() -> types.ModuleType:
     for name in ("pi", "e", "inf", "nan"):
         setattr(mod, name, float(getattr(torch, name)))
     return mod
+
+
+_JOINS = ("concatenate", "hstack", "vstack", "column_stack", "stack")
+
+
+@functools.cache
+def _numpy_stand_in() -> types.ModuleType:
+    """What a compiled function sees as ``np``: NumPy itself, except that its joins (``_JOINS``) also take a
+    list of arrays, as NumPy does and numba's own do not (they take a tuple): ``np.concatenate([a, b], axis=1)``,
+    the way a feature function or a batch-form map is usually written, compiles. The list's arrays are 1-d or
+    2-d (``stack``: 1-d); a tuple goes to numba's own."""
+    numba = _numba()
+    from numba import types as nt
+    from numba.extending import overload
+
+    mod = types.ModuleType("numpy")
+    mod.__dict__.update({k: v for k, v in vars(np).items() if not k.startswith("__")})
+
+    def concatenate(arrays, axis=0):
+        pass
+
+    def hstack(arrays):
+        pass
+
+    def vstack(arrays):
+        pass
+
+    def column_stack(arrays):
+        pass
+
+    def stack(arrays, axis=0):
+        pass
+
+    def join2(arrays, ax):                # 2-d arrays along axis ax (0 or 1)
+        n = 0
+        for a in arrays:
+            n += a.shape[ax]
+        first = arrays[0]
+        out = np.empty((n, first.shape[1]) if ax == 0 else (first.shape[0], n), first.dtype)
+        at = 0
+        for a in arrays:
+            if ax == 0:
+                out[at:at + a.shape[0], :] = a
+                at += a.shape[0]
+            else:
+                out[:, at:at + a.shape[1]] = a
+                at += a.shape[1]
+        return out
+
+    def join1(arrays):                    # 1-d arrays end to end
+        n = 0
+        for a in arrays:
+            n += a.shape[0]
+        out = np.empty(n, arrays[0].dtype)
+        at = 0
+        for a in arrays:
+            out[at:at + a.shape[0]] = a
+            at += a.shape[0]
+        return out
+
+    def rows(arrays):                     # 1-d arrays of one length as the rows of a 2-d array
+        first = arrays[0]
+        out = np.empty((len(arrays), first.shape[0]), first.dtype)
+        for i, a in enumerate(arrays):
+            out[i, :] = a
+        return out
+
+    join1, join2, rows = (numba.njit(f) for f in (join1, join2, rows))
+
+    def listed(arrays, ndim=None):
+        return isinstance(arrays, nt.List) and isinstance(arrays.dtype, nt.Array) and \
+            (ndim is None or arrays.dtype.ndim in ndim)
+
+    @overload(concatenate)
+    def _concatenate(arrays, axis=0):
+        if not listed(arrays, (1, 2)):
+            return lambda arrays, axis=0: np.concatenate(arrays, axis)
+        if arrays.dtype.ndim == 1:
+            return lambda arrays, axis=0: join1(arrays)
+        return lambda arrays, axis=0: join2(arrays, axis + 2 if axis < 0 else axis)
+
+    @overload(hstack)
+    def _hstack(arrays):
+        if not listed(arrays, (1, 2)):
+            return lambda arrays: np.hstack(arrays)
+        return (lambda arrays: join1(arrays)) if arrays.dtype.ndim == 1 else (lambda arrays: join2(arrays, 1))
+
+    @overload(vstack)
+    def _vstack(arrays):
+        if not listed(arrays, (1, 2)):
+            return lambda arrays: np.vstack(arrays)
+        return (lambda arrays: rows(arrays)) if arrays.dtype.ndim == 1 else (lambda arrays: join2(arrays, 0))
+
+    @overload(column_stack)
+    def _column_stack(arrays):
+        if not listed(arrays, (1, 2)):
+            return lambda arrays: np.column_stack(arrays)
+        return (lambda arrays: rows(arrays).T.copy()) if arrays.dtype.ndim == 1 else \
+            (lambda arrays: join2(arrays, 1))
+
+    @overload(stack)
+    def _stack(arrays, axis=0):
+        if not listed(arrays, (1,)):
+            return lambda arrays, axis=0: np.stack(arrays, axis)
+        return lambda arrays, axis=0: rows(arrays) if axis == 0 else rows(arrays).T.copy()
+
+    for name, f in zip(_JOINS, (concatenate, hstack, vstack, column_stack, stack)):
+        setattr(mod, name, f)
+    return mod
+
+
+@functools.cache
+def _numpy_functions() -> dict:
+    """NumPy's joins by identity, with their stand-ins: ``from numpy import concatenate`` compiles too."""
+    stand_in = _numpy_stand_in()
+    return {getattr(np, name): getattr(stand_in, name) for name in _JOINS}
 
 
 @functools.cache
@@ -397,7 +541,8 @@ def _torch_functions() -> dict:
 def _with_helpers_jitted(fn, depth: int = 4):
     """A copy of ``fn`` whose plain Python helpers (functions it names as globals or closes over) are numba
     dispatchers, compiled the same way, so that a user's function may call functions of its own; ``torch`` and
-    the torch functions it names are replaced by their NumPy stand-ins (``_torch_stand_in``)."""
+    the torch functions it names are replaced by their NumPy stand-ins (``_torch_stand_in``), and NumPy's joins
+    by ones that also take lists (``_numpy_stand_in``)."""
 
     import numba
     if not isinstance(fn, types.FunctionType) or depth == 0:
@@ -406,8 +551,10 @@ def _with_helpers_jitted(fn, depth: int = 4):
     def ready(v):
         if v is torch:
             return _torch_stand_in()
+        if v is np:
+            return _numpy_stand_in()
         try:
-            stand_in = _torch_functions().get(v)
+            stand_in = _torch_functions().get(v) or _numpy_functions().get(v)
         except TypeError:                      # an unhashable value
             stand_in = None
         if stand_in is not None:

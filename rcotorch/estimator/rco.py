@@ -48,9 +48,10 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..blocks.base import DEFAULT_DTYPE, Block
+from ..blocks.base import DEFAULT_DTYPE, Block, tensor_result
 from ..blocks.features import Term, as_terms
 from ..engine import kernels, memo
+from ..engine.compiled import call_user
 from ..engine.rls import rls_update
 from ..errors import ConfigError, DimensionError
 from . import transfer
@@ -81,8 +82,9 @@ class RCOEstimator(Block):
         Basis functions of the input ports that become phi's regressor signals instead of the ports
         themselves: terms of ``rcotorch.blocks.features`` (one, or a list), e.g.
         ``features=rt.features.power('y0', 3)`` (both engines), or ``{'name': callable}`` where each callable
-        maps the dict of port tensors (B, width) to a (B, m) tensor (probed with batches of 1 and 2 when the
-        block is built; PyTorch engine only). theta stays linear in them, so the update is least squares.
+        maps the dict of port tensors (B, width) to a (B, m) tensor or array (probed with batches of 1 and 2
+        when the block is built; compiled for the native engine where numba can, ``lower``). theta stays linear
+        in them, so the update is least squares.
     proper : bool, optional
         Also use the present sample s(k) (lag 0), so u(k) depends on s(k) at once.
     feed_u : bool, optional
@@ -364,7 +366,15 @@ class RCOEstimator(Block):
         """The regressor signals at time k, (B, n_sig)."""
         if self.features is None:
             return torch.cat([inputs[p] for p in self.ports], dim=1)
-        return torch.cat([f(inputs) for f in self.features.values()], dim=1)
+        return torch.cat([f(inputs) if isinstance(f, Term) else self._call_feature(f, inputs)
+                          for f in self.features.values()], dim=1)
+
+    @staticmethod
+    def _call_feature(f, inputs) -> torch.Tensor:
+        """A feature function's (B, m) result as a tensor on its inputs' device (a NumPy function returns an
+        array, computed on the CPU)."""
+        x = next(iter(inputs.values()))
+        return tensor_result(call_user(f, inputs), x.dtype, x.device)
 
     def _feature_map(self, features) -> dict[str, Callable]:
         """name -> callable for the PyTorch engine (terms are named after what they compute)."""
@@ -396,7 +406,7 @@ class RCOEstimator(Block):
             for B in (1, 2):
                 probe = {p: torch.randn(B, w, dtype=dtype) for p, w in self.ports.items()}
                 try:
-                    out = f(probe)
+                    out = self._call_feature(f, probe)
                 except Exception as e:  # the user's function failed on well-formed inputs
                     raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
                                       f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
@@ -795,11 +805,9 @@ class RCOEstimator(Block):
         Parameters
         ----------
         b : rcotorch.engine.lowering.Builder
-            Receives the state, parameters, ports and instructions; refuses the block where its features are
-            Python functions or its Markov parameters are missing.
+            Receives the state, parameters, ports and instructions; refuses the block where a feature
+            function does not compile or its Markov parameters are missing.
         """
-        if self.features is not None and self.terms is None:
-            b.refuse("features are Python functions (the native engine runs rcotorch.blocks.features terms)")
         W = self.window
         if W == 0 or self.win.shape[0] != W:
             b.refuse("has no Markov parameters, or they changed since reset()")
@@ -851,17 +859,45 @@ class RCOEstimator(Block):
         """Slots of s(k): the port itself (one port, no features), else s(k) computed into scratch, before u
         when phi holds s(k) (``proper``), else before the update (which shifts s(k) into the history)."""
         port = "u" if self.proper else None
-        if self.terms is None and len(self.ports) == 1:
+        if self.features is None and len(self.ports) == 1:
             return b.input(next(iter(self.ports)))
         cur = b.scratch(self.n_sig)
-        if self.terms is None:
+        if self.features is None:
             at = cur
             for p, w in self.ports.items():
                 b.emit("COPY", port=port, WIDTH=w, IN=b.input(p), OUT=at)
                 at += w
-        else:
+            return cur
+        if self.terms is not None:
             b.emit("FEATURE", port=port, OUT=cur, terms=[t.encode(self.ports, b.input, b.const) for t in self.terms])
+            return cur
+        # Terms and functions: each function compiled (rcotorch.engine.compiled) and called on the ports stacked.
+        from ..engine.compiled import compile_features, describe
+        at, stacked = cur, None
+        for name, f in self.features.items():
+            width = self.signals[name]
+            if isinstance(f, Term):
+                b.emit("FEATURE", port=port, OUT=at, terms=[f.encode(self.ports, b.input, b.const)])
+            else:
+                c = compile_features(f, self.ports, width)
+                if isinstance(c, str):
+                    b.refuse(f"feature {name!r}, function {describe(f)}, is not compiled: {c}")
+                if stacked is None:
+                    stacked = self._lower_ports_stacked(b, port)
+                b.emit("CALL", port=port, NIN=sum(self.ports.values()), IN=stacked, NOUT=width, OUT=at,
+                       FUNCTION=b.function(c.address, c))
+            at += width
         return cur
+
+    def _lower_ports_stacked(self, b, port) -> int:
+        """Slots of the ports side by side, in their order: the port's own with one port, else a copy."""
+        if len(self.ports) == 1:
+            return b.input(next(iter(self.ports)))
+        at = stacked = b.scratch(sum(self.ports.values()))
+        for p, w in self.ports.items():
+            b.emit("COPY", port=port, WIDTH=w, IN=b.input(p), OUT=at)
+            at += w
+        return stacked
 
     # --- the identified subsystem -----------------------------------------------------------------------
     def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:
