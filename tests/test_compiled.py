@@ -189,6 +189,36 @@ def test_torch_functions_compile_and_equal_torch_itself(fn):
     assert torch.allclose(a, b, rtol=1e-13, atol=1e-13), (a - b).abs().max()
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@pytest.mark.parametrize("fn", [
+    lambda x: np.sum(x ** 2, axis=1, keepdims=True),
+    lambda x: x - np.mean(x, axis=-1, keepdims=True),
+    lambda x: np.max(np.abs(x), axis=1, keepdims=True) + np.amin(x, axis=1).reshape(-1, 1),
+    lambda x: np.prod(x, axis=1).reshape(-1, 1) + np.sum(x, 1, keepdims=True),
+    lambda x: torch.sum(x * x, dim=1, keepdim=True) + torch.mean(x, dim=1).reshape(-1, 1),
+    lambda x: torch.amax(x, dim=-1, keepdim=True) - torch.amin(x, 1, True),
+], ids=["np sum", "np mean", "np max amin", "np prod sum", "torch sum mean", "torch amax amin"])
+def test_reductions_over_a_members_components_compile_and_equal_numpy(fn):
+    """Reductions along a member's components with an axis and keepdims (numba's own take no keepdims, and its
+    max and min no axis) compile, natively equal to the PyTorch engine, which calls a NumPy function that a
+    tensor does not serve (np.sum(x, axis=1, keepdims=True) calls x.sum with NumPy's argument names) with
+    arrays; and both equal NumPy on the recorded inputs."""
+    def graph(engine):
+        g = rt.Graph([rt.WhiteNoise(3, std=3.0, seed=5, name="src"), rt.StaticMap(fn, 3)], [("src.out", "map.in")],
+                     batch_size=4)
+        g.engine = engine
+        return g
+    native, torch_ = graph("auto"), graph("torch")
+    assert native.native_status() is None
+    a = native.run(50, record={"x": "src.out", "y": "map.out"})
+    b = torch_.run(50, record={"y": "map.out"})["y"]
+    assert native.ran_engine == "native"
+    assert torch.allclose(a["y"], b, rtol=1e-13, atol=1e-13), (a["y"] - b).abs().max()
+    x = a["x"].reshape(-1, 3).numpy()
+    want = fn(torch.from_numpy(x)).numpy() if "torch" in fn.__code__.co_names else fn(x)
+    np.testing.assert_allclose(a["y"].reshape(len(x), -1).numpy(), want, rtol=1e-13)
+
+
 def test_torch_functions_imported_by_name_compile_too():
     from torch import tanh
     assert isinstance(compiled.compile_map(lambda v: 2.0 * tanh(v), 1, 1), compiled.Compiled)

@@ -70,6 +70,7 @@ _lock = threading.Lock()
 
 
 _host_only: weakref.WeakSet = weakref.WeakSet()     # functions that refused GPU tensors (NumPy ones)
+_arrays_only: weakref.WeakSet = weakref.WeakSet()   # functions that refused tensors and took NumPy arrays
 
 
 def _to_host(a):
@@ -94,26 +95,47 @@ def _on_device(args) -> bool:
     return False
 
 
+def _to_numpy(a):
+    """Tensors in ``a`` (a tensor, or a dict, tuple or list of them) as NumPy arrays."""
+    if isinstance(a, torch.Tensor):
+        return a.detach().cpu().numpy()
+    if isinstance(a, dict):
+        return {k: _to_numpy(v) for k, v in a.items()}
+    if isinstance(a, (tuple, list)):
+        return type(a)(_to_numpy(v) for v in a)
+    return a
+
+
 def call_user(fn, *args):
     """A user function called with tensors.
 
     NumPy's functions applied to a tensor go through its ``__array_wrap__``, whose old signature NumPy 2 warns
     about at each call; that says nothing to the user. A function written with NumPy cannot take a GPU tensor
     (NumPy reads host memory only): called with GPU tensors it raises ``TypeError``, and from then on it is
-    called with CPU copies of its arguments (the caller moves the result to its device). A function of torch
-    operations runs on the GPU as it is."""
+    called with CPU copies of its arguments (the caller moves the result to its device). Some NumPy functions
+    do not take a tensor even on the CPU (``np.sum(x, axis=1, keepdims=True)`` calls ``x.sum`` with NumPy's
+    argument names, which torch's does not know): a function that raises ``TypeError`` on tensors and not on
+    arrays is called with NumPy arrays from then on (its callers take an array result as a tensor). A function
+    of torch operations runs on the GPU as it is."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*__array_wrap__.*", category=DeprecationWarning)
+        if fn in _arrays_only:
+            return fn(*_to_numpy(args))
         if fn in _host_only:
             return fn(*_to_host(args))
         try:
             return fn(*args)
-        except TypeError:
-            if not _on_device(args):
-                raise
-        out = fn(*_to_host(args))               # the function's own TypeError, if it has one, is raised here
-        _host_only.add(fn)
-        return out
+        except TypeError as e:
+            first = e
+        tries = ((_to_host, _host_only),) if _on_device(args) else ()
+        for convert, kind in (*tries, (_to_numpy, _arrays_only)):
+            try:
+                out = fn(*convert(args))
+            except TypeError:
+                continue
+            kind.add(fn)
+            return out
+        raise first
 
 
 def describe(fn) -> str:
@@ -382,7 +404,8 @@ _TORCH_AS_NUMPY = {
 def _torch_stand_in() -> types.ModuleType:
     """What a compiled function sees as ``torch``: a module of the same name whose functions compute with
     NumPy what torch's namesakes compute with tensors (``_TORCH_AS_NUMPY``; clamp / clip, sigmoid, relu,
-    reciprocal, rsqrt, stack and cat written out; the constants pi, e, inf and nan). A function that uses
+    reciprocal, rsqrt, stack and cat written out; sum, mean, prod, amax and amin with dim and keepdim,
+    ``_reduction``; the constants pi, e, inf and nan). A function that uses
     anything else of torch (a tensor method, ``torch.nn``) does not compile, and numba's reason names it."""
     numba = _numba()
     mod = types.ModuleType("torch")
@@ -409,6 +432,8 @@ def _torch_stand_in() -> types.ModuleType:
              "rsqrt": lambda x: 1.0 / np.sqrt(x), "stack": stack, "cat": cat, "concatenate": cat, "concat": cat}
     for name, f in extra.items():
         setattr(mod, name, numba.njit(f))
+    for name, op in _TORCH_REDUCTIONS.items():
+        setattr(mod, name, _reduction(op, "input", "dim", "keepdim"))
     for name in ("pi", "e", "inf", "nan"):
         setattr(mod, name, float(getattr(torch, name)))
     return mod
@@ -422,7 +447,8 @@ def _numpy_stand_in() -> types.ModuleType:
     """What a compiled function sees as ``np``: NumPy itself, except that its joins (``_JOINS``) also take a
     list of arrays, as NumPy does and numba's own do not (they take a tuple): ``np.concatenate([a, b], axis=1)``,
     the way a feature function or a batch-form map is usually written, compiles. The list's arrays are 1-d or
-    2-d (``stack``: 1-d); a tuple goes to numba's own."""
+    2-d (``stack``: 1-d); a tuple goes to numba's own. Its reductions (``_REDUCTIONS``) take an axis and
+    keepdims (``_reduction``)."""
     numba = _numba()
     from numba import types as nt
     from numba.extending import overload
@@ -520,7 +546,106 @@ def _numpy_stand_in() -> types.ModuleType:
 
     for name, f in zip(_JOINS, (concatenate, hstack, vstack, column_stack, stack)):
         setattr(mod, name, f)
+    for name, op in _REDUCTIONS.items():
+        setattr(mod, name, _reduction(op, "a", "axis", "keepdims"))
     return mod
+
+
+# Reductions a compiled function may call with an axis and keepdims, as NumPy (and torch, with dim and keepdim)
+# take them; numba's own take no keepdims, and its max and min no axis. The value is the operation's code in
+# ``_reduce``.
+_REDUCTIONS = {"sum": 0, "mean": 1, "max": 2, "amax": 2, "min": 3, "amin": 3, "prod": 4}
+_TORCH_REDUCTIONS = {"sum": 0, "mean": 1, "amax": 2, "amin": 3, "prod": 4}
+
+
+@functools.cache
+def _reduce():
+    """The reductions of a float array of 1 or 2 dimensions along axis ``ax`` (0 or 1; of a 1-d array, 0),
+    written out: a 1-d array of the other axis's length (of a 1-d array, length 1). NaN propagates as in NumPy."""
+    numba = _numba()
+
+    @numba.njit
+    def reduce(a, ax, op):
+        b = a.reshape((1, a.shape[0])) if a.ndim == 1 else a
+        if ax == 0:
+            b = b.T
+        m, n = b.shape
+        if n == 0 and (op == 2 or op == 3):
+            raise ValueError("zero-size array to reduction operation maximum which has no identity")
+        out = np.empty(m, np.float64)
+        for i in range(m):
+            acc = 0.0 if op <= 1 else 1.0 if op == 4 else b[i, 0]
+            for j in range(n):
+                x = b[i, j]
+                if op <= 1:
+                    acc += x
+                elif op == 4:
+                    acc *= x
+                elif op == 2:
+                    if np.isnan(x) or x > acc:
+                        acc = x
+                elif np.isnan(x) or x < acc:
+                    acc = x
+            out[i] = acc / n if op == 1 else acc
+        return out
+    return reduce
+
+
+def _reduction(op: int, a: str, axis: str, keep: str):
+    """A reduction stub for compiled code, taking its arguments by the names NumPy's (``a``, ``axis``,
+    ``keepdims``) or torch's (``input``, ``dim``, ``keepdim``) functions give them, with its numba overload: an
+    axis and keepdims on float arrays of 1 or 2 dimensions (``_reduce``); otherwise numba's own."""
+    from numba import types as nt
+    from numba.extending import overload
+
+    names = {"a": a, "axis": axis, "keep": keep}
+    stub_source = "def stub({a}, {axis}=None, {keep}=False):\n    pass\n".format(**names)
+    space: dict = {}
+    exec(stub_source, space)
+    stub = space["stub"]
+    plain = [np.sum, np.mean, np.max, np.min, np.prod][op]
+    reduce = _reduce()
+
+    def literal(t, default):                  # an omitted argument comes as its default, or as Omitted
+        if t is None or isinstance(t, (nt.NoneType, bool)):
+            return default if t is None or isinstance(t, nt.NoneType) else t
+        if isinstance(t, nt.Omitted):
+            return t.value if t.value is not None else default
+        return getattr(t, "literal_value", None)
+
+    def typer(arr, ax, keepdims):
+        keepdims = literal(keepdims, False)
+        whole = ax is None or isinstance(ax, nt.NoneType) or isinstance(ax, nt.Omitted) and ax.value is None
+        if whole and keepdims is False:
+            return lambda x, y, z: plain(x)
+        if not isinstance(arr, nt.Array) or not isinstance(arr.dtype, nt.Float) or arr.ndim not in (1, 2) or \
+                keepdims is not True and keepdims is not False:
+            return None
+        two = arr.ndim == 2
+        if whole:
+            return (lambda x, y, z: np.full((1, 1), plain(x))) if two else (lambda x, y, z: np.full(1, plain(x)))
+        if not isinstance(ax, nt.Integer):
+            return None
+        if not two:
+            return (lambda x, y, z: reduce(x, 0, op)) if keepdims else (lambda x, y, z: reduce(x, 0, op)[0])
+        if not keepdims:
+            return lambda x, y, z: reduce(x, y + 2 if y < 0 else y, op)
+
+        def keep2(x, y, z):
+            k = y + 2 if y < 0 else y
+            r = reduce(x, k, op)
+            return r.reshape((1, r.shape[0])) if k == 0 else r.reshape((r.shape[0], 1))
+        return keep2
+
+    impl_source = ("def make(typer):\n    def overload_({a}, {axis}=None, {keep}=False):\n"
+                   "        f = typer({a}, {axis}, {keep})\n        if f is None:\n            return None\n"
+                   "        f = njit(f)\n"
+                   "        def impl({a}, {axis}=None, {keep}=False):\n            return f({a}, {axis}, {keep})\n"
+                   "        return impl\n    return overload_\n").format(**names)
+    space = {"njit": _numba().njit}
+    exec(impl_source, space)
+    overload(stub, prefer_literal=True)(space["make"](typer))
+    return stub
 
 
 @functools.cache
@@ -749,8 +874,11 @@ def _check(fn, cf, n_in: int, n_out: int) -> str | None:
     x = np.concatenate([rng.standard_normal((PROBES - 8, n_in)) * 10.0 ** rng.integers(-3, 4, (PROBES - 8, 1)),
                         np.zeros((1, n_in)), np.full((1, n_in), 1.5), np.full((1, n_in), -1.5),
                         rng.uniform(-1, 1, (5, n_in))])
-    with torch.no_grad(), np.errstate(all="ignore"):
-        want = call_user(fn, torch.from_numpy(x))
+    try:
+        with torch.no_grad(), np.errstate(all="ignore"):
+            want = call_user(fn, torch.from_numpy(x))
+    except Exception as e:                    # the function itself fails on these inputs
+        return f"the function itself raised {type(e).__name__} on a batch of {len(x)}: {_first_line(e)}"
     want = want.detach().cpu().numpy() if isinstance(want, torch.Tensor) else np.asarray(want, dtype=float)
     if want.shape != (len(x), n_out):
         return f"it returns shape {want.shape} for a batch of {len(x)}, expected ({len(x)}, {n_out})"
