@@ -34,6 +34,7 @@ from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, 
 Signal = tuple[str, str]
 ENGINES = ("auto", "native", "torch")
 logger = logging.getLogger("rcotorch")
+_TOLD: set[str] = set()              # reasons for the PyTorch engine already logged in this process
 # Roles a refinement declares: a block name (``estimator``, ``known``, ``physical``, ``excitation``) or a
 # signal 'block.port' (``error``: z = y - y_hat, ``measured``: y, ``prediction``: y_hat).
 BLOCK_ROLES = ("estimator", "known", "physical", "excitation")
@@ -454,13 +455,16 @@ class Graph(nn.Module):
                     buf[(i + 1) // every - 1] = signals[sig]
 
     def _ran(self, engine: str, reason: str | None) -> None:
-        """Keep which engine ran and why; with ``engine='auto'`` say it once in the log."""
+        """Keep which engine ran and why; with ``engine='auto'`` say it in the log once per graph, and a
+        reason for the PyTorch engine once per process (the copies a run makes for its intervals and
+        validation fall back for the same reason)."""
         self.ran_engine, self.engine_reason = engine, reason
         if self.engine == "auto" and self._told != (engine, reason):
             self._told = (engine, reason)
             if reason is None:
                 logger.info("graph: running on the native engine")
-            else:
+            elif reason not in _TOLD:
+                _TOLD.add(reason)
                 logger.warning("graph: running on the PyTorch engine: %s", reason)
 
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:

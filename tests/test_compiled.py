@@ -93,6 +93,26 @@ def test_a_compiled_function_is_kept_for_the_process():
     assert compiled.compile_map(friction, 1, 1).address == first.address
 
 
+GAIN = 2.0
+
+
+def scaled(v):
+    return GAIN * v
+
+
+def test_a_graph_built_after_a_global_changed_computes_with_the_new_value(monkeypatch):
+    """numba reads a function's globals as constants when it compiles; a graph built after one of them changed
+    is compiled afresh, as the PyTorch engine would read the new value (a study that sets a global in a loop)."""
+    def ratio():
+        g = rt.Graph([rt.WhiteNoise(1, seed=1, name="src"), rt.StaticMap(scaled, 1)], [("src.out", "map.in")])
+        r = g.run(3, record={"x": "src.out", "y": "map.out"})
+        assert g.ran_engine == "native"
+        return (r["y"] / r["x"]).reshape(-1)
+    assert torch.allclose(ratio(), torch.full((3,), 2.0, dtype=torch.float64), rtol=1e-15, atol=0)
+    monkeypatch.setitem(globals(), "GAIN", 5.0)
+    assert torch.allclose(ratio(), torch.full((3,), 5.0, dtype=torch.float64), rtol=1e-15, atol=0)
+
+
 K, C, A = 4.0, 0.3, 2.0
 
 

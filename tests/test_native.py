@@ -5,6 +5,7 @@ It must do what the PyTorch engine does, to rounding: every lowered block and es
 both engines from the same state and compared. Independent references for the engine itself: the NumPy loop
 (tests/test_numpy_reference.py runs on both engines) and the closed-form RLS (tests/test_rls.py)."""
 
+import copy
 import logging
 import os
 import subprocess
@@ -17,6 +18,7 @@ import pytest
 import torch
 
 import rcotorch as rt
+import rcotorch.graph
 from rcotorch.engine import kernels, lowering
 from rcotorch.run import scenario as scenarios
 
@@ -531,11 +533,15 @@ def test_engine_choice_is_said_once_and_kept(caplog):
     sc = scenarios.get("thermosphere-no-cooling")
     g = sc.build(sc.resolve(), 1, torch.float64, "cpu")
     g.add_hook(lambda graph: None)                      # a hook after every step keeps it on PyTorch
+    rcotorch.graph._TOLD.clear()
+    twin = copy.deepcopy(g)                             # a copy (for the intervals, the validation) says no more
     with caplog.at_level(logging.INFO, logger="rcotorch"):
         g.advance(2)
         g.advance(2)
+        twin.advance(1)
     said = [r for r in caplog.records if "PyTorch engine" in r.getMessage()]
     assert len(said) == 1 and g.ran_engine == "torch" and g.engine_reason == g.native_status()
+    assert twin.ran_engine == "torch"
     g.engine = "native"
     with pytest.raises(rt.ConfigError, match="engine='native', but"):
         g.advance(1)

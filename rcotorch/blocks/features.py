@@ -587,7 +587,7 @@ def as_terms(features) -> list[Term] | None:
     Returns
     -------
     list of Term or None
-        None where some value is a Python callable (the PyTorch engine only).
+        None where some value is a Python callable (compiled apart, ``RCOEstimator.lower``).
     """
     if isinstance(features, Term):
         return [features]

@@ -167,16 +167,26 @@ def components(out, n: int, batch: int, dtype, device=None) -> torch.Tensor:
     return torch.stack(cols, dim=1)
 
 
+def _lookup(key: tuple, fn) -> tuple[Compiled | str | None, str | None]:
+    """The compilation kept for ``key`` if it was made of ``fn`` reading the same values as now (its fingerprint:
+    a global or a closure variable changed since is compiled afresh, as numba bakes them in), and ``fn``'s
+    fingerprint."""
+    fp = _fingerprint(fn)
+    hit = _cache.get(key)
+    if hit is not None and hit[0] is fn and hit[1] == fp:
+        return hit[2], fp
+    return None, fp
+
+
 def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | str:
     """``fn`` (a (B, n_in) -> (B, n_out) map; in the ``components`` form, a function of the sequence of n_in
     components returning n_out components, ``rcotorch.blocks.nonlinear``) as a compiled C function, or why it cannot
     be compiled; it must reproduce ``fn`` called with tensors."""
     key = (id(fn), n_in, n_out, form)
     with _lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0] is fn:
-            return hit[1]
-        fp = _fingerprint(fn)
+        found, fp = _lookup(key, fn)
+        if found is not None:
+            return found
         if form == "components":
             args = ", ".join(f"a{i}" for i in range(n_in))
             source = f"def call({args}):\n    return f(({args},))\n"
@@ -188,7 +198,7 @@ def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | st
         else:
             result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
                               None if fp is None else f"map {n_in} {n_out} {fp}")
-        _cache[key] = (fn, result)            # holds fn, so its id is not reused while cached
+        _cache[key] = (fn, fp, result)        # holds fn, so its id is not reused while cached
         return result
 
 
@@ -210,9 +220,9 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         return _compile_member_step(f, n, inputs, dt, continuous, substeps)
     key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
     with _lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0] is f:
-            return hit[1]
+        found, fp = _lookup(key, f)
+        if found is not None:
+            return found
         cols, start = [], n
         for port, width in inputs.items():
             cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
@@ -230,10 +240,9 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         source = "def step(xu):\n" + body
         reference: dict = {"f": f}                 # the same source calling f itself: what is checked against
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
-        fp = _fingerprint(f)
         result = _compile(lambda module: _numba().njit(module.step), reference["step"], n + sum(inputs.values()), n,
                           source, {"f": _jit(f)}, None if fp is None else f"step {fp}")
-        _cache[key] = (f, result)
+        _cache[key] = (f, fp, result)
         return result
 
 
@@ -244,9 +253,9 @@ def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
     literals, as ``compile_step`` does, so numba builds the dict as the PyTorch engine passes it."""
     key = ("features", id(fn), tuple(ports.items()), int(width))
     with _lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0] is fn:
-            return hit[1]
+        found, fp = _lookup(key, fn)
+        if found is not None:
+            return found
         cols, start = [], 0
         for port, w in ports.items():
             cols.append(f"{port!r}: s[:, {start}:{start + w}]")
@@ -255,11 +264,10 @@ def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
         source = f"def features(s):\n    return f({ins})\n"
         reference: dict = {"f": fn}
         exec(compile(source, f"<rcotorch features of {describe(fn)}>", "exec"), reference)
-        fp = _fingerprint(fn)
         result = _compile(lambda module: _numba().njit(module.features), reference["features"], start, width,
                           source, {"f": _jit(fn)}, None if fp is None else f"features {ports} {width} {fp}",
                           ("array",))
-        _cache[key] = (fn, result)
+        _cache[key] = (fn, fp, result)
         return result
 
 
@@ -269,9 +277,9 @@ def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuou
     of floats, the RK4 stages written out component by component, so that no array is made in a step."""
     key = ("member step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
     with _lock:
-        hit = _cache.get(key)
-        if hit is not None and hit[0] is f:
-            return hit[1]
+        found, fp = _lookup(key, f)
+        if found is not None:
+            return found
         m = sum(inputs.values())
         xs = [f"x{i}" for i in range(n)]
         cols, start = [], 0
@@ -299,10 +307,9 @@ def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuou
         source = "\n".join(lines) + "\n"
         reference: dict = {"f": f, "item": _item}
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
-        fp = _fingerprint(f)
         result = _compile_member(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
                                  n + m, n, source, f, None if fp is None else f"member step {fp}")
-        _cache[key] = (f, result)
+        _cache[key] = (f, fp, result)
         return result
 
 
