@@ -161,6 +161,15 @@ def test_numpy_functions_on_the_gpu_match_the_cpu():
         assert got_y.is_cuda
         np.testing.assert_allclose(got_y.cpu().numpy(), want_y, rtol=0, atol=0)
 
+        def energy(s):                    # np.sum of a tensor takes no keepdims: called with arrays
+            return np.sum(s["y0"] ** 2, axis=1, keepdims=True)
+
+        est = rt.RCOEstimator.static_gain({"y0": 2}, features={"e": energy, "y": rt.features.port("y0")})
+        phi = est._regressors({"y0": x.to("cuda")})
+        assert phi.is_cuda
+        np.testing.assert_allclose(phi.cpu().numpy(), np.concatenate([(x.numpy() ** 2).sum(1, keepdims=True),
+                                                                      x.numpy()], 1), rtol=0, atol=0)
+
         def wrong(v):
             return np.sign(v) + "a"                                  # the user's own TypeError
 

@@ -111,6 +111,24 @@ def test_a_users_feature_functions_run_natively_and_agree_with_pytorch():
                                rtol=1e-12, atol=1e-13)
 
 
+def test_a_feature_function_in_the_past_regressors_agrees_with_pytorch():
+    """With nc = 2 the regressor holds the feature function's past values (computed before the update, not
+    before u): natively the same as on PyTorch."""
+    def build(engine):
+        A, B, C, D = rt.models.sdof_matrices(1.0, 0.0, 4.0, measured=["velocity"], sees=["position", "velocity"])
+        known = rt.LTI.continuous(A, B, C, D, inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=0.01, name="known")
+        ident = rt.RCOEstimator({"y0": 2}, nc=2, features={"s": _stribeck, "q": F.port("y0[0]")}, p0=10.0)
+        g = rt.refinement(known, ident, truth=rt.StaticMap(lambda x: -0.5 * x[:, 1:] - np.sign(x[:, 1:]), 2),
+                          nu=20, batch_size=2, excitation=rt.WhiteNoise(1, std=5.0, seed=[1, 2]))
+        g.engine = engine
+        g.advance(300)
+        return g
+    fast, ref = build("auto"), build("torch")
+    assert fast.ran_engine == "native" and ref.ran_engine == "torch"
+    assert fast.role("estimator").theta.abs().max() > 1e-3
+    torch.testing.assert_close(fast.role("estimator").theta, ref.role("estimator").theta, rtol=1e-9, atol=1e-10)
+
+
 def test_friction_identified_with_feature_functions():
     """Coulomb and viscous friction identified natively with the user's own basis functions, written with
     NumPy, against the truth's Fc = 1.0 and c = 0.3 (the force keeps the mass sliding most of the time)."""
