@@ -58,6 +58,15 @@ def test_csv_nonfinite_skip_marks_invalid_and_recorded_holds(tmp_path):
         rt.load(path, on_nonfinite="ignore")
 
 
+def test_a_recording_prints_what_it_holds_in_one_line(tmp_path):
+    path = _write(tmp_path, "force [N],b\n1,2\n3,\n5,nan\n7,8\n")
+    rec = rt.load(path, on_nonfinite="skip", dt=0.01)
+    assert repr(rec.rows(1, 4)) == (f"Recording({str(path)!r}, 3 rows (file rows 1..3), columns force [N], b, "
+                                    f"dt=0.01 s, 2 samples missing)")
+    members = rt.Recording(np.zeros((3, 10, 2)), ["a", "b"])
+    assert repr(members) == "Recording(10 rows x 3 members, columns a, b, dt unknown)"
+
+
 def test_csv_bad_number_names_row_and_column(tmp_path):
     path = _write(tmp_path, "a,b\n1,2\n3,x4\n")
     with pytest.raises(rt.DataError) as e:

@@ -413,7 +413,7 @@ def test_basis_features_recover_a_cubic_spring():
 
 
 def test_features_are_probed_when_built():
-    with pytest.raises(rt.DimensionError, match="feature 'bad' must return a \\(batch, m\\) tensor"):
+    with pytest.raises(rt.DimensionError, match="feature 'bad' must return a \\(batch, m\\) tensor.*as a column"):
         rt.RCOEstimator.static_gain({"y0": 1}, features={"bad": lambda s: s["y0"][:, 0]})
     with pytest.raises(rt.ConfigError, match="feature 'boom' failed"):
         rt.RCOEstimator.static_gain({"y0": 1}, features={"boom": lambda s: s["nope"]})

@@ -85,6 +85,14 @@ def test_probing_catches_bad_functions():
         rt.Nonlinear(lambda x, s: x[:, :1], lambda x: x, 2, ["u"], {"y": 2}, dt=0.1, name="bad")
     with pytest.raises(rt.ConfigError, match="f or h failed"):
         rt.Nonlinear(lambda x, s: x + s["nope"], lambda x: x, 2, ["u"], {"y": 2}, dt=0.1)
+    # The usual slips, each named with its mend: components stacked as rows, one output as a 1-d array, and
+    # solve_ivp's f(t, x) signature.
+    with pytest.raises(rt.DimensionError, match=r"got \(2, 1\): the components along the first axis.*np.stack"):
+        rt.Nonlinear(lambda x, s: np.array([x[:, 1], -x[:, 0]]), lambda x: x[:, :1], 2, ["u"], ["y"], dt=0.1)
+    with pytest.raises(rt.DimensionError, match=r"h must return shape \(1, 1\).*got \(1,\).*x\[:, 0:1\]"):
+        rt.Nonlinear(lambda x, s: x, lambda x: x[:, 0], 2, ["u"], ["y"], dt=0.1)
+    with pytest.raises(rt.ConfigError, match=r"called as f\(x, inputs\)"):
+        rt.Nonlinear(lambda t, x, u: x, lambda x: x[:, :1], 2, ["u"], ["y"], dt=0.1)
 
 
 @pytest.mark.slow

@@ -95,3 +95,9 @@ def test_a_floor_accelerometer_reads_the_derivative_of_its_velocity_plus_the_gro
 def test_a_block_named_like_a_method_of_the_module_container_is_refused_naming_it(name):
     with pytest.raises(rt.ConfigError, match=f"block '{name}' \\(Gain\\) cannot be named so"):
         rt.Graph([rt.Gain(1.0, name=name), rt.WhiteNoise(1, name="w")], [f"w.out -> {name}.in"])
+
+
+def test_a_function_that_returns_one_value_per_member_as_a_1d_array_is_told_to_return_a_column():
+    with pytest.raises(rt.DimensionError, match=r"block 'map': fn must map.*returned \(1,\); return one value per "
+                                                r"member as a column"):
+        rt.StaticMap(lambda v: v[:, 0] ** 2, 2)

@@ -455,8 +455,10 @@ class StaticMap(Block):
             out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+                hint = "; return one value per member as a column, v[:, 0:1] rather than v[:, 0]" \
+                    if isinstance(out, torch.Tensor) and out.dim() == 1 and out.shape[0] == B else ""
                 raise DimensionError(f"block '{name}': fn must map a (batch, {in_width}) tensor to (batch, m); "
-                                     f"for batch {B} it returned {got}")
+                                     f"for batch {B} it returned {got}{hint}")
             widths.append(out.shape[1])
         if widths[0] != widths[1]:
             raise DimensionError(f"block '{name}': fn's output width changes with the batch size")

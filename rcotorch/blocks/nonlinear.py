@@ -127,13 +127,27 @@ class Nonlinear(Block):
             except DimensionError:
                 raise
             except Exception as e:
+                call = "f(x, inputs) with x the state and inputs a dict of the input ports, and h(x)" \
+                    if isinstance(e, TypeError) and "argument" in str(e) else ""
                 raise ConfigError(f"block '{self.name}': f or h failed on a state ({B}, {self.n_states}) and inputs "
-                                  f"{ {p: (B, w) for p, w in self.inputs.items()} }: {e!r}") from e
+                                  f"{ {p: (B, w) for p, w in self.inputs.items()} }: {e!r}"
+                                  + (f"; they are called as {call}" if call else "")) from e
             for what, value, want in (("f", fx, (B, self.n_states)), ("h", hx, (B, n_out))):
                 got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
                 if got != want:
                     raise DimensionError(f"block '{self.name}': {what} must return shape {want} for batch {B}, "
-                                         f"got {got}")
+                                         f"got {got}{self._shape_hint(got, want)}")
+
+    def _shape_hint(self, got, want) -> str:
+        """What a batch-form result of the wrong shape most likely means, and how to write it."""
+        if self.form != "batch" or not isinstance(got, tuple):
+            return ""
+        if got == want[::-1] or (len(got) == 2 and got[0] == want[1] and got[1] != want[0]):
+            return (": the components along the first axis, as np.array([a, b]) makes them; stack them as "
+                    "columns, np.stack([a, b], axis=1), or write the function in form='components'")
+        if got == want[:1]:
+            return ": one value per member as a 1-d array; return it as a column, x[:, 0:1] rather than x[:, 0]"
+        return ""
 
     # --- block protocol ---------------------------------------------------------------------------------
     def feedthrough(self):

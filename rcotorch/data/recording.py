@@ -83,6 +83,19 @@ class Recording:
     def __post_init__(self):
         self.dt = check_sample_time(self.dt, self.path or "recording")
 
+    def __repr__(self) -> str:
+        """What a recording holds, in one line: its source, rows, columns with their units, sample time and
+        missing samples (the samples themselves are ``values``)."""
+        cols = ", ".join(f"{c} [{self.units[c]}]" if self.units.get(c) else c for c in self.columns)
+        shape = self.values.shape
+        size = f"{shape[-2]} rows" + (f" x {shape[0]} members" if len(shape) == 3 else "")
+        rows = f" (file rows {self.first_row}..{self.first_row + shape[-2] - 1})" if self.path else ""
+        where = f"{self.path!r}, " if self.path else ""
+        dt = "dt unknown" if self.dt is None else f"dt={self.dt:g} s"
+        missing = "" if self.valid is None else f", {int((~self.valid).sum())} samples missing"
+        extra = f", metadata {sorted(self.metadata)}" if self.metadata else ""
+        return f"Recording({where}{size}{rows}, columns {cols}, {dt}{missing}{extra})"
+
     def unit(self, name: str | int) -> str | None:
         """The unit of a column (from ``units=`` or a CSV header such as ``force [N]``).
 

@@ -411,9 +411,11 @@ class RCOEstimator(Block):
                     raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
                                       f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
                 if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
+                    hint = "; return one value per member as a column, s['y0'][:, 0:1] rather than s['y0'][:, 0]" \
+                        if isinstance(out, torch.Tensor) and out.dim() == 1 and out.shape[0] == B else ""
                     raise DimensionError(f"block '{self.name}': feature {name!r} must return a (batch, m) tensor; "
                                          f"for batch {B} it returned "
-                                         f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out)}")
+                                         f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out)}{hint}")
                 shapes.append(out.shape[1])
             if shapes[0] != shapes[1]:
                 raise DimensionError(f"block '{self.name}': feature {name!r} width changes with the batch size")
