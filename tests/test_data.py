@@ -200,3 +200,19 @@ def test_recorded_per_member_data():
     blk.step()
     out = blk.step()
     assert out["w"].flatten().tolist() == [1.0, -1.0] and out["y"].flatten().tolist() == [11.0, 21.0]
+
+
+def test_the_measured_outputs_unit_comes_from_the_recording(tmp_path, sdof_known):
+    """A recording whose header gives the measured column's unit labels y, z and the fits in a run of a graph
+    built in Python (its figures and summary), unless the user names another."""
+    from rcotorch.run.refine import GraphScenario
+    rng = np.random.default_rng(5)
+    rows = "\n".join(f"{a:.17g},{b:.17g}" for a, b in rng.standard_normal((40, 2)))
+    rec = rt.load(_write(tmp_path, "force [N],velocity [m/s]\n" + rows + "\n"), dt=0.1)
+    data = rt.Recorded(rec, {"w": "force", "y": "velocity"}, name="data")
+    assert data.units == {"w": "N", "y": "m/s"}
+    g = rt.refinement(sdof_known(0.1), rt.RCOEstimator({"y0": 1}, nc=1, p0=100.0), data=data, nu=5)
+    assert GraphScenario(g).unit("y") == "m/s"
+    assert GraphScenario(g, units={"y": "mm/s"}).unit("y") == "mm/s"
+    mixed = rt.Recorded(rec, {"w": ["force", "velocity"], "y": "velocity"})
+    assert mixed.units == {"y": "m/s"}                          # a port whose columns differ in unit has none

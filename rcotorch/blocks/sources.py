@@ -245,6 +245,14 @@ class Recorded(Block):
         self.dt = sample_time
         self.source = rec.path
         self.first_row = rec.first_row
+        # Each port's unit where the recording gives one, the same for all of its columns.
+        self.units = {}
+        at = 0
+        for port, w in ports.items():
+            found = {rec.units.get(rec.columns[c]) if c < len(rec.columns) else None for c in cols[at:at + w]}
+            if len(found) == 1 and None not in found:
+                self.units[port] = found.pop()
+            at += w
         self.length = values.shape[1]
         self.register_buffer("values", torch.as_tensor(held, dtype=dtype, device="cpu"))
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))

@@ -64,6 +64,11 @@ class GraphScenario(Scenario):
         self.requirements = tuple(requirements)
         self._scales = dict(scales or {})
         self.units = dict(units or {})
+        if "y" not in self.units and "measured" in graph.roles:   # the measured output's unit, from a recording
+            name, port = graph.role_signal("measured")
+            units = getattr(graph.blocks[name], "units", None)
+            if isinstance(units, dict) and isinstance(units.get(port), str):
+                self.units["y"] = units[port]
         known = set(self.estimates(graph, {}))
         for key in list(self._truth) + list(self._scales) + list(self._history):
             if key not in known:
