@@ -578,7 +578,7 @@ def _reduce():
             b = b.T
         m, n = b.shape
         if n == 0 and (op == 2 or op == 3):
-            raise ValueError("zero-size array to reduction operation maximum which has no identity")
+            raise ValueError("zero-size array to a max or min reduction, which has no identity")
         out = np.empty(m, np.float64)
         for i in range(m):
             acc = 0.0 if op <= 1 else 1.0 if op == 4 else b[i, 0]

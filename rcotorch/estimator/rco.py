@@ -51,7 +51,7 @@ import torch
 from ..blocks.base import DEFAULT_DTYPE, Block, tensor_result
 from ..blocks.features import Term, as_terms
 from ..engine import kernels, memo
-from ..engine.compiled import call_user
+from ..engine.compiled import call_user, compile_features, describe
 from ..engine.rls import rls_update
 from ..errors import ConfigError, DimensionError
 from . import transfer
@@ -411,8 +411,10 @@ class RCOEstimator(Block):
                     raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
                                       f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
                 if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
-                    hint = "; return one value per member as a column, s['y0'][:, 0:1] rather than s['y0'][:, 0]" \
-                        if isinstance(out, torch.Tensor) and out.dim() == 1 and out.shape[0] == B else ""
+                    p0 = next(iter(self.ports))
+                    hint = f"; return one value per member as a column, s[{p0!r}][:, 0:1] rather than " \
+                        f"s[{p0!r}][:, 0]" if isinstance(out, torch.Tensor) and out.dim() == 1 and out.shape[0] == B \
+                        else ""
                     raise DimensionError(f"block '{self.name}': feature {name!r} must return a (batch, m) tensor; "
                                          f"for batch {B} it returned "
                                          f"{tuple(out.shape) if isinstance(out, torch.Tensor) else type(out)}{hint}")
@@ -874,7 +876,6 @@ class RCOEstimator(Block):
             b.emit("FEATURE", port=port, OUT=cur, terms=[t.encode(self.ports, b.input, b.const) for t in self.terms])
             return cur
         # Terms and functions: each function compiled (rcotorch.engine.compiled) and called on the ports stacked.
-        from ..engine.compiled import compile_features, describe
         at, stacked = cur, None
         for name, f in self.features.items():
             width = self.signals[name]
