@@ -146,3 +146,20 @@ def test_a_feature_function_that_does_not_compile_names_itself_and_runs_on_pytor
     assert "feature 'sat'" in why and "is not compiled" in why and "test_features.py" in why
     g.advance(5)
     assert int(g.k) == 5
+
+
+def test_a_feature_function_that_gives_nan_in_one_member_diverges_that_member_alone(recwarn):
+    """np.sqrt of the velocity: NaN in the member whose mass moves both ways; it is reported diverged, natively,
+    while the other member (at rest) runs on, and building the block warns of nothing (its probe's random
+    inputs are negative too)."""
+    A, B, C, D = rt.models.sdof_matrices(1.0, 0.1, 4.0, measured=["velocity"], sees=["velocity"])
+    known = rt.LTI.continuous(A, B, C, D, inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.01, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features={"root": lambda s: np.sqrt(s["y0"])}, p0=1.0)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+    g = rt.refinement(known, ident, truth=rt.Gain([[-0.5]]), nu=10, batch_size=2,
+                      excitation=rt.WhiteNoise(1, std=[0.0, 5.0], seed=1))
+    assert g.native_status() is None
+    g.advance(50)
+    assert g.ran_engine == "native"
+    assert ident.alive.tolist() == [True, False] and int(ident.diverged_at[1]) >= 1
+    assert bool(torch.isfinite(ident.theta[0]).all())

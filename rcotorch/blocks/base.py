@@ -452,7 +452,8 @@ class StaticMap(Block):
             raise ConfigError(f"block '{name}': fn must be callable")
         widths = []
         for B in (1, 2):
-            out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
+            with np.errstate(all="ignore"):                # random inputs: a sqrt of a negative is no fault
+                out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 hint = "; return one value per member as a column, v[:, 0:1] rather than v[:, 0]" \

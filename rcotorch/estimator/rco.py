@@ -46,6 +46,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from ..blocks.base import DEFAULT_DTYPE, Block, tensor_result
@@ -406,7 +407,8 @@ class RCOEstimator(Block):
             for B in (1, 2):
                 probe = {p: torch.randn(B, w, dtype=dtype) for p, w in self.ports.items()}
                 try:
-                    out = self._call_feature(f, probe)
+                    with np.errstate(all="ignore"):        # random inputs: a sqrt of a negative is no fault
+                        out = self._call_feature(f, probe)
                 except Exception as e:  # the user's function failed on well-formed inputs
                     raise ConfigError(f"block '{self.name}': feature {name!r} failed on inputs "
                                       f"{ {p: (B, w) for p, w in self.ports.items()} }: {e!r}") from e
