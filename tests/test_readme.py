@@ -39,6 +39,10 @@ def test_docs_examples_run(path, capsys):
         assert ((ns["graph"].blocks["refine"].dc_gain()[:, 0, 0] - 5.0).abs() < 0.05).all()
     if path.name == "data.md":
         assert ns["est"].values.shape == (105712 - 40650, 2) and ns["rec"].units == {"V1": "V", "V2": "V"}
+    if path.name == "own-problem.md":                              # the damper with a basis of the user's own
+        res = ns["damper_result"]
+        assert res.status == ["converged"] * 4
+        assert ((res.lower["C_D"] <= 0.8) & (res.upper["C_D"] >= 0.8)).all()
     if path.name == "python-control.md":
         assert ns["known"].inputs == {"w": 1, "u": 1} and ns["known"].outputs == {"y": 1, "y0": 1}
 
