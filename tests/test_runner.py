@@ -243,3 +243,23 @@ def test_no_p0_warning_for_members_that_forget(tmp_path):
                       intervals=False, validation=False)
     remembering.advance(progress=False)
     assert "p0 = 1e-06 is small" in remembering.summary()["warnings"][0]
+
+
+def test_a_batchs_estimates_are_summarized_over_the_members_that_did_not_diverge():
+    """A diverged member's parameters are frozen where it failed (here 1e300): the printed range and median
+    half-width leave it out and say so; the metrics are printed as they are."""
+    from rcotorch.run.runner import result_table
+    summary = {"batch": 3, "estimates": {"k": [1.0, 1e300, 2.0]}, "truth": {"k": 1.5},
+               "metrics": {"z_rms_final": [0.1, 1e10, 0.2]}, "requirements": {}, "warnings": [],
+               "intervals": {"k": {"level": 0.95, "lower": [0.9, 1e300, 1.8], "upper": [1.1, 1e300, 2.2]}},
+               "health": {"status": ["converged", "diverged", "converged"],
+                          "counts": {"converged": 2, "not_converged": 0, "diverged": 1, "undetermined": 0}},
+               "diverged": [{"member": 1, "step": 5, "reason": "non_finite"}]}
+    lines = result_table(summary).splitlines()
+    row = next(line for line in lines if line.startswith("estimates.k"))
+    assert "1..2 (± 0.2 median)" in row and "e+300" not in row
+    assert "(estimates: the 2 members that did not diverge)" in lines
+    assert "1e+10" in next(line for line in lines if line.startswith("metrics.z_rms_final"))
+    assert lines[-1].startswith("health: 2 converged") and "member 1 at step 5 (non_finite)" in lines[-1]
+    every = {**summary, "health": {**summary["health"], "status": ["diverged"] * 3}}
+    assert "1..1e+300" in next(line for line in result_table(every).splitlines() if line.startswith("estimates.k"))

@@ -890,17 +890,35 @@ def result_table(summary: Mapping[str, Any]) -> str:
     head = "estimate" + (f" ({level:.0%} interval)" if level else "")
     rows = [("key", head, "truth", "requirement", "check")]
     checks = summary.get("requirements", {})
+    # A batch's estimates and intervals are summarized over the members that did not diverge (a diverged
+    # member's parameters are frozen where it failed), unless every member did.
+    status = (summary.get("health") or {}).get("status")
+    keep = [s != "diverged" for s in status] if isinstance(status, list) else None
+    if keep is not None and (all(keep) or not any(keep)):
+        keep = None
+
+    def kept(values, interval):
+        if keep is None or not isinstance(values, list) or len(values) != len(keep):
+            return values, interval
+        pick = lambda xs: [x for x, k in zip(xs, keep) if k]                    # noqa: E731
+        return pick(values), None if interval is None else \
+            {**interval, "lower": pick(interval["lower"]), "upper": pick(interval["upper"])}
+
     for group in ("estimates", "metrics"):
         for key, v in summary[group].items():
             chk = checks.get(f"{group}.{key}")
             truth = summary["truth"].get(key) if group == "estimates" else None
-            rows.append((f"{group}.{key}", _fmt_interval(v, intervals.get(key) if group == "estimates" else None),
+            if group == "estimates":
+                v, interval = kept(v, intervals.get(key))
+            rows.append((f"{group}.{key}", _fmt_interval(v, interval if group == "estimates" else None),
                          "" if truth is None else _fmt(truth),
                          chk["requirement"] + f" ({_fmt(chk['value'])})" if chk else "",
                          _check_text(chk) if chk else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
+    if keep is not None:
+        lines.append(f"(estimates: the {sum(keep)} members that did not diverge)")
     lines.append(health_line(summary))
     lines += [f"warning: {w}" for w in summary.get("warnings") or []]
     return "\n".join(lines)
