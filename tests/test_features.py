@@ -163,3 +163,21 @@ def test_a_feature_function_that_gives_nan_in_one_member_diverges_that_member_al
     assert g.ran_engine == "native"
     assert ident.alive.tolist() == [True, False] and int(ident.diverged_at[1]) >= 1
     assert bool(torch.isfinite(ident.theta[0]).all())
+
+
+CENTERS = np.linspace(-2.0, 2.0, 7).reshape(1, -1)
+
+
+def test_a_radial_basis_over_a_global_array_compiles_and_agrees_with_pytorch():
+    """A basis of radial functions, exp(-((v - c_i) / w)^2) for seven centres held in a NumPy array the
+    function reads as a global, broadcast to (B, 7): natively as on PyTorch."""
+    def rbf(s):
+        return np.exp(-((s["y0"][:, 1:] - CENTERS) / 0.6) ** 2)
+
+    fast, ref = _mass_with_friction({"rbf": rbf}, batch=2), _mass_with_friction({"rbf": rbf}, batch=2,
+                                                                                 engine="torch")
+    assert fast.native_status() is None and fast.role("estimator").n_sig == 7
+    for g in (fast, ref):
+        g.advance(300)
+    assert fast.ran_engine == "native"
+    torch.testing.assert_close(fast.role("estimator").theta, ref.role("estimator").theta, rtol=1e-9, atol=1e-10)
