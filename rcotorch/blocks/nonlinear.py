@@ -142,7 +142,7 @@ class Nonlinear(Block):
         """What a batch-form result of the wrong shape most likely means, and how to write it."""
         if self.form != "batch" or not isinstance(got, tuple):
             return ""
-        if got == want[::-1] or (len(got) == 2 and got[0] == want[1] and got[1] != want[0]):
+        if len(got) >= 2 and got[:2] == want[::-1] and all(d == 1 for d in got[2:]):
             return (": the components along the first axis, as np.array([a, b]) makes them; stack them as "
                     "columns, np.stack([a, b], axis=1), or write the function in form='components'")
         if got == want[:1]:

@@ -223,12 +223,7 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         found, fp = _lookup(key, f)
         if found is not None:
             return found
-        cols, start = [], n
-        for port, width in inputs.items():
-            cols.append(f"{port!r}: xu[:, {start}:{start + width}]")
-            start += width
-        # An entry of another type makes numba keep the dict a compile-time literal (no dict made per call).
-        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        ins, _ = _ports_literal("xu", inputs, n)
         if continuous:
             h = float(dt) / int(substeps)
             body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
@@ -246,6 +241,17 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         return result
 
 
+def _ports_literal(array: str, ports: dict[str, int], start: int) -> tuple[str, int]:
+    """Source of the dict of ports that a batch-form function takes, each the columns of ``array`` from
+    ``start`` on, in order; and the column after the last. An entry of another type makes numba keep the dict a
+    compile-time literal (no dict made per call)."""
+    cols = []
+    for port, width in ports.items():
+        cols.append(f"{port!r}: {array}[:, {start}:{start + width}]")
+        start += width
+    return "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}", start
+
+
 def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
     """An estimator's feature function compiled: ``fn`` takes the dict of its ports, each (B, w), and returns
     the (B, width) feature signals; compiled, it takes the ports stacked in one (B, sum w) array, in the order of
@@ -256,11 +262,7 @@ def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
         found, fp = _lookup(key, fn)
         if found is not None:
             return found
-        cols, start = [], 0
-        for port, w in ports.items():
-            cols.append(f"{port!r}: s[:, {start}:{start + w}]")
-            start += w
-        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
+        ins, start = _ports_literal("s", ports, 0)
         source = f"def features(s):\n    return f({ins})\n"
         reference: dict = {"f": fn}
         exec(compile(source, f"<rcotorch features of {describe(fn)}>", "exec"), reference)
@@ -598,6 +600,7 @@ def _reduce():
     return reduce
 
 
+@functools.cache
 def _reduction(op: int, a: str, axis: str, keep: str):
     """A reduction stub for compiled code, taking its arguments by the names NumPy's (``a``, ``axis``,
     ``keepdims``) or torch's (``input``, ``dim``, ``keepdim``) functions give them, with its numba overload: an
@@ -613,16 +616,19 @@ def _reduction(op: int, a: str, axis: str, keep: str):
     plain = [np.sum, np.mean, np.max, np.min, np.prod][op]
     reduce = _reduce()
 
-    def literal(t, default):                  # an omitted argument comes as its default, or as Omitted
-        if t is None or isinstance(t, (nt.NoneType, bool)):
-            return default if t is None or isinstance(t, nt.NoneType) else t
-        if isinstance(t, nt.Omitted):
-            return t.value if t.value is not None else default
-        return getattr(t, "literal_value", None)
+    def omitted(t) -> bool:                   # an omitted argument comes as its default (None), or as Omitted
+        return t is None or isinstance(t, nt.NoneType) or isinstance(t, nt.Omitted) and t.value is None
+
+    def literal(t, default):
+        if omitted(t):
+            return default
+        if isinstance(t, bool):
+            return t
+        return t.value if isinstance(t, nt.Omitted) else getattr(t, "literal_value", None)
 
     def typer(arr, ax, keepdims):
         keepdims = literal(keepdims, False)
-        whole = ax is None or isinstance(ax, nt.NoneType) or isinstance(ax, nt.Omitted) and ax.value is None
+        whole = omitted(ax)
         if whole and keepdims is False:
             return lambda x, y, z: plain(x)
         if not isinstance(arr, nt.Array) or not isinstance(arr.dtype, nt.Float) or arr.ndim not in (1, 2) or \

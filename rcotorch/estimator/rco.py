@@ -865,15 +865,9 @@ class RCOEstimator(Block):
         """Slots of s(k): the port itself (one port, no features), else s(k) computed into scratch, before u
         when phi holds s(k) (``proper``), else before the update (which shifts s(k) into the history)."""
         port = "u" if self.proper else None
-        if self.features is None and len(self.ports) == 1:
-            return b.input(next(iter(self.ports)))
-        cur = b.scratch(self.n_sig)
         if self.features is None:
-            at = cur
-            for p, w in self.ports.items():
-                b.emit("COPY", port=port, WIDTH=w, IN=b.input(p), OUT=at)
-                at += w
-            return cur
+            return self._lower_ports_stacked(b, port)
+        cur = b.scratch(self.n_sig)
         if self.terms is not None:
             b.emit("FEATURE", port=port, OUT=cur, terms=[t.encode(self.ports, b.input, b.const) for t in self.terms])
             return cur
