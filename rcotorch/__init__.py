@@ -29,6 +29,7 @@ _DEFINED_IN = {
     "rls_update": "engine.rls",
     "Recorded": "blocks.sources", "WhiteNoise": "blocks.sources",
     "ChangeDetector": "estimator.tracking", "ResetOnChange": "estimator.tracking", "at_step": "estimator.tracking",
+    "closed_loop_markov": "estimator.tracking",
     "Validation": "verdict.validation", "validate": "verdict.validation",
 }
 
@@ -37,11 +38,11 @@ _SUBMODULES = {"datasets": "data.datasets", "features": "blocks.features", "rng"
                "scenario": "run.scenario"}
 
 __all__ = [
-    "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "ConfigError", "DataError", "datasets",
-    "derive_markov", "DimensionError", "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh", "models",
-    "Nonlinear", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine", "RefinementResult",
-    "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "validate", "Validation", "WhiteNoise",
-    "zoh",
+    "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "closed_loop_markov", "ConfigError", "DataError",
+    "datasets", "derive_markov", "DimensionError", "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh",
+    "models", "Nonlinear", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine",
+    "RefinementResult", "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "validate",
+    "Validation", "WhiteNoise", "zoh",
 ]
 
 
@@ -93,7 +94,7 @@ if TYPE_CHECKING:
     from .engine.rls import rls_update
     from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
     from .estimator.rco import RCOEstimator
-    from .estimator.tracking import ChangeDetector, ResetOnChange, at_step
+    from .estimator.tracking import ChangeDetector, ResetOnChange, at_step, closed_loop_markov
     from .graph import Graph
     from .refinement import derive_markov, refinement
     from .run.refine import RefinementResult, refine

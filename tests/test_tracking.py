@@ -174,12 +174,13 @@ def test_the_damage_scenario_meets_its_requirements(tmp_path):
 
 
 def test_a_resumed_damage_run_is_bitwise_the_same(tmp_path):
-    # checkpointed after the change, the alarm and the restart (per-member forgetting under way)
+    # checkpointed after the change, the alarm, the restart (per-member forgetting under way) and the first
+    # closed-loop Markov parameters
     kw = dict(steps=6400, batch=2, intervals=False, validation=False)
     full = Run("shear-building-damage", out=tmp_path / "full", **kw)
     full.advance(progress=False)
     part = Run("shear-building-damage", out=tmp_path / "part", **kw)
-    part.advance(until=6203, progress=False)
+    part.advance(until=6303, progress=False)
     assert int(part.graph.blocks["detector"].alarms().sum()) == 2
     part.save()
     part.close()
@@ -320,3 +321,181 @@ def test_the_band_over_time_widens_at_the_change_and_narrows_again(tmp_path):
     final = np.asarray(summary["intervals"]["dk2"]["upper"]) - np.asarray(summary["estimates"]["dk2"])
     np.testing.assert_allclose(hw[-1], final, rtol=1e-9)
     assert np.all(hw[-1] < hw[after] / 10)
+
+
+def _two_mass(nc, proper, feed_u=True):
+    """Two masses on springs (m = 1, k = 1 and 0.5, c = 0.1), u a force pair on the second spring's drift, y the
+    velocities and y0 the drift: a refinement whose loop u = theta phi(y0) the tests close."""
+    A = [[0, 1, 0, 0], [-1.5, -0.1, 0.5, 0], [0, 0, 0, 1], [0.5, 0, -0.5, -0.1]]
+    B = [[0, 0], [1, 1], [0, 0], [0, -1]]
+    C = [[0, 1, 0, 0], [0, 0, 0, 1], [-1, 0, 1, 0]]
+    known = rt.LTI.continuous(A, B, C, np.zeros((3, 2)), inputs=["w", "u"], outputs={"y": 2, "y0": 1},
+                              dt=0.05, name="known")
+    ident = rt.RCOEstimator({"y0": 1}, n_u=1, n_z=2, nc=nc, proper=proper, feed_u=feed_u)
+    g = rt.refinement(known, ident, truth=rt.Gain(np.zeros((1, 1)), name="unknown"),
+                      excitation=rt.WhiteNoise(1, seed=1), nu=30, batch_size=3, blocks=[rt.ChangeDetector(2)],
+                      connections=[("error.out", "detector.z")])
+    return g, known
+
+
+def test_closed_loop_markov_of_a_static_gain_is_python_controls_feedback():
+    import control
+
+    from rcotorch.estimator.tracking import closed_loop_markov
+    g, known = _two_mass(0, True)
+    est = g.role("estimator")
+    theta = torch.tensor([[[0.3]], [[-0.2]], [[0.0]]], dtype=torch.float64)
+    beta = closed_loop_markov(g, theta)
+    assert beta.shape == (3, est.nu, 2, 1)
+    np.testing.assert_allclose(beta[2].numpy(), est.beta[0].numpy(), rtol=0, atol=1e-15)      # theta = 0: open
+    Ad, Bd = known.A[0].numpy(), known.B[0].numpy()[:, 1:]
+    G = control.ss(Ad, Bd, known.C[0].numpy(), np.zeros((3, 1)), 0.05)                  # u -> [y; y0]
+    for b in range(2):
+        K = control.ss([], [], [], [[0.0, 0.0, float(theta[b, 0, 0])]], 0.05)          # [y; y0] -> u
+        cl = control.feedback(G, K, sign=1)                                             # v -> [y; y0]
+        T = np.arange(est.first_delay + est.nu) * 0.05
+        resp = np.asarray(control.impulse_response(cl, T=T).y)[:2, 0] * 0.05         # a unit pulse, (2, steps)
+        np.testing.assert_allclose(-beta[b, :, :, 0].numpy().T, resp[:, est.first_delay:], rtol=1e-9, atol=1e-14)
+
+
+@pytest.mark.parametrize("feed_u", [True, False])
+def test_closed_loop_markov_of_a_dynamic_subsystem_is_the_loop_simulated(feed_u):
+    """nc = 2, strictly proper: u(k) = a1 y0(k-1) + a2 y0(k-2) [+ b1 u(k-1) + b2 u(k-2)] + v(k), simulated step
+    by step with the known model's matrices against the closed-loop Markov parameters."""
+    from rcotorch.estimator.tracking import closed_loop_markov
+    g, known = _two_mass(2, False, feed_u=feed_u)
+    est = g.role("estimator")
+    theta = torch.tensor([[[0.4, -0.25, 0.3, 0.1][:est.n_phi]]], dtype=torch.float64).expand(3, -1, -1)
+    beta = closed_loop_markov(g, theta)
+    Ad, B, C, D = (M[0].numpy() for M in (known.A, known.B, known.C, known.D))
+    a1, a2 = theta[0, 0, :2].tolist()
+    b1, b2 = theta[0, 0, 2:].tolist() if feed_u else (0.0, 0.0)
+    x, y0s, us, ys = np.zeros(4), [0.0, 0.0], [0.0, 0.0], []
+    for k in range(est.first_delay + est.nu):
+        u = a1 * y0s[-1] + a2 * y0s[-2] + b1 * us[-1] + b2 * us[-2] + (1.0 if k == 0 else 0.0)
+        out = C @ x + D[:, 1] * u
+        ys.append(out[:2])
+        y0s.append(out[2])
+        us.append(u)
+        x = Ad @ x + B[:, 1] * u
+    np.testing.assert_allclose(-beta[0, :, :, 0].numpy(), np.array(ys)[est.first_delay:], rtol=1e-9, atol=1e-14)
+
+
+def test_closed_loop_tracking_is_refused_on_markov_parameters_not_the_known_models():
+    g, _ = _two_mass(0, True)
+    rt.ResetOnChange(g, markov="closed-loop")                    # the graph's own: accepted
+    est = g.role("estimator")
+    est.set_markov(2 * est.beta, est.first_delay)
+    with pytest.raises(rt.ConfigError, match="not those of its known model"):
+        rt.ResetOnChange(g, markov="closed-loop")
+    with pytest.raises(rt.ConfigError, match="markov must be"):
+        rt.ResetOnChange(g, markov="closed")
+    with pytest.raises(rt.ConfigError, match="markov_after"):
+        rt.ResetOnChange(g, markov_after=-1)
+
+
+def _damage(storey, change, markov, batch, engine="auto"):
+    from rcotorch.run import scenario as scenarios
+    sc = scenarios.get("shear-building-damage")
+    s = sc.resolve({"storey": storey, "change": change, "track_markov": markov})
+    g = sc.build(s, batch, torch.float64, "cpu")
+    g.engine = engine
+    return sc, s, g
+
+
+def test_the_loop_closed_at_the_estimate_follows_a_change_the_known_models_markov_parameters_miss():
+    """Storey 3 loses 30%: with the known model's own Markov parameters the estimates wander (the loop's modes
+    have moved, and over the one-second window the open-loop parameters are out of phase with them); closed at
+    the present estimate, every member is within 2% of the new stiffness 50 periods after the change."""
+    errors = {}
+    for markov in ("open-loop", "closed-loop"):
+        sc, s, g = _damage(3, -0.3, markov, 8)
+        g.advance(sc.steps)
+        d = torch.stack(list(sc.estimates(g, s).values()), 1)
+        errors[markov] = (d - torch.tensor([0.0, 0.0, -0.3], dtype=d.dtype)).abs().amax(1)
+    assert float(errors["closed-loop"].max()) < 0.016
+    assert float(errors["open-loop"].median()) > 0.03
+    est = g.role("estimator")
+    assert est.beta.shape[0] == 8        # one set per member from the start
+
+
+@needs_native
+def test_both_engines_close_the_loop_alike():
+    thetas = {}
+    for engine in ("torch", "native"):
+        sc, s, g = _damage(2, -0.2, "closed-loop", 2, engine)
+        g.advance(6600)
+        est = g.role("estimator")
+        assert not torch.equal(est.beta[0], est.beta[0].new_zeros(()).expand_as(est.beta[0]))
+        thetas[engine] = (est.theta.clone(), est.beta.clone())
+    np.testing.assert_allclose(thetas["native"][1].numpy(), thetas["torch"][1].numpy(), rtol=1e-7, atol=1e-14)
+    np.testing.assert_allclose(thetas["native"][0].numpy(), thetas["torch"][0].numpy(), rtol=1e-7, atol=1e-3)
+
+
+def test_closed_loop_markov_is_the_same_in_the_kernel_and_in_pytorch():
+    from rcotorch.estimator.tracking import closed_loop_markov
+    for nc, proper in ((0, True), (2, False), (1, True)):
+        g, _ = _two_mass(nc, proper)
+        est = g.role("estimator")
+        gen = torch.Generator().manual_seed(nc)
+        theta = 0.3 * torch.randn(3, est.n_u, est.n_phi, dtype=torch.float64, generator=gen)
+        native = closed_loop_markov(g, theta)
+        with kernels.disabled():
+            torch_only = closed_loop_markov(g, theta)
+        np.testing.assert_allclose(native.numpy(), torch_only.numpy(), rtol=1e-10, atol=1e-15)
+
+
+@pytest.mark.parametrize("engine", ["torch", pytest.param("native", marks=needs_native)])
+def test_the_loop_is_closed_for_the_alarmed_member_only_and_renewed_where_its_estimate_moved(engine):
+    from rcotorch.engine import lowering
+    g, det = building(3, engine, reset=False)
+    hook = rt.ResetOnChange(g, every=5, p0=1e14, lam=0.997, hold=300, markov="closed-loop", markov_after=50)
+    g.add_hook(hook)
+    est = g.role("estimator")
+    open_loop = est.beta.clone()
+    g.advance(1000)
+    while int(det.x[0, FIRST]) < 0:
+        g.advance(1)
+    alarm = int(det.x[0, FIRST])
+    g.advance(alarm + 50 + (-(alarm + 50) % 5) - int(g.k))          # the first renewal: member 0 alone
+    assert est.beta.shape[0] == 3
+    assert torch.equal(est.beta[1:], open_loop.expand(2, -1, -1, -1))
+    assert not torch.allclose(est.beta[0], open_loop[0], rtol=1e-3, atol=0)
+    np.testing.assert_array_equal(est.theta_closed[0].numpy(), est.theta[0].numpy())
+    assert float(est.theta_closed[1:].abs().max()) == 0.0
+    prog = lowering.program(g) if engine == "native" else None
+    g.advance(5)                                                      # renewed in place: the same program
+    assert not torch.equal(est.theta_closed[0], est.theta[0].new_zeros(()).expand_as(est.theta[0]))
+    np.testing.assert_array_equal(est.theta_closed[0].numpy(), est.theta[0].numpy())
+    if engine == "native":
+        assert lowering.program(g) is prog
+    # a tolerance the estimate's moves stay below: the parameters are not renewed
+    hook.markov_tol = 1e9
+    kept = est.beta.clone()
+    g.advance(20)
+    assert torch.equal(est.beta, kept)
+
+
+def test_markov_parameters_of_some_members_keep_their_shape_and_delay():
+    g, _ = _two_mass(0, True)
+    est = g.role("estimator")
+    with pytest.raises(rt.DimensionError, match="Markov parameters of 1 members"):
+        est.set_markov(est.beta[:, :3], est.first_delay, members=[0])
+    with pytest.raises(rt.ConfigError, match="first delay"):
+        est.set_markov(est.beta, est.first_delay + 1, members=[0])
+    est.set_markov(2 * est.beta, est.first_delay, members=[1])
+    assert torch.equal(est.beta[1], 2 * est.beta[0]) and torch.equal(est.beta[0], est.beta[2])
+
+
+def test_the_loop_is_closed_on_the_gpu():
+    from virtual_cuda import virtual_cuda
+    with virtual_cuda():
+        g, det = building(2, "torch", reset=False, device="cuda")
+        g.add_hook(rt.ResetOnChange(g, every=5, p0=1e14, lam=0.997, hold=300, markov="closed-loop",
+                                    markov_after=20))
+        est = g.role("estimator")
+        open_loop = est.beta.clone()
+        g.advance(1060)
+        assert est.beta.is_cuda and est.theta_closed.is_cuda and est.beta.shape[0] == 2
+        assert int(det.first_alarm()[0]) > 1000 and int(det.first_alarm()[1]) == -1
+        assert torch.equal(est.beta[1], open_loop[0]) and not torch.equal(est.beta[0], open_loop[0])

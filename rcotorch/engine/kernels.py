@@ -230,6 +230,19 @@ def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     return out
 
 
+def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, first: int, count: int) -> torch.Tensor | None:
+    """H_i = C A^(i-1) B for i = first .. first + count - 1 (first >= 1) of one system per member, A (Bm, N, N),
+    B (Bm, N, m), C (Bm, p, N), as (Bm, count, p, m); None where the kernel does not apply (not allowed here, not
+    the CPU or float64): then the caller runs PyTorch."""
+    if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in (A, B, C)):
+        return None
+    Bm, N, m, p = A.shape[0], A.shape[-1], B.shape[-1], C.shape[1]
+    A, B, C = (t.detach().contiguous() for t in (A, B, C))
+    H = torch.empty(Bm, count, p, m, dtype=torch.float64)
+    _engine.lti_markov(Bm, N, m, p, first, count, A.data_ptr(), B.data_ptr(), C.data_ptr(), H.data_ptr(), threads())
+    return H
+
+
 def markov_fd(step: int, h: int, x: torch.Tensor, u: torch.Tensor, col: int, width: int, n_out: int, rows: slice,
               n: int, eps: float, trajectory: bool) -> torch.Tensor:
     """Markov parameters (B, n, rows, width) of compiled maps at the addresses ``step`` ([x, u] -> x) and ``h``

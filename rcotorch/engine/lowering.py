@@ -449,6 +449,18 @@ def program(graph) -> Program | str:
     return prog
 
 
+def refilled(graph, *tensors: torch.Tensor) -> None:
+    """Keep the graph's program valid after ``tensors``, parameters it was made with, were changed in place
+    together with what the program itself reads of them (an estimator's Markov parameters and the engine's copy,
+    ``RCOEstimator.set_markov(..., members=)``): their new versions become the ones the program stands for."""
+    entry = graph.__dict__.get("_lowered")
+    if entry is None:
+        return
+    ids = {id(t) for t in tensors}
+    key = tuple((t, t._version) if t is not None and id(t) in ids else (t, v) for t, v in entry[1])
+    graph.__dict__["_lowered"] = (entry[0], key, entry[2], entry[3])
+
+
 def unsupported(graph) -> str | None:
     """Why ``graph`` cannot run on the native engine, or None when it can."""
     prog = program(graph)

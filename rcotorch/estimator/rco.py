@@ -467,7 +467,7 @@ class RCOEstimator(Block):
                 idx += [upast0 + (lag - 1) * self.n_u + c for c in range(self.n_u)]
         return torch.tensor(idx, dtype=torch.int64)
 
-    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None) -> None:
+    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None, members=None) -> None:
         """Set the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z (sign included).
 
         A lowered native program reads the new values where their shape stays, and is built again where it
@@ -476,21 +476,38 @@ class RCOEstimator(Block):
         Parameters
         ----------
         markov : array_like
-            (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1.
+            (nu, n_z, n_u) shared by the batch, or (B, nu, n_z, n_u) one per member; nu >= 1. With ``members``,
+            (len(members), nu, n_z, n_u), the parameters of those members, with the nu and d they have.
         first_delay : int, optional
             d, the delay of the first one (>= 0; 0 where u reaches z at once).
         dt : float, optional
             The sample time [s] of the model they are taken from, the identified subsystem's ``sample_time``
             where the estimator has no ``dt`` of its own; None keeps the one given before.
+        members : array_like, optional
+            The indices of the members whose parameters ``markov`` holds; the others keep theirs (a shared set
+            becomes one per member).
 
         Raises
         ------
         DimensionError
             If ``markov`` has the wrong shape.
         ConfigError
-            If ``first_delay`` is negative.
+            If ``first_delay`` is negative, or differs from the present one with ``members``.
         """
         beta = torch.as_tensor(markov, dtype=self.theta0.dtype, device=self.theta0.device)
+        if members is not None:
+            idx = torch.as_tensor(members, dtype=torch.int64, device=beta.device).reshape(-1)
+            if first_delay != self.first_delay:
+                raise ConfigError(f"block '{self.name}': the Markov parameters of some members must keep the "
+                                  f"first delay {self.first_delay}, got {first_delay}")
+            if tuple(beta.shape) != (idx.numel(), *self.beta.shape[1:]):
+                raise DimensionError(f"block '{self.name}': Markov parameters of {idx.numel()} members must be "
+                                     f"{(idx.numel(), *self.beta.shape[1:])}, got {tuple(beta.shape)}")
+            if self.beta.shape[0] == self.theta.shape[0] and self._refill_members(idx, beta):
+                return
+            full = self.beta.expand(self.theta.shape[0], -1, -1, -1).clone()
+            full[idx] = beta
+            beta = full
         beta = beta.unsqueeze(0) if beta.dim() == 3 else beta
         if beta.dim() != 4 or tuple(beta.shape[2:]) != (self.n_z, self.n_u) or beta.shape[1] < 1:
             raise DimensionError(f"block '{self.name}': Markov parameters must be (nu, n_z, n_u) = "
@@ -512,6 +529,45 @@ class RCOEstimator(Block):
                 lowered[0].copy_(ring)
             else:                           # other sizes: the program, which holds the old beta, is made again
                 kernels.bump(*lowered[1])
+
+    def refill_members(self) -> tuple[torch.Tensor, ...]:
+        """The tensors ``set_markov(..., members=)`` changes in place once the parameters are one per member.
+
+        With them it changes the native engine's copy of them, so that a graph whose program reads that copy
+        stays valid through such a change (``rcotorch.engine.lowering.refilled``).
+
+        Returns
+        -------
+        tuple of torch.Tensor
+            beta and beta_t as they are now.
+        """
+        return self.beta, self.beta_t
+
+    def _refill_members(self, idx: torch.Tensor, beta: torch.Tensor) -> bool:
+        """Write the Markov parameters of the members ``idx`` into beta, beta_t and, where a lowered program
+        reads them, its copy, all in place; False where there is no such copy of this beta (the caller then
+        sets the whole beta, and the program is made again)."""
+        lowered = self.__dict__.get("_native_beta_ring")
+        if lowered is None or lowered[1][0] is not self.beta or lowered[0].shape[0] != self.beta.shape[0]:
+            return False
+        bt = beta.flatten(2).mT
+        self.beta.index_copy_(0, idx, beta)
+        self.beta_t.index_copy_(0, idx, bt)
+        # the rows as _native_beta lays them out: reversed in time, first_delay zeros after, twice over
+        ring, nu, W = lowered[0], beta.shape[1], self.window
+        rows = ring.new_zeros(idx.numel(), ring.shape[1], W)
+        rows[..., :nu] = bt.flip(-1)
+        ring.index_copy_(0, idx, rows.repeat(1, 1, 2))
+        return True
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        """Markov parameters saved one per member (after ``set_markov(..., members=)``) load into an estimator
+        whose parameters are still shared: it takes the saved set's shape first."""
+        beta = state_dict.get(prefix + "beta")
+        if isinstance(beta, torch.Tensor) and beta.dim() == 4 and beta.shape != self.beta.shape and \
+                beta.shape[1:] == self.beta.shape[1:]:
+            self.set_markov(beta.to(self.beta), self.first_delay)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def sample_time(self) -> float | None:
@@ -899,8 +955,13 @@ class RCOEstimator(Block):
         return stacked
 
     # --- the identified subsystem -----------------------------------------------------------------------
-    def coefficients(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def coefficients(self, theta: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """theta split by lag: u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l).
+
+        Parameters
+        ----------
+        theta : torch.Tensor, optional
+            (B', n_u, n_phi); by default the estimator's own.
 
         Returns
         -------
@@ -909,7 +970,8 @@ class RCOEstimator(Block):
         M : torch.Tensor
             (B, max(nc, 1), n_u, n_u), the coefficients of u(k-1)..u(k-nc) (zeros if ``feed_u`` is False).
         """
-        B, theta = self.theta.shape[0], self.theta
+        theta = self.theta if theta is None else theta
+        B = theta.shape[0]
         N = theta.new_zeros(B, len(self.lags), self.n_u, self.n_sig)
         j, offset = 0, 0
         for _s, w in self.signals.items():

@@ -19,8 +19,18 @@ power (relative to the noise's) less ``drift``. It is a ``Nonlinear`` block writ
 numba and torch share, so it runs in the native engine and on a GPU alike.
 
 ``ResetOnChange``: a step hook that, at the steps it acts (every ``every`` steps), sets P = p0 I for the members
-whose detector alarmed since (theta is kept) and lets them forget for a while. ``at_step``: a hook that calls
-a function once, at one step (a simulated change of the truth).
+whose detector alarmed since (theta is kept) and lets them forget for a while; with ``markov='closed-loop'`` it
+also gives the members that are following a change the Markov parameters of the loop as it now is
+(``closed_loop_markov``). ``at_step``: a hook that calls a function once, at one step (a simulated change of the
+truth).
+
+``closed_loop_markov``: the retrospective cost weighs a change of theta by the Markov parameters of u -> z, which
+``refinement`` takes from the known model alone. The known model, though, runs inside the loop that theta
+closes (u = theta phi, phi made of the model's own signals), so a perturbation of u reaches z through the known
+model *with that loop closed*. While theta is near zero the two agree; after a change, with theta far from zero,
+the open-loop parameters differ from the loop's by a growing phase over the window (the loop's modes have other
+frequencies), and the regression is biased. The closed-loop parameters at the present theta remove that bias;
+they are exact for a linear known model and regressors that are its output ports.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import torch
 
 from ..blocks.base import DEFAULT_DTYPE
 from ..blocks.nonlinear import Nonlinear
+from ..engine import kernels, lowering
 from ..errors import ConfigError
 
 # The detector's state, per member.
@@ -209,16 +220,40 @@ class ResetOnChange:
         How many steps after an alarm ``lam`` applies (>= 0).
     restart : bool, optional
         Reset P at an alarm; False keeps P (only ``lam`` acts).
+    markov : {'open-loop', 'closed-loop'}, optional
+        'closed-loop': every ``markov_every`` steps, the members between ``markov_after`` and ``hold`` steps
+        after their last alarm get the Markov parameters of the loop closed at their present theta
+        (``closed_loop_markov``); the others keep theirs (from the first such member on, the estimator holds
+        one set per member). 'open-loop' (the default) keeps the Markov parameters as they are.
+    markov_after : int, optional
+        Steps after an alarm before the first closed-loop Markov parameters (>= 0), so that theta has moved
+        from its first jumps after the restart before the loop is closed at it.
+    markov_every : int, optional
+        Steps between two renewals of the closed-loop Markov parameters, a multiple of ``every`` (by default
+        ``every``).
+    markov_until : int, optional
+        Steps after an alarm after which a member's closed-loop Markov parameters are kept as they are (by
+        default ``hold``).
+    markov_tol : float, optional
+        A member's are renewed only where its theta has moved since they were made by more than ``markov_tol``
+        times its size (Frobenius norms); 0 renews them every time. The theta they were made at is kept in the
+        estimator's buffer ``theta_closed`` (zeros at the start: the known model's own parameters are the loop
+        opened).
 
     Raises
     ------
     ConfigError
-        If ``every``, ``p0``, ``lam`` or ``hold`` is out of range, or the graph has no ``ChangeDetector`` named
-        ``detector``.
+        If ``every``, ``p0``, ``lam``, ``hold``, ``markov``, ``markov_after``, ``markov_every`` or ``markov_tol`` is
+        out of range,
+        the graph has no
+        ``ChangeDetector`` named ``detector``, or (closed-loop) the estimator's Markov parameters are not the
+        known model's own (``closed_loop_markov`` at theta = 0).
     """
 
     def __init__(self, graph, every: int = 5, detector: str = "detector", estimator: str | None = None,
-                 p0: float | None = None, lam: float | None = None, hold: int = 0, restart: bool = True):
+                 p0: float | None = None, lam: float | None = None, hold: int = 0, restart: bool = True,
+                 markov: str = "open-loop", markov_after: int = 0, markov_every: int | None = None,
+                 markov_until: int | None = None, markov_tol: float = 0.0):
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ConfigError(f"ResetOnChange: every must be a positive integer, got {every!r}")
         if detector not in graph.blocks or not isinstance(graph.blocks[detector], ChangeDetector):
@@ -229,7 +264,21 @@ class ResetOnChange:
             raise ConfigError(f"ResetOnChange: lam must lie in (0, 1], got {lam!r}")
         if isinstance(hold, bool) or not isinstance(hold, int) or hold < 0:
             raise ConfigError(f"ResetOnChange: hold must be a non-negative integer, got {hold!r}")
+        if markov not in ("open-loop", "closed-loop"):
+            raise ConfigError(f"ResetOnChange: markov must be 'open-loop' or 'closed-loop', got {markov!r}")
+        if isinstance(markov_after, bool) or not isinstance(markov_after, int) or markov_after < 0:
+            raise ConfigError(f"ResetOnChange: markov_after must be a non-negative integer, got {markov_after!r}")
         self.graph, self.every, self.detector = graph, every, detector
+        markov_every = every if markov_every is None else markov_every
+        if isinstance(markov_every, bool) or not isinstance(markov_every, int) or markov_every < 1 or \
+                markov_every % every:
+            raise ConfigError(f"ResetOnChange: markov_every must be a positive multiple of every = {every}, got "
+                              f"{markov_every!r}")
+        self.closed, self.markov_after, self.markov_every = markov == "closed-loop", markov_after, markov_every
+        self.markov_until = hold if markov_until is None else markov_until
+        if not (math.isfinite(markov_tol) and markov_tol >= 0):
+            raise ConfigError(f"ResetOnChange: markov_tol must be >= 0, got {markov_tol!r}")
+        self.markov_tol = float(markov_tol)
         self.estimator, self.p0, self.lam, self.hold, self.restart = estimator, p0, lam, hold, bool(restart)
         est = self._est()
         if lam is not None:
@@ -239,6 +288,22 @@ class ResetOnChange:
             own = est.lam.detach().clone().expand(graph.batch_size).clone()
             est.register_buffer("lam_own", own, persistent=False)
             est.lam = own.clone()
+        if self.closed:
+            self._closed_loop_start(est)
+
+    def _closed_loop_start(self, est) -> None:
+        """Check that the loop opened (theta = 0) gives the estimator's Markov parameters."""
+        B = self.graph.batch_size
+        theta = torch.zeros(B, est.n_u, est.n_phi, dtype=est.theta0.dtype, device=est.theta0.device)
+        open_loop = closed_loop_markov(self.graph, theta, estimator=self.estimator)
+        beta = est.beta.expand(B, -1, -1, -1)
+        scale = float(beta.abs().amax())
+        if open_loop.shape != beta.shape or float((open_loop - beta).abs().amax()) > 1e-9 * max(scale, 1e-300):
+            raise ConfigError(f"ResetOnChange: markov='closed-loop', but the Markov parameters of '{est.name}' are "
+                              "not those of its known model's u -> y (as refinement() derives them); the loop "
+                              "cannot be closed on them")
+        if "theta_closed" not in est._buffers:
+            est.register_buffer("theta_closed", theta)      # saved with the graph: a resumed run renews alike
 
     def _est(self):
         return self.graph.blocks[self.estimator] if self.estimator else self.graph.role("estimator")
@@ -277,7 +342,33 @@ class ResetOnChange:
             if want.shape != est.lam.shape or not torch.equal(want, est.lam):
                 est.lam = want
                 acted = True
+        if self.closed:
+            acted = self._close_loop(det, est, k) or acted
         return acted
+
+    def _close_loop(self, det, est, k: int) -> bool:
+        """Closed-loop Markov parameters at their present theta for the living members between markov_after and
+        hold steps after their last alarm, at the steps that are multiples of markov_every."""
+        if k % self.markov_every:
+            return False
+        last = det.x[:, LAST]
+        since = k - last
+        now = (last >= 0) & (since >= self.markov_after) & (since <= self.markov_until) & est.alive.to(last.device)
+        if self.markov_tol > 0:
+            # ||theta - theta_closed|| > tol ||theta||
+            moved = (est.theta - est.theta_closed).flatten(1).norm(dim=1) > \
+                self.markov_tol * est.theta.flatten(1).norm(dim=1)
+            now = now & moved.to(now.device)
+        if not bool(now.any()):
+            return False
+        idx = now.nonzero().reshape(-1).to(est.theta.device)
+        est.theta_closed.index_copy_(0, idx, est.theta[idx])
+        beta = closed_loop_markov(self.graph, est.theta[idx], estimator=self.estimator, members=idx)
+        before = est.refill_members()
+        est.set_markov(beta, est.first_delay, members=idx)
+        if all(a is b for a, b in zip(before, est.refill_members())):       # changed in place
+            lowering.refilled(self.graph, *before, est.theta_closed)        # theta_closed: not read by it
+        return True
 
 
 class at_step:
@@ -345,3 +436,133 @@ def change_report(graph) -> dict[str, dict[str, torch.Tensor]]:
             out[name] = {"first_alarm_step": first, "first_alarm_s": torch.where(first >= 0, first * dt, nan),
                          "last_alarm_step": last, "alarms": blk.x[:, COUNT].round()}
     return out
+
+
+def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str | None = None,
+                       known: str | None = None, actuation: str = "u", measured: str = "y",
+                       members: torch.Tensor | None = None) -> torch.Tensor:
+    """The Markov parameters of u -> z with the estimator's loop closed at ``theta``, one set per member.
+
+    The known model (an ``LTI``) runs with u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l) + v(k), the estimator's
+    identified subsystem at ``theta`` (``RCOEstimator.coefficients``), where each regressor port s that the
+    graph feeds from a known-model output is that output; regressor ports fed from elsewhere (the measured data,
+    the excitation) do not depend on u and are left out of the loop. The result is beta_i = -H_i, i = d..d+nu-1,
+    of the map v -> y (z = y - y_hat, as ``derive_markov``), with the estimator's own d and nu: at theta = 0 it is
+    the known model's own Markov parameters.
+
+    Parameters
+    ----------
+    graph : Graph
+        A refinement: its known model an ``LTI``, its estimator an ``RCOEstimator`` without features.
+    theta : torch.Tensor, optional
+        (B', n_u, n_phi), the estimates to close the loop with; by default the estimator's own.
+    estimator, known : str, optional
+        Block names; by default the graph's roles 'estimator' and 'known'.
+    actuation, measured : str, optional
+        The known model's input port for u and its output port y.
+    members : torch.Tensor, optional
+        (B',) indices of the members ``theta`` belongs to, where the known model's matrices are per member; by
+        default all of them.
+
+    Returns
+    -------
+    torch.Tensor
+        (B', nu, n_z, n_u).
+
+    Raises
+    ------
+    ConfigError
+        If the known model is not linear (no state-space matrices), the estimator has features, or a
+        regressor with no delay reads a known-model output that u reaches at once in a way that makes the loop
+        singular.
+    """
+    est = graph.blocks[estimator] if estimator else graph.role("estimator")
+    kn = graph.blocks[known] if known else graph.role("known")
+    if not all(hasattr(kn, key) for key in ("A", "B", "C", "D", "_in_slices", "_out_slices")):
+        raise ConfigError(f"closed_loop_markov: the known model '{kn.name}' is not an LTI block; closed-loop Markov "
+                          "parameters need its state-space matrices")
+    if est.features is not None:
+        raise ConfigError(f"closed_loop_markov: the estimator '{est.name}' has features; closed-loop Markov "
+                          "parameters need regressors that are ports (linear in the known model's state)")
+    theta = est.theta if theta is None else theta
+    dt = kn.A.dtype
+    theta = theta.to(dtype=dt, device=kn.A.device)
+    Bm, n = theta.shape[0], kn.A.shape[-1]
+    cu, ry = kn._in_slices[actuation], kn._out_slices[measured]
+    n_u, n_sig, nc = est.n_u, est.n_sig, est.nc
+
+    def batch(M):
+        if M.shape[0] == 1:
+            return M.expand(Bm, -1, -1)
+        return M if members is None else M[members.to(M.device)]
+
+    A, Bu = batch(kn.A), batch(kn.B[:, :, cu])
+    Cy, Dy = batch(kn.C[:, ry]), batch(kn.D[:, ry, cu])
+    # s(k) = Cs x(k) + Ds u(k): the rows of the ports that the known model feeds, zeros for the others
+    Cs, Ds = theta.new_zeros(Bm, n_sig, n), theta.new_zeros(Bm, n_sig, n_u)
+    at = 0
+    for port, w in est.ports.items():
+        src = graph.sources.get((est.name, port))
+        if src is not None and src[0] == kn.name:
+            rows = kn._out_slices[src[1]]
+            Cs[:, at:at + w], Ds[:, at:at + w] = batch(kn.C[:, rows]), batch(kn.D[:, rows, cu])
+        at += w
+    N, M = est.coefficients(theta)
+    lags = est.lags
+    # The loop's state X = [x; s(k-1) .. s(k-nc); u(k-1) .. u(k-nc)]; u(k) = Fu X + Gu v(k).
+    size = n + nc * (n_sig + n_u)
+    eye_u = torch.eye(n_u, dtype=dt, device=theta.device)
+    N0 = N[:, 0] if lags[0] == 0 else theta.new_zeros(Bm, n_u, n_sig)
+    K = eye_u - N0 @ Ds                                      # u = N0 (Cs x + Ds u) + ...: (I - N0 Ds) u = ...
+    if not bool(torch.isfinite(torch.linalg.cond(K)).all()):
+        raise ConfigError(f"closed_loop_markov: the loop through '{est.name}' with no delay is singular "
+                          "(I - N_0 D_s has no inverse)")
+    rest = theta.new_zeros(Bm, n_u, size)
+    rest[:, :, :n] = N0 @ Cs
+    for li, lag in enumerate(lags):
+        if lag >= 1:
+            c = n + (lag - 1) * n_sig
+            rest[:, :, c:c + n_sig] += N[:, li]
+    if est.feed_u:
+        for lag in range(1, nc + 1):
+            c = n + nc * n_sig + (lag - 1) * n_u
+            rest[:, :, c:c + n_u] = M[:, lag - 1]
+    Kinv = torch.linalg.inv(K)
+    Fu, Gu = Kinv @ rest, Kinv                               # (Bm, n_u, size), (Bm, n_u, n_u)
+    Acl = theta.new_zeros(Bm, size, size)
+    Bcl = theta.new_zeros(Bm, size, n_u)
+    Acl[:, :n, :n] = A
+    Acl[:, :n] += Bu @ Fu
+    Bcl[:, :n] = Bu @ Gu
+    if nc:
+        s_now = theta.new_zeros(Bm, n_sig, size)
+        s_now[:, :, :n] = Cs
+        s_now += Ds @ Fu
+        Acl[:, n:n + n_sig] = s_now
+        Bcl[:, n:n + n_sig] = Ds @ Gu
+        Acl[:, n + n_sig:n + nc * n_sig, n:n + (nc - 1) * n_sig] = torch.eye((nc - 1) * n_sig, dtype=dt,
+                                                                            device=theta.device)
+        u0 = n + nc * n_sig
+        Acl[:, u0:u0 + n_u] = Fu
+        Bcl[:, u0:u0 + n_u] = Gu
+        Acl[:, u0 + n_u:, u0:u0 + (nc - 1) * n_u] = torch.eye((nc - 1) * n_u, dtype=dt, device=theta.device)
+    # y(k) = Cy x + Dy u = (Cy [I 0] + Dy Fu) X + Dy Gu v
+    Ccl = Dy @ Fu
+    Ccl[:, :, :n] += Cy
+    d, nu = est.first_delay, est.nu
+    # H_0 = Dy Gu, H_i = Ccl Acl^(i-1) Bcl: in the native kernel where it applies, else the columns [Bcl, Acl Bcl,
+    # .., Acl^(n-1) Bcl] by doubling ([K, Acl^m K] from K of m blocks), a few products of the batch instead of one
+    # per parameter
+    first = max(d, 1)
+    n_blocks = d + nu - first
+    H = kernels.lti_markov(Acl, Bcl, Ccl, first, n_blocks)
+    if H is None:
+        K, power = Bcl, Acl
+        while K.shape[-1] < n_blocks * n_u:
+            K = torch.cat([K, power @ K], dim=-1)
+            power = power @ power
+        left = Ccl if first == 1 else Ccl @ torch.linalg.matrix_power(Acl, first - 1)
+        H = (left @ K[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)   # H_first ..
+    if d == 0:
+        H = torch.cat([(Dy @ Gu).unsqueeze(1), H], dim=1)
+    return -H[:, :nu]

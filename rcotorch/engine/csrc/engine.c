@@ -608,6 +608,67 @@ static PyObject *py_markov_fd(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* Markov parameters H_i = C A^(i-1) B, i = first .. first + nh - 1 (first >= 1), of one linear system per member
+ * (estimator/tracking.py, closed_loop_markov): A (B, N, N), Bm (B, N, m), C (B, p, N) row-major; H (B, nh, p,
+ * m). X = A^(i-1) B is carried per member, N x m, and multiplied by A in place of a copy. Returns 1 when out of
+ * memory. */
+static int lti_markov(int64_t B, int64_t N, int64_t m, int64_t p, int64_t first, int64_t nh, const double *A,
+                      const double *Bm, const double *C, double *H, int nthreads) {
+    int fail = 0;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
+#endif
+    {
+        double *X = malloc(sizeof(double) * (size_t)(2 * N * m));
+        if (!X) fail = 1;
+#ifdef _OPENMP
+#pragma omp for schedule(static)
+#endif
+        for (int64_t b = 0; b < B; b++) {
+            if (!X) continue;
+            const double *a = A + b * N * N, *c = C + b * p * N;
+            double *x = X, *y = X + N * m;
+            memcpy(x, Bm + b * N * m, sizeof(double) * (size_t)(N * m));
+            for (int64_t i = 1; i < first + nh; i++) {
+                if (i >= first) { /* H_i = C X */
+                    double *h = H + ((b * nh) + i - first) * p * m;
+                    for (int64_t r = 0; r < p; r++)
+                        for (int64_t k = 0; k < m; k++) {
+                            double acc = 0.0;
+                            for (int64_t j = 0; j < N; j++) acc += c[r * N + j] * x[j * m + k];
+                            h[r * m + k] = acc;
+                        }
+                }
+                if (i + 1 < first + nh) { /* X <- A X */
+                    for (int64_t r = 0; r < N; r++)
+                        for (int64_t k = 0; k < m; k++) {
+                            double acc = 0.0;
+                            for (int64_t j = 0; j < N; j++) acc += a[r * N + j] * x[j * m + k];
+                            y[r * m + k] = acc;
+                        }
+                    double *t = x;
+                    x = y;
+                    y = t;
+                }
+            }
+        }
+        free(X);
+    }
+    return fail;
+}
+
+static PyObject *py_lti_markov(PyObject *self, PyObject *args) {
+    long long B, N, m, p, first, nh;
+    unsigned long long A, Bm, C, H;
+    int nthreads, fail;
+    if (!PyArg_ParseTuple(args, "LLLLLLKKKKi", &B, &N, &m, &p, &first, &nh, &A, &Bm, &C, &H, &nthreads)) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    fail = lti_markov(B, N, m, p, first, nh, ADDR(A), ADDR(Bm), ADDR(C), ADDR(H), nthreads);
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
 static PyObject *py_rco_scratch(PyObject *self, PyObject *args) {
     long long n_u, n_z, n_phi, n, nl;
     if (!PyArg_ParseTuple(args, "LLLLL", &n_u, &n_z, &n_phi, &n, &nl)) return NULL;
@@ -626,6 +687,8 @@ static PyMethodDef METHODS[] = {
      "the health checks' bounds"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
+    {"lti_markov", py_lti_markov, METH_VARARGS,
+     "lti_markov(B, N, m, p, first, nh, A, Bm, C, H, nthreads): H_i = C A^(i-1) B per member"},
     {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
     {"markov_fd", py_markov_fd, METH_VARARGS,
      "markov_fd(step, h, B, n, m, col, W, n_out, r0, r1, nh, eps, trajectory, x, u, H): Markov parameters of "
