@@ -499,3 +499,23 @@ def test_the_loop_is_closed_on_the_gpu():
         assert est.beta.is_cuda and est.theta_closed.is_cuda and est.beta.shape[0] == 2
         assert int(det.first_alarm()[0]) > 1000 and int(det.first_alarm()[1]) == -1
         assert torch.equal(est.beta[1], open_loop[0]) and not torch.equal(est.beta[0], open_loop[0])
+
+
+def test_a_loop_that_cannot_be_closed_is_named():
+    A = [[0, 1], [-1.0, -0.1]]
+    known = rt.LTI.continuous(A, [[0, 0], [1, 1]], [[0, 1], [1, 0]], np.zeros((2, 2)), inputs=["w", "u"],
+                              outputs={"y": 1, "y0": 1}, dt=0.05, name="known")
+    # a regressor fed through another block: its path from u is not the known model's alone
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, n_z=1)
+    g = rt.refinement(known, ident, truth=rt.Gain([[0.0]], name="unknown"), excitation=rt.WhiteNoise(1, seed=1),
+                      nu=10, blocks=[rt.Gain([[2.0]], name="scale"), rt.ChangeDetector(1)],
+                      connections=[("known.y0", "scale.in"), ("error.out", "detector.z")],
+                      feeds={"y0": "scale.out"})
+    with pytest.raises(rt.ConfigError, match="'identified.y0' is fed by 'scale.out'"):
+        rt.ResetOnChange(g, markov="closed-loop")
+    # features: the loop is not linear in the known model's state
+    ident = rt.RCOEstimator({"y0": 1}, n_u=1, n_z=1, nc=0, proper=True, features={"cube": lambda s: s["y0"] ** 3})
+    g = rt.refinement(known, ident, truth=rt.Gain([[0.0]], name="unknown"), excitation=rt.WhiteNoise(1, seed=1),
+                      nu=10)
+    with pytest.raises(rt.ConfigError, match="has features"):
+        rt.closed_loop_markov(g)

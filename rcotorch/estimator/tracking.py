@@ -244,10 +244,9 @@ class ResetOnChange:
     ------
     ConfigError
         If ``every``, ``p0``, ``lam``, ``hold``, ``markov``, ``markov_after``, ``markov_every`` or ``markov_tol`` is
-        out of range,
-        the graph has no
-        ``ChangeDetector`` named ``detector``, or (closed-loop) the estimator's Markov parameters are not the
-        known model's own (``closed_loop_markov`` at theta = 0).
+        out of range, the graph has no ``ChangeDetector`` named ``detector``, or (closed-loop) the loop cannot be
+        closed (``closed_loop_markov``) or the estimator's Markov parameters are not the known model's own (the
+        loop closed at theta = 0).
     """
 
     def __init__(self, graph, every: int = 5, detector: str = "detector", estimator: str | None = None,
@@ -444,11 +443,11 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
     """The Markov parameters of u -> z with the estimator's loop closed at ``theta``, one set per member.
 
     The known model (an ``LTI``) runs with u(k) = sum_l N_l s(k-l) + sum_l M_l u(k-l) + v(k), the estimator's
-    identified subsystem at ``theta`` (``RCOEstimator.coefficients``), where each regressor port s that the
-    graph feeds from a known-model output is that output; regressor ports fed from elsewhere (the measured data,
-    the excitation) do not depend on u and are left out of the loop. The result is beta_i = -H_i, i = d..d+nu-1,
-    of the map v -> y (z = y - y_hat, as ``derive_markov``), with the estimator's own d and nu: at theta = 0 it is
-    the known model's own Markov parameters.
+    identified subsystem at ``theta`` (``RCOEstimator.coefficients``), where each regressor port s that the graph
+    feeds from a known-model output is that output; regressor ports fed by a source (a block without inputs: the
+    excitation, recorded data) do not depend on u and are left out of the loop. The result is beta_i = -H_i, i =
+    d..d+nu-1, of the map v -> y (z = y - y_hat, as ``derive_markov``), with the estimator's own d and nu: at theta
+    = 0 it is the known model's own Markov parameters.
 
     Parameters
     ----------
@@ -472,9 +471,10 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
     Raises
     ------
     ConfigError
-        If the known model is not linear (no state-space matrices), the estimator has features, or a
-        regressor with no delay reads a known-model output that u reaches at once in a way that makes the loop
-        singular.
+        If the known model is not linear (no state-space matrices), the estimator has features, a regressor
+        port is fed by a block that is neither the known model nor a source (its path from u is not known
+        here), or a regressor with no delay reads a known-model output that u reaches at once in a way that makes
+        the loop singular.
     """
     est = graph.blocks[estimator] if estimator else graph.role("estimator")
     kn = graph.blocks[known] if known else graph.role("known")
@@ -506,6 +506,10 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
         if src is not None and src[0] == kn.name:
             rows = kn._out_slices[src[1]]
             Cs[:, at:at + w], Ds[:, at:at + w] = batch(kn.C[:, rows]), batch(kn.D[:, rows, cu])
+        elif src is not None and graph.blocks[src[0]].inputs:
+            raise ConfigError(f"closed_loop_markov: the regressor port '{est.name}.{port}' is fed by "
+                              f"'{src[0]}.{src[1]}', which is neither the known model '{kn.name}' nor a source; the "
+                              "loop can be closed only through the known model's outputs")
         at += w
     N, M = est.coefficients(theta)
     lags = est.lags
@@ -551,18 +555,18 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
     Ccl[:, :, :n] += Cy
     d, nu = est.first_delay, est.nu
     # H_0 = Dy Gu, H_i = Ccl Acl^(i-1) Bcl: in the native kernel where it applies, else the columns [Bcl, Acl Bcl,
-    # .., Acl^(n-1) Bcl] by doubling ([K, Acl^m K] from K of m blocks), a few products of the batch instead of one
+    # .., Acl^(n-1) Bcl] by doubling ([C, Acl^m C] from C of m blocks), a few products of the batch instead of one
     # per parameter
     first = max(d, 1)
     n_blocks = d + nu - first
     H = kernels.lti_markov(Acl, Bcl, Ccl, first, n_blocks)
     if H is None:
-        K, power = Bcl, Acl
-        while K.shape[-1] < n_blocks * n_u:
-            K = torch.cat([K, power @ K], dim=-1)
+        cols, power = Bcl, Acl
+        while cols.shape[-1] < n_blocks * n_u:
+            cols = torch.cat([cols, power @ cols], dim=-1)
             power = power @ power
         left = Ccl if first == 1 else Ccl @ torch.linalg.matrix_power(Acl, first - 1)
-        H = (left @ K[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)   # H_first ..
+        H = (left @ cols[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)   # H_first ..
     if d == 0:
         H = torch.cat([(Dy @ Gu).unsqueeze(1), H], dim=1)
     return -H[:, :nu]
