@@ -392,6 +392,9 @@ def test_closed_loop_tracking_is_refused_on_markov_parameters_not_the_known_mode
         rt.ResetOnChange(g, markov="closed")
     with pytest.raises(rt.ConfigError, match="markov_after"):
         rt.ResetOnChange(g, markov_after=-1)
+    dynamic, _ = _two_mass(2, False)
+    with pytest.raises(rt.ConfigError, match="needs a static identified subsystem"):
+        rt.ResetOnChange(dynamic, markov="closed-loop")
 
 
 def _damage(storey, change, markov, batch, engine="auto"):
@@ -519,3 +522,18 @@ def test_a_loop_that_cannot_be_closed_is_named():
                       nu=10)
     with pytest.raises(rt.ConfigError, match="has features"):
         rt.closed_loop_markov(g)
+
+
+def test_a_loop_the_estimate_makes_unstable_keeps_the_markov_parameters_it_had():
+    """u = theta (x2 - x1) adds theta to the second spring's stiffness (0.5): theta < -0.5 makes it a negative spring
+    and the loop unstable; that member keeps the known model's own parameters, the other gets its loop's."""
+    g, _ = _two_mass(0, True)
+    hook = rt.ResetOnChange(g, every=5, hold=100, markov="closed-loop")
+    est, det = g.role("estimator"), g.blocks["detector"]
+    open_loop = est.beta.clone()
+    est.theta[:, 0, 0] = torch.tensor([-0.8, 0.2, 0.0], dtype=torch.float64)
+    det.x[:, LAST] = 0.0                                  # every member alarmed at step 0
+    assert hook(g)
+    assert torch.equal(est.beta[0], open_loop[0]) and float(est.theta_closed[0].abs().max()) == 0.0
+    assert not torch.equal(est.beta[1], open_loop[0]) and float(est.theta_closed[1, 0, 0]) == 0.2
+    assert torch.equal(est.beta[2], open_loop[0])          # theta = 0: its loop is the known model

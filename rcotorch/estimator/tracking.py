@@ -221,10 +221,11 @@ class ResetOnChange:
     restart : bool, optional
         Reset P at an alarm; False keeps P (only ``lam`` acts).
     markov : {'open-loop', 'closed-loop'}, optional
-        'closed-loop': every ``markov_every`` steps, the members between ``markov_after`` and ``hold`` steps
-        after their last alarm get the Markov parameters of the loop closed at their present theta
-        (``closed_loop_markov``); the others keep theirs (from the first such member on, the estimator holds
-        one set per member). 'open-loop' (the default) keeps the Markov parameters as they are.
+        'closed-loop' (a static identified subsystem, nc = 0): every ``markov_every`` steps, the members between
+        ``markov_after`` and ``markov_until`` steps after their last alarm get the Markov parameters of the loop
+        closed at their present theta (``closed_loop_markov``), where that loop is stable; the others keep theirs
+        (from the first such member on, the estimator holds one set per member). 'open-loop' (the default) keeps
+        the Markov parameters as they are.
     markov_after : int, optional
         Steps after an alarm before the first closed-loop Markov parameters (>= 0), so that theta has moved
         from its first jumps after the restart before the loop is closed at it.
@@ -244,9 +245,9 @@ class ResetOnChange:
     ------
     ConfigError
         If ``every``, ``p0``, ``lam``, ``hold``, ``markov``, ``markov_after``, ``markov_every`` or ``markov_tol`` is
-        out of range, the graph has no ``ChangeDetector`` named ``detector``, or (closed-loop) the loop cannot be
-        closed (``closed_loop_markov``) or the estimator's Markov parameters are not the known model's own (the
-        loop closed at theta = 0).
+        out of range, the graph has no ``ChangeDetector`` named ``detector``, or (closed-loop) the identified
+        subsystem is dynamic (nc >= 1), the loop cannot be closed (``closed_loop_markov``) or the estimator's
+        Markov parameters are not the known model's own (the loop closed at theta = 0).
     """
 
     def __init__(self, graph, every: int = 5, detector: str = "detector", estimator: str | None = None,
@@ -291,7 +292,13 @@ class ResetOnChange:
             self._closed_loop_start(est)
 
     def _closed_loop_start(self, est) -> None:
-        """Check that the loop opened (theta = 0) gives the estimator's Markov parameters."""
+        """Check that the identified subsystem is a static map and that the loop opened (theta = 0) gives the
+        estimator's Markov parameters."""
+        if est.nc:
+            raise ConfigError(f"ResetOnChange: markov='closed-loop' needs a static identified subsystem (nc = 0), "
+                              f"but '{est.name}' has nc = {est.nc}: a loop closed through a dynamic subsystem "
+                              "carries the subsystem's own poles, which move with the estimate (docs/tracking.md); "
+                              "use markov='open-loop'")
         B = self.graph.batch_size
         theta = torch.zeros(B, est.n_u, est.n_phi, dtype=est.theta0.dtype, device=est.theta0.device)
         open_loop = closed_loop_markov(self.graph, theta, estimator=self.estimator)
@@ -361,8 +368,15 @@ class ResetOnChange:
         if not bool(now.any()):
             return False
         idx = now.nonzero().reshape(-1).to(est.theta.device)
+        Acl, Bcl, Ccl, D0 = _closed_loop(self.graph, est.theta[idx], self.estimator, None, "u", "y", idx)
+        # a loop that theta makes unstable has Markov parameters that grow over the window: keep the old ones
+        stable = torch.linalg.eigvals(Acl).abs().amax(-1) < 1.0
+        if not bool(stable.all()):
+            idx, Acl, Bcl, Ccl, D0 = idx[stable], Acl[stable], Bcl[stable], Ccl[stable], D0[stable]
+            if not idx.numel():
+                return False
         est.theta_closed.index_copy_(0, idx, est.theta[idx])
-        beta = closed_loop_markov(self.graph, est.theta[idx], estimator=self.estimator, members=idx)
+        beta = _markov_parameters(Acl, Bcl, Ccl, D0, est.first_delay, est.nu)
         before = est.refill_members()
         est.set_markov(beta, est.first_delay, members=idx)
         if all(a is b for a, b in zip(before, est.refill_members())):       # changed in place
@@ -477,6 +491,13 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
         the loop singular.
     """
     est = graph.blocks[estimator] if estimator else graph.role("estimator")
+    Acl, Bcl, Ccl, D0 = _closed_loop(graph, theta, estimator, known, actuation, measured, members)
+    return _markov_parameters(Acl, Bcl, Ccl, D0, est.first_delay, est.nu)
+
+
+def _closed_loop(graph, theta, estimator, known, actuation, measured, members):
+    """The loop of ``closed_loop_markov`` as a state-space system per member, from v to y: (Acl, Bcl, Ccl, D0)."""
+    est = graph.blocks[estimator] if estimator else graph.role("estimator")
     kn = graph.blocks[known] if known else graph.role("known")
     if not all(hasattr(kn, key) for key in ("A", "B", "C", "D", "_in_slices", "_out_slices")):
         raise ConfigError(f"closed_loop_markov: the known model '{kn.name}' is not an LTI block; closed-loop Markov "
@@ -553,8 +574,14 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
     # y(k) = Cy x + Dy u = (Cy [I 0] + Dy Fu) X + Dy Gu v
     Ccl = Dy @ Fu
     Ccl[:, :, :n] += Cy
-    d, nu = est.first_delay, est.nu
-    # H_0 = Dy Gu, H_i = Ccl Acl^(i-1) Bcl: in the native kernel where it applies, else the columns [Bcl, Acl Bcl,
+    return Acl, Bcl, Ccl, Dy @ Gu
+
+
+def _markov_parameters(Acl: torch.Tensor, Bcl: torch.Tensor, Ccl: torch.Tensor, D0: torch.Tensor, d: int,
+                       nu: int) -> torch.Tensor:
+    """beta_i = -H_i, i = d..d+nu-1, of the system (Acl, Bcl, Ccl, D0), one per member: (Bm, nu, p, m)."""
+    Bm, n_u = Bcl.shape[0], Bcl.shape[-1]
+    # H_0 = D0, H_i = Ccl Acl^(i-1) Bcl: in the native kernel where it applies, else the columns [Bcl, Acl Bcl,
     # .., Acl^(n-1) Bcl] by doubling ([C, Acl^m C] from C of m blocks), a few products of the batch instead of one
     # per parameter
     first = max(d, 1)
@@ -568,5 +595,5 @@ def closed_loop_markov(graph, theta: torch.Tensor | None = None, estimator: str 
         left = Ccl if first == 1 else Ccl @ torch.linalg.matrix_power(Acl, first - 1)
         H = (left @ cols[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)   # H_first ..
     if d == 0:
-        H = torch.cat([(Dy @ Gu).unsqueeze(1), H], dim=1)
+        H = torch.cat([D0.unsqueeze(1), H], dim=1)
     return -H[:, :nu]
