@@ -553,11 +553,7 @@ class RCOEstimator(Block):
         bt = beta.flatten(2).mT
         self.beta.index_copy_(0, idx, beta)
         self.beta_t.index_copy_(0, idx, bt)
-        # the rows as _native_beta lays them out: reversed in time, first_delay zeros after, twice over
-        ring, nu, W = lowered[0], beta.shape[1], self.window
-        rows = ring.new_zeros(idx.numel(), ring.shape[1], W)
-        rows[..., :nu] = bt.flip(-1)
-        ring.index_copy_(0, idx, rows.repeat(1, 1, 2))
+        lowered[0].index_copy_(0, idx, self._padded(bt).repeat(1, 1, 2))       # as _native_beta lays them out
         return True
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -631,8 +627,11 @@ class RCOEstimator(Block):
     def _beta_padded(self) -> torch.Tensor:
         """beta_t reversed in time with first_delay zeros after it, (Bp, n_z * n_u, W): entry j weighs delay
         W - 1 - j."""
-        return memo.derived(self, "beta_padded", (self.beta_t,), lambda: torch.nn.functional.pad(
-            self.beta_t.flip(-1), (0, self.first_delay)))
+        return memo.derived(self, "beta_padded", (self.beta_t,), lambda: self._padded(self.beta_t))
+
+    def _padded(self, beta_t: torch.Tensor) -> torch.Tensor:
+        """(.., n_z * n_u, nu) -> (.., n_z * n_u, W): reversed in time, first_delay zeros after."""
+        return torch.nn.functional.pad(beta_t.flip(-1), (0, self.first_delay))
 
     def _beta_ring(self, p: int) -> torch.Tensor:
         """The weights of the window's rows at a step with k mod W = p, (Bp, n_z * n_u, W): row r holds the
