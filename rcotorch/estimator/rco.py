@@ -524,7 +524,7 @@ class RCOEstimator(Block):
             self.markov_dt = dt
         lowered = self.__dict__.get("_native_beta_ring")     # (what a lowered program reads, what it was made of)
         if lowered is not None:
-            ring = self._beta_padded().repeat(1, 1, 2)
+            ring = self._laid_out(self.beta, 2)
             if same and ring.shape == lowered[0].shape and ring.device == lowered[0].device:
                 lowered[0].copy_(ring)
             else:                           # other sizes: the program, which holds the old beta, is made again
@@ -553,7 +553,7 @@ class RCOEstimator(Block):
         bt = beta.flatten(2).mT
         self.beta.index_copy_(0, idx, beta)
         self.beta_t.index_copy_(0, idx, bt)
-        lowered[0].index_copy_(0, idx, self._padded(bt).repeat(1, 1, 2))       # as _native_beta lays them out
+        lowered[0].index_copy_(0, idx, self._laid_out(beta, 2))                 # as _native_beta lays them out
         return True
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -627,11 +627,18 @@ class RCOEstimator(Block):
     def _beta_padded(self) -> torch.Tensor:
         """beta_t reversed in time with first_delay zeros after it, (Bp, n_z * n_u, W): entry j weighs delay
         W - 1 - j."""
-        return memo.derived(self, "beta_padded", (self.beta_t,), lambda: self._padded(self.beta_t))
+        return memo.derived(self, "beta_padded", (self.beta, self.beta_t), lambda: self._laid_out(self.beta, 1))
 
-    def _padded(self, beta_t: torch.Tensor) -> torch.Tensor:
-        """(.., n_z * n_u, nu) -> (.., n_z * n_u, W): reversed in time, first_delay zeros after."""
-        return torch.nn.functional.pad(beta_t.flip(-1), (0, self.first_delay))
+    def _laid_out(self, beta: torch.Tensor, copies: int) -> torch.Tensor:
+        """(m, nu, n_z, n_u) -> (m, n_z * n_u, copies * W): ``copies`` times over, beta_t reversed in time with
+        first_delay zeros after it (entry j of each copy weighs delay W - 1 - j)."""
+        nu, W = beta.shape[1], beta.shape[1] + self.first_delay
+        out = beta.new_empty(beta.shape[0], self.n_z * self.n_u, copies * W)
+        out[..., :nu] = beta.flip(1).flatten(2).transpose(1, 2)
+        out[..., nu:W] = 0.0
+        for c in range(1, copies):
+            out[..., c * W:(c + 1) * W] = out[..., :W]
+        return out
 
     def _beta_ring(self, p: int) -> torch.Tensor:
         """The weights of the window's rows at a step with k mod W = p, (Bp, n_z * n_u, W): row r holds the
@@ -912,7 +919,7 @@ class RCOEstimator(Block):
         """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, which
         ``set_markov`` refills while its shape stays, so that the lowered program runs on with the new
         parameters (a Markov refresh between two calls of the engine)."""
-        ring = self._beta_padded().repeat(1, 1, 2)
+        ring = self._laid_out(self.beta, 2)
         self.__dict__["_native_beta_ring"] = (ring, (self.beta, self.beta_t))
         return ring
 
