@@ -75,7 +75,7 @@ class ShearBuildingDamage(Scenario):
         restart_every=("steps", "the restart acts every this many steps, on the alarms since it last acted (each "
                                 "time it acts, the native engine stops: a pass over every member's state)"),
         track_markov=("", "the Markov parameters while following a change: the known model's own, or those of the loop "
-                          "closed at the member's present estimate, renewed each time the restart acts",
+                          "closed at the member's present estimate, renewed every markov_every steps",
                       ("open-loop", "closed-loop")),
         markov_after=("steps", "steps after an alarm before the loop is first closed at the estimate"),
         markov_until=("steps", "steps after an alarm after which the closed-loop Markov parameters are kept as "
