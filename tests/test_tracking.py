@@ -323,18 +323,18 @@ def test_the_band_over_time_widens_at_the_change_and_narrows_again(tmp_path):
     assert np.all(hw[-1] < hw[after] / 10)
 
 
-def _two_mass(nc, proper, feed_u=True):
+def _two_mass(nc, proper, feed_u=True, dtype=torch.float64):
     """Two masses on springs (m = 1, k = 1 and 0.5, c = 0.1), u a force pair on the second spring's drift, y the
     velocities and y0 the drift: a refinement whose loop u = theta phi(y0) the tests close."""
     A = [[0, 1, 0, 0], [-1.5, -0.1, 0.5, 0], [0, 0, 0, 1], [0.5, 0, -0.5, -0.1]]
     B = [[0, 0], [1, 1], [0, 0], [0, -1]]
     C = [[0, 1, 0, 0], [0, 0, 0, 1], [-1, 0, 1, 0]]
     known = rt.LTI.continuous(A, B, C, np.zeros((3, 2)), inputs=["w", "u"], outputs={"y": 2, "y0": 1},
-                              dt=0.05, name="known")
-    ident = rt.RCOEstimator({"y0": 1}, n_u=1, n_z=2, nc=nc, proper=proper, feed_u=feed_u)
+                              dt=0.05, name="known", dtype=dtype)
+    ident = rt.RCOEstimator({"y0": 1}, n_u=1, n_z=2, nc=nc, proper=proper, feed_u=feed_u, dtype=dtype)
     g = rt.refinement(known, ident, truth=rt.Gain(np.zeros((1, 1)), name="unknown"),
                       excitation=rt.WhiteNoise(1, seed=1), nu=30, batch_size=3, blocks=[rt.ChangeDetector(2)],
-                      connections=[("error.out", "detector.z")])
+                      connections=[("error.out", "detector.z")], dtype=dtype)
     return g, known
 
 
@@ -537,3 +537,17 @@ def test_a_loop_the_estimate_makes_unstable_keeps_the_markov_parameters_it_had()
     assert torch.equal(est.beta[0], open_loop[0]) and float(est.theta_closed[0].abs().max()) == 0.0
     assert not torch.equal(est.beta[1], open_loop[0]) and float(est.theta_closed[1, 0, 0]) == 0.2
     assert torch.equal(est.beta[2], open_loop[0])          # theta = 0: its loop is the known model
+
+
+def test_the_loop_is_closed_in_float32():
+    g, _ = _two_mass(0, True, dtype=torch.float32)
+    hook = rt.ResetOnChange(g, every=5, hold=100, markov="closed-loop")      # the float32 parameters are accepted
+    est, det = g.role("estimator"), g.blocks["detector"]
+    assert est.beta.dtype == torch.float32
+    est.theta[:, 0, 0] = torch.tensor([0.3, 0.2, 0.0])
+    det.x[:, LAST] = 0.0
+    assert hook(g)
+    g64, _ = _two_mass(0, True)
+    reference = rt.closed_loop_markov(g64, est.theta.double())                # the same loop in float64
+    assert est.beta.dtype == torch.float32
+    np.testing.assert_allclose(est.beta.double().numpy(), reference.numpy(), rtol=1e-4, atol=1e-9)

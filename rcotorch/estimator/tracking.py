@@ -304,7 +304,8 @@ class ResetOnChange:
         open_loop = closed_loop_markov(self.graph, theta, estimator=self.estimator)
         beta = est.beta.expand(B, -1, -1, -1)
         scale = float(beta.abs().amax())
-        if open_loop.shape != beta.shape or float((open_loop - beta).abs().amax()) > 1e-9 * max(scale, 1e-300):
+        tol = torch.finfo(beta.dtype).eps ** 0.5 * max(scale, torch.finfo(beta.dtype).tiny)     # rounding of dtype
+        if open_loop.shape != beta.shape or float((open_loop - beta).abs().amax()) > tol:
             raise ConfigError(f"ResetOnChange: markov='closed-loop', but the Markov parameters of '{est.name}' are "
                               "not those of its known model's u -> y (as refinement() derives them); the loop "
                               "cannot be closed on them")
