@@ -12,10 +12,10 @@ the force pairs, masked to its diagonal: dk_j = -theta_jj / k. The force pairs r
 
 Tracking: a ``ChangeDetector`` (CUSUM) on the model error z, and ``ResetOnChange``, which restarts an alarmed
 member's estimator (P = ``restart_p0`` I), lets it forget at ``track_lam`` for ``track_hold`` steps and, from
-``markov_after`` to ``markov_until`` steps after the alarm, gives it the Markov parameters of the loop closed at
-its present estimate (``track_markov``), renewed every ``markov_every`` steps where the estimate has moved by more
-than ``markov_tol`` of its size. The run ends 50 first-mode periods after the change, where the estimates are
-judged; docs/tracking.md has the studies over 200 seeds.
+``markov_after`` steps after the alarm to the end of ``track_hold``, gives it the Markov parameters of the loop
+closed at its present estimate (``track_markov``), renewed every ``markov_every`` steps where the estimate has moved
+by more than ``markov_tol`` of its size. The run ends 50 first-mode periods after the change, where the estimates
+are judged; docs/tracking.md has the studies over 200 seeds.
 """
 
 import math
@@ -48,8 +48,8 @@ class ShearBuildingDamage(Scenario):
     settings = dict(Ts=0.01, m=2.0e4, k=2.0e7, zeta=0.02, storey=2, change=-0.2, t_change=60.0, w_std=1.0,
                     noise=0.01, sensor="acceleration", measured="2,3", nu=100, p0=1e20, lam=1.0, threshold=30.0,
                     drift=1.0, warmup=2000, window=1000, holdoff=3000, restart_p0=1e14, track_lam=0.99, track_hold=3000,
-                    restart_every=50, track_markov="closed-loop", markov_after=200, markov_every=50, markov_until=3000,
-                    markov_tol=0.01, seed=1)
+                    restart_every=50, track_markov="closed-loop", markov_after=200, markov_every=50, markov_tol=0.01,
+                    seed=1)
     about = dict(
         Ts=("s", "sample time"),
         m=("kg", "mass of each floor"),
@@ -78,8 +78,6 @@ class ShearBuildingDamage(Scenario):
                           "closed at the member's present estimate, renewed every markov_every steps",
                       ("open-loop", "closed-loop")),
         markov_after=("steps", "steps after an alarm before the loop is first closed at the estimate"),
-        markov_until=("steps", "steps after an alarm after which the closed-loop Markov parameters are kept as "
-                               "they are"),
         markov_tol=("", "a member's closed-loop Markov parameters are renewed only where its estimate moved by more "
                         "than this share of its size since they were made (0: every time)"),
         markov_every=("steps", "steps between two renewals of the closed-loop Markov parameters (a multiple of "
@@ -129,7 +127,7 @@ class ShearBuildingDamage(Scenario):
                                         restart=bool(s["restart_p0"]), lam=s["track_lam"],
                                         hold=int(s["track_hold"]), markov=s["track_markov"],
                                         markov_after=int(s["markov_after"]), markov_every=int(s["markov_every"]),
-                                        markov_until=int(s["markov_until"]), markov_tol=float(s["markov_tol"])))
+                                        markov_tol=float(s["markov_tol"])))
         return graph
 
     @staticmethod

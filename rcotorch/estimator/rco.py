@@ -467,7 +467,7 @@ class RCOEstimator(Block):
                 idx += [upast0 + (lag - 1) * self.n_u + c for c in range(self.n_u)]
         return torch.tensor(idx, dtype=torch.int64)
 
-    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None, members=None) -> None:
+    def set_markov(self, markov, first_delay: int = 1, dt: float | None = None, members=None) -> bool:
         """Set the Markov parameters beta_d..beta_(d+nu-1) of the map u -> z (sign included).
 
         A lowered native program reads the new values where their shape stays, and is built again where it
@@ -487,6 +487,14 @@ class RCOEstimator(Block):
             The indices of the members whose parameters ``markov`` holds; the others keep theirs (a shared set
             becomes one per member).
 
+        Returns
+        -------
+        bool
+            Whether beta and beta_t were changed in place, with the native engine's copy of them (``members``
+            where the parameters are already one per member and a lowered program reads them): a graph whose
+            program was made with them stays valid through the change (``rcotorch.engine.lowering.refilled``).
+            False where they were replaced.
+
         Raises
         ------
         DimensionError
@@ -504,7 +512,7 @@ class RCOEstimator(Block):
                 raise DimensionError(f"block '{self.name}': Markov parameters of {idx.numel()} members must be "
                                      f"{(idx.numel(), *self.beta.shape[1:])}, got {tuple(beta.shape)}")
             if self.beta.shape[0] == self.theta.shape[0] and self._refill_members(idx, beta):
-                return
+                return True
             full = self.beta.expand(self.theta.shape[0], -1, -1, -1).clone()
             full[idx] = beta
             beta = full
@@ -529,19 +537,7 @@ class RCOEstimator(Block):
                 lowered[0].copy_(ring)
             else:                           # other sizes: the program, which holds the old beta, is made again
                 kernels.bump(*lowered[1])
-
-    def refill_members(self) -> tuple[torch.Tensor, ...]:
-        """The tensors ``set_markov(..., members=)`` changes in place once the parameters are one per member.
-
-        With them it changes the native engine's copy of them, so that a graph whose program reads that copy
-        stays valid through such a change (``rcotorch.engine.lowering.refilled``).
-
-        Returns
-        -------
-        tuple of torch.Tensor
-            beta and beta_t as they are now.
-        """
-        return self.beta, self.beta_t
+        return False
 
     def _refill_members(self, idx: torch.Tensor, beta: torch.Tensor) -> bool:
         """Write the Markov parameters of the members ``idx`` into beta, beta_t and, where a lowered program

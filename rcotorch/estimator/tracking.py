@@ -42,6 +42,7 @@ from collections.abc import Callable
 import torch
 
 from ..blocks.base import DEFAULT_DTYPE
+from ..blocks.lti import LTI
 from ..blocks.nonlinear import Nonlinear
 from ..engine import kernels, lowering
 from ..errors import ConfigError
@@ -378,10 +379,8 @@ class ResetOnChange:
                 return False
         est.theta_closed.index_copy_(0, idx, est.theta[idx])
         beta = _markov_parameters(Acl, Bcl, Ccl, D0, est.first_delay, est.nu)
-        before = est.refill_members()
-        est.set_markov(beta, est.first_delay, members=idx)
-        if all(a is b for a, b in zip(before, est.refill_members())):       # changed in place
-            lowering.refilled(self.graph, *before, est.theta_closed)        # theta_closed: not read by it
+        if est.set_markov(beta, est.first_delay, members=idx):             # changed in place
+            lowering.refilled(self.graph, est.beta, est.beta_t, est.theta_closed)   # theta_closed: not read by it
         return True
 
 
@@ -500,7 +499,7 @@ def _closed_loop(graph, theta, estimator, known, actuation, measured, members):
     """The loop of ``closed_loop_markov`` as a state-space system per member, from v to y: (Acl, Bcl, Ccl, D0)."""
     est = graph.blocks[estimator] if estimator else graph.role("estimator")
     kn = graph.blocks[known] if known else graph.role("known")
-    if not all(hasattr(kn, key) for key in ("A", "B", "C", "D", "_in_slices", "_out_slices")):
+    if not isinstance(kn, LTI):
         raise ConfigError(f"closed_loop_markov: the known model '{kn.name}' is not an LTI block; closed-loop Markov "
                           "parameters need its state-space matrices")
     if est.features is not None:
@@ -540,7 +539,8 @@ def _closed_loop(graph, theta, estimator, known, actuation, measured, members):
     eye_u = torch.eye(n_u, dtype=dt, device=theta.device)
     N0 = N[:, 0] if lags[0] == 0 else theta.new_zeros(Bm, n_u, n_sig)
     K = eye_u - N0 @ Ds                                      # u = N0 (Cs x + Ds u) + ...: (I - N0 Ds) u = ...
-    if not bool(torch.isfinite(torch.linalg.cond(K)).all()):
+    Kinv, info = torch.linalg.inv_ex(K)
+    if bool((info != 0).any()) or not bool(torch.isfinite(Kinv).all()):
         raise ConfigError(f"closed_loop_markov: the loop through '{est.name}' with no delay is singular "
                           "(I - N_0 D_s has no inverse)")
     rest = theta.new_zeros(Bm, n_u, size)
@@ -553,7 +553,6 @@ def _closed_loop(graph, theta, estimator, known, actuation, measured, members):
         for lag in range(1, nc + 1):
             c = n + nc * n_sig + (lag - 1) * n_u
             rest[:, :, c:c + n_u] = M[:, lag - 1]
-    Kinv = torch.linalg.inv(K)
     Fu, Gu = Kinv @ rest, Kinv                               # (Bm, n_u, size), (Bm, n_u, n_u)
     Acl = theta.new_zeros(Bm, size, size)
     Bcl = theta.new_zeros(Bm, size, n_u)
