@@ -47,7 +47,7 @@ def core(win, k, phi_now, u_now, z, beta_rev, theta, P, alive, diverged_at, past
 def patch(graph, fn) -> None:
     est = graph.blocks["identified"]
     assert est.n_u == est.n_z == 1 and est.all_free and est.nc == 1 and bool((est.lam == 1).all())
-    beta_rev = est.beta_t.flip(-1).contiguous()   # entry j weighs delay nu - j
+    beta_rev = est.beta.flatten(2).mT.flip(-1).contiguous()   # entry j weighs delay nu - j
 
     def update(inputs):
         z_r = fn(est.win, est.k, est.phi_now, est.u_now, inputs["z"], beta_rev, est.theta, est.P, est.alive,

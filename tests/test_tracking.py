@@ -551,3 +551,108 @@ def test_the_loop_is_closed_in_float32():
     reference = rt.closed_loop_markov(g64, est.theta.double())                # the same loop in float64
     assert est.beta.dtype == torch.float32
     np.testing.assert_allclose(est.beta.double().numpy(), reference.numpy(), rtol=1e-4, atol=1e-9)
+
+
+def _markov_reference(A, B, C, D, d, nu):
+    """-H_(d+t), t = 0..nu-1, of one system, H_0 = D, H_i = C A^(i-1) B, with NumPy's matrix power."""
+    H = [D if i == 0 else C @ np.linalg.matrix_power(A, i - 1) @ B for i in range(d, d + nu)]
+    return -np.stack(H)
+
+
+@needs_native
+@pytest.mark.parametrize("d", [0, 1, 3])
+def test_the_markov_kernel_writes_each_layout_and_only_the_loops_it_shows_stable(d):
+    """Seven systems (a chunk of lanes and part of another), written into rows 9, 2, .. of a (nu, p, m) tensor and
+    of the reversed ring the native program reads (two copies of [beta reversed, d zeros]); the rows not named
+    keep what they held. With the stability test, a loop of spectral radius 1.02 is not written, 0.999 and 0.5
+    are, and one at 1 - 1e-9 is left to the eigenvalues (not shown stable by 16 squarings)."""
+    Bm, N, m, p, nu = 7, 4, 2, 3, 5
+    gen = np.random.default_rng(d)
+    radius = [0.5, 0.999, 1.02, 0.9, 1 - 1e-9, 0.7, 0.3]
+    A = []
+    for r in radius:
+        Q = np.linalg.qr(gen.standard_normal((N, N)))[0]
+        angles = gen.uniform(0.1, 3.0, N // 2)
+        blocks = [r * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) for t in angles]
+        A.append(Q @ np.block([[blocks[0], np.zeros((2, 2))], [np.zeros((2, 2)), blocks[1]]]) @ Q.T)
+    A, B, C, D = np.stack(A), gen.standard_normal((Bm, N, m)), gen.standard_normal((Bm, p, N)), \
+        gen.standard_normal((Bm, p, m))
+    As, Bs, Cs, Ds = (torch.tensor(x) for x in (A, B, C, D))
+    rows = torch.tensor([9, 2, 0, 5, 7, 3, 1])
+    W, pm = nu + d, p * m
+    beta = torch.full((10, nu, p, m), 7.0, dtype=torch.float64)
+    ring = torch.full((10, pm, 2 * W), 7.0, dtype=torch.float64)
+    ring[..., nu:W] = ring[..., W + nu:] = 0.0
+    targets = [(beta, 0, nu * pm, pm, 1, 1, 0), (ring, nu - 1, pm * 2 * W, -1, 2 * W, 2, W)]
+    written = kernels.lti_markov(As, Bs, Cs, Ds, d, nu, targets, rows=rows, stable=True)
+    np.testing.assert_array_equal(written.numpy(), [True, True, False, True, False, True, True])
+    for b in range(Bm):
+        row = int(rows[b])
+        if written[b]:
+            ref = _markov_reference(A[b], B[b], C[b], D[b], d, nu)
+            np.testing.assert_allclose(beta[row].numpy(), ref, rtol=1e-12, atol=1e-12)
+            laid = ref[::-1].reshape(nu, pm).T                        # entry e, delay nu - 1 - j at column j
+            for c in range(2):
+                np.testing.assert_allclose(ring[row, :, c * W:c * W + nu].numpy(), laid, rtol=1e-12, atol=1e-12)
+                assert np.abs(ring[row, :, c * W + nu:(c + 1) * W].numpy()).max(initial=0.0) == 0.0
+        else:
+            assert bool((beta[row] == 7.0).all()) and bool((ring[row, :, :nu] == 7.0).all())
+    for row in (4, 6, 8):                                             # no member of the call
+        assert bool((beta[row] == 7.0).all())
+    # without the test every member is written; without targets the parameters come back, the same bits
+    kernels.lti_markov(As, Bs, Cs, Ds, d, nu, targets, rows=rows)
+    alone = kernels.lti_markov(As, Bs, Cs, Ds, d, nu)
+    assert torch.equal(alone, beta[rows])
+    with pytest.raises(ValueError, match="written at"):
+        kernels.lti_markov(As, Bs, Cs, Ds, d, nu, targets, rows=rows + 1)
+
+
+@needs_native
+@pytest.mark.parametrize("shown", [True, False])
+def test_the_native_renewal_writes_stable_loops_in_place_and_keeps_the_others(shown, monkeypatch):
+    """On the native engine, with its program made and one set of Markov parameters per member: theta = -0.8
+    makes member 0's loop unstable, member 1's loop is stable. Member 1 gets its loop's parameters (PyTorch's
+    computation to rounding), in beta and in the program's copy, and the program stays; member 0 keeps its own.
+    ``shown=False``: the kernel's test shows no loop stable, and the eigenvalues decide alike."""
+    from rcotorch.engine import lowering
+    from rcotorch.estimator.tracking import closed_loop_markov
+    g, _ = _two_mass(0, True)
+    g.engine = "native"
+    hook = rt.ResetOnChange(g, every=5, hold=10_000, markov="closed-loop")
+    g.add_hook(hook)
+    est, det = g.role("estimator"), g.blocks["detector"]
+    est.theta[:, 0, 0] = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    det.x[:, LAST] = 0.0
+    g.advance(5)                                           # the first renewal: one set per member from here on
+    assert est.beta.shape[0] == 3 and g.ran_engine == "native"
+    prog = lowering.program(g)
+    if not shown:
+        plain = kernels.lti_markov
+        monkeypatch.setattr(kernels, "lti_markov", lambda *a, stable=False, **k: torch.zeros(
+            a[0].shape[0], dtype=torch.bool) if stable else plain(*a, **k))
+    kept, closed = est.beta[0].clone(), est.theta_closed[0].clone()
+    est.theta[:, 0, 0] = torch.tensor([-0.8, 0.25, 0.3], dtype=torch.float64)
+    assert hook(g)
+    assert lowering.program(g) is prog
+    with kernels.disabled():
+        reference = closed_loop_markov(g, est.theta.clone())
+    assert torch.equal(est.beta[0], kept)
+    np.testing.assert_allclose(est.beta[1].numpy(), reference[1].numpy(), rtol=1e-10, atol=1e-15)
+    assert torch.equal(est.theta_closed[0], closed)
+    np.testing.assert_array_equal(est.theta_closed[1:, 0, 0].numpy(), [0.25, 0.3])
+    ring = est._lowered_ring()
+    np.testing.assert_array_equal(ring.numpy(), est._laid_out(est.beta, 2).numpy())
+
+
+def test_a_checkpoint_with_the_transposed_markov_parameters_of_earlier_versions_loads():
+    """Earlier versions kept beta also as 'beta_t' (n_z n_u, nu), made from beta; a checkpoint holding it loads
+    strictly, beta alone deciding."""
+    g, _ = _two_mass(0, True)
+    est = g.role("estimator")
+    state = est.state_dict()
+    assert "beta_t" not in state
+    state["beta_t"] = state["beta"].flatten(2).mT.contiguous()
+    state["beta"] = 2 * state["beta"]
+    fresh, _ = _two_mass(0, True)
+    fresh.role("estimator").load_state_dict(state)
+    assert torch.equal(fresh.role("estimator").beta, 2 * est.beta)

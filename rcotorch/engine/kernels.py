@@ -230,17 +230,47 @@ def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     return out
 
 
-def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, first: int, count: int) -> torch.Tensor | None:
-    """H_i = C A^(i-1) B for i = first .. first + count - 1 (first >= 1) of one system per member, A (Bm, N, N),
-    B (Bm, N, m), C (Bm, p, N), as (Bm, count, p, m); None where the kernel does not apply (not allowed here, not
-    the CPU or float64): then the caller runs PyTorch."""
-    if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in (A, B, C)):
+def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tensor, d: int, nu: int,
+               targets: list[tuple[torch.Tensor, int, int, int, int, int, int]] | None = None,
+               rows: torch.Tensor | None = None, stable: bool = False) -> torch.Tensor | None:
+    """beta_t = -H_(d+t), t = 0..nu-1 (H_0 = D, H_i = C A^(i-1) B) of one system per member, A (Bm, N, N), B (Bm,
+    N, m), C (Bm, p, N), D (Bm, p, m); None where the kernel does not apply (not allowed here, not the CPU or
+    float64): then the caller runs PyTorch.
+
+    Without ``targets``, returns them as (Bm, nu, p, m). With ``targets``, writes them in place: each target is
+    (tensor, offset, srow, st, se, copies, coff), value t of entry e = r m + k of member b going to the tensor's
+    flat element offset + rows[b] srow + t st + e se + c coff for c < copies (rows: (Bm,) int64, by default
+    0..Bm-1); returns the (Bm,) bool tensor of the members written: with ``stable``, those whose A has a power
+    A^(2^s), s <= 16, of infinity norm below 1 (spectral radius below 1; the others are left to the caller),
+    else all. ``stable`` applies to ``targets`` only.
+    """
+    tensors = (A, B, C, D) + tuple(t[0] for t in targets or ())
+    if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in tensors):
         return None
     Bm, N, m, p = A.shape[0], A.shape[-1], B.shape[-1], C.shape[1]
-    A, B, C = (t.detach().contiguous() for t in (A, B, C))
-    H = torch.empty(Bm, count, p, m, dtype=torch.float64)
-    _engine.lti_markov(Bm, N, m, p, first, count, A.data_ptr(), B.data_ptr(), C.data_ptr(), H.data_ptr(), threads())
-    return H
+    A, B, C, D = (t.detach().contiguous() for t in (A, B, C, D))
+    out = None
+    if targets is None:
+        out = torch.empty(Bm, nu, p, m, dtype=torch.float64)
+        targets = [(out, 0, nu * p * m, p * m, 1, 1, 0)]
+    row_t = torch.arange(Bm) if rows is None else rows.to(device="cpu", dtype=torch.int64).contiguous()
+    flat = []
+    for t, offset, srow, st, se, copies, coff in targets:
+        if not t.is_contiguous():
+            raise ValueError("lti_markov: a target must be contiguous")
+        # the corners of what is written must lie inside the tensor
+        span = [offset + r * srow + tt * st + e * se + c * coff for r in (int(row_t.min()), int(row_t.max()))
+                for tt in (0, nu - 1) for e in (0, p * m - 1) for c in (0, copies - 1)] if Bm else [0]
+        if min(span) < 0 or max(span) >= t.numel():
+            raise ValueError(f"lti_markov: a target of {t.numel()} elements is written at {min(span)}..{max(span)}")
+        flat += [t.data_ptr() + 8 * offset, srow, st, se, copies, coff]
+    spec = torch.tensor(flat, dtype=torch.int64)
+    ok = torch.ones(Bm, dtype=torch.bool)
+    _engine.lti_markov(Bm, N, m, p, d, nu, A.data_ptr(), B.data_ptr(), C.data_ptr(), D.data_ptr(),
+                       0 if rows is None else row_t.data_ptr(), ok.data_ptr() if stable and out is None else 0,
+                       spec.data_ptr(),
+                       len(targets), lanes(Bm), threads())
+    return out if out is not None else ok
 
 
 def markov_fd(step: int, h: int, x: torch.Tensor, u: torch.Tensor, col: int, width: int, n_out: int, rows: slice,

@@ -220,7 +220,6 @@ class RCOEstimator(Block):
             self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
             self.register_buffer(f"{key}_high", hi)
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
-        self.register_buffer("beta_t", torch.zeros(1, 0, 0, dtype=dtype))  # beta as (Bp, n_z * n_u, nu)
         self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
         self.window = 0  # first_delay + nu once Markov parameters are set
         if markov is not None:
@@ -490,7 +489,7 @@ class RCOEstimator(Block):
         Returns
         -------
         bool
-            Whether beta and beta_t were changed in place, with the native engine's copy of them (``members``
+            Whether beta was changed in place, with the native engine's copy of it (``members``
             where the parameters are already one per member and a lowered program reads them): a graph whose
             program was made with them stays valid through the change (``rcotorch.engine.lowering.refilled``).
             False where they were replaced.
@@ -524,7 +523,6 @@ class RCOEstimator(Block):
             raise ConfigError(f"block '{self.name}': first_delay must be >= 0, got {first_delay}")
         same = self._buffers["beta"].shape == beta.shape and self.__dict__.get("first_delay") == first_delay
         self.beta = beta
-        self.beta_t = beta.flatten(2).mT.contiguous()
         self.first_delay = int(first_delay)
         self.delays = torch.arange(first_delay, first_delay + beta.shape[1], device=beta.device)
         self.window = first_delay + beta.shape[1]
@@ -539,22 +537,47 @@ class RCOEstimator(Block):
                 kernels.bump(*lowered[1])
         return False
 
+    def _lowered_ring(self) -> torch.Tensor | None:
+        """The lowered program's copy of beta (``_native_beta``) where it is made of the present beta, one set per
+        member, else None."""
+        lowered = self.__dict__.get("_native_beta_ring")
+        if lowered is None or lowered[1][0] is not self.beta or lowered[0].shape[0] != self.beta.shape[0] or \
+                self.beta.shape[0] != self.theta.shape[0]:
+            return None
+        return lowered[0]
+
     def _refill_members(self, idx: torch.Tensor, beta: torch.Tensor) -> bool:
-        """Write the Markov parameters of the members ``idx`` into beta, beta_t and, where a lowered program
+        """Write the Markov parameters of the members ``idx`` into beta and, where a lowered program
         reads them, its copy, all in place; False where there is no such copy of this beta (the caller then
         sets the whole beta, and the program is made again)."""
-        lowered = self.__dict__.get("_native_beta_ring")
-        if lowered is None or lowered[1][0] is not self.beta or lowered[0].shape[0] != self.beta.shape[0]:
+        ring = self._lowered_ring()
+        if ring is None:
             return False
-        bt = beta.flatten(2).mT
         self.beta.index_copy_(0, idx, beta)
-        self.beta_t.index_copy_(0, idx, bt)
-        lowered[0].index_copy_(0, idx, self._laid_out(beta, 2))                 # as _native_beta lays them out
+        ring.index_copy_(0, idx, self._laid_out(beta, 2))                       # as _native_beta lays them out
         return True
+
+    def _refill_from_system(self, idx: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor,
+                            D: torch.Tensor, stable: bool) -> torch.Tensor | None:
+        """``_refill_members`` with the Markov parameters of the systems (A, B, C, D), one per member of ``idx``,
+        computed by the native kernel straight into beta and the lowered program's copy, in one pass
+        (``kernels.lti_markov``). Returns which members were written (with ``stable``, those whose A the kernel's
+        test shows stable), or None where this cannot be done in place (the caller computes the parameters
+        and sets them)."""
+        ring = self._lowered_ring()
+        if ring is None:
+            return None
+        nu, pm, d = self.nu, self.n_z * self.n_u, self.first_delay
+        width = ring.shape[-1]                              # copies of W = d + nu: nu reversed, then d zeros
+        targets = [(self.beta, 0, nu * pm, pm, 1, 1, 0),
+                   (ring, nu - 1, pm * width, -1, width, width // (d + nu), d + nu)]
+        return kernels.lti_markov(A, B, C, D, d, nu, targets, rows=idx, stable=stable)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         """Markov parameters saved one per member (after ``set_markov(..., members=)``) load into an estimator
-        whose parameters are still shared: it takes the saved set's shape first."""
+        whose parameters are still shared: it takes the saved set's shape first. A checkpoint that also holds
+        beta transposed ('beta_t', a buffer of earlier versions, made from beta) loads without it."""
+        state_dict.pop(prefix + "beta_t", None)
         beta = state_dict.get(prefix + "beta")
         if isinstance(beta, torch.Tensor) and beta.dim() == 4 and beta.shape != self.beta.shape and \
                 beta.shape[1:] == self.beta.shape[1:]:
@@ -621,13 +644,13 @@ class RCOEstimator(Block):
         return memo.derived(self, "k", (self.k,), lambda: int(self.k))
 
     def _beta_padded(self) -> torch.Tensor:
-        """beta_t reversed in time with first_delay zeros after it, (Bp, n_z * n_u, W): entry j weighs delay
-        W - 1 - j."""
-        return memo.derived(self, "beta_padded", (self.beta, self.beta_t), lambda: self._laid_out(self.beta, 1))
+        """beta as (Bp, n_z * n_u, nu), reversed in time with first_delay zeros after it: (Bp, n_z * n_u, W), entry
+        j weighs delay W - 1 - j."""
+        return memo.derived(self, "beta_padded", (self.beta,), lambda: self._laid_out(self.beta, 1))
 
     def _laid_out(self, beta: torch.Tensor, copies: int) -> torch.Tensor:
-        """(m, nu, n_z, n_u) -> (m, n_z * n_u, copies * W): ``copies`` times over, beta_t reversed in time with
-        first_delay zeros after it (entry j of each copy weighs delay W - 1 - j)."""
+        """(m, nu, n_z, n_u) -> (m, n_z * n_u, copies * W): ``copies`` times over, beta as (m, n_z * n_u, nu)
+        reversed in time with first_delay zeros after it (entry j of each copy weighs delay W - 1 - j)."""
         nu, W = beta.shape[1], beta.shape[1] + self.first_delay
         out = beta.new_empty(beta.shape[0], self.n_z * self.n_u, copies * W)
         out[..., :nu] = beta.flip(1).flatten(2).transpose(1, 2)
@@ -894,7 +917,7 @@ class RCOEstimator(Block):
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
                       W=W, WMOD=kernels.ring_multiplier(W), NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
-                      SHARED=b.shared(self.beta_t),
+                      SHARED=b.shared(self.beta),
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
                       BETA=b.param(self._native_beta()), LAM=b.param(self.lam.reshape(-1, 1)),
@@ -916,7 +939,7 @@ class RCOEstimator(Block):
         ``set_markov`` refills while its shape stays, so that the lowered program runs on with the new
         parameters (a Markov refresh between two calls of the engine)."""
         ring = self._laid_out(self.beta, 2)
-        self.__dict__["_native_beta_ring"] = (ring, (self.beta, self.beta_t))
+        self.__dict__["_native_beta_ring"] = (ring, (self.beta,))
         return ring
 
     def _lower_regressors(self, b) -> int:

@@ -370,17 +370,29 @@ class ResetOnChange:
         if not bool(now.any()):
             return False
         idx = now.nonzero().reshape(-1).to(est.theta.device)
-        Acl, Bcl, Ccl, D0 = _closed_loop(self.graph, est.theta[idx], self.estimator, None, "u", "y", idx)
-        # a loop that theta makes unstable has Markov parameters that grow over the window: keep the old ones
-        stable = torch.linalg.eigvals(Acl).abs().amax(-1) < 1.0
-        if not bool(stable.all()):
-            idx, Acl, Bcl, Ccl, D0 = idx[stable], Acl[stable], Bcl[stable], Ccl[stable], D0[stable]
-            if not idx.numel():
-                return False
+        system = _closed_loop(self.graph, est.theta[idx], self.estimator, None, "u", "y", idx)
+        # A loop that theta makes unstable has Markov parameters that grow over the window: those members keep
+        # the ones they have. The native kernel writes the stable ones in place where it shows them stable by
+        # a power of the loop's matrix; the eigenvalues decide the rest.
+        written = est._refill_from_system(idx, *system, stable=True)
+        if written is not None:
+            doubt = (~written).nonzero().reshape(-1)
+            if doubt.numel():
+                doubt = doubt[torch.linalg.eigvals(system[0][doubt]).abs().amax(-1) < 1.0]
+                est._refill_from_system(idx[doubt], *(m[doubt] for m in system), stable=False)
+                written[doubt] = True
+            idx = idx[written.to(idx.device)]
+            in_place = True
+        else:
+            stable = torch.linalg.eigvals(system[0]).abs().amax(-1) < 1.0
+            idx, system = idx[stable], tuple(m[stable] for m in system)
+            beta = _markov_parameters(*system, est.first_delay, est.nu) if idx.numel() else None
+            in_place = beta is not None and est.set_markov(beta, est.first_delay, members=idx)
+        if not idx.numel():
+            return False
         est.theta_closed.index_copy_(0, idx, est.theta[idx])
-        beta = _markov_parameters(Acl, Bcl, Ccl, D0, est.first_delay, est.nu)
-        if est.set_markov(beta, est.first_delay, members=idx):             # changed in place
-            lowering.refilled(self.graph, est.beta, est.beta_t, est.theta_closed)   # theta_closed: not read by it
+        if in_place:
+            lowering.refilled(self.graph, est.beta, est.theta_closed)   # theta_closed: not read by it
         return True
 
 
@@ -584,16 +596,17 @@ def _markov_parameters(Acl: torch.Tensor, Bcl: torch.Tensor, Ccl: torch.Tensor, 
     # H_0 = D0, H_i = Ccl Acl^(i-1) Bcl: in the native kernel where it applies, else the columns [Bcl, Acl Bcl,
     # .., Acl^(n-1) Bcl] by doubling ([C, Acl^m C] from C of m blocks), a few products of the batch instead of one
     # per parameter
+    beta = kernels.lti_markov(Acl, Bcl, Ccl, D0, d, nu)
+    if beta is not None:
+        return beta
     first = max(d, 1)
     n_blocks = d + nu - first
-    H = kernels.lti_markov(Acl, Bcl, Ccl, first, n_blocks)
-    if H is None:
-        cols, power = Bcl, Acl
-        while cols.shape[-1] < n_blocks * n_u:
-            cols = torch.cat([cols, power @ cols], dim=-1)
-            power = power @ power
-        left = Ccl if first == 1 else Ccl @ torch.linalg.matrix_power(Acl, first - 1)
-        H = (left @ cols[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)   # H_first ..
+    cols, power = Bcl, Acl
+    while cols.shape[-1] < n_blocks * n_u:
+        cols = torch.cat([cols, power @ cols], dim=-1)
+        power = power @ power
+    left = Ccl if first == 1 else Ccl @ torch.linalg.matrix_power(Acl, first - 1)
+    H = (left @ cols[..., :n_blocks * n_u]).reshape(Bm, -1, n_blocks, n_u).transpose(1, 2)       # H_first ..
     if d == 0:
         H = torch.cat([D0.unsqueeze(1), H], dim=1)
     return -H[:, :nu]

@@ -5,6 +5,7 @@
  *   uniform_grid the integer part of rcotorch.engine.rng.normal on a (member, pair of steps, component) grid
  *   health_bounds the member health checks' bounds (definiteness, windup, runaway) of every member
  *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
+ *   lti_markov   the Markov parameters of one linear system per member, written where the estimator keeps them
  *
  * Members are independent, so a batch is cut into chunks of VL lanes (VL = 1, 4, 8 or 16, chosen by the
  * caller from the batch size); each chunk runs all T steps on its own (a thread per chunk, OpenMP), so
@@ -232,6 +233,28 @@ typedef struct {
     int lam_one;
 } rls_t;
 
+/* Where lti_markov writes: value t of entry e (= r m + k) of the member in row `row` goes to base[row srow + t st +
+ * e se + c coff] for each copy c < copies (st may be negative: a layout reversed in time). */
+typedef struct {
+    double *base;
+    int64_t srow, st, se, copies, coff;
+} markov_target_t;
+
+#define MARKOV_TARGETS 3
+typedef struct {
+    const double *A, *Bm, *C, *D0; /* D0 read only where d = 0 */
+    const int64_t *rows;           /* the members' rows in the targets; NULL: the member's own index */
+    uint8_t *stable;               /* NULL: no stability test, every member written */
+    int64_t N, m, p, d, nu, ntargets;
+    markov_target_t t[MARKOV_TARGETS];
+} markov_t;
+
+/* The arena of one chunk of lti_markov (lanes.h, markov_chunk): A, C, X and A X, two powers of A, the test's
+ * verdict, an accumulator and the nu parameters twice (in lanes, and by member). */
+static inline int64_t markov_slots(int64_t N, int64_t m, int64_t p, int64_t nu) {
+    return 3 * N * N + p * N + 2 * N * m + 2 + 2 * nu * p * m;
+}
+
 /* ------------------------------------------------------------------------------------------------------ */
 /* The variants: lanes.h for each lane width and instruction set                                          */
 /* ------------------------------------------------------------------------------------------------------ */
@@ -261,10 +284,12 @@ typedef struct {
 
 typedef void (*chunk_fn)(const run_t *, double *, int64_t, int64_t);
 typedef void (*rls_fn)(const rls_t *, double *, int64_t, int64_t);
+typedef void (*markov_fn)(const markov_t *, double *, int64_t, int64_t);
 
 static const int LANE_WIDTHS[4] = {1, 4, 8, 16};
 static chunk_fn CHUNK[4] = {chunk_1base, chunk_4base, chunk_8base, chunk_16base};
 static rls_fn RLS[4] = {rls_chunk_1base, rls_chunk_4base, rls_chunk_8base, rls_chunk_16base};
+static markov_fn MARKOV[4] = {markov_chunk_1base, markov_chunk_4base, markov_chunk_8base, markov_chunk_16base};
 static const char *ISA_NAME = "baseline";
 
 static void select_isa(void) {
@@ -274,14 +299,18 @@ static void select_isa(void) {
         __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw")) {
         chunk_fn c[4] = {chunk_1avx512, chunk_4avx512, chunk_8avx512, chunk_16avx512};
         rls_fn r[4] = {rls_chunk_1avx512, rls_chunk_4avx512, rls_chunk_8avx512, rls_chunk_16avx512};
+        markov_fn k[4] = {markov_chunk_1avx512, markov_chunk_4avx512, markov_chunk_8avx512, markov_chunk_16avx512};
         memcpy(CHUNK, c, sizeof c);
         memcpy(RLS, r, sizeof r);
+        memcpy(MARKOV, k, sizeof k);
         ISA_NAME = "avx512";
     } else if (__builtin_cpu_supports("avx2")) {
         chunk_fn c[4] = {chunk_1avx2, chunk_4avx2, chunk_8avx2, chunk_16avx2};
         rls_fn r[4] = {rls_chunk_1avx2, rls_chunk_4avx2, rls_chunk_8avx2, rls_chunk_16avx2};
+        markov_fn k[4] = {markov_chunk_1avx2, markov_chunk_4avx2, markov_chunk_8avx2, markov_chunk_16avx2};
         memcpy(CHUNK, c, sizeof c);
         memcpy(RLS, r, sizeof r);
+        memcpy(MARKOV, k, sizeof k);
         ISA_NAME = "avx2";
     }
 #endif
@@ -328,6 +357,10 @@ static void call_chunk(const void *ctx, void *f, double *S, int64_t b0, int64_t 
 
 static void call_rls(const void *ctx, void *f, double *S, int64_t b0, int64_t nb) {
     ((rls_fn)f)((const rls_t *)ctx, S, b0, nb);
+}
+
+static void call_markov(const void *ctx, void *f, double *S, int64_t b0, int64_t nb) {
+    ((markov_fn)f)((const markov_t *)ctx, S, b0, nb);
 }
 
 /* ------------------------------------------------------------------------------------------------------ */
@@ -608,62 +641,31 @@ static PyObject *py_markov_fd(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* Markov parameters H_i = C A^(i-1) B, i = first .. first + nh - 1 (first >= 1), of one linear system per member
- * (estimator/tracking.py, closed_loop_markov): A (B, N, N), Bm (B, N, m), C (B, p, N) row-major; H (B, nh, p,
- * m). X = A^(i-1) B is carried per member, N x m, and multiplied by A in place of a copy. Returns 1 when out of
- * memory. */
-static int lti_markov(int64_t B, int64_t N, int64_t m, int64_t p, int64_t first, int64_t nh, const double *A,
-                      const double *Bm, const double *C, double *H, int nthreads) {
-    int fail = 0;
-#ifdef _OPENMP
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
-#endif
-    {
-        double *X = malloc(sizeof(double) * (size_t)(2 * N * m));
-        if (!X) fail = 1;
-#ifdef _OPENMP
-#pragma omp for schedule(static)
-#endif
-        for (int64_t b = 0; b < B; b++) {
-            if (!X) continue;
-            const double *a = A + b * N * N, *c = C + b * p * N;
-            double *x = X, *y = X + N * m;
-            memcpy(x, Bm + b * N * m, sizeof(double) * (size_t)(N * m));
-            for (int64_t i = 1; i < first + nh; i++) {
-                if (i >= first) { /* H_i = C X */
-                    double *h = H + ((b * nh) + i - first) * p * m;
-                    for (int64_t r = 0; r < p; r++)
-                        for (int64_t k = 0; k < m; k++) {
-                            double acc = 0.0;
-                            for (int64_t j = 0; j < N; j++) acc += c[r * N + j] * x[j * m + k];
-                            h[r * m + k] = acc;
-                        }
-                }
-                if (i + 1 < first + nh) { /* X <- A X */
-                    for (int64_t r = 0; r < N; r++)
-                        for (int64_t k = 0; k < m; k++) {
-                            double acc = 0.0;
-                            for (int64_t j = 0; j < N; j++) acc += a[r * N + j] * x[j * m + k];
-                            y[r * m + k] = acc;
-                        }
-                    double *t = x;
-                    x = y;
-                    y = t;
-                }
-            }
-        }
-        free(X);
-    }
-    return fail;
-}
-
+/* The Markov parameters beta_t = -H_(d+t), t = 0..nu-1, H_0 = D0, H_i = C A^(i-1) B, of one linear system per
+ * member (estimator/tracking.py, the closed loop's): A (B, N, N), Bm (B, N, m), C (B, p, N), D0 (B, p, m)
+ * row-major, written into each target (markov_target_t, up to MARKOV_TARGETS, given as flat int64 sextuples
+ * base, srow, st, se, copies, coff) at the member's row (rows, or its index where rows is 0); with stable (B
+ * bytes) not 0, only the members whose A passes the test of lanes.h's markov_chunk, and stable says which. */
 static PyObject *py_lti_markov(PyObject *self, PyObject *args) {
-    long long B, N, m, p, first, nh;
-    unsigned long long A, Bm, C, H;
+    long long B, N, m, p, d, nu, ntargets, vl;
+    unsigned long long A, Bm, C, D0, rows, stable, targets;
     int nthreads, fail;
-    if (!PyArg_ParseTuple(args, "LLLLLLKKKKi", &B, &N, &m, &p, &first, &nh, &A, &Bm, &C, &H, &nthreads)) return NULL;
+    if (!PyArg_ParseTuple(args, "LLLLLLKKKKKKKLLi", &B, &N, &m, &p, &d, &nu, &A, &Bm, &C, &D0, &rows, &stable,
+                          &targets, &ntargets, &vl, &nthreads))
+        return NULL;
+    int li = lane_index(vl);
+    if (li < 0) return PyErr_Format(PyExc_ValueError, "lane width %lld is not one of 1, 4, 8, 16", vl);
+    if (ntargets < 0 || ntargets > MARKOV_TARGETS)
+        return PyErr_Format(PyExc_ValueError, "lti_markov writes into 0 to %d targets, got %lld", MARKOV_TARGETS,
+                            ntargets);
+    markov_t q = {ADDR(A), ADDR(Bm), ADDR(C), ADDR(D0), (const int64_t *)ADDR(rows), (uint8_t *)ADDR(stable),
+                  N, m, p, d, nu, ntargets, {{0}}};
+    const int64_t *t = (const int64_t *)ADDR(targets);
+    for (int64_t g = 0; g < ntargets; g++)
+        q.t[g] = (markov_target_t){(double *)(uintptr_t)t[6 * g], t[6 * g + 1], t[6 * g + 2], t[6 * g + 3],
+                                   t[6 * g + 4], t[6 * g + 5]};
     Py_BEGIN_ALLOW_THREADS
-    fail = lti_markov(B, N, m, p, first, nh, ADDR(A), ADDR(Bm), ADDR(C), ADDR(H), nthreads);
+    fail = parallel_chunks(call_markov, &q, (void *)MARKOV[li], markov_slots(N, m, p, nu), B, vl, nthreads);
     Py_END_ALLOW_THREADS
     if (fail) return PyErr_NoMemory();
     Py_RETURN_NONE;
@@ -688,7 +690,8 @@ static PyMethodDef METHODS[] = {
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"lti_markov", py_lti_markov, METH_VARARGS,
-     "lti_markov(B, N, m, p, first, nh, A, Bm, C, H, nthreads): H_i = C A^(i-1) B per member"},
+     "lti_markov(B, N, m, p, d, nu, A, Bm, C, D0, rows, stable, targets, ntargets, lanes, threads): beta_t = "
+     "-H_(d+t) of one system per member, written into the targets"},
     {"rco_scratch", py_rco_scratch, METH_VARARGS, "rco_scratch(n_u, n_z, n_phi, n_theta, n_rows): scratch slots"},
     {"markov_fd", py_markov_fd, METH_VARARGS,
      "markov_fd(step, h, B, n, m, col, W, n_out, r0, r1, nh, eps, trajectory, x, u, H): Markov parameters of "

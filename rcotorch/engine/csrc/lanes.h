@@ -1160,6 +1160,105 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
     }
 }
 
+/* The Markov parameters of one linear system per member, VL members at a time (engine.c, lti_markov): beta_t =
+ * -H_(d+t), t = 0..nu-1, H_0 = D0, H_i = C A^(i-1) B, X = A^(i-1) B carried N x m. All nu of the chunk are made in
+ * the arena first, turned into one array per member, then written member by member into every target at the
+ * member's row, each target in the order of its memory. With q->stable, a member's are written only where ||A^(2^s)||_inf < 1 for some s <= 16
+ * (so its spectral radius is below 1), and stable[b] says whether they were. */
+static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t nb) {
+    int64_t N = q->N, m = q->m, p = q->p, d = q->d, nu = q->nu, pm = p * m;
+    double *a = S, *c = AT(a, N * N), *x = AT(c, p * N), *y = AT(x, N * m), *sq = AT(y, N * m);
+    double *sq2 = AT(sq, N * N), *ok = AT(sq2, N * N), *acc = AT(ok, 1), *h = AT(acc, 1); /* h: nu x pm lanes */
+    double *hm = AT(h, nu * pm);                                                             /* and by member */
+    LANES {
+        int64_t b = b0 + (l < nb ? l : nb - 1);
+        for (int64_t i = 0; i < N * N; i++) a[i * VL + l] = q->A[b * N * N + i];
+        for (int64_t i = 0; i < p * N; i++) c[i * VL + l] = q->C[b * p * N + i];
+        for (int64_t i = 0; i < N * m; i++) x[i * VL + l] = q->Bm[b * N * m + i];
+        ok[l] = q->stable ? 0.0 : 1.0;
+    }
+    if (q->stable) {
+        memcpy(sq, a, sizeof(double) * (size_t)(N * N * VL));
+        for (int s = 1; s <= 16; s++) {
+            double *src = s & 1 ? sq : sq2, *dst = s & 1 ? sq2 : sq;
+            for (int64_t r = 0; r < N; r++)
+                for (int64_t k = 0; k < N; k++) {
+                    LANES acc[l] = 0.0;
+                    for (int64_t j = 0; j < N; j++) LANES acc[l] += src[(r * N + j) * VL + l] * src[(j * N + k) * VL + l];
+                    LANES dst[(r * N + k) * VL + l] = acc[l];
+                }
+            int all = 1;
+            LANES {
+                int below = 1; /* every row's absolute sum below 1; NaN and inf fail */
+                for (int64_t r = 0; r < N; r++) {
+                    double row = 0.0;
+                    for (int64_t k = 0; k < N; k++) row += fabs(dst[(r * N + k) * VL + l]);
+                    below &= row < 1.0;
+                }
+                ok[l] = ok[l] != 0.0 || below ? 1.0 : 0.0;
+            }
+            for (int64_t l = 0; l < nb; l++) all &= ok[l] != 0.0;
+            if (all) break;
+        }
+        for (int64_t l = 0; l < nb; l++) q->stable[b0 + l] = ok[l] != 0.0;
+    }
+    for (int64_t i = d == 0 ? 0 : 1; i < d + nu; i++) {
+        double *hi = h + (i - d) * pm * VL;
+        if (i == 0) {
+            LANES for (int64_t e = 0; e < pm; e++) hi[e * VL + l] = -q->D0[(b0 + (l < nb ? l : nb - 1)) * pm + e];
+        } else if (i >= d) { /* H_i = C X */
+            for (int64_t r = 0; r < p; r++)
+                for (int64_t k = 0; k < m; k++) {
+                    LANES acc[l] = 0.0;
+                    for (int64_t j = 0; j < N; j++) LANES acc[l] += c[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
+                    LANES hi[(r * m + k) * VL + l] = -acc[l];
+                }
+        }
+        if (i >= 1 && i + 1 < d + nu) { /* X <- A X */
+            for (int64_t r = 0; r < N; r++)
+                for (int64_t k = 0; k < m; k++) {
+                    LANES acc[l] = 0.0;
+                    for (int64_t j = 0; j < N; j++) LANES acc[l] += a[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
+                    LANES y[(r * m + k) * VL + l] = acc[l];
+                }
+            double *t = x;
+            x = y;
+            y = t;
+        }
+    }
+    double *own[VL]; /* each member's nu x pm, one after the other */
+    for (int64_t l = 0; l < VL; l++) own[l] = hm + l * nu * pm;
+    FN(from_lanes)(own, h, nu * pm, nb);
+    for (int64_t l = 0; l < nb; l++) {
+        if (ok[l] == 0.0) continue;
+        int64_t row = q->rows ? q->rows[b0 + l] : b0 + l;
+        const double *restrict v = own[l];
+        for (int64_t g = 0; g < q->ntargets; g++) {
+            const int64_t st = q->t[g].st, se = q->t[g].se, copies = q->t[g].copies, coff = q->t[g].coff;
+            double *restrict base = q->t[g].base + row * q->t[g].srow;
+            if (st == pm && se == 1 && copies == 1) { /* as made: (nu, p, m) */
+                memcpy(base, v, sizeof(double) * (size_t)(nu * pm));
+            } else if (st == -1) { /* reversed in time, as the native program reads them: t = nu - 1 - j at base - (nu - 1) + j */
+                for (int64_t e = 0; e < pm; e++)
+                    for (int64_t cp = 0; cp < copies; cp++) {
+                        double *restrict at = base - (nu - 1) + e * se + cp * coff;
+                        for (int64_t j = 0; j < nu; j++) at[j] = v[(nu - 1 - j) * pm + e];
+                    }
+            } else if ((st < 0 ? -st : st) < (se < 0 ? -se : se)) { /* along t */
+                for (int64_t e = 0; e < pm; e++)
+                    for (int64_t cp = 0; cp < copies; cp++) {
+                        double *restrict at = base + e * se + cp * coff;
+                        for (int64_t t = 0; t < nu; t++) at[t * st] = v[t * pm + e];
+                    }
+            } else { /* along the entries */
+                for (int64_t t = 0; t < nu; t++)
+                    for (int64_t e = 0; e < pm; e++)
+                        for (int64_t cp = 0; cp < copies; cp++) base[t * st + e * se + cp * coff] = v[t * pm + e];
+            }
+        }
+    }
+}
+
 #undef LANES
 #undef SL
 #undef AT
