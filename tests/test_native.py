@@ -680,3 +680,24 @@ def test_the_ring_row_past_two_to_the_32_steps_agrees_with_the_torch_engine(nu):
         m = kernels.ring_multiplier(W) % 2 ** 64
         for k in (0, 1, W - 1, W, 12345, 2 ** 31, 2 ** 32 - 1):
             assert (m * k % 2 ** 64) * W >> 64 == k % W, (W, k)
+
+
+def test_shared_parameters_copied_into_the_first_lane_alone_give_the_same_bits(monkeypatch):
+    """A shared parameter that the operations read only in the first lane (LTI and gain matrices, the Markov
+    weights) is copied into that lane alone; broadcast into every lane instead, the run is the same bit for bit
+    (37 members: chunks of 16 lanes and a partial one)."""
+    sc = scenarios.get("shear-building-damage")
+    s = sc.resolve({})
+    states, plain = [], lowering.Builder.param
+    for first_lane in (True, False):
+        if not first_lane:
+            monkeypatch.setattr(lowering.Builder, "param", lambda self, t, first_lane=False: plain(self, t))
+        g = sc.build(s, 37, torch.float64, "cpu")
+        g.engine = "native"
+        g.advance(300)
+        assert g.ran_engine == "native"
+        modes = [bd.mode for bd in lowering.program(g).binds]
+        assert (5 in modes) == first_lane
+        states.append(g.state_dict())
+    for key, t in states[0].items():
+        assert torch.equal(t, states[1][key]), key

@@ -359,8 +359,9 @@ class Gain(Block):
         b : rcotorch.engine.lowering.Builder
             Receives the block's parameters, ports and instructions.
         """
-        b.emit("GAIN", port="out", ROWS=self.K.shape[1], COLS=self.K.shape[2], K=b.param(self.K), IN=b.input("in"),
-               OUT=b.output("out"), SHARED=b.shared(self.K))
+        shared = b.shared(self.K)
+        b.emit("GAIN", port="out", ROWS=self.K.shape[1], COLS=self.K.shape[2],
+               K=b.param(self.K, first_lane=bool(shared)), IN=b.input("in"), OUT=b.output("out"), SHARED=shared)
 
 
 class Sum(Block):

@@ -276,11 +276,11 @@ class LTI(Block):
         """
         n, mt = self.n_states, self.B.shape[2]
         x, shared = b.state("x"), b.shared(self.A, self.B, self.C, self.D)
-        C, D = b.param(self.C), None
+        C, D = b.param(self.C, first_lane=bool(shared)), None
         for port, rows in self._out_slices.items():
             ft = [p for p in self._feedthrough[port] if b.input(p) is not None]
             if ft and D is None:
-                D = b.param(self.D)
+                D = b.param(self.D, first_lane=bool(shared))
             cols = [(c, b.input(p) + c - self._in_slices[p].start)   # each feedthrough column and its slot
                     for p in ft for c in range(self._in_slices[p].start, self._in_slices[p].stop)]
             b.emit("LTI_OUT", port=port, NX=n, ROWS=rows.stop - rows.start, C=C + rows.start * n, STATE=x,
@@ -288,7 +288,8 @@ class LTI(Block):
                    feedthrough=[dict(COLUMN=c, IN=slot) for c, slot in cols])
         inputs = [b.input(p) + i for p, cs in self._in_slices.items()   # the input columns in order: their slots
                   for i in range(cs.stop - cs.start)]
-        b.emit("LTI_UPD", NX=n, MT=mt, A=b.param(self.A), B=b.param(self.B), STATE=x, SCRATCH=b.scratch(n),
+        b.emit("LTI_UPD", NX=n, MT=mt, A=b.param(self.A, first_lane=bool(shared)),
+               B=b.param(self.B, first_lane=bool(shared)), STATE=x, SCRATCH=b.scratch(n),
                SHARED=shared, inputs=inputs)
 
     # --- analysis -------------------------------------------------------------------------------------

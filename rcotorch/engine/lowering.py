@@ -111,15 +111,18 @@ class Builder:
         return self._bind(lambda blk=blk, name=name: _state_tensor(blk, name), 3, rows, count,
                           f"block '{blk.name}' state '{name}'")
 
-    def param(self, t: torch.Tensor) -> int:
-        """Slots of a read-only tensor, (1, ...) shared by the members or (B, ...) per member."""
+    def param(self, t: torch.Tensor, first_lane: bool = False) -> int:
+        """Slots of a read-only tensor, (1, ...) shared by the members or (B, ...) per member. ``first_lane``: the
+        operations read only the first lane of it where it is shared (their SHARED field set), so a shared tensor
+        is copied into that lane alone."""
         if t.dim() == 0 or t.shape[0] not in (1, self.batch):
             self.refuse(f"a parameter of shape {tuple(t.shape)} for a batch of {self.batch}")
         if t.dtype != torch.float64:
             self.refuse(f"a parameter of dtype {t.dtype} (the native engine is float64)")
         t = t.contiguous()
         self.keep.append(t)
-        return self._bind(lambda t=t: t, 1, None, t[0].numel(), f"block '{self.block.name}' parameter")
+        return self._bind(lambda t=t: t, 5 if first_lane else 1, None, t[0].numel(),
+                          f"block '{self.block.name}' parameter")
 
     def shared(self, *tensors: torch.Tensor) -> int:
         """1 when every member shares these parameters ((1, ...) tensors, or a batch of one), else 0."""

@@ -914,13 +914,14 @@ class RCOEstimator(Block):
         r_inv = self.r_inv if self.rd_sqrt is None else \
             torch.block_diag(self.r_inv, torch.eye(self.n_theta, dtype=self.r_inv.dtype))
         nl = r_inv.shape[0]
+        shared = b.shared(self.beta)
         fields = dict(NU=self.n_u, NZ=self.n_z, NPHI=self.n_phi, NTHETA=self.n_theta, NENT=self.n_u * self.n_phi,
                       W=W, WMOD=kernels.ring_multiplier(W), NC=self.nc, NC1=nc1, NSIG=self.n_sig,
                       LAM_ONE=int(not isinstance(self._lam_arg(), torch.Tensor)), COUNTER=b.counter(),
-                      SHARED=b.shared(self.beta),
+                      SHARED=shared,
                       THETA=st["theta"], P=st["P"], WIN=st["win"], PHI=st["phi_now"], UNOW=st["u_now"],
                       ZR=st["z_r"], ALIVE=st["alive"], DIV=st["diverged_at"], PAST=st["past"], PASTU=st["past_u"],
-                      BETA=b.param(self._native_beta()), LAM=b.param(self.lam.reshape(-1, 1)),
+                      BETA=b.param(self._native_beta(), first_lane=bool(shared)), LAM=b.param(self.lam.reshape(-1, 1)),
                       RINV=b.param(r_inv.reshape(1, -1)), TLO=tlo, THI=thi, ULO=ulo, UHI=uhi,
                       Z=b.input("z"), VALID=-1 if b.input("valid") is None else b.input("valid"), CUR=cur,
                       UOUT=b.output("u"),

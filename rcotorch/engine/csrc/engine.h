@@ -93,7 +93,8 @@ enum { FP_GAIN = 0, FP_OFFSET = 1 };
     X(ESTIMATOR, PARAM_OF, NENT, ESTIMATOR_ENTRY)                                                            \
     X(ESTIMATOR, REP, NTHETA, ESTIMATOR_PARAM)
 
-/* A tensor copied into slots before the steps (mode 1), back after them (mode 2), or both (3).
+/* A tensor copied into slots before the steps (mode 1), back after them (mode 2), or both (3); with mode 4 and
+ * MSTRIDE 0 (shared by the members), into the first lane alone (the operations read only that lane of it).
  * Element c of member b lives at ptr + (b * MSTRIDE + (c / INNER) * OSTRIDE + c % INNER) elements. */
 #define RCO_BIND_FIELDS(X) X(PTR) X(KIND) X(MSTRIDE) X(INNER) X(OSTRIDE) X(COUNT) X(SLOT) X(MODE)
 #define RCO_KINDS(X) X(F64) X(BOOL) X(I64)

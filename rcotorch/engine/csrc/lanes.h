@@ -881,6 +881,12 @@ static inline void FN(load)(const int64_t *bd, int64_t nbind, double *S, int64_t
         const int64_t *x = bd + q * BF_N;
         if (!(x[BF_MODE] & 1)) continue;
         const int64_t inner = x[BF_INNER], count = x[BF_COUNT], kind = x[BF_KIND];
+        if ((x[BF_MODE] & 4) && x[BF_MSTRIDE] == 0 && kind == KIND_F64) { /* shared, read in the first lane */
+            const double *p = (const double *)(intptr_t)x[BF_PTR];
+            double *d = SL(x[BF_SLOT]);
+            for (int64_t c = 0; c < count; c++) d[c * VL] = p[c];
+            continue;
+        }
         int64_t m[VL];
         LANES m[l] = (b0 + (l < nb ? l : nb - 1)) * x[BF_MSTRIDE]; /* spare lanes repeat the last member */
         double *d = SL(x[BF_SLOT]);
