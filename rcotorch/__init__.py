@@ -19,7 +19,7 @@ _DEFINED_IN = {
     "Block": "blocks.base", "Gain": "blocks.base", "StaticMap": "blocks.base", "Sum": "blocks.base",
     "Recording": "data.recording", "load": "data.recording",
     "AlgebraicLoopError": "errors", "ConfigError": "errors", "DataError": "errors", "DimensionError": "errors",
-    "PortError": "errors", "RcoError": "errors",
+    "OutputError": "errors", "PortError": "errors", "RcoError": "errors",
     "RCOEstimator": "estimator.rco",
     "Graph": "graph",
     "LTI": "blocks.lti", "zoh": "blocks.lti",
@@ -40,7 +40,7 @@ _SUBMODULES = {"datasets": "data.datasets", "features": "blocks.features", "rng"
 __all__ = [
     "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "closed_loop_markov", "ConfigError", "DataError",
     "datasets", "derive_markov", "DimensionError", "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh",
-    "models", "Nonlinear", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine",
+    "models", "Nonlinear", "OutputError", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine",
     "RefinementResult", "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "validate",
     "Validation", "WhiteNoise", "zoh",
 ]
@@ -92,7 +92,7 @@ if TYPE_CHECKING:
     from .data.recording import Recording, load
     from .engine import rng
     from .engine.rls import rls_update
-    from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError, RcoError
+    from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, OutputError, PortError, RcoError
     from .estimator.rco import RCOEstimator
     from .estimator.tracking import ChangeDetector, ResetOnChange, at_step, closed_loop_markov
     from .graph import Graph

@@ -183,3 +183,31 @@ def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(
     with pytest.raises(ValueError, match="no history to draw"):
         draw_meanwhile(broken)()
     run.close()
+
+
+def test_on_a_linear_time_axis_the_first_steps_wild_values_stay_off_the_axis():
+    """A change late in the run keeps the time axis linear; estimates that jump to 50 in the first steps (no data
+    yet) would squeeze the change of 0.2 into a sliver: the y-axis is fitted to the run after its first 2 %, with
+    the truth, and says so. Early values no wilder than the rest leave the axis alone."""
+    from types import SimpleNamespace
+
+    from matplotlib.figure import Figure
+
+    from rcotorch.run.figures import _focus_after_start
+    t = np.linspace(0.0, 100.0, 201)
+    path = np.where(t > 60, -0.2, 0.0) + 0.005 * np.sin(t)
+    wild = path.copy()
+    wild[:2] = [50.0, -30.0]
+    run = SimpleNamespace(truth={"dk": -0.2}, truth_history={"dk": [(0.0, 0.0), (60.0, -0.2)]},
+                          graph=SimpleNamespace(known_sample_time=lambda: 0.01))
+    ax = Figure().subplots()
+    ax.plot(t, wild)
+    _focus_after_start(ax, run, "dk", t, wild[:, None])
+    low, high = ax.get_ylim()
+    assert -0.3 < low < -0.2 and 0.0 < high < 0.1
+    assert any("off the axis" in text.get_text() and " s " in text.get_text() for text in ax.texts)
+    ax = Figure().subplots()
+    ax.plot(t, path)
+    before = ax.get_ylim()
+    _focus_after_start(ax, run, "dk", t, path[:, None])
+    assert ax.get_ylim() == before and not ax.texts

@@ -263,3 +263,17 @@ def test_a_batchs_estimates_are_summarized_over_the_members_that_did_not_diverge
     assert lines[-1].startswith("health: 2 converged") and "member 1 at step 5 (non_finite)" in lines[-1]
     every = {**summary, "health": {**summary["health"], "status": ["diverged"] * 3}}
     assert "1..1e+300" in next(line for line in result_table(every).splitlines() if line.startswith("estimates.k"))
+
+
+def test_refine_into_a_folder_that_holds_a_run_names_its_own_arguments(tmp_path):
+    """The Python call is told what to pass (overwrite=True, another out), not the command's options."""
+    import rcotorch as rt
+    est = {"dK": lambda g: g.role("estimator").theta[:, 0, 0]}
+    rt.refine(_softening_spring(40), 20, est, out=tmp_path / "r", progress=False, figures=False, intervals=False,
+              validation=False)
+    with pytest.raises(rt.OutputError) as e:
+        rt.refine(_softening_spring(40), 20, est, out=tmp_path / "r", progress=False)
+    assert "overwrite=True" in str(e.value) and "another out" in str(e.value) and "--" not in str(e.value)
+    again = rt.refine(_softening_spring(40), 20, est, out=tmp_path / "r", overwrite=True, progress=False,
+                      figures=False, intervals=False, validation=False)
+    assert again.summary["steps"] == 20

@@ -298,7 +298,7 @@ def test_a_run_whose_truth_changes_keeps_a_linear_time_axis(tmp_path):
     g.add_hook(rt.ResetOnChange(g, every=5, p0=1e3, lam=0.99, hold=1000))
     result = rt.refine(g, 12000, {"db": lambda gr: -gr.role("estimator").theta[:, 0, 0]},
                        truth_history={"db": [(0.0, 0.0), (30.0, 0.03)]}, out=tmp_path / "run", intervals=False,
-                       validation=False, progress=False, figures=False)
+                       validation=False, progress=False, figures=False, log_every=480)
     h = result.run.history
     t = np.asarray(h["step"], dtype=float) * Ts
     assert log_time_axis(t, [torch.stack(h["db"]).numpy()])       # by its settling alone: a log axis
@@ -315,12 +315,12 @@ def test_the_band_over_time_widens_at_the_change_and_narrows_again(tmp_path):
     steps = np.asarray(steps)
     hw = bands["dk2"].numpy()                                                     # (T, members)
     kd = run.scenario.change_step(run.settings)
-    before = np.flatnonzero(steps < kd)[-1]
-    after = np.flatnonzero(steps > kd)[0]
-    assert np.all(hw[0] > 10 * hw[before]) and np.all(hw[after] > 10 * hw[before])
+    before = hw[np.flatnonzero(steps < kd)[-1]]
+    after = hw[(steps > kd) & (steps <= kd + 300)].max(0)           # the widest in the 3 s after the change
+    assert np.all(hw[0] > 10 * before) and np.all(after > 10 * before)
     final = np.asarray(summary["intervals"]["dk2"]["upper"]) - np.asarray(summary["estimates"]["dk2"])
     np.testing.assert_allclose(hw[-1], final, rtol=1e-9)
-    assert np.all(hw[-1] < hw[after] / 10)
+    assert np.all(hw[-1] < after / 10)
 
 
 def _two_mass(nc, proper, feed_u=True, dtype=torch.float64):

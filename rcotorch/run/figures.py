@@ -35,6 +35,8 @@ INITIAL_STYLE = dict(color="tab:gray", ls=":", lw=1.3, zorder=1.5)     # below t
 CHANGE_STYLE = dict(color="tab:brown", ls="-.", lw=1.2, zorder=5)       # a change of the truth
 DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.2, zorder=5)       # a change detector's first alarm
 LATE_MOVE = 0.2        # the estimates settled early: they move less than this share of their range in the 2nd half
+EARLY = 0.02           # on a linear time axis, the first share of the run whose values may fall outside the y-axis
+FOCUS = 3.0            # ... where the paths' whole range is more than this many times their range after it
 STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "not_converged": "tab:orange",
                   "diverged": "tab:red", "finished": "tab:gray"}
 
@@ -66,6 +68,8 @@ def run_figures(run) -> dict:
             _estimate_panel(row[0], run, key, t, v, members)
             if log_t:
                 row[0].set_xscale("log")
+            else:
+                _focus_after_start(row[0], run, key, t, v)
             if zoom:
                 _window_panel(row[1], run, key, t[t >= start], v[t >= start], found)
         axes[-1, 0].set_xlabel(xlabel + (", log scale" if log_t else ""))
@@ -258,6 +262,32 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
             ax.axhline(iv, **INITIAL_STYLE, label="initial model" if i == 0 else None)
     ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
     ax.grid(alpha=0.3, which="both")
+
+
+def _focus_after_start(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
+    """On a linear time axis, the y-axis fitted to the paths after the first ``EARLY`` of the run (with the
+    truth and the final intervals) where the first steps' values, the estimate's jumps before it has data, would
+    squeeze everything after them into a sliver; the axis says so."""
+    lines = np.asarray(v[:, :MAX_LINES], dtype=float)
+    late = t >= t[0] + EARLY * (t[-1] - t[0])
+    every, after = lines[np.isfinite(lines)], lines[late][np.isfinite(lines[late])]
+    if not after.size or not every.size:
+        return
+    extra = [x for x in np.atleast_1d(np.asarray(run.truth.get(key, []), dtype=float)) if np.isfinite(x)]
+    extra += [float(value) for _, value in (getattr(run, "truth_history", None) or {}).get(key, [])]
+    found = run.intervals() if hasattr(run, "intervals") else None
+    if found is not None and key in found.estimate:
+        for bound in (found.lower(key), found.upper(key)):
+            b = bound.cpu().numpy()
+            extra += [float(x) for x in b[np.isfinite(b)][:MAX_LINES]]
+    low, high = min(after.min(), *extra) if extra else after.min(), max(after.max(), *extra) if extra else after.max()
+    span = high - low if high > low else max(abs(high), 1e-12)
+    if np.ptp(every) <= FOCUS * span:
+        return
+    ax.set_ylim(low - 0.15 * span, high + 0.15 * span)
+    unit = " s" if run.graph.known_sample_time() else " steps"
+    ax.text(0.01, 0.97, f"values before {t[0] + EARLY * (t[-1] - t[0]):.3g}{unit} off the axis",
+            transform=ax.transAxes, ha="left", va="top", fontsize=7, color="0.35")
 
 
 def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:

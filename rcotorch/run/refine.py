@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from ..errors import ConfigError
+from ..errors import ConfigError, OutputError
 from ..graph import Graph
 from ..verdict import intervals as ci
 from ..verdict.health import Criteria
@@ -199,7 +199,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
            intervals: bool = True, figures: bool = True, progress: bool | None = None,
            checkpoint_every: int | None = None, health: Criteria | None = None,
            validation: bool | Mapping[str, Any] = True,
-           truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> RefinementResult:
+           truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None,
+           log_every: int | None = None) -> RefinementResult:
     """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
     for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
 
@@ -240,6 +241,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
         last value is its ``truth``; the summary and the requirements take the value at the run's end (a run
         that stops before a change is judged against the value before it); TensorBoard and the figures draw it
         as it was at each time and mark each change (and each change detector's alarms).
+    log_every : int, optional
+        Steps between logs (TensorBoard and the figures' history); by default as many logs as take about a tenth
+        of the run's time, or 0.1 s where that is more (docs/cli.md).
 
     Returns
     -------
@@ -261,14 +265,26 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
                        truth_history=truth_history)
     dtype = _dtype_name(graph)
     device = str(graph.k.device)
-    run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,
-              health=health, intervals=intervals, level=level, validation=bool(validation))
     try:
-        run.advance(progress=progress, checkpoint_every=checkpoint_every)
-        summary = run.finish(figures=figures)
-    finally:
-        run.close()
+        run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,
+                  health=health, intervals=intervals, level=level, validation=bool(validation), log_every=log_every)
+        try:
+            run.advance(progress=progress, checkpoint_every=checkpoint_every)
+            summary = run.finish(figures=figures)
+        finally:
+            run.close()
+    except OutputError as e:                    # said in this function's arguments, not the command line's
+        raise type(e)(_in_arguments(str(e))) from None
     return RefinementResult(run, summary)
+
+
+def _in_arguments(message: str) -> str:
+    """An output folder's error as a caller of ``refine`` acts on it: its arguments, not the command's options."""
+    for option, argument in (("use --resume to continue it, --overwrite to replace it, or choose another --out",
+                              "pass overwrite=True to replace it, or choose another out"),
+                             ("--overwrite", "overwrite=True"), ("another --out", "another out"), ("--out", "out")):
+        message = message.replace(option, argument)
+    return message
 
 
 def _dtype_name(graph: Graph) -> str:

@@ -45,7 +45,7 @@ MIN_LOGS, MAX_LOGS = 20, 1000
 # The logs of a run may take about LOG_SHARE of the engine's time, or LOG_FREE_S seconds where that is more: a
 # log (with the stop of the engine before it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a
 # member-step of the native engine at least ENGINE_NS nanoseconds (docs/cli.md).
-LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.01, 250.0, 0.7, 30.0
+LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.1, 250.0, 0.7, 30.0
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
@@ -97,7 +97,7 @@ def default_log_every(steps: int, batch: int) -> int:
         return 2 * check * max(1, round(every / (2 * check)))
     n = max(1, check // every)                  # a divisor of the checks' spacing, no shorter: checks fall on logs
     while check % n:
-        n += 1
+        n -= 1
     return check // n
 
 
