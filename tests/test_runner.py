@@ -277,3 +277,21 @@ def test_refine_into_a_folder_that_holds_a_run_names_its_own_arguments(tmp_path)
     again = rt.refine(_softening_spring(40), 20, est, out=tmp_path / "r", overwrite=True, progress=False,
                       figures=False, intervals=False, validation=False)
     assert again.summary["steps"] == 20
+
+
+@pytest.mark.parametrize("steps,batch", [(20000, 1), (2_000_000, 1), (20000, 4096), (2000, 65536), (8232, 200),
+                                         (8232, 1), (35000, 64), (12000, 1), (300, 3), (10**7, 1)])
+def test_the_log_interval_is_a_multiple_or_divisor_of_the_checks_and_a_change_gets_its_logs(steps, batch):
+    """Logs fall on health-check steps or checks on logs; the interval is never shorter than the budget asks
+    (at most MAX_LOGS logs); a run that follows a change logs at least MIN_LOGS_CHANGE times where its steps
+    and the member-value budget allow."""
+    from rcotorch.run.runner import LOG_BUDGET, MAX_LOGS, MIN_LOGS_CHANGE, default_log_every
+    from rcotorch.verdict.health import check_every
+    check = check_every(steps)
+    for follows in (False, True):
+        every = default_log_every(steps, batch, follows)
+        assert every % (2 * check) == 0 or check % every == 0
+        assert steps // every <= MAX_LOGS
+        if follows:
+            assert steps // every >= min(MIN_LOGS_CHANGE, LOG_BUDGET // batch, steps // 2) / 2
+    assert default_log_every(steps, batch, True) <= default_log_every(steps, batch, False)

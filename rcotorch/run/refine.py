@@ -242,8 +242,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
         that stops before a change is judged against the value before it); TensorBoard and the figures draw it
         as it was at each time and mark each change (and each change detector's alarms).
     log_every : int, optional
-        Steps between logs (TensorBoard and the figures' history); by default as many logs as take about a tenth
-        of the run's time, or 0.1 s where that is more (docs/cli.md).
+        Steps between logs (TensorBoard and the figures' history); by default as many as take about a tenth of
+        the run's time, at least 20, or 250 where the run follows a change (docs/cli.md).
 
     Returns
     -------

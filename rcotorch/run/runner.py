@@ -30,7 +30,7 @@ import orjson
 import torch
 
 from ..errors import CheckpointError, ConfigError, RcoError
-from ..estimator.tracking import change_report
+from ..estimator.tracking import ChangeDetector, change_report
 from ..verdict import intervals as ci
 from ..verdict.health import STATUSES, Criteria, Health, check_every, finite_list
 from . import scenario as scenarios
@@ -42,10 +42,11 @@ CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = 4   # the layout of checkpoint.pt (4: the graph's state at the window's start, for intervals)
 LOG_BUDGET = 2 ** 21     # member-values logged per run, at most (but at least MIN_LOGS logs)
 MIN_LOGS, MAX_LOGS = 20, 1000
+MIN_LOGS_CHANGE = 250    # at least, in a run that follows a change (a truth that changes, or a change detector)
 # The logs of a run may take about LOG_SHARE of the engine's time, or LOG_FREE_S seconds where that is more: a
 # log (with the stop of the engine before it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a
 # member-step of the native engine at least ENGINE_NS nanoseconds (docs/cli.md).
-LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.1, 250.0, 0.7, 30.0
+LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.01, 250.0, 0.7, 30.0
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
@@ -83,15 +84,18 @@ def _positive_int(value, what: str) -> int:
     return value
 
 
-def default_log_every(steps: int, batch: int) -> int:
+def default_log_every(steps: int, batch: int, follows_change: bool = False) -> int:
     """Steps between logs: as many logs as take about LOG_SHARE of the engine's time (or LOG_FREE_S), at most
-    MAX_LOGS and LOG_BUDGET member-values in all (since a log reads every member), but at least MIN_LOGS. An interval
+    MAX_LOGS and LOG_BUDGET member-values in all (since a log reads every member), but at least MIN_LOGS, or
+    MIN_LOGS_CHANGE in a run that follows a change (its figures draw the change and the estimates' path after
+    it, which a few dozen points would join by straight lines across the change). An interval
     longer than the health checks' (in the convergence window) is the nearest multiple of twice theirs (their
     spacing before the window), a shorter one a divisor of theirs near it, so that logs fall on check steps or
     checks on log steps: every stop of the engine costs a pass over the whole batch's state."""
     budget_us = max(LOG_SHARE * steps * batch * ENGINE_NS * 1e-3, LOG_FREE_S * 1e6)
     affordable = budget_us / (LOG_US + LOG_US_PER_MEMBER * batch)
-    logs = min(MAX_LOGS, max(MIN_LOGS, min(int(affordable), LOG_BUDGET // batch)))
+    least = MIN_LOGS_CHANGE if follows_change else MIN_LOGS
+    logs = min(MAX_LOGS, max(MIN_LOGS, min(max(int(affordable), least), LOG_BUDGET // batch)))
     every, check = max(1, math.ceil(steps / logs)), check_every(steps)
     if every > check:
         return 2 * check * max(1, round(every / (2 * check)))
@@ -173,13 +177,17 @@ class Run:
         self.out = Path(out) if out else default_out(self.scenario.name)
         self.folder = OutputFolder(self.out, "run")
         self._mode = "overwrite" if overwrite else "new"
-        self.log_every = _positive_int(log_every, "log_every") if log_every is not None else \
-            default_log_every(self.steps, self.batch)
+        if log_every is not None:
+            _positive_int(log_every, "log_every")
         self.graph = self.scenario.build(self.settings, self.batch, DTYPES[dtype], self.device)
         self.graph.check_steps(self.steps)
         self.truth = self.scenario.truth(self.settings)
         self.truth_history = scenarios.check_truth_history(self.scenario.truth_history(self.settings), self.truth,
                                                  f"scenario '{self.scenario.name}'")
+        follows = any(len(pairs) > 1 for pairs in (self.truth_history or {}).values()) or \
+            any(isinstance(blk, ChangeDetector) for blk in self.graph.blocks.values())
+        self.log_every = log_every if log_every is not None else \
+            default_log_every(self.steps, self.batch, follows)
         self.health = Health(self.graph, self.steps, health)
         self.z_sig = self.graph.role_signal("error")
         self.y_sig = self.graph.role_signal("measured") if "measured" in self.graph.roles else None
