@@ -30,7 +30,7 @@ import orjson
 import torch
 
 from ..errors import CheckpointError, ConfigError, RcoError
-from ..estimator.tracking import ChangeDetector, change_report
+from ..estimator.tracking import ChangeDetector, _closed_loop, change_report
 from ..verdict import intervals as ci
 from ..verdict.health import STATUSES, Criteria, Health, check_every, finite_list
 from . import scenario as scenarios
@@ -202,6 +202,7 @@ class Run:
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
+        self._settle: tuple[int, int | None] = (0, None)    # the replay's settling steps, and what its loop needs
         self.monitor: Monitor | None = None
         self.hparams_session = True
         self.tb_origin: float | None = None    # TensorBoard's wall time at step 0 (``Monitor.wall``)
@@ -528,7 +529,7 @@ class Run:
             "truth": self.truth_now(), "metrics": {k: self._values(v) for k, v in met.items()},
             "settings": dict(self.settings), "health": health, "status": health["status"], "diverged": diverged,
             "requirements": self._requirements(est, met),
-            "warnings": tuning_warnings(self.graph) + fit_warnings(met),
+            "warnings": tuning_warnings(self.graph) + fit_warnings(met) + self._settle_warnings(),
             "changes": {name: {k: self._values(v.detach().to(torch.float64).cpu()) for k, v in found_.items()}
                         for name, found_ in change_report(self.graph).items()},
             "validation": None if held_out is None else {
@@ -552,16 +553,41 @@ class Run:
         if not self.intervals_on or self.snapshot is None:
             return None, None
         if self._intervals is None or self._intervals[0] != self.k:
-            steps = min(self.k - self.health.window_start, ci.REPLAY_STEPS)
+            window = min(self.k - self.health.window_start, ci.REPLAY_STEPS)
             found = (None, None)
-            if steps >= 2:
-                rep = ci.replay(self.graph, self.snapshot, steps)
+            if window >= 2:
+                steps, settle = self._replay_span(window)
+                rep = ci.replay(self.graph, self.snapshot, steps, settle)
                 self.graph.role("estimator").covariance = rep.covariance   # for the scenario's figures
                 found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
                                                rep.covariance, level=self.level,
                                                scales=self.scenario.scales(self.settings)), rep.residuals)
             self._intervals = (self.k, *found)
         return self._intervals[1:]
+
+    def _settle_warnings(self) -> list[str]:
+        self._replayed()
+        return _settle_note(*self._settle, self.graph.known_sample_time())
+
+    def _replay_span(self, window: int) -> tuple[int, int | torch.Tensor]:
+        """Steps to replay from the window's start, and how many of them only settle, per member: the window with
+        its first quarter settling, or, where a member's frozen loop needs longer to forget the start
+        (``loop_settle``), that long and then the window's last three quarters, running on past the run's end
+        (simulated sources give the same streams there) or as far as recorded data reaches. Where that falls
+        short of what a loop needs, the summary warns (``_settle_warnings``)."""
+        quarter = int(ci.SETTLE * window)
+        need = loop_settle(self.graph)
+        if need is None:
+            self._settle = (quarter, None)
+            return window, quarter
+        settle = need.clamp_min(quarter)
+        limit = self.graph.max_steps
+        if limit is not None:
+            settle = settle.clamp_max(max(quarter, limit - self.health.window_start - (window - quarter)))
+        short = settle < need
+        self._settle = (int(settle[short].min()) if bool(short.any()) else quarter,
+                        int(need[short].max()) if bool(short.any()) else None)
+        return int(settle.max()) + window - quarter, settle
 
     def validation(self):
         """The refined model on held-out data (``rcotorch.verdict.validation.Validation``) at the current step, or None
@@ -645,6 +671,34 @@ class Run:
 
 
 PRIOR_SHARE = 0.5     # P_ii / p0 above this at the end: the data did less than the prior to fix parameter i
+
+
+def loop_settle(graph) -> torch.Tensor | None:
+    """Steps each member's frozen loop needs to forget its start, (B,): ``ci.SETTLE_TAUS`` time constants of the
+    slowest decaying mode (|eigenvalue| < 1) of the known model with the estimator's loop closed at its present
+    theta (the loop of ``rcotorch.estimator.tracking.closed_loop_markov``), at most ``ci.SETTLE_MAX``; None where
+    that loop cannot be formed (a known model that is not an ``LTI``, features, a regressor fed through another
+    block)."""
+    est = graph.role("estimator")
+    try:
+        A = _closed_loop(graph, est.theta.detach(), None, None, "u", "y", None)[0]
+    except (ConfigError, KeyError, AttributeError, TypeError, ValueError, RuntimeError):
+        return None
+    A = A.detach().to("cpu", torch.float64)
+    A = torch.where(torch.isfinite(A).flatten(1).all(1).reshape(-1, 1, 1), A, 0.0)   # a diverged member: none
+    mag = torch.linalg.eigvals(A).abs()
+    rho = torch.where(mag < 1.0 - 1e-12, mag, 0.0).amax(-1) if mag.shape[-1] else torch.zeros(mag.shape[0])
+    taus = torch.where(rho > 0, ci.SETTLE_TAUS / -torch.log(rho.clamp_min(1e-300)), 0.0)
+    return taus.clamp_max(ci.SETTLE_MAX).ceil().to(torch.int64).to(est.theta.device)
+
+
+def _settle_note(settle: int, need: int | None, dt: float | None) -> list[str]:
+    if need is None or settle >= need:
+        return []
+    unit = (lambda n: f"{n * dt:.4g} s") if dt else (lambda n: f"{n} steps")
+    return [f"the intervals' replay settled for {unit(settle)} where the refined loop's slowest mode needs "
+            f"{unit(need)} ({ci.SETTLE_TAUS:g} time constants) to forget the window's start: the recorded data end "
+            "sooner; the intervals and residual checks may carry that transient"]
 
 
 def tuning_warnings(graph) -> list[str]:

@@ -48,6 +48,8 @@ LEVEL = 0.95             # the default confidence level
 REL_TOL = 0.5            # determined: each interval's half-width at most this fraction of max(|estimate|, scale)
 REPLAY_STEPS = 4000      # at most this many steps replayed (the convergence window's length, up to this)
 SETTLE = 0.25            # the first fraction of the replay lets the perturbed copies settle
+SETTLE_TAUS = 5.0        # ... or, where longer, this many time constants of the frozen loop's slowest mode
+SETTLE_MAX = 4 * REPLAY_STEPS    # at most this many steps to settle (rcotorch.run.runner.loop_settle)
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
@@ -139,19 +141,22 @@ class Replay:
     residuals: Residuals
 
 
-def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
-                         rel_step: float | None = None) -> ParameterCovariance:
+def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int,
+                         settle: int | torch.Tensor | None = None, rel_step: float | None = None
+                         ) -> ParameterCovariance:
     """The covariance of the parameters of ``graph``'s estimator (``replay(...).covariance``)."""
     return replay(graph, state, steps, settle, rel_step).covariance
 
 
-def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | None = None,
+def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | torch.Tensor | None = None,
            rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS,
            score_lags: int = SCORE_LAGS) -> Replay:
     """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
     estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
     and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
-    the initial theta. The first ``settle`` steps (default: a quarter) only let the copies settle.
+    the initial theta. The first ``settle`` steps (default: a quarter) only let the copies settle; ``settle``
+    may be one per member, (B,) (then each member measures the ``steps - max(settle)`` steps after its own, so
+    that what a member finds does not depend on the others).
     ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
     float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
     figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). The graph itself is not
@@ -159,10 +164,14 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     steps = int(steps)
     if steps < 2:
         raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
-    settle = int(SETTLE * steps) if settle is None else int(settle)
-    if not 0 <= settle < steps:
-        raise ConfigError(f"intervals: settle must lie in [0, {steps}), got {settle}")
     est = graph.role("estimator")
+    B_all = est.theta.shape[0]
+    own = torch.as_tensor(int(SETTLE * steps) if settle is None else settle, dtype=torch.int64).reshape(-1)
+    own = own.expand(B_all).to(est.theta.device) if own.numel() == 1 else own.to(est.theta.device)
+    if own.shape != (B_all,) or int(own.min()) < 0 or int(own.max()) >= steps:
+        raise ConfigError(f"intervals: settle must be one number or one per member in [0, {steps}), got {settle}")
+    settle, last = int(own.min()), int(own.max())           # the steps before every member's and any member's
+    measured = steps - last                                 # the steps each member measures, after its own settle
     z_sig = graph.role_signal("error")
     y_sig = graph.role_signal("measured") if "measured" in graph.roles else z_sig
     w_sig = graph.role_signal("exogenous") if "exogenous" in graph.roles else None
@@ -193,11 +202,20 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
     first = recorded[0]
     weight = est.r_weight.to(f64)
     eps64 = eps.to(f64)
-    # The residual checks and the output error's Gauss-Newton sums need only the recorded outputs: all at once.
-    z_all = first[z_sig][settle:]                                                       # (T, B, n_z)
+    # The residual checks need only the recorded outputs: all at once, each member's own measured steps.
+    ahead = own.reshape(1, B) + torch.arange(measured, device=dev).reshape(-1, 1)          # (T, B) step of each
+
+    def measured_part(x: torch.Tensor) -> torch.Tensor:
+        return x.gather(0, ahead.reshape(measured, B, *([1] * (x.dim() - 2))).expand(measured, B, *x.shape[2:]))
+
     res = _ResidualSums(B, lags, keep, dev)
-    res.add(z_all, None if w_sig is None else first[w_sig][settle:], first[y_sig][settle:],
-            recorded[-1][z_sig][settle:])
+    res.add(measured_part(first[z_sig]), None if w_sig is None else measured_part(first[w_sig]),
+            measured_part(first[y_sig]), measured_part(recorded[-1][z_sig]))
+    z_all = first[z_sig][settle:]                                                       # (T', B, n_z), T' >= T
+    # where a member's measured steps begin after the first member's, the steps outside its own count zero
+    within = None if settle == last else \
+        ((torch.arange(settle, steps, device=dev).reshape(-1, 1) >= own.reshape(1, B)) &
+         (torch.arange(settle, steps, device=dev).reshape(-1, 1) < own.reshape(1, B) + measured)).to(f64)
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
@@ -217,6 +235,10 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
         psi = psis[:held].transpose(0, 1)                                          # (B, C, n_z, n)
         z = z_all[t0:upto].transpose(0, 1)                                         # (B, C, n_z)
         jac = (zs[settle + t0:settle + upto].transpose(0, 1) - z.unsqueeze(3)) / eps64.reshape(B, 1, 1, n)
+        if within is not None:
+            inside = within[t0:upto].transpose(0, 1)                               # (B, C)
+            z, jac = z * inside.unsqueeze(-1), jac * inside.reshape(B, C, 1, 1)
+            psi = psi * inside.reshape(B, C, 1, 1)
         jac_w = weight @ jac                                                       # W J (W symmetric)
         jwj += _tsum(jac, jac_w)
         jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
@@ -242,7 +264,6 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | N
             if held == chunk or k == steps - 1:
                 flush(k + 1 - settle)
                 held = 0
-    measured = steps - settle
     V = zz / measured
     finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
         torch.isfinite(V).flatten(1).all(1)
