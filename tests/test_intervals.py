@@ -317,3 +317,21 @@ def test_members_settling_for_different_times_replay_as_they_would_alone():
         np.testing.assert_allclose(both.residuals.whiteness_p[b].item(), alone.residuals.whiteness_p[0].item(),
                                    rtol=1e-9)
         np.testing.assert_allclose(both.residuals.fit[b].item(), alone.residuals.fit[0].item(), rtol=1e-9)
+
+
+def test_recorded_data_that_end_before_the_loop_settles_are_replayed_as_far_as_they_reach_and_warn(tmp_path):
+    """The room's measurements recorded for 30 h (window 6 h): the replay cannot run past them, settles for the
+    window's first quarter alone, and the summary says how long the loop needed."""
+    g, G = _room(1, window_opens=False)
+    g.blocks["window"].K.fill_(-20.0)
+    w = torch.zeros(1800, 1, 1, dtype=torch.float64)
+    y = torch.zeros(1800, 1, 1, dtype=torch.float64)
+    g.advance(1800, record={g.role_signal("exogenous"): w, g.role_signal("measured"): y})
+    data = rt.Recorded(torch.cat([w[:, 0], y[:, 0]], 1).numpy(), {"w": 0, "y": 1}, dt=60.0, name="data")
+    known = rt.LTI.from_control(G, inputs={"w": 1, "u": 1}, outputs={"y": 1, "y0": 1}, dt=60.0, name="room")
+    graph = rt.refinement(known, rt.RCOEstimator.static_gain({"y0": 1}, p0=1e4), data=data, nu=400)
+    assert graph.max_steps == 1800
+    res = rt.refine(graph, 1800, {"dG": lambda gr: -gr.role("estimator").theta[:, 0, 0]}, out=tmp_path / "rec",
+                    progress=False, figures=False, validation=False)
+    said = [x for x in res.summary["warnings"] if "replay settled for" in x]
+    assert len(said) == 1 and "5400 s" in said[0] and "the recorded data end sooner" in said[0], said
