@@ -1167,10 +1167,11 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
 }
 
 /* The Markov parameters of one linear system per member, VL members at a time (engine.c, lti_markov): beta_t =
- * -H_(d+t), t = 0..nu-1, H_0 = D0, H_i = C A^(i-1) B, X = A^(i-1) B carried N x m. All nu of the chunk are made in
- * the arena first, turned into one array per member, then written member by member into every target at the
- * member's row, each target in the order of its memory. With q->stable, a member's are written only where ||A^(2^s)||_inf < 1 for some s <= 16
- * (so its spectral radius is below 1), and stable[b] says whether they were. */
+ * -H_(d+t), t = 0..nu-1, H_0 = D0, H_i = C A^(i-1) B, X = A^(i-1) B carried N x m. All nu of the chunk are made
+ * in the arena first, turned into one array per member, then written member by member into every target at the
+ * member's row, each target in the order of its memory. With q->stable, a member's are written only where
+ * ||A^(2^s)||_inf < 1 for some s <= 16 (so its spectral radius is below 1), and stable[b] says whether they
+ * were. */
 static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t nb) {
     int64_t N = q->N, m = q->m, p = q->p, d = q->d, nu = q->nu, pm = p * m;
     double *a = S, *c = AT(a, N * N), *x = AT(c, p * N), *y = AT(x, N * m), *sq = AT(y, N * m);
@@ -1190,7 +1191,8 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
             for (int64_t r = 0; r < N; r++)
                 for (int64_t k = 0; k < N; k++) {
                     LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++) LANES acc[l] += src[(r * N + j) * VL + l] * src[(j * N + k) * VL + l];
+                    for (int64_t j = 0; j < N; j++)
+                        LANES acc[l] += src[(r * N + j) * VL + l] * src[(j * N + k) * VL + l];
                     LANES dst[(r * N + k) * VL + l] = acc[l];
                 }
             int all = 1;
@@ -1211,12 +1213,14 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
     for (int64_t i = d == 0 ? 0 : 1; i < d + nu; i++) {
         double *hi = h + (i - d) * pm * VL;
         if (i == 0) {
-            LANES for (int64_t e = 0; e < pm; e++) hi[e * VL + l] = -q->D0[(b0 + (l < nb ? l : nb - 1)) * pm + e];
+            LANES for (int64_t e = 0; e < pm; e++)
+                hi[e * VL + l] = -q->D0[(b0 + (l < nb ? l : nb - 1)) * pm + e];
         } else if (i >= d) { /* H_i = C X */
             for (int64_t r = 0; r < p; r++)
                 for (int64_t k = 0; k < m; k++) {
                     LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++) LANES acc[l] += c[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
+                    for (int64_t j = 0; j < N; j++)
+                        LANES acc[l] += c[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
                     LANES hi[(r * m + k) * VL + l] = -acc[l];
                 }
         }
@@ -1224,7 +1228,8 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
             for (int64_t r = 0; r < N; r++)
                 for (int64_t k = 0; k < m; k++) {
                     LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++) LANES acc[l] += a[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
+                    for (int64_t j = 0; j < N; j++)
+                        LANES acc[l] += a[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
                     LANES y[(r * m + k) * VL + l] = acc[l];
                 }
             double *t = x;
@@ -1244,7 +1249,7 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
             double *restrict base = q->t[g].base + row * q->t[g].srow;
             if (st == pm && se == 1 && copies == 1) { /* as made: (nu, p, m) */
                 memcpy(base, v, sizeof(double) * (size_t)(nu * pm));
-            } else if (st == -1) { /* reversed in time, as the native program reads them: t = nu - 1 - j at base - (nu - 1) + j */
+            } else if (st == -1) { /* reversed in time, as the native program reads them: t = nu - 1 - j */
                 for (int64_t e = 0; e < pm; e++)
                     for (int64_t cp = 0; cp < copies; cp++) {
                         double *restrict at = base - (nu - 1) + e * se + cp * coff;
