@@ -1166,6 +1166,18 @@ static void FN(rls_chunk)(const rls_t *q, double *S, int64_t b0, int64_t nb) {
     }
 }
 
+/* dst = P Q in lane arrays, P rows x inner, Q inner x cols, each entry summed over j in order */
+static inline ALWAYS void FN(lane_matmul)(double *restrict dst, const double *P, const double *Q, int64_t rows,
+                                          int64_t inner, int64_t cols, double *restrict acc) {
+    for (int64_t r = 0; r < rows; r++)
+        for (int64_t k = 0; k < cols; k++) {
+            LANES acc[l] = 0.0;
+            for (int64_t j = 0; j < inner; j++)
+                LANES acc[l] += P[(r * inner + j) * VL + l] * Q[(j * cols + k) * VL + l];
+            LANES dst[(r * cols + k) * VL + l] = acc[l];
+        }
+}
+
 /* The Markov parameters of one linear system per member, VL members at a time (engine.c, lti_markov): beta_t =
  * -H_(d+t), t = 0..nu-1, H_0 = D0, H_i = C A^(i-1) B, X = A^(i-1) B carried N x m. All nu of the chunk are made
  * in the arena first, turned into one array per member, then written member by member into every target at the
@@ -1188,13 +1200,7 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
         memcpy(sq, a, sizeof(double) * (size_t)(N * N * VL));
         for (int s = 1; s <= 16; s++) {
             double *src = s & 1 ? sq : sq2, *dst = s & 1 ? sq2 : sq;
-            for (int64_t r = 0; r < N; r++)
-                for (int64_t k = 0; k < N; k++) {
-                    LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++)
-                        LANES acc[l] += src[(r * N + j) * VL + l] * src[(j * N + k) * VL + l];
-                    LANES dst[(r * N + k) * VL + l] = acc[l];
-                }
+            FN(lane_matmul)(dst, src, src, N, N, N, acc);
             int all = 1;
             LANES {
                 int below = 1; /* every row's absolute sum below 1; NaN and inf fail */
@@ -1215,23 +1221,12 @@ static void FN(markov_chunk)(const markov_t *q, double *S, int64_t b0, int64_t n
         if (i == 0) {
             LANES for (int64_t e = 0; e < pm; e++)
                 hi[e * VL + l] = -q->D0[(b0 + (l < nb ? l : nb - 1)) * pm + e];
-        } else if (i >= d) { /* H_i = C X */
-            for (int64_t r = 0; r < p; r++)
-                for (int64_t k = 0; k < m; k++) {
-                    LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++)
-                        LANES acc[l] += c[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
-                    LANES hi[(r * m + k) * VL + l] = -acc[l];
-                }
+        } else if (i >= d) { /* beta = -H_i = -C X */
+            FN(lane_matmul)(hi, c, x, p, N, m, acc);
+            for (int64_t e = 0; e < pm; e++) LANES hi[e * VL + l] = -hi[e * VL + l];
         }
         if (i >= 1 && i + 1 < d + nu) { /* X <- A X */
-            for (int64_t r = 0; r < N; r++)
-                for (int64_t k = 0; k < m; k++) {
-                    LANES acc[l] = 0.0;
-                    for (int64_t j = 0; j < N; j++)
-                        LANES acc[l] += a[(r * N + j) * VL + l] * x[(j * m + k) * VL + l];
-                    LANES y[(r * m + k) * VL + l] = acc[l];
-                }
+            FN(lane_matmul)(y, a, x, N, N, m, acc);
             double *t = x;
             x = y;
             y = t;
