@@ -268,8 +268,7 @@ def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tenso
     ok = torch.ones(Bm, dtype=torch.bool)
     _engine.lti_markov(Bm, N, m, p, d, nu, A.data_ptr(), B.data_ptr(), C.data_ptr(), D.data_ptr(),
                        0 if rows is None else row_t.data_ptr(), ok.data_ptr() if stable and out is None else 0,
-                       spec.data_ptr(),
-                       len(targets), lanes(Bm), threads())
+                       spec.data_ptr(), len(targets), lanes(Bm), threads())
     return out if out is not None else ok
 
 

@@ -213,9 +213,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
             measured_part(first[y_sig]), measured_part(recorded[-1][z_sig]))
     z_all = first[z_sig][settle:]                                                       # (T', B, n_z), T' >= T
     # where a member's measured steps begin after the first member's, the steps outside its own count zero
-    within = None if settle == last else \
-        ((torch.arange(settle, steps, device=dev).reshape(-1, 1) >= own.reshape(1, B)) &
-         (torch.arange(settle, steps, device=dev).reshape(-1, 1) < own.reshape(1, B) + measured)).to(f64)
+    at = torch.arange(settle, steps, device=dev).reshape(-1, 1) - own.reshape(1, B)    # each member's own step
+    within = None if settle == last else ((at >= 0) & (at < measured)).to(f64)
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
