@@ -8,6 +8,14 @@ overwritten. A folder that already holds a run is refused unless the caller resu
 replaces it (``mode='overwrite'``, which deletes the files of the earlier manifest and nothing else). A folder
 holding results without a manifest (written by hand or by an older version) is always refused.
 
+Nothing outside the folder is ever deleted, replaced or appended to. A manifest is data that a user or a tool
+can edit, so every path it names is checked before anything is deleted (``inside``): it must be relative,
+without ``..``, and lead to the folder through no symbolic link; a file to delete must not be a link either
+(rcotorch writes none). An entry that breaks the rule refuses the whole ``--overwrite``, naming the entry, and
+nothing is deleted. The log is appended to only when it is a plain file (never through a link), and a folder
+whose names that rcotorch writes (``summary.json``, ``rcotorch.log``, ``hparams``, a shard, ...) are symbolic
+links is refused when it is opened.
+
 Files are written to a unique temporary file in the same folder and renamed over the target, so a reader (or
 a killed writer) never sees half a file and an existing file is only replaced once its successor is complete.
 A write that fails (no space left, permission denied, the folder gone) raises ``OutputError`` naming the file
@@ -46,6 +54,8 @@ TMP_PREFIX = ".rcotorch-tmp-"
 # Names that mark a folder as holding results (so that they are never mixed with a new run's).
 RESULT_NAMES = ("summary.json", "checkpoint.pt", "events.out.tfevents.*", "*.png", "sweep.csv", "sweep.json",
                 "hparams", "shard_*", LOG)
+# Names rcotorch writes in a folder it opened (files, or folders it writes into): never symbolic links.
+WRITTEN_NAMES = (*RESULT_NAMES, "members", "runs", "tune.csv", "best.toml", "sensitivity.csv", LOCK, MANIFEST)
 
 
 _UMASK = os.umask(0o022)
@@ -178,6 +188,37 @@ def _holds_results(names: list[str]) -> list[str]:
     return sorted(n for n in names if any(fnmatch.fnmatch(n, p) for p in RESULT_NAMES))
 
 
+def inside(folder: str | Path, rel: Any, what: str) -> Path:
+    """The path that ``rel`` (an entry of a manifest, ``what`` naming it in messages) names inside ``folder``.
+
+    Raises ``OutputError`` naming the entry unless it is a relative path without ``..`` whose every folder on the
+    way is a real folder inside ``folder`` (no symbolic link), and which is not a symbolic link itself."""
+    folder = Path(folder)
+    if not isinstance(rel, str) or not rel.strip() or "\0" in rel:
+        raise OutputError(f"{what} {rel!r}: not a file name; rcotorch deletes only inside {folder}")
+    parts = Path(rel).parts
+    if Path(rel).is_absolute() or os.path.isabs(rel):
+        raise OutputError(f"{what} {rel!r} is an absolute path, outside {folder}")
+    if ".." in parts:
+        raise OutputError(f"{what} {rel!r} climbs out of {folder} with '..'")
+    here = folder
+    for i, part in enumerate(parts):
+        if part == ".":
+            continue
+        here = here / part
+        if here.is_symlink():
+            link = "a symbolic link" if i == len(parts) - 1 else f"through the symbolic link {here}"
+            raise OutputError(f"{what} {rel!r} is {link} (to {os.readlink(here)}); rcotorch follows no link "
+                              f"out of {folder} and writes none")
+    try:
+        real, base = os.path.realpath(here), os.path.realpath(folder)
+    except OSError as e:                              # a loop on the way
+        raise OutputError(f"{what} {rel!r}: {e.strerror}") from None
+    if real != base and os.path.commonpath([real, base]) != base:
+        raise OutputError(f"{what} {rel!r} leads to {real}, outside {folder}")
+    return here
+
+
 class OutputFolder:
     """The folder a run or sweep writes, opened by one process at a time.
 
@@ -209,6 +250,7 @@ class OutputFolder:
             raise ValueError(f"mode must be 'new', 'overwrite' or 'resume', got {mode!r}")
         p = self.path
         made = self._make_folder()
+        self._refuse_links([LOCK])
         made_lock = not (p / LOCK).exists()
         lock = self._take_lock()
         try:
@@ -339,8 +381,9 @@ class OutputFolder:
 
     def _claim(self, mode: str) -> None:
         p = self.path
-        manifest = self.manifest()
         names = [n for n in os.listdir(p) if n not in (LOCK, MANIFEST) and not n.startswith(TMP_PREFIX)]
+        self._refuse_links([*names, MANIFEST])
+        manifest = self.manifest()
         if manifest is None:
             found = _holds_results(names)
             if found:
@@ -356,6 +399,7 @@ class OutputFolder:
         elif mode == "resume" and manifest.get("kind") != self.kind:
             raise OutputError(f"{p} holds a {manifest.get('kind')}, not a {self.kind}")
         if manifest is not None:
+            self._check_listed(manifest)
             self._remove_stale_temporaries()
             if mode == "overwrite":
                 self._delete_listed(manifest)
@@ -366,14 +410,46 @@ class OutputFolder:
         own = set(manifest.get("files", [])) if manifest else set()
         self._foreign = {f for f in self._scan() if f not in own}
 
+    def _refuse_links(self, names: list[str]) -> None:
+        """Raise ``OutputError`` when one of ``names`` (in the folder) that rcotorch writes is a symbolic link."""
+        for n in sorted(names):
+            path = self.path / n
+            if any(fnmatch.fnmatch(n, w) for w in WRITTEN_NAMES) and path.is_symlink():
+                raise OutputError(f"{path} is a symbolic link (to {os.readlink(path)}) where rcotorch writes its own "
+                                  "file or folder; it follows no link out of its output folder: remove the link or "
+                                  "choose another --out")
+
     def _remove_stale_temporaries(self) -> None:
-        """Temporary files of a writer that was killed mid-write (named by ``atomic_write``)."""
+        """Temporary files of a writer that was killed mid-write (named by ``atomic_write``; links are left)."""
         for f in self.path.glob(f"{TMP_PREFIX}*.tmp"):
-            with contextlib.suppress(OSError):
-                f.unlink()
+            if not f.is_symlink():
+                with contextlib.suppress(OSError):
+                    f.unlink()
+
+    def _check_listed(self, manifest: dict[str, Any]) -> None:
+        """Refuse a manifest that names anything outside the folder (``inside``), its children's included,
+        before anything is deleted."""
+        where = self.path / MANIFEST
+        children = manifest.get("children", [])
+        if not isinstance(children, list):
+            raise OutputError(f"{where}: 'children' is not a list; move the folder aside")
+        try:
+            for rel in manifest.get("files", []):
+                inside(self.path, rel, "the entry")
+            for child in children:
+                inside(self.path, child, "the child folder")
+        except OutputError as e:
+            raise OutputError(f"{where}: refused: {e}; rcotorch deletes, replaces and appends only inside the "
+                              "folder it was given: correct the manifest or choose another --out") from None
+        for child in children:
+            sub = OutputFolder(self.path / child, "run")
+            sub_manifest = sub.manifest()
+            if sub_manifest is not None:
+                sub._check_listed(sub_manifest)
 
     def _delete_listed(self, manifest: dict[str, Any]) -> None:
-        """Delete what an earlier run wrote here (its manifest's files and its children's), nothing else."""
+        """Delete what an earlier run wrote here (its manifest's files and its children's), nothing else; the
+        manifest was checked by ``_check_listed``."""
         for child in manifest.get("children", []):
             sub = OutputFolder(self.path / child, "run")
             sub_manifest = sub.manifest()
@@ -386,8 +462,8 @@ class OutputFolder:
                 with contextlib.suppress(OSError):
                     sub.path.rmdir()           # only when nothing else is left in it
         for rel in manifest.get("files", []):
-            with contextlib.suppress(FileNotFoundError):
-                (self.path / rel).unlink()
+            with contextlib.suppress(FileNotFoundError, IsADirectoryError):
+                inside(self.path, rel, "the entry").unlink()
         dirs = {(self.path / rel).parent for rel in manifest.get("files", [])} - {self.path}
         for d in sorted(dirs, key=lambda d: -len(d.parts)):
             with contextlib.suppress(OSError):
@@ -449,11 +525,20 @@ class OutputFolder:
         self._append_log(stamped)
 
     def _append_log(self, text: str) -> None:
+        """Append to the log, a plain file of the folder's (never through a symbolic link)."""
+        path = self.path / LOG
         try:
-            with open(self.path / LOG, "a") as f:
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        except OSError as e:
+            if path.is_symlink():
+                raise OutputError(f"{path} is a symbolic link (to {os.readlink(path)}); rcotorch appends to no "
+                                  "file outside its output folder: remove the link") from None
+            raise write_error(e, f"cannot write {path}") from e
+        try:
+            with os.fdopen(fd, "a") as f:
                 f.write(text)
         except OSError as e:
-            raise write_error(e, f"cannot write {self.path / LOG}") from e
+            raise write_error(e, f"cannot write {path}") from e
 
     def close(self) -> None:
         """Update the manifest and release the lock."""
