@@ -57,7 +57,7 @@ def test_overwrite_refuses_a_manifest_entry_outside_the_folder_and_deletes_nothi
     before = sorted(p.name for p in run.iterdir())
     assert main(["run", "sdof-stiffness", *QUICK, "--out", str(run), "--overwrite"]) == 2
     err = capsys.readouterr().err
-    assert f"its entry" not in err and repr(entry) in err and "refused" in err, err
+    assert repr(entry) in err and "refused" in err, err
     assert victim.read_text() == "the user's" and absolute.read_text() == "also the user's"
     assert sorted(p.name for p in run.iterdir()) == before             # nothing of the earlier run deleted either
 

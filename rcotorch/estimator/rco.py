@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ..blocks.base import DEFAULT_DTYPE, Block, tensor_result
+from ..blocks.base import DEFAULT_DTYPE, Block, first_bad, tensor_result
 from ..blocks.features import Term, as_terms
 from ..engine import kernels, memo
 from ..engine.compiled import call_user, compile_features, describe
@@ -98,7 +98,7 @@ class RCOEstimator(Block):
         at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the function the same at every node.
         ``theta_names`` lists one name per parameter.
     p0 : float or array_like, optional
-        Initial covariance P(0) = p0 I, scalar or one per member (B,), > 0.
+        Initial covariance P(0) = p0 I, scalar or one per member (B,), finite and > 0.
     lam : float or array_like, optional
         Forgetting factor in (0, 1], scalar or one per member (B,).
     R : float or array_like, optional
@@ -194,10 +194,11 @@ class RCOEstimator(Block):
         self.parameter_map = ParameterMap(n_u, self.phi_names, mask, tie, block=name, dtype=dtype)
         for key, value in (("p0", p0), ("lam", lam)):
             t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
-            if key == "p0" and bool((t <= 0).any()):
-                raise ConfigError(f"block '{name}': p0 must be positive, got {value!r}")
-            if key == "lam" and bool(((t <= 0) | (t > 1)).any()):
-                raise ConfigError(f"block '{name}': lam must lie in (0, 1], got {value!r}")
+            # one value, or one per member; NaN fails both comparisons
+            bad = first_bad(t, torch.isfinite(t) & (t > 0) if key == "p0" else (t > 0) & (t <= 1))
+            if bad is not None:
+                need = "must be finite and positive" if key == "p0" else "must lie in (0, 1]"
+                raise ConfigError(f"block '{name}': {key} {need}, got {bad}")
             self.register_buffer(key, t)
         self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
         R = torch.as_tensor(R, dtype=dtype, device="cpu")
@@ -834,6 +835,76 @@ class RCOEstimator(Block):
         B = self.batch_size
         psi_t = self._markov_sums((self._step_index() - 1) % self.window)[..., :self.n_phi].reshape(B, self.n_z, -1)
         return self.parameter_map.regressor_of_eta(psi_t)
+
+    def regressor_history(self) -> dict[str, torch.Tensor]:
+        """What ``regressors_over`` continues from: copies of the histories at the current step (the regressor
+        signals' and u's past, the window of [phi, u]) and the step."""
+        return {"past": self.past.clone(), "past_u": self.past_u.clone(), "win": self.win.clone(),
+                "k": self.k.clone()}
+
+    def regressors_over(self, history: Mapping[str, torch.Tensor], inputs: Mapping[str, torch.Tensor],
+                        u: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        """The regressors of the free parameters, Psi_eta^T, that ``update`` would use at the steps ``start`` to
+        ``stop`` of a recorded stretch, without stepping: phi rebuilt from the recorded inputs as ``output``
+        builds it, then filtered by the Markov parameters as ``_markov_filter`` filters the window.
+
+        Parameters
+        ----------
+        history : Mapping[str, torch.Tensor]
+            ``regressor_history()`` taken when the stretch began.
+        inputs : Mapping[str, torch.Tensor]
+            The regressor ports over the stretch, each (T, B, width).
+        u : torch.Tensor
+            This block's output over the stretch, (T, B, n_u).
+        start, stop : int
+            The steps of the stretch (0 its first) whose regressors are returned.
+
+        Returns
+        -------
+        torch.Tensor
+            (stop - start, B, n_z, n_theta), float64, before the division by m of normalized regressors.
+        """
+        f64, B, nu, fd = torch.float64, u.shape[1], self.nu, self.first_delay
+        W = nu + fd
+        lo = max(0, start - W)                       # the recorded steps whose phi the window reaches
+        phi = self._phi_over(history, inputs, u, lo, stop)                    # (stop - lo, B, n_phi)
+        k0 = int(history["k"])
+        if lo == 0:                                  # the steps before the stretch, from the window: phi(k0 - W + j)
+            ring = history["win"][:, :, :self.n_phi].to(f64)
+            before = ring[torch.arange(k0 - W, k0, device=ring.device) % W] if W else ring[:0]
+            phi = torch.cat([before, phi])
+            lo -= W
+        # Psi^T(k)[z, a * n_phi + j] = sum_{i = fd}^{W - 1} beta_{i - fd}[z, a] phi(k - i)[j], one product of
+        # the stretch with each Markov parameter (beta per member or shared)
+        T, n_out = stop - start, self.n_z * self.n_u
+        beta = self.beta.to(f64).reshape(self.beta.shape[0], nu, n_out, 1)
+        psi = phi.new_zeros(T, B, n_out, self.n_phi)
+        for i in range(nu):
+            at = start - fd - i - lo                                          # phi(k - fd - i) for k = start
+            psi.add_(beta[:, i].unsqueeze(0) * phi[at:at + T].unsqueeze(2))
+        psi = psi.reshape(T * B, self.n_z, self.n_u * self.n_phi)
+        return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
+
+    def _phi_over(self, history, inputs, u: torch.Tensor, lo: int, stop: int) -> torch.Tensor:
+        """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (stop - lo, B, n_phi) float64."""
+        f64, T, B, nc = torch.float64, stop - lo, u.shape[1], self.nc
+        a = max(0, lo - nc)                          # the first recorded step the lags reach
+        rows = {p: v[a:stop].to(f64).reshape(-1, v.shape[-1]) for p, v in inputs.items()}
+        cur = self._regressors(rows).to(f64).reshape(stop - a, B, self.n_sig)
+        if nc:
+            h = max(0, nc - lo)                      # steps before the stretch: from the histories
+            # S[e] = s(lo - nc + e) and U[e] = u(lo - nc + e), e = 0 .. T + nc - 1
+            S = torch.cat([history["past"].to(f64).flip(1).transpose(0, 1)[nc - h:], cur])
+            U = torch.cat([history["past_u"].to(f64).flip(1).transpose(0, 1)[nc - h:], u[a:stop].to(f64)])
+            # past(k)[l] = s(k - 1 - l), l = 0 .. nc - 1
+            past = torch.stack([S[nc - 1 - l:nc - 1 - l + T] for l in range(nc)], dim=2)
+            past_u = torch.stack([U[nc - 1 - l:nc - 1 - l + T] for l in range(nc)], dim=2)
+        else:
+            past = history["past"].to(f64).unsqueeze(0).expand(T, -1, -1, -1)
+            past_u = history["past_u"].to(f64).unsqueeze(0).expand(T, -1, -1, -1)
+        now = cur[cur.shape[0] - T:] if self.proper else cur.new_zeros(T, B, self.n_sig)
+        flat = torch.cat([now, past.flatten(2), past_u.flatten(2)], dim=2)
+        return flat.index_select(2, self._gather.to(flat.device))
 
     def set_theta_free(self, eta: torch.Tensor) -> None:
         """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).

@@ -183,29 +183,46 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     size = eta.abs().amax(1, keepdim=True).expand(B, n)
     size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
     eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))            # (B, n)
-    # The base copy advances here one step at a time, for its regressors (read from the estimator's state after
-    # each step); its outputs, and those of the copies with each parameter moved and with the initial theta, are
-    # recorded over the whole replay by ``advance``: every copy on the graph's engine (native where it can).
-    base, base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
+    # Every copy runs on the graph's engine (native where it can): it advances to where the steps that count
+    # begin (less the Markov parameters' reach), then records its outputs: the base copy (theta frozen at its
+    # value) also the estimator's inputs and u, from which its regressors are rebuilt (``regressors_over``);
+    # the copies with each parameter moved and with the initial theta, z.
     theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
     runs = [eta] + [eta + eps[:, j:j + 1] * torch.eye(n, dtype=eta.dtype, device=dev)[j] for j in range(n)]
     runs.append(theta0.index_select(1, est.free_idx.to(theta0.device)))
+    ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
+    regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
+    pre = max(0, settle - est.window - est.nc)              # steps advanced before recording
     recorded = []
     for e in runs:
-        g = _frozen_copy(graph, state, e, engine=graph.engine)[0]
-        signals = [z_sig] + ([] if len(recorded) else [y_sig] + ([w_sig] if w_sig is not None else []))
+        g, e_est = _frozen_copy(graph, state, e, engine=graph.engine)
+        if pre:
+            g.advance(pre)
+        signals = [z_sig]
+        if not recorded:
+            signals += [y_sig] + ([w_sig] if w_sig is not None else []) + list(regressor_inputs.values()) + \
+                [(est.name, "u")]
+            base_est, history = e_est, e_est.regressor_history()
         names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
-        rec = g.run(steps, record={name: name for name in names})
-        recorded.append({names[name]: v.to(f64) for name, v in rec.items()})
+        rec = g.run(steps - pre, record={name: name for name in names})
+        recorded.append({names[name]: v for name, v in rec.items()})
         del g
-    zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
+    # From here on, steps are counted from the first recorded one.
+    settle, last, own = settle - pre, last - pre, own - pre
     first = recorded[0]
+    base_inputs = {p: first[sig] for p, sig in regressor_inputs.items()}
+    base_u = first[(est.name, "u")]
+    first = {sig: v.to(f64) for sig, v in first.items()}
+    recorded = [first] + [{sig: v.to(f64) for sig, v in r.items()} for r in recorded[1:]]
+    zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
     weight = est.r_weight.to(f64)
     eps64 = eps.to(f64)
     # The residual checks need only the recorded outputs: all at once, each member's own measured steps.
     ahead = own.reshape(1, B) + torch.arange(measured, device=dev).reshape(-1, 1)          # (T, B) step of each
 
     def measured_part(x: torch.Tensor) -> torch.Tensor:
+        if settle == last:                                  # every member measures the same steps
+            return x[settle:settle + measured]
         return x.gather(0, ahead.reshape(measured, B, *([1] * (x.dim() - 2))).expand(measured, B, *x.shape[2:]))
 
     res = _ResidualSums(B, lags, keep, dev)
@@ -213,7 +230,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
             measured_part(first[y_sig]), measured_part(recorded[-1][z_sig]))
     z_all = first[z_sig][settle:]                                                       # (T', B, n_z), T' >= T
     # where a member's measured steps begin after the first member's, the steps outside its own count zero
-    at = torch.arange(settle, steps, device=dev).reshape(-1, 1) - own.reshape(1, B)    # each member's own step
+    at = torch.arange(settle, steps - pre, device=dev).reshape(-1, 1) - own.reshape(1, B)   # each member's own step
     within = None if settle == last else ((at >= 0) & (at < measured)).to(f64)
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
@@ -221,17 +238,16 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
     scores = _ScoreSums(B, n, score_lags, dev)
-    # The base copy's regressors, a step at a time, summed in chunks of steps (each sum over a chunk is one
-    # batched product): chunk x B x n_z x n values at most CHUNK_BYTES.
-    chunk = max(1, min(steps - settle, CHUNK_BYTES // max(1, 8 * B * n_z * n * 2)))
-    psis = torch.empty(chunk, B, n_z, n, dtype=f64, device=dev)
-    held = 0
+    # The base copy's regressors, summed in chunks of steps (each sum over a chunk is one batched product):
+    # chunk x B x n_z x n values at most CHUNK_BYTES.
+    chunk = max(1, min(steps - pre - settle, CHUNK_BYTES // max(1, 8 * B * n_z * n * 2)))
 
-    def flush(upto: int) -> None:
-        """Add the ``held`` regressors of the measured steps ending before ``upto`` (relative to settle)."""
+    def flush(t0: int, upto: int) -> None:
+        """Add the regressors of the measured steps t0 .. upto - 1 (relative to settle)."""
         nonlocal jwj, jwz, grams, cross, zz
-        t0, C = upto - held, held
-        psi = psis[:held].transpose(0, 1)                                          # (B, C, n_z, n)
+        C = upto - t0
+        psi = base_est.regressors_over(history, base_inputs, base_u, settle + t0, settle + upto)
+        psi = psi.transpose(0, 1)                                                  # (B, C, n_z, n)
         z = z_all[t0:upto].transpose(0, 1)                                         # (B, C, n_z)
         jac = (zs[settle + t0:settle + upto].transpose(0, 1) - z.unsqueeze(3)) / eps64.reshape(B, 1, 1, n)
         if within is not None:
@@ -254,15 +270,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
         scores.add(_tsum_rows(psi, z @ weight))
 
     with torch.no_grad():
-        for k in range(steps):
-            base.advance(1)
-            if k < settle:
-                continue
-            psis[held] = base_est.last_regressor().to(f64)
-            held += 1
-            if held == chunk or k == steps - 1:
-                flush(k + 1 - settle)
-                held = 0
+        for t0 in range(0, steps - pre - settle, chunk):
+            flush(t0, min(steps - pre - settle, t0 + chunk))
     V = zz / measured
     finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
         torch.isfinite(V).flatten(1).all(1)
@@ -323,9 +332,8 @@ class _ScoreSums:
         of the previous chunk (zeros before the first) supplying s(t - lag) at the chunk's start."""
         L, C = self.L, s.shape[0]
         x = torch.cat([self.ring, s.transpose(0, 1)], dim=1)                   # (B, L + C, n), batch first
-        now = x[:, L:].mT                                                      # (B, n, C)
-        for lag in range(L + 1):
-            self.gram[lag] += now @ x[:, L - lag:L - lag + C]
+        now = torch.cat([torch.zeros_like(self.ring), x[:, L:]], dim=1)        # the chunk's own steps only
+        self.gram += _lag_sums(now.transpose(0, 1), x.transpose(0, 1), L, outer=True)
         self.ring = x[:, x.shape[1] - L:].contiguous()
         self.n += C
 
@@ -353,19 +361,23 @@ def _tsum_rows(psi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def _lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch.Tensor:
     """sum over t = lag .. T-1 of a(t) * b(t - lag) (``outer``: the outer product a(t) b(t - lag)^T) for
-    lag = 0 .. ``lags``, stacked: a (T, B, n), b (T, B, m) -> (lags + 1, B, n) or (lags + 1, B, n, m). Time is
-    taken in blocks of at most CHUNK_BYTES."""
+    lag = 0 .. ``lags``, stacked: a (T, B, n), b (T, B, m) -> (lags + 1, B, n) or (lags + 1, B, n, m).
+
+    The products of every lag at once, by FFT over time (the cross-correlation, zero-padded to at least
+    T + lags so that no lag wraps around), members taken in blocks whose spectra hold about CHUNK_BYTES."""
     T, B, n, m = a.shape[0], a.shape[1], a.shape[2], b.shape[2]
-    block = max(1, CHUNK_BYTES // (8 * B * (n * m if outer else n)))
-    out = []
-    for lag in range(lags + 1):
-        acc = torch.zeros((B, n, m) if outer else (B, n), dtype=a.dtype, device=a.device)
-        for t0 in range(lag, T, block):
-            t1 = min(T, t0 + block)
-            x, y = a[t0:t1], b[t0 - lag:t1 - lag]
-            acc += (x.unsqueeze(-1) * y.unsqueeze(-2)).sum(0) if outer else (x * y).sum(0)
-        out.append(acc)
-    return torch.stack(out)
+    nfft = 1 << max(1, (T + lags - 1).bit_length())
+    width = n + m + (n * m if outer else n)
+    block = max(1, CHUNK_BYTES // (16 * (nfft // 2 + 1) * width))
+    out = torch.empty((lags + 1, B, n, m) if outer else (lags + 1, B, n), dtype=a.dtype, device=a.device)
+    for b0 in range(0, B, block):
+        b1 = min(B, b0 + block)
+        fa = torch.fft.rfft(a[:, b0:b1], n=nfft, dim=0)
+        fb = torch.fft.rfft(b[:, b0:b1], n=nfft, dim=0).conj()
+        # irfft(F[a] conj(F[b]))[lag] = sum_t a(t) b(t - lag)
+        spec = fa.unsqueeze(-1) * fb.unsqueeze(-2) if outer else fa * fb
+        out[:, b0:b1] = torch.fft.irfft(spec, n=nfft, dim=0)[:lags + 1]
+    return out
 
 
 class _ResidualSums:
@@ -411,8 +423,8 @@ class _ResidualSums:
         r = auto[:, 1:]                                                          # lags 1..L
         lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
         q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
-        from scipy.stats import chi2
-        p = torch.as_tensor(chi2.sf(torch.nan_to_num(q, nan=math.inf).cpu().numpy(), L), dtype=torch.float64)
+        from scipy.special import chdtrc        # the chi-squared survival function
+        p = torch.as_tensor(chdtrc(L, torch.nan_to_num(q, nan=math.inf).cpu().numpy()), dtype=torch.float64)
         f = self.fit
         spread = torch.sqrt(f["yy"] - (f["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
         return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
@@ -530,7 +542,7 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     variance of the difference when the errors at k0 and N are taken as independent (X at k0 is X n_N / n_k0,
     n_k = sum_{j<k} lam^j the RLS memory), so larger than the covariance it ignores. With forgetting the
     estimate keeps moving by about its interval; the window's change then says nothing about convergence."""
-    from scipy.stats import chi2
+    from scipy.special import chdtri          # the chi-squared quantile of an upper tail
 
     B, n = pc.cov.shape[0], pc.cov.shape[1]
     eta = est.theta_free().detach().to(torch.float64).cpu()
@@ -546,7 +558,7 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     ok = torch.isfinite(V).flatten(1).all(1)
     Vs = torch.where(ok.reshape(-1, 1, 1), V, torch.eye(n, dtype=V.dtype))
     stat = (d.mT @ torch.linalg.pinv(Vs) @ d).reshape(B)
-    return ok & (stat <= float(chi2.ppf(p, n)))
+    return ok & (stat <= float(chdtri(n, 1 - p)))
 
 
 def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, level: float = LEVEL

@@ -1,0 +1,86 @@
+"""The regressors an estimator rebuilds from a recorded stretch (``RCOEstimator.regressors_over``, what the
+intervals' replay uses instead of stepping) equal, step by step, those its update used (``last_regressor``
+after each step), for every way phi is built: a static gain, a dynamic subsystem with u's past, a strictly
+proper one, features, masks and ties, normalized regressors, Markov parameters per member."""
+
+import numpy as np
+import pytest
+import torch
+
+import rcotorch as rt
+
+
+def _sdof(ident, nu=12, truth=None, B=3):
+    Ts = 0.05
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.4, 4.0, measured=["position"],
+                                                       sees=["position", "velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=Ts, name="known")
+    truth = truth if truth is not None else rt.Gain(torch.tensor([[0.5, -0.2]]))
+    g = rt.refinement(known, ident, truth=truth, excitation=rt.WhiteNoise(1, seed=3),
+                      noise=rt.WhiteNoise(1, std=0.01, seed=4), nu=nu)
+    g.reset(B)
+    return g
+
+
+CASES = {
+    "static gain": lambda: _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3)),
+    "dynamic, u's past": lambda: _sdof(rt.RCOEstimator({"y0": 2}, nc=3, p0=1e2, feed_u=True)),
+    "dynamic, strictly proper": lambda: _sdof(rt.RCOEstimator({"y0": 2}, nc=2, p0=1e2)),
+    "proper with lags": lambda: _sdof(rt.RCOEstimator({"y0": 2}, nc=2, proper=True, p0=1e2)),
+    "masked": lambda: _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, mask=[[1.0, 0.0]])),
+    "tied": lambda: _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, tie=[[0, 0]])),
+    "normalized": lambda: _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, normalize=0.5)),
+    "features": lambda: _sdof(rt.RCOEstimator.static_gain(
+        {"y0": 2}, p0=1e3, features={"x3": lambda s: s["y0"][:, :1] ** 3, "v": lambda s: s["y0"][:, 1:]})),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("start", [5, 200])
+def test_rebuilt_regressors_equal_those_of_each_update(case, start):
+    g = CASES[case]()
+    est = g.role("estimator")
+    g.engine = "torch"
+    g.advance(start)                                     # a window partly or wholly filled before the stretch
+    history = est.regressor_history()
+    ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in g.sources]
+    signals = {p: g.sources[(est.name, p)] for p in ports}
+    inputs = {p: [] for p in ports}
+    u, stepped = [], []
+    T = 60
+    for _ in range(T):
+        g.advance(1)
+        last = g.last
+        for p, sig in signals.items():
+            inputs[p].append(last[sig].clone())
+        u.append(last[(est.name, "u")].clone())
+        stepped.append(est.last_regressor().clone())
+    inputs = {p: torch.stack(v) for p, v in inputs.items()}
+    u, stepped = torch.stack(u), torch.stack(stepped)
+    for lo, hi in [(0, T), (0, 7), (13, 41), (T - 1, T)]:
+        got = est.regressors_over(history, inputs, u, lo, hi)
+        assert got.shape == stepped[lo:hi].shape
+        np.testing.assert_allclose(got.numpy(), stepped[lo:hi].numpy(), rtol=1e-11,
+                                   atol=1e-13 * float(stepped.abs().max()))
+
+
+def test_markov_parameters_per_member_are_filtered_member_by_member():
+    g = CASES["static gain"]()
+    est = g.role("estimator")
+    beta = est.beta.expand(3, -1, -1, -1).clone()
+    beta[1] *= 0.5
+    beta[2] *= -1.5
+    est.set_markov(beta, est.first_delay)
+    g.reset(3)
+    g.engine = "torch"
+    g.advance(30)
+    history = est.regressor_history()
+    sig = g.sources[(est.name, "y0")]
+    rows, u, stepped = [], [], []
+    for _ in range(25):
+        g.advance(1)
+        rows.append(g.last[sig].clone())
+        u.append(g.last[(est.name, "u")].clone())
+        stepped.append(est.last_regressor().clone())
+    got = est.regressors_over(history, {"y0": torch.stack(rows)}, torch.stack(u), 0, 25)
+    np.testing.assert_allclose(got.numpy(), torch.stack(stepped).numpy(), rtol=1e-11, atol=1e-15)
