@@ -19,6 +19,7 @@ import difflib
 import logging
 import math
 import numbers
+import operator
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
@@ -28,7 +29,7 @@ from torch import nn
 from .blocks.base import DEFAULT_DTYPE, Block
 from .blocks.sources import Recorded
 from .data.recording import same_sample_time
-from .engine import kernels, lowering, memo
+from .engine import compiled, kernels, lowering, memo
 from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, PortError
 
 Signal = tuple[str, str]
@@ -39,6 +40,17 @@ _TOLD: set[str] = set()              # reasons for the PyTorch engine already lo
 # signal 'block.port' (``error``: z = y - y_hat, ``measured``: y, ``prediction``: y_hat).
 BLOCK_ROLES = ("estimator", "known", "physical", "excitation")
 SIGNAL_ROLES = ("error", "measured", "prediction", "exogenous")
+
+
+def _step_count(steps) -> int:
+    """``steps`` as an int: a non-negative integer (a Python, NumPy or 0-d torch integer)."""
+    try:
+        n = operator.index(steps)
+    except TypeError:
+        n = None
+    if n is None or n < 0:
+        raise ConfigError(f"graph: steps must be a non-negative integer, got {steps!r}")
+    return n
 
 
 def _split(ref: str) -> Signal:
@@ -418,7 +430,7 @@ class Graph(nn.Module):
         Parameters
         ----------
         steps : int
-            The number of steps (none for steps <= 0).
+            The number of steps, >= 0.
         accumulate : Mapping[tuple of (str, str), torch.Tensor], optional
             Signal -> a (B,) float64 tensor that gets sum_c signal[b, c]^2 of every step added (e.g. for an
             rms of z).
@@ -431,16 +443,22 @@ class Graph(nn.Module):
         Raises
         ------
         ConfigError
-            If ``engine='native'`` and the graph cannot run natively (the reason is in the message).
+            If ``steps`` is not a non-negative integer; if ``engine='native'`` and the graph cannot run natively
+            (the reason is in the message); or if a block's compiled function raised in the native engine (the
+            message names the block; the state after those steps is not valid).
         """
-        steps = int(steps)
-        if steps <= 0:
+        steps = _step_count(steps)
+        if steps == 0:
             return
         prog = "engine='torch'" if self.engine == "torch" else lowering.program(self)
         why = prog if isinstance(prog, str) else None
         if why is None:
-            lowering.advance(self, prog, steps, accumulate, record, every)
+            start = int(self.k)
+            with compiled.raised_in_compiled() as raised:
+                lowering.advance(self, prog, steps, accumulate, record, every)
             self._ran("native", None)
+            if raised:
+                raise self._compiled_fault(raised, start, int(self.k)) from raised.first
             return
         if self.engine == "native":
             raise ConfigError(f"graph: engine='native', but {why}")
@@ -453,6 +471,20 @@ class Graph(nn.Module):
             if record and (i + 1) % every == 0:
                 for sig, buf in record.items():
                     buf[(i + 1) // every - 1] = signals[sig]
+
+    def _compiled_fault(self, raised: compiled.Raised, start: int, end: int) -> ConfigError:
+        """The error for an exception that a compiled user function raised in the native engine between steps
+        ``start`` and ``end``: it names the block whose function (``Block._user_functions``) is on the
+        exception's traceback, where one is."""
+        e = raised.first
+        what = f"raised {type(e).__name__}: {e} in the native engine (steps {start} to {end}); the graph's state " \
+               "after them is not valid"
+        for blk in self.blocks.values():
+            for fn in blk._user_functions().values():
+                name = getattr(getattr(fn, "__code__", None), "co_name", None) or getattr(fn, "__name__", None)
+                if name and name in raised.functions:
+                    return ConfigError(f"block '{blk.name}': its function {name} {what}")
+        return ConfigError(f"graph: a compiled function ({' -> '.join(raised.functions) or 'unknown'}) {what}")
 
     def _ran(self, engine: str, reason: str | None) -> None:
         """Keep which engine ran and why; with ``engine='auto'`` say it in the log once per graph, and a
@@ -511,10 +543,12 @@ class Graph(nn.Module):
         Raises
         ------
         ConfigError
-            If the recorded data gives fewer samples than the run needs, or ``every`` is not positive.
+            If ``steps`` is not a non-negative integer, the recorded data gives fewer samples than the run needs,
+            or ``every`` is not positive.
         PortError
             If a recorded signal is not an output port of the graph.
         """
+        steps = _step_count(steps)
         self.check_steps(steps)
         if every < 1:
             raise ConfigError(f"graph: every must be a positive number of steps, got {every!r}")

@@ -72,6 +72,30 @@ def as_batched_matrix(value, name: str, block: str, dtype=DEFAULT_DTYPE, rows: i
     return t
 
 
+def first_bad(values: torch.Tensor, ok: torch.Tensor) -> str | None:
+    """The first value of a setting that fails its check, for a message: ``'nan'`` for a setting of one value,
+    ``'nan (member 2)'`` for one value per member; None where every value passes.
+
+    Parameters
+    ----------
+    values : torch.Tensor
+        The setting: one value, or one per member along the first axis.
+    ok : torch.Tensor
+        bool, of the shape of ``values``: which values pass.
+
+    Returns
+    -------
+    str or None
+    """
+    bad = (~ok).reshape(values.shape[0] if values.dim() else 1, -1).any(1)
+    if not bool(bad.any()):
+        return None
+    b = int(bad.nonzero()[0, 0])
+    row = values.reshape(bad.shape[0], -1)[b]
+    shown = float(row[~ok.reshape(bad.shape[0], -1)[b]][0])
+    return f"{shown}" if bad.shape[0] == 1 else f"{shown} (member {b})"
+
+
 def matvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``M x`` for a batch of vectors and a matrix shared by the batch or given per member.
 
@@ -202,6 +226,12 @@ class Block(nn.Module):
     # ``rcotorch.engine.lowering.Builder`` (its state buffers, parameters and ports, and the instructions that compute
     # its outputs and update it). None: no native form, and a graph holding the block runs on PyTorch.
     lower = None
+
+    def _user_functions(self) -> dict:
+        """The user's own functions the block calls, by the argument that gave each (``fn``, ``f``, ``h``): how an
+        exception raised inside compiled code, which reaches Python with a function's name only, is traced to
+        the block. None by default."""
+        return {}
 
     def set_state(self, **tensors: torch.Tensor) -> None:
         """Replace registered buffers (state) without nn.Module's per-assignment bookkeeping.
@@ -416,8 +446,8 @@ class Sum(Block):
 class StaticMap(Block):
     """Memoryless map ``out = fn(in)`` for a user function of a (B, n) array returning (B, m), e.g. a cubic
     spring ``lambda q: -k3 * q**3``, a friction law ``lambda v: -(2 * np.sign(v) + 0.5 * v)`` or a saturation
-    ``lambda x: x.clamp(-1, 1)``. The function is probed with batches of 1 and 2 when the block is built, so a
-    wrong shape fails here, not in the middle of a run.
+    ``lambda x: x.clamp(-1, 1)``. The function is probed with batches of 1, 2 and 3 when the block is built, so a
+    wrong shape, or a map that mixes the members of the batch, fails here, not in the middle of a run.
 
     Written with NumPy, ``math`` or torch's functions (``torch.tanh``, ``torch.clamp``, ...), ``fn`` runs compiled in
     the native engine (``rcotorch.engine.compiled``: numba); the PyTorch engine calls it with tensors (a NumPy
@@ -438,7 +468,10 @@ class StaticMap(Block):
     Raises
     ------
     ConfigError
-        If ``fn`` is not callable.
+        If ``fn`` is not callable, raises on the probes, or mixes the members of a batch (member b's output must
+        depend on member b's input only; a function that is not reproducible, one drawing random numbers, is not
+        probed for this). During a run, an exception of ``fn`` is raised as a ConfigError that names the block,
+        on either engine.
     DimensionError
         If ``fn`` does not return a (B, m) array, or m changes with the batch size.
 
@@ -453,8 +486,11 @@ class StaticMap(Block):
             raise ConfigError(f"block '{name}': fn must be callable")
         widths = []
         for B in (1, 2):
-            with np.errstate(all="ignore"):                # random inputs: a sqrt of a negative is no fault
-                out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
+            try:
+                with np.errstate(all="ignore"):            # random inputs: a sqrt of a negative is no fault
+                    out = tensor_result(call_user(fn, torch.randn(B, in_width, dtype=dtype)), dtype)
+            except Exception as e:                          # the user's function failed on well-formed inputs
+                raise ConfigError(f"block '{name}': fn failed on an input ({B}, {in_width}): {e!r}") from e
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != B:
                 got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 hint = "; return one value per member as a column, v[:, 0:1] rather than v[:, 0]" \
@@ -464,12 +500,42 @@ class StaticMap(Block):
             widths.append(out.shape[1])
         if widths[0] != widths[1]:
             raise DimensionError(f"block '{name}': fn's output width changes with the batch size")
+        _check_members_apart(fn, in_width, name, dtype)
         super().__init__(name, {"in": in_width}, {"out": widths[0]})
         self.fn = fn
 
+    def _user_functions(self) -> dict:
+        return {"fn": self.fn}
+
     def output(self, port, inputs):
+        """``fn`` of the input at time k.
+
+        Parameters
+        ----------
+        port : str
+            The output port, ``'out'``.
+        inputs : Mapping[str, torch.Tensor]
+            ``'in'`` -> (B, in_width).
+
+        Returns
+        -------
+        torch.Tensor
+            (B, m).
+
+        Raises
+        ------
+        ConfigError
+            If ``fn`` raises (its exception is the cause).
+        """
         x = inputs["in"]
-        return tensor_result(call_user(self.fn, x), x.dtype, x.device)
+        try:
+            out = call_user(self.fn, x)
+        except (MemoryError, torch.OutOfMemoryError):
+            raise
+        except Exception as e:
+            raise ConfigError(f"block '{self.name}': fn raised {type(e).__name__}: {e} on an input "
+                              f"{tuple(x.shape)}") from e
+        return tensor_result(out, x.dtype, x.device)
 
     def lower(self, b) -> None:
         """The native form: ``fn`` compiled by numba (``rcotorch.engine.compiled``) and called once per chunk of
@@ -488,6 +554,39 @@ class StaticMap(Block):
             b.refuse(f"function {describe(self.fn)} is not compiled: {c}")
         b.emit("CALL", port="out", NIN=n_in, IN=b.input("in"), NOUT=n_out, OUT=b.output("out"),
                FUNCTION=b.function(c.address, c))
+
+
+def _check_members_apart(fn, width: int, name: str, dtype) -> None:
+    """Refuse a map that mixes the members of a batch (its mean over the batch, a running sum along it): member
+    b's output must depend on member b's input only. Probed with a batch of 3 and the same batch with its middle
+    member's input changed; a function that does not give the same result twice for the same input (one that
+    draws random numbers) cannot be probed so, and is accepted."""
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(3, width, generator=gen, dtype=dtype)
+    moved = x.clone()
+    moved[1] += 1.0 + torch.rand(width, generator=gen, dtype=dtype)
+    outs = []
+    for v in (x, x, moved):
+        try:
+            with np.errstate(all="ignore"):
+                out = tensor_result(call_user(fn, v.clone()), dtype)
+        except Exception as e:
+            raise ConfigError(f"block '{name}': fn failed on an input (3, {width}): {e!r}") from e
+        if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != 3:
+            got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+            raise DimensionError(f"block '{name}': fn must map a (batch, {width}) tensor to (batch, m); for batch 3 "
+                                 f"it returned {got}")
+        outs.append(out.detach().to(torch.float64))
+    first, again, after = outs
+    finite = first[torch.isfinite(first)]
+    tol = 1e-12 * max(1.0, float(finite.abs().max()) if finite.numel() else 1.0)
+    if not torch.isclose(again, first, rtol=1e-9, atol=tol, equal_nan=True).all():
+        return
+    for j in (0, 2):
+        if not torch.isclose(after[j], first[j], rtol=1e-9, atol=tol, equal_nan=True).all():
+            raise ConfigError(f"block '{name}': fn must treat each member (row of the batch) on its own: changing "
+                              f"member 1's input moved member {j}'s output (a function of the whole batch, such as "
+                              "its mean or a sum over axis 0, mixes the members)")
 
 
 def tensor_result(out, dtype, device=None):

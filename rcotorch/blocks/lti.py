@@ -77,6 +77,27 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     return E[..., :n, :n], E[..., :n, n:]
 
 
+def _check_dt(dt, name: str) -> None:
+    """Refuse a sample time that is not a finite positive number."""
+    try:
+        value = None if isinstance(dt, (str, bytes)) else float(dt)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or not np.isfinite(value) or value <= 0:
+        raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+
+
+def _check_finite(M: torch.Tensor, key: str, name: str) -> None:
+    """Refuse a matrix (shared, (1, rows, cols), or one per member) or an initial state (1 or B, n) that holds a
+    NaN or an infinity: the message gives the first such entry, and its member where there is one per member."""
+    bad = ~torch.isfinite(M)
+    if not bool(bad.any()):
+        return
+    at = bad.nonzero()[0].tolist()
+    where = f"({', '.join(str(i) for i in at[1:])})" + (f" of member {at[0]}" if M.shape[0] > 1 else "")
+    raise ConfigError(f"block '{name}': {key} must be finite; it has {float(M[tuple(at)])} at {where}")
+
+
 class LTI(Block):
     """Discrete LTI block with named input and output ports.
 
@@ -107,7 +128,7 @@ class LTI(Block):
         If A is not square, the matrices do not fit together, or the ports' widths do not add up to the
         columns of B (inputs) or the rows of C (outputs).
     ConfigError
-        If ``dt`` is not a positive number.
+        If ``dt`` is not a positive number, or a matrix or ``x0`` holds a NaN or an infinity.
 
     Shape
     -----
@@ -127,14 +148,15 @@ class LTI(Block):
         D = as_batched_matrix(D, "D", name, dtype, rows=C.shape[1], cols=B.shape[2])
         super().__init__(name, _ports(inputs, B.shape[2], "input", name),
                          _ports(outputs, C.shape[1], "output", name))
-        if not dt or dt <= 0:
-            raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+        _check_dt(dt, name)
         self.dt = float(dt)
         self.n_states = n
         for key, M in (("A", A), ("B", B), ("C", C), ("D", D)):
+            _check_finite(M, key, name)
             self.register_buffer(key, M)
         x0 = torch.zeros(1, n, dtype=dtype) if x0 is None else \
             torch.as_tensor(x0, dtype=dtype, device="cpu").reshape(-1, n)
+        _check_finite(x0, "x0", name)
         self.register_buffer("x0", x0)
         self.register_buffer("x", torch.zeros(0, n, dtype=dtype))
         self._in_slices = self._slices(self.inputs)
@@ -228,12 +250,13 @@ class LTI(Block):
         Raises
         ------
         ConfigError
-            If ``dt`` is not a positive number.
+            If ``dt`` is not a positive number, or a matrix holds a NaN or an infinity.
         """
-        if not dt or dt <= 0:
-            raise ConfigError(f"block '{name}': dt must be a positive sample time, got {dt!r}")
+        _check_dt(dt, name)
         A = as_batched_matrix(A, "A", name, dtype)
         B = as_batched_matrix(B, "B", name, dtype, rows=A.shape[-1])
+        _check_finite(A, "A (continuous)", name)
+        _check_finite(B, "B (continuous)", name)
         Ad, Bd = zoh(A, B, dt, dtype)
         return cls(Ad, Bd, C, D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
 

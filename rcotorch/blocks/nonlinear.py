@@ -153,6 +153,9 @@ class Nonlinear(Block):
     def feedthrough(self):
         return {p: () for p in self.outputs}
 
+    def _user_functions(self) -> dict:
+        return {"f": self.f, "h": self.h}
+
     def reset(self, batch_size: int) -> None:
         super().reset(batch_size)
         self.check_batch(self.x0, "x0")

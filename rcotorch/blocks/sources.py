@@ -12,7 +12,7 @@ import torch
 from ..data.recording import Derivation, Recording, check_sample_time, same_sample_time
 from ..engine import kernels, memo, rng
 from ..errors import ConfigError, DataError
-from .base import DEFAULT_DTYPE, Block
+from .base import DEFAULT_DTYPE, Block, first_bad
 
 
 class WhiteNoise(Block):
@@ -40,7 +40,8 @@ class WhiteNoise(Block):
     Raises
     ------
     ConfigError
-        If ``std`` is negative.
+        If ``std`` is negative or not finite, or ``mean`` is not finite (the message names the member of a
+        per-member value).
 
     Shape
     -----
@@ -54,8 +55,12 @@ class WhiteNoise(Block):
         std = torch.as_tensor(std, dtype=dtype, device="cpu").reshape(-1, 1)
         mean = torch.as_tensor(mean, dtype=dtype, device="cpu").reshape(-1, 1)
         seed = torch.as_tensor(seed, dtype=torch.int64, device="cpu").reshape(-1)
-        if bool((std < 0).any()):
-            raise ConfigError(f"block '{name}': std must be non-negative")
+        bad = first_bad(std, torch.isfinite(std) & (std >= 0))
+        if bad is not None:
+            raise ConfigError(f"block '{name}': std must be finite and non-negative, got {bad}")
+        bad = first_bad(mean, torch.isfinite(mean))
+        if bad is not None:
+            raise ConfigError(f"block '{name}': mean must be finite, got {bad}")
         self.register_buffer("std", std)
         self.register_buffer("mean", mean)
         self.register_buffer("seed", seed)

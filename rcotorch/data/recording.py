@@ -3,9 +3,12 @@ row and column, and signals derived from them (differences, filtered derivatives
 
 from __future__ import annotations
 
+import ast
 import csv
 import math
 import numbers
+import os
+import re
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -19,7 +22,29 @@ import numpy as np
 from ..errors import DataError
 
 SAMPLE_TIME_RTOL = 1e-9     # sample times closer than this (relative) are the same rate
+# A sample time a file states (a stored scalar, the steps of a time column beyond the rounding of the digits
+# written) agrees with another to this (relative): single precision and 7 significant digits pass.
+STATED_SAMPLE_TIME_RTOL = 1e-6
+# The stored scalars (names compared in lower case) that state a file's sample time in seconds.
+SAMPLE_TIME_NAMES = frozenset({"ts", "dt", "t_s", "tsample", "t_sample", "sample_time", "sampletime",
+                               "sampling_time", "samplingtime", "sample_period", "sampling_period"})
+# A column holding the time of each row: t, time (any case) or T with a unit, the unit of time in [] or ().
+TIME_COLUMN = re.compile(r"(t|time)\s*(?:\[\s*([^\[\]]*?)\s*\]|\(\s*([^()]*?)\s*\))?", re.IGNORECASE)
+TIME_UNITS = {"": 1.0, "s": 1.0, "sec": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6, "\u03bcs": 1e-6,
+              "ns": 1e-9, "min": 60.0}
+MAX_MAGNITUDE = 1e150       # larger measurements overflow float64 when squared (sums of squares, least squares)
+NPY_HEADER_MAX = 10000      # bytes of an .npy header read at most (numpy's own limit)
 CSV_CHUNK_ROWS = 8192       # CSV rows parsed per batch: the strings held at once
+
+
+class SampleTimeConflict(DataError):
+    """The sample time given for a file (``given`` s) contradicts the one the file states (``stated`` s,
+    ``where``: its scalar or time column)."""
+
+    def __init__(self, path, given: float, stated: float, where: str):
+        super().__init__(f"{path}: dt={given:.10g} contradicts the sample time the file states, {stated:.10g} s "
+                         f"({where}); pass dt={stated:.10g}, or no dt to use the file's own, or correct the file")
+        self.path, self.given, self.stated, self.where = str(path), given, stated, where
 
 
 def check_sample_time(dt, where: str) -> float | None:
@@ -68,7 +93,9 @@ class Recording:
     Raises
     ------
     DataError
-        If ``dt`` is given and is not a finite number > 0.
+        If ``values`` are not numbers of 2 or 3 dimensions, ``columns`` are not one distinct name per entry of
+        its last axis, ``dt`` is given and is not a finite number > 0, ``first_row`` is not an integer >= 0, or
+        ``valid`` has another shape than ``values``.
     """
 
     values: np.ndarray
@@ -81,7 +108,39 @@ class Recording:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
-        self.dt = check_sample_time(self.dt, self.path or "recording")
+        where = self.path or "recording"
+        if not isinstance(self.values, np.ndarray):
+            self.values = np.asarray(self.values)
+        shape = self.values.shape
+        if self.values.dtype.kind not in "biuf":
+            raise DataError(f"{where}: values must be numbers, got dtype {self.values.dtype}")
+        if self.values.ndim not in (2, 3):
+            raise DataError(f"{where}: values must be (rows, columns) or (members, rows, columns), got shape {shape}")
+        try:
+            if isinstance(self.columns, str):
+                raise TypeError
+            self.columns = list(self.columns)
+        except TypeError:
+            raise DataError(f"{where}: columns must be a list of names, got {self.columns!r}") from None
+        if not all(isinstance(c, str) for c in self.columns):
+            raise DataError(f"{where}: column names must be strings, got {self.columns}")
+        if len(self.columns) != shape[-1]:
+            raise DataError(f"{where}: {len(self.columns)} column names {self.columns} for the {shape[-1]} columns "
+                            f"of values of shape {shape}; name each entry of the last axis once")
+        if len(set(self.columns)) < len(self.columns):
+            seen: set[str] = set()
+            twice = next(c for c in self.columns if c in seen or seen.add(c))
+            raise DataError(f"{where}: columns {self.columns} names the column {twice!r} twice")
+        self.dt = check_sample_time(self.dt, where)
+        if isinstance(self.first_row, bool) or not isinstance(self.first_row, numbers.Integral) \
+                or self.first_row < 0:
+            raise DataError(f"{where}: first_row must be an integer >= 0, got {self.first_row!r}")
+        self.first_row = int(self.first_row)
+        if self.valid is not None:
+            self.valid = np.asarray(self.valid, dtype=bool)
+            if self.valid.shape != shape:
+                raise DataError(f"{where}: valid has shape {self.valid.shape}, values {shape}; it must mark each "
+                                "sample")
 
     def __repr__(self) -> str:
         """What a recording holds, in one line: its source, rows, columns with their units, sample time and
@@ -204,7 +263,7 @@ class Recording:
             If a name is already a column, a value is not a derivation, or a derivation fails (a missing
             column, missing samples, no sample time, a function of the wrong shape).
         """
-        values, columns, units = self.values, list(self.columns), dict(self.units)
+        values, columns, units, valid = self.values, list(self.columns), dict(self.units), self.valid
         for name, how in signals.items():
             if name in columns:
                 raise DataError(f"{self.path or 'recording'}: derived column {name!r} already exists; columns are "
@@ -212,15 +271,15 @@ class Recording:
             if not isinstance(how, Derivation):
                 raise DataError(f"{self.path or 'recording'}: derived column {name!r} needs a derivation "
                                 f"(difference, derivative or function from rcotorch.data.recording), got {how!r}")
-            current = Recording(values, columns, self.dt, self.path, self.first_row, self.valid, units)
+            current = Recording(values, columns, self.dt, self.path, self.first_row, valid, units)
             column = how.compute(current)
             values = np.concatenate([values, column[..., None]], axis=-1)
+            if valid is not None:                                   # a derived column is complete
+                valid = np.concatenate([valid, np.ones(valid.shape[:-1] + (1,), dtype=bool)], axis=-1)
             columns.append(name)
             unit = how.unit(current)
             if unit:
                 units[name] = unit
-        valid = None if self.valid is None else np.concatenate(
-            [self.valid, np.ones(self.valid.shape[:-1] + (len(signals),), dtype=bool)], axis=-1)
         return Recording(values, columns, self.dt, self.path, self.first_row, valid, units, dict(self.metadata))
 
 
@@ -346,6 +405,19 @@ def _check_finite(values: np.ndarray, columns: list[str], path: str, first_row: 
     return ~bad
 
 
+def _check_magnitude(values: np.ndarray, columns: list[str], path: str, first_row: int) -> None:
+    """A ``DataError`` naming row and column of the first finite value larger than ``MAX_MAGNITUDE``."""
+    big = np.abs(values) > MAX_MAGNITUDE                # False for nan; inf is left to _check_finite
+    big &= np.isfinite(values)
+    if big.any():
+        r, c = np.argwhere(big)[0]
+        count = int(big.sum())
+        raise DataError(f"{path}: row {first_row + r} (0-based data row), column {columns[c]!r}: "
+                        f"{float(values[r, c])!r} is not a finite measurement that float64 arithmetic can square "
+                        f"(|value| > {MAX_MAGNITUDE:g}; "
+                        f"{count} such value{'s' if count > 1 else ''} in all); check the column and its unit")
+
+
 def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | str | None = None,
          on_nonfinite: str = "error", units: dict[str, str] | None = None) -> Recording:
     """Load measured signals from a ``.csv``, ``.npz`` or MATLAB ``.mat`` file.
@@ -380,15 +452,28 @@ def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | st
     ------
     DataError
         For every fault in the file or the arguments, naming the file and, where they apply, row and column.
+    SampleTimeConflict
+        A ``DataError``: ``dt`` contradicts the sample time the file states.
 
     Notes
     -----
     Files are read strictly: a CSV that is not UTF-8 (a leading byte-order mark is dropped), two header
     names that give the same column (``x`` twice, or ``x`` and ``x [m]``), a field that is not a decimal
     number (``1e-3``, ``-0.5``, ``+2`` and ``.5`` are; ``1_000`` is not; ``nan`` and ``inf`` are non-finite
-    samples, see ``on_nonfinite``), an ``.npz`` file that is not a zip of ``.npy`` arrays or holds complex,
-    object or empty arrays, and a file without samples are each a ``DataError`` naming the file and, where
-    they apply, row and column.
+    samples, see ``on_nonfinite``), a value larger than ``MAX_MAGNITUDE`` (its square overflows float64), an
+    ``.npz`` file that is not a zip of ``.npy`` arrays or holds complex, object or empty arrays, an ``.npz``
+    array whose header declares more or fewer bytes than its member of the archive holds, or more than the
+    memory available, and a file without samples are each a ``DataError`` naming the file and, where they
+    apply, array, row and column.
+
+    A file that states its sample time is believed: a stored scalar named like ``Ts`` or ``dt`` (see
+    ``SAMPLE_TIME_NAMES``) and a time column (``t``, ``time``, ``time [s]``, ``time (ms)``, ...: the mean
+    step over the rows loaded) each state one. Each must agree with ``dt`` (to ``STATED_SAMPLE_TIME_RTOL``
+    and the rounding of the digits written), else a ``SampleTimeConflict`` names the file, both values and
+    where the file states its own; without ``dt`` the file's is used. A time column must step uniformly
+    (to the same tolerance, at most half a sample time), else the error names its first row whose step
+    differs. A time column that is not asked for is read too, unless its first field is not a number (a
+    clock time).
 
     The scalars and strings of a ``.mat`` file and the scalars of an ``.npz`` file are kept in
     ``Recording.metadata``.
@@ -402,9 +487,11 @@ def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | st
     file_units: dict[str, str] = {}
     metadata: dict[str, Any] = {}
     if suffix == ".csv":
-        names, file_units, idx, values = _read_csv(path, columns)
+        names, file_units, idx, values, times = _read_csv(path, columns)
     elif suffix in (".npz", ".mat"):
         names, values, metadata, skipped = _read_npz(path) if suffix == ".npz" else _read_mat(path)
+        times = [(name, _time_scale(name), values[:, j].copy()) for j, name in enumerate(names)
+                 if _time_scale(name) is not None]
         idx = None if columns is None else _column_indices(path, names, columns, skipped)
         if idx is not None:
             values = values[:, idx]
@@ -414,15 +501,139 @@ def load(path, columns=None, rows: tuple[int, int] | None = None, dt: float | st
     if unknown:
         raise DataError(f"{path}: units given for unknown column(s) {unknown}; columns are {names}")
     all_units = {**file_units, **{k: str(v) for k, v in (units or {}).items()}}
-    if isinstance(dt, str):
+    named = dt if isinstance(dt, str) else None
+    if named is not None:
         dt = _stored_sample_time(path, dt, metadata)
     kept = names if idx is None else [names[i] for i in idx]
     rec = Recording(values, kept, dt, str(path), 0, units={k: v for k, v in all_units.items() if k in kept},
                     metadata=metadata)
     if rows is not None:
         rec = rec.rows(*rows)
+    stop = rec.first_row + rec.values.shape[-2]
+    rec.dt = _settle_sample_time(path, rec.dt, named, metadata,
+                                 [(label, scale, t[rec.first_row:stop]) for label, scale, t in times], rec.first_row)
     rec.valid = _check_finite(rec.values, rec.columns, rec.path, rec.first_row, on_nonfinite)
+    _check_magnitude(rec.values, rec.columns, rec.path, rec.first_row)
     return rec
+
+
+def _settle_sample_time(path: Path, dt: float | None, named: str | None, metadata: Mapping[str, Any],
+                        times: list[tuple[str, float, np.ndarray]], row0: int) -> float | None:
+    """The sample time of a recording: ``dt`` (given, or the scalar ``named`` in the file), checked against
+    each one the file states (its scalars in ``SAMPLE_TIME_NAMES``, its time columns ``times``: label, factor
+    to seconds, the times of the rows loaded, the first of them file row ``row0``); the file's own where
+    ``dt`` is None. A contradiction is a ``SampleTimeConflict`` (dt given) or a ``DataError`` (two of the
+    file's own)."""
+    stated: list[tuple[float, str, float]] = []          # (seconds, where, absolute uncertainty)
+    for name, v in metadata.items():
+        if name.lower() not in SAMPLE_TIME_NAMES or isinstance(v, bool) or not isinstance(v, numbers.Real):
+            continue
+        if not (math.isfinite(v) and v > 0):
+            raise DataError(f"{path}: the file states the sample time {name} = {v}, which is not "
+                            f"{'positive' if math.isfinite(v) else 'finite'}; correct the file")
+        stated.append((_single_precision_decimal(float(v)), f"its scalar {name!r}", 0.0))
+    for label, scale, t in times:
+        found = _time_column_step(path, label, scale, t, row0)
+        if found is not None:
+            stated.append(found)
+    ref = None if dt is None else (dt, None if named is None else f"its scalar {named!r}", 0.0)
+    for value, where, unc in stated:
+        if ref is None:
+            ref = (value, where, unc)
+        elif abs(value - ref[0]) > STATED_SAMPLE_TIME_RTOL * max(value, ref[0]) + unc + ref[2]:
+            if ref[1] is None:
+                raise SampleTimeConflict(path, ref[0], value, where)
+            raise DataError(f"{path}: the file states two sample times, {ref[0]:.10g} s ({ref[1]}) and "
+                            f"{value:.10g} s ({where}); correct the file")
+    return None if ref is None else ref[0]
+
+
+def _single_precision_decimal(v: float) -> float:
+    """``v``, or the shortest decimal of its single-precision value where ``v`` is one (0.01 stored as float32
+    is 0.01)."""
+    v32 = np.float32(v)
+    return float(str(v32)) if float(v32) == v else v
+
+
+def _time_scale(name: str) -> float | None:
+    """The factor to seconds of a column named as holding the time of each row (``TIME_COLUMN`` with a unit
+    of ``TIME_UNITS``); None for other columns. A bare ``T`` is left out (a temperature, a torque)."""
+    m = TIME_COLUMN.fullmatch(name.strip())
+    if m is None:
+        return None
+    unit = m.group(2) if m.group(2) is not None else (m.group(3) or "")
+    if m.group(1) == "T" and not unit:
+        return None
+    return TIME_UNITS.get(unit)
+
+
+def _time_column_step(path: Path, label: str, scale: float, t: np.ndarray,
+                      row0: int) -> tuple[float, str, float] | None:
+    """The sample time a time column states: its mean step over the rows ``t`` (file rows from ``row0``),
+    where it steps uniformly; None for fewer than two rows. Returns (seconds, where, uncertainty of the mean
+    step from the rounding of the end values)."""
+    n = len(t)
+    if n < 2:
+        return None
+    bad = ~np.isfinite(t)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise DataError(f"{path}: row {row0 + r} (0-based data row), time column {label!r}: the time is "
+                        f"{'missing' if np.isnan(t[r]) else t[r]}; a time column must give the time of every row")
+    with np.errstate(over="ignore", invalid="ignore"):        # values beyond float32, or too large to scale
+        eps = np.finfo(np.float32 if np.array_equal(t.astype(np.float32), t) else np.float64).eps
+        seconds = t * scale
+        half = (_half_last_digit(t) + eps * np.abs(t)) * scale + 2 * np.finfo(np.float64).eps * np.abs(seconds)
+    span = seconds[-1] - seconds[0]
+    if not span > 0:
+        raise DataError(f"{path}: time column {label!r} does not increase: {seconds[0]:.10g} s at row {row0}, "
+                        f"{seconds[-1]:.10g} s at row {row0 + n - 1}; a time column must give the time of each row")
+    step = span / (n - 1)
+    unc = (half[0] + half[-1]) / (n - 1)
+    steps = np.diff(seconds)
+    tol = np.minimum(STATED_SAMPLE_TIME_RTOL * step + unc + half[:-1] + half[1:], step / 2)
+    off = np.abs(steps - step) > tol
+    where = f"its time column {label!r}, mean step over rows {row0} to {row0 + n - 1}"
+    if off.any():
+        k = int(np.argmax(off))
+        raise DataError(f"{path}: row {row0 + k + 1} (0-based data row), time column {label!r}: the time steps by "
+                        f"{steps[k]:.6g} s from the row before ({seconds[k]:.10g} s to {seconds[k + 1]:.10g} s), "
+                        f"but the sample time is {step:.10g} s ({where}); a time column must step uniformly (here "
+                        f"to {tol[k]:.2g} s, the rounding of its digits); resample the recording onto a uniform grid "
+                        "or correct the file")
+    return _shortest_decimal(step, unc + 4 * np.finfo(np.float64).eps * step), where, unc
+
+
+def _half_last_digit(t: np.ndarray) -> np.ndarray:
+    """Per value, half the last decimal place it is written to: the coarser of the finest decimal place and
+    the finest significant digit written in the column (values written with fixed decimals and with
+    significant digits both come out right); 0 for values that need more than 22 decimals."""
+    places = np.full(t.shape, 23)                   # decimals needed to write each value; 23: more than 22
+    todo = np.arange(t.size)
+    for d in range(23):
+        scale = 10.0 ** d
+        x = t[todo]
+        done = np.round(x * scale) / scale == x
+        places[todo[done]] = d
+        todo = todo[~done]
+        if not todo.size:
+            break
+    if places.max() >= 23:
+        return np.zeros(t.shape)
+    nonzero = t != 0
+    exponent = np.zeros(t.shape)                    # of the leading digit
+    exponent[nonzero] = np.floor(np.log10(np.abs(t[nonzero])))
+    digits = int((places + exponent + 1)[nonzero].max()) if nonzero.any() else 0    # significant digits
+    return 0.5 * np.maximum(10.0 ** -float(places.max()), np.where(nonzero, 10.0 ** (exponent - digits + 1), 0.0))
+
+
+def _shortest_decimal(v: float, tol: float) -> float:
+    """The decimal of fewest significant digits within ``tol`` of ``v`` (``v`` where none of up to 17 is)."""
+    for digits in range(1, 18):
+        c = float(f"{v:.{digits}g}")
+        if abs(c - v) <= tol:
+            return c
+    return v
 
 
 def _stored_sample_time(path: Path, dt: str, metadata: Mapping[str, Any]) -> float:
@@ -489,10 +700,12 @@ def _split_units(path: Path, names: list[str]) -> tuple[list[str], dict[str, str
     return out, units
 
 
-def _read_csv(path: Path, columns) -> tuple[list[str], dict[str, str], list[int] | None, np.ndarray]:
-    """The header's column names and units, the indices of the columns asked for (None: all) and their values
-    (rows, columns asked for). Rows are parsed ``CSV_CHUNK_ROWS`` at a time into an array sized from the
-    file's line ends, so that memory holds the asked-for columns as float64 and one batch of their fields."""
+def _read_csv(path: Path, columns) -> tuple[list[str], dict[str, str], list[int] | None, np.ndarray,
+                                          list[tuple[str, float, np.ndarray]]]:
+    """The header's column names and units, the indices of the columns asked for (None: all), their values
+    (rows, columns asked for) and the time columns (header name, factor to seconds, values as written). Rows
+    are parsed ``CSV_CHUNK_ROWS`` at a time into an array sized from the file's line ends, so that memory
+    holds the asked-for columns and the time columns as float64 and one batch of their fields."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
@@ -514,13 +727,13 @@ def _parse_csv(path: Path, reader, columns, capacity: int):
         header = header[:-1]
     if not header or any(h.strip() == "" for h in header):
         raise DataError(f"{path}: header row has empty column names: {header}")
-    names, units = _split_units(path, [h.strip() for h in header])
+    raw = [h.strip() for h in header]
+    names, units = _split_units(path, raw)
     n = len(names)
     idx = None if columns is None else _column_indices(path, names, columns)
     picked = list(range(n)) if idx is None else idx
-    kept = [names[i] for i in picked]
-    get = itemgetter(*picked)                   # the asked-for fields of a row (one field: a string)
-    values = np.empty((capacity, len(picked)))
+    timed = [i for i in range(n) if _time_scale(raw[i]) is not None]
+    parsed, kept, get, values = picked, [], None, np.empty((0, 0))
     batch: list = []
     done = 0
     for line in reader:
@@ -532,14 +745,34 @@ def _parse_csv(path: Path, reader, columns, capacity: int):
             else:  # 0-based data row, blank lines not counted
                 raise DataError(f"{path}: row {done + len(batch)} (0-based data row) has {len(line)} fields, the "
                                 f"header has {n}")
+        if get is None:  # the first data row: time columns not asked for are read as well, unless their first
+            # field is no number (a clock time)
+            parsed = picked + [i for i in timed if i not in picked and _is_number(line[i])]
+            kept = [names[i] for i in parsed]
+            get = itemgetter(*parsed)           # the fields of a row to parse (one field: a string)
+            values = np.empty((capacity, len(parsed)))
         batch.append(get(line))
         if len(batch) == CSV_CHUNK_ROWS:
             done = _parse_rows(path, kept, batch, values, done)
             batch.clear()
-    done = _parse_rows(path, kept, batch, values, done)
-    if done == 0:
+    if get is None:
         raise DataError(f"{path}: no data rows")
-    return names, units, idx, values[:done]
+    done = _parse_rows(path, kept, batch, values, done)
+    times = [(raw[i], _time_scale(raw[i]), values[:done, parsed.index(i)].copy()) for i in timed if i in parsed]
+    table = values[:done] if len(parsed) == len(picked) else np.ascontiguousarray(values[:done, :len(picked)])
+    return names, units, idx, table, times
+
+
+def _is_number(field: str) -> bool:
+    """Whether a CSV field is a number as ``_number`` reads it (nan and inf included), not empty."""
+    s = field.strip()
+    if not s or "_" in s or not s.isascii():
+        return False
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
 
 
 def _record_bound(path: Path) -> int:
@@ -601,6 +834,7 @@ def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[s
     refused, as are complex, non-numeric and empty ones."""
     if not zipfile.is_zipfile(path):
         raise DataError(f"{path}: not an .npz file (a zip archive of .npy arrays, as numpy.savez writes it)")
+    _check_npz_sizes(path)
     arrays = {}
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -641,6 +875,118 @@ def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[s
     if len({len(a) for a in cols}) > 1:
         raise DataError(f"{path}: arrays have different lengths: {dict(zip(keys, map(len, cols)))}")
     return keys, np.stack(cols, axis=1), metadata, []
+
+
+def _check_npz_sizes(path: Path) -> None:
+    """Before any array of an ``.npz`` file is read: each ``.npy`` member's header must declare as many bytes
+    as the member holds (uncompressed, by the archive's directory), and the arrays, with their float64 copies,
+    must fit in the memory available (``_available_memory``); else a ``DataError`` naming the array, its
+    declared shape, dtype and size, and why."""
+    avail = _available_memory()
+    need = 0
+    try:
+        with zipfile.ZipFile(path) as z:
+            for info in z.infolist():
+                if info.is_dir():
+                    continue
+                name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+                with z.open(info) as f:
+                    try:
+                        header = _npy_header(f)
+                    except ValueError as e:
+                        raise DataError(f"{path}: array {name!r} has a malformed .npy header ({e})") from None
+                before = need
+                if header is None:                  # not an .npy member: read as bytes
+                    need += info.file_size
+                    what = f"member {info.filename!r} holds {_bytes(info.file_size)}"
+                else:
+                    shape, dtype, offset = header
+                    count = math.prod(shape)
+                    nbytes = count * dtype.itemsize
+                    declared = f"declares shape {shape} of {dtype}"
+                    if dtype.hasobject:             # refused unread (never unpickled) by _read_npz
+                        continue
+                    if offset + nbytes != info.file_size:
+                        raise DataError(f"{path}: array {name!r} {declared} ({_bytes(nbytes)}), but its member of "
+                                        f"the archive holds {_bytes(max(info.file_size - offset, 0))} of data: the "
+                                        "header does not describe the data; the file is damaged or was not "
+                                        "written by numpy.savez")
+                    need += nbytes + 16 * count     # the array, its float64 column and the stacked table
+                    what = f"array {name!r} {declared}: {_bytes(nbytes)} uncompressed"
+                if avail is not None and need > avail:
+                    raise DataError(f"{path}: {what}, from {_bytes(info.compress_size)} in the file; loading "
+                                    f"{'it' if before == 0 else 'the arrays up to it'} needs about {_bytes(need)}, "
+                                    f"more than the {_bytes(avail)} of memory available")
+    except DataError:
+        raise
+    except (OSError, EOFError, RuntimeError, NotImplementedError, zipfile.BadZipFile, zlib.error) as e:
+        raise DataError(f"{path}: not a readable .npz file ({e})") from None
+
+
+def _npy_header(f) -> tuple[tuple[int, ...], np.dtype, int] | None:
+    """The shape, dtype and data offset an ``.npy`` stream's header declares, read without the data; None
+    where the stream does not start like an ``.npy`` file. A malformed header is a ValueError."""
+    magic = f.read(8)
+    if len(magic) < 8 or magic[:6] != b"\x93NUMPY":
+        return None
+    major, minor = magic[6], magic[7]
+    if major not in (1, 2, 3):
+        raise ValueError(f"unknown .npy format version {major}.{minor}")
+    width = 2 if major == 1 else 4
+    size = int.from_bytes(f.read(width), "little")
+    if size > NPY_HEADER_MAX:
+        raise ValueError(f"the header is {size} bytes long, more than {NPY_HEADER_MAX}")
+    text = f.read(size)
+    if len(text) < size:
+        raise ValueError("the header is cut short")
+    try:
+        d = ast.literal_eval(text.decode("utf-8" if major == 3 else "latin1"))
+        shape, dtype = d["shape"], np.lib.format.descr_to_dtype(d["descr"])
+    except (SyntaxError, ValueError, TypeError, KeyError, UnicodeDecodeError, MemoryError, RecursionError) as e:
+        raise ValueError(f"{type(e).__name__}: {e}") from None
+    if not isinstance(shape, tuple) or not all(isinstance(x, int) and x >= 0 for x in shape):
+        raise ValueError(f"the shape {shape!r} is not a tuple of integers >= 0")
+    return shape, dtype, 8 + width + size
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory this process may still take: the kernel's estimate of available memory
+    (``MemAvailable``), lowered to the room left under a cgroup memory limit; the free physical pages
+    (``os.sysconf``) where the first is not known; None where neither is."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            return None
+    try:                                    # cgroup v2: its limit less what it holds beyond reclaimable cache
+        cgroup = Path("/sys/fs/cgroup")
+        limit = (cgroup / "memory.max").read_text().strip()
+        if limit != "max":
+            used = int((cgroup / "memory.current").read_text())
+            for line in (cgroup / "memory.stat").read_text().splitlines():
+                if line.startswith("inactive_file "):
+                    used -= int(line.split()[1])
+            avail = min(avail, max(int(limit) - used, 0))
+    except (OSError, ValueError, IndexError):
+        pass
+    return avail if avail > 0 else None
+
+
+def _bytes(n: int) -> str:
+    """A size in bytes, in words: '80 GB', '16 MB', '15.6 kB', '128 bytes'."""
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n} bytes"
 
 
 def _read_mat(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[str]]:

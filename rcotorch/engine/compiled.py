@@ -28,6 +28,7 @@ does not reproduce the function.
 
 from __future__ import annotations
 
+import contextlib
 import dis
 import functools
 import hashlib
@@ -143,6 +144,71 @@ def describe(fn) -> str:
     code = getattr(fn, "__code__", None)
     name = getattr(fn, "__qualname__", None) or type(fn).__name__
     return f"{name} ({code.co_filename}:{code.co_firstlineno})" if code is not None else name
+
+
+@dataclass
+class Raised:
+    """What compiled functions raised while ``raised_in_compiled`` watched: the first exception, the names of the
+    functions on its traceback (innermost last) and how many were raised."""
+
+    first: BaseException | None = None
+    functions: tuple[str, ...] = ()
+    count: int = 0
+
+    def __bool__(self) -> bool:
+        return self.count > 0
+
+
+_watch_lock = threading.Lock()
+_watching: list[Raised] = []             # one per native run in progress
+_hook_before: list = []                  # the unraisable hook in place when the first run began
+
+
+def _from_compiled(info) -> bool:
+    """Whether an unraisable exception comes from numba's compiled code (a C function cannot pass it on)."""
+    return "numba" in str(info.object)
+
+
+def _unraisable(info) -> None:
+    """``sys.unraisablehook`` while native runs are in progress: an exception raised in compiled code goes to each
+    run in progress; anything else to the hook that was in place before."""
+    if _from_compiled(info):
+        with _watch_lock:
+            if _watching:
+                names, tb = [], info.exc_traceback
+                while tb is not None:
+                    names.append(tb.tb_frame.f_code.co_name)
+                    tb = tb.tb_next
+                for found in _watching:
+                    if found.first is None:
+                        found.first, found.functions = info.exc_value, tuple(names)
+                    found.count += 1
+                return
+    (_hook_before[0] if _hook_before else sys.__unraisablehook__)(info)
+
+
+@contextlib.contextmanager
+def raised_in_compiled():
+    """Collect what compiled user functions raise while the ``with`` block runs, in a ``Raised``.
+
+    An exception inside a compiled function cannot propagate through the native engine's C code: numba reports it
+    as unraisable and the call returns without writing its outputs. Inside this block such reports are collected
+    (not printed), so that the caller can raise an error that names the block whose function raised."""
+    found = Raised()
+    with _watch_lock:
+        if not _watching:
+            _hook_before[:] = [sys.unraisablehook]
+            sys.unraisablehook = _unraisable
+        _watching.append(found)
+    try:
+        yield found
+    finally:
+        with _watch_lock:
+            _watching.remove(found)
+            if not _watching:
+                if sys.unraisablehook is _unraisable:
+                    sys.unraisablehook = _hook_before[0]
+                _hook_before.clear()
 
 
 def components(out, n: int, batch: int, dtype, device=None) -> torch.Tensor:

@@ -837,8 +837,14 @@ class RCOEstimator(Block):
         return self.parameter_map.regressor_of_eta(psi_t)
 
     def regressor_history(self) -> dict[str, torch.Tensor]:
-        """What ``regressors_over`` continues from: copies of the histories at the current step (the regressor
-        signals' and u's past, the window of [phi, u]) and the step."""
+        """What ``regressors_over`` continues from.
+
+        Returns
+        -------
+        dict[str, torch.Tensor]
+            Copies of the histories at the current step: ``past`` and ``past_u`` (the regressor signals' and
+            u's past), ``win`` (the window of [phi, u]) and ``k`` (the step).
+        """
         return {"past": self.past.clone(), "past_u": self.past_u.clone(), "win": self.win.clone(),
                 "k": self.k.clone()}
 

@@ -102,7 +102,7 @@ class GraphScenario(Scenario):
             return parameter_estimates(graph)
         out = {}
         for key, fn in self._estimates.items():
-            value = torch.as_tensor(fn(graph))
+            value = _call("estimate", key, fn, graph)
             if value.numel() != graph.batch_size:
                 raise ConfigError(f"refine: estimate {key!r} gives {tuple(value.shape)}, expected one value per "
                                   f"member ({graph.batch_size},)")
@@ -110,10 +110,33 @@ class GraphScenario(Scenario):
         return out
 
     def metrics(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
-        return {k: torch.as_tensor(fn(graph)).reshape(graph.batch_size) for k, fn in (self._metrics or {}).items()}
+        out = {}
+        for key, fn in (self._metrics or {}).items():
+            value = _call("metric", key, fn, graph)
+            if value.numel() != graph.batch_size:
+                raise ConfigError(f"refine: metric {key!r} gives {tuple(value.shape)}, expected one value per "
+                                  f"member ({graph.batch_size},)")
+            out[key] = value.reshape(graph.batch_size)
+        return out
 
     def scales(self, settings) -> dict[str, float]:
         return dict(self._scales)
+
+
+def _call(kind: str, key: str, fn: Estimate, graph: Graph) -> torch.Tensor:
+    """An estimate's or a metric's function of the graph, called; what it raises is a ConfigError that names it
+    (the exception is its cause)."""
+    try:
+        value = fn(graph)
+    except (MemoryError, torch.OutOfMemoryError):
+        raise
+    except Exception as e:
+        raise ConfigError(f"refine: {kind} {key!r}: its function raised {type(e).__name__}: {e}") from e
+    try:
+        return torch.as_tensor(value)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ConfigError(f"refine: {kind} {key!r}: its function returned {type(value).__name__}, not one number "
+                          f"per member ({e})") from e
 
 
 class RefinementResult:
@@ -254,7 +277,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     ------
     ConfigError
         If the graph has already run, is not a ``Graph`` with the roles 'estimator' and 'error', its dtype is
-        not one the runner knows, or truth, scales, requirements or estimates do not fit the estimates.
+        not one the runner knows, or truth, scales, requirements or estimates do not fit the estimates; or if an
+        estimate's or a metric's function raises, when ``refine`` is called or during the run (the message names
+        its key; its exception is the cause).
     """
     if int(graph.k) != 0:
         raise ConfigError(f"refine: the graph has already run {int(graph.k)} steps; pass a fresh graph (or call "
