@@ -24,6 +24,16 @@ class ConfigError(RcoError, ValueError):
     """A setting has a bad value (name, range or type)."""
 
 
+class SettingError(ConfigError):
+    """A scenario's setting, or the settings of a run together, refused: ``settings`` names them (a command line
+    names the options that gave them); ``detail`` says what is wrong without naming their values again."""
+
+    def __init__(self, message: str, settings: tuple[str, ...] = (), detail: str | None = None):
+        super().__init__(message)
+        self.settings = tuple(settings)
+        self.detail = message if detail is None else detail
+
+
 class DataError(RcoError, ValueError):
     """Recorded data is missing, malformed or non-finite."""
 

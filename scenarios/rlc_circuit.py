@@ -68,7 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -144,6 +144,7 @@ class RlcCircuit(Scenario):
                     Requirement("estimates.R", "rel_err", 0.05))
     units = {"y": "V", "rel_rms_err_initial": "", "rel_rms_err_refined": ""}
     per_member = frozenset({"seed"})        # one seed per member: member b draws the streams of its own seed
+    bounds = dict(Ts=POSITIVE, R=POSITIVE, L=POSITIVE, C=POSITIVE, noise=NON_NEGATIVE, w_std=NON_NEGATIVE)
     about = dict(
         Ts=("s", "sample time"),
         R=("ohm", "true resistance"),

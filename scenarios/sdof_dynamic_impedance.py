@@ -19,7 +19,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.run.scenario import Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -37,6 +37,7 @@ class SdofDynamicImpedance(Scenario):
     requirements = (Requirement("estimates.dc_gain", "abs_err", 0.05),
                     Requirement("metrics.freq_rel_err_max", "max", 0.01))
     per_member = frozenset({"p0", "lam", "w_std", "seed"})
+    bounds = dict(Ts=POSITIVE, m=POSITIVE, nc=NON_NEGATIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE, n_freq=POSITIVE)
     units = {"dc_gain": "N s/m", "y": "m/s", **{k: "N s/m" for k in (*FREQUENCIES, "gain_nyquist90")}}
     about = dict(
         Ts=("s", "sample time (known model and unknown subsystem each ZOH-discretized at Ts)"),

@@ -15,7 +15,7 @@ dC = -theta_v; nc >= 1 gives a strictly proper controller of order nc and dK, dC
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, member_values
 
 NOISE_SEED = 7919       # the measurement noise of member b draws the stream (seed + NOISE_SEED, b)
 
@@ -54,6 +54,7 @@ class SdofStiffness(Scenario):
                     w_std=1.0, truth="continuous", noise=0.0, seed=1)
     requirements = (Requirement("estimates.dK", "abs_err", 0.01), Requirement("estimates.dC", "abs_err", 0.03))
     per_member = frozenset({"m", "K", "C", "dK", "dC", "p0", "lam", "w_std", "seed"})
+    bounds = dict(Ts=POSITIVE, m=POSITIVE, nc=NON_NEGATIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE)
     units = {"y": "m/s"}
     about = dict(
         Ts=("s", "sample time (known model and truth ZOH-discretized at Ts)"),

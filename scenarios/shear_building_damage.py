@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Requirement, Scenario, member_values
 
 from .sdof_stiffness import noise_seed
 
@@ -85,6 +85,10 @@ class ShearBuildingDamage(Scenario):
         seed=("", "excitation seed; member b of a batch draws the stream (seed, b)"),
     )
     per_member = frozenset({"p0", "lam", "seed"})
+    bounds = dict(Ts=POSITIVE, m=POSITIVE, k=POSITIVE, zeta=NON_NEGATIVE, t_change=NON_NEGATIVE, w_std=NON_NEGATIVE,
+                  noise=NON_NEGATIVE, drift=NON_NEGATIVE, warmup=NON_NEGATIVE, window=POSITIVE, holdoff=NON_NEGATIVE,
+                  restart_p0=NON_NEGATIVE, track_lam=UNIT_INTERVAL, track_hold=NON_NEGATIVE, restart_every=POSITIVE,
+                  markov_after=NON_NEGATIVE, markov_every=POSITIVE, markov_tol=NON_NEGATIVE)
     units = {"y": "m/s^2"}
 
     def unit(self, key: str, settings=None) -> str:

@@ -51,8 +51,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import rcotorch as rt
+from rcotorch.data.recording import SampleTimeConflict
 from rcotorch.errors import ConfigError, DataError
-from rcotorch.run.scenario import Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
 
 if TYPE_CHECKING:
     import torch
@@ -75,7 +76,12 @@ def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_row
              foh: bool, lead: float) -> tuple[rt.Recording, MassSpringDamper]:
     from rcotorch.models.identification import MassSpringDamper
     silverbox = Path(path).name == "SNLS80mV.csv" and (w_col, y_col) == ("V1", "V2")
-    rec = rt.load(path, columns=[w_col, y_col], dt=Ts, units={"V1": "V", "V2": "V"} if silverbox else None)
+    try:
+        rec = rt.load(path, columns=[w_col, y_col], dt=Ts, units={"V1": "V", "V2": "V"} if silverbox else None)
+    except SampleTimeConflict as e:           # the file states its own sample time (a scalar, a time column)
+        raise DataError(f"scenario 'silverbox-cubic-stiffness': {e.path} states the sample time {e.stated:.10g} s "
+                        f"({e.where}), but the setting Ts is {Ts:.10g} s; pass --set Ts={e.stated:.10g} if the file "
+                        "is right, or correct the file") from None
     fit = rec.rows(*fit_rows)
     model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
     return rec, model
@@ -198,6 +204,8 @@ class SilverboxCubicStiffness(Scenario):
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
+    bounds = dict(Ts=POSITIVE, fit_start=NON_NEGATIVE, fit_stop=NON_NEGATIVE, est_start=NON_NEGATIVE,
+                  est_stop=NON_NEGATIVE, val_start=NON_NEGATIVE, val_stop=NON_NEGATIVE, n_init=NON_NEGATIVE)
     units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k1_over_m", "1/s^2"), ("damping", "1/s"),
                                          ("gain", "1/s^2"), ("offset", "V/s^2")) for x in ("", "offline_")},
              "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V",

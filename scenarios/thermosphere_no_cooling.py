@@ -57,7 +57,7 @@ import numpy as np
 
 import rcotorch as rt
 from rcotorch.errors import ConfigError
-from rcotorch.run.scenario import Requirement, Scenario, member_values
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, member_values
 
 if TYPE_CHECKING:
     import torch
@@ -172,6 +172,9 @@ class ThermosphereNoCooling(Scenario):
                     Requirement("metrics.cooling_corr_152km", "min", 0.8),
                     Requirement("metrics.cooling_rel_rms_152km", "max", 0.3, inclusive=True))
     per_member = frozenset({"f107", "storm_peak", "p0", "lam"})
+    bounds = dict(Ts=POSITIVE, substeps=POSITIVE, dz_km=POSITIVE, f107=POSITIVE, storm_peak=NON_NEGATIVE,
+                  spinup_days=NON_NEGATIVE, nc=NON_NEGATIVE, refresh_every=NON_NEGATIVE, validate_h=NON_NEGATIVE,
+                  replay_f107=POSITIVE, replay_storm_peak=NON_NEGATIVE)
     units = {"y": "1e-12 kg/m^3", **{f"cooling_{km}km": "nW/m^3" for km in (120, 152, 200)},
              "cooling_152km_true": "nW/m^3"}
     about = dict(

@@ -63,7 +63,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.run.scenario import Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
 
 if TYPE_CHECKING:
     import control
@@ -104,6 +104,7 @@ class TwoDofStiffness(Scenario):
     requirements = (Requirement("estimates.dk1", "rel_err", 0.10), Requirement("estimates.dk3", "rel_err", 0.10))
     units = {"y": "m/s"}
     per_member = frozenset({"seed"})        # one seed per member: member b draws the stream (seed[b], 0)
+    bounds = dict(Ts=POSITIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE)
     about = dict(
         Ts=("s", "sample time"),
         k1=("N/m", "wall-mass 1 spring of the known model"),

@@ -268,7 +268,7 @@ def test_internal_error_exits_3_with_one_line_and_the_traceback_in_the_log(tmp_p
     assert "Traceback (most recent call last)" in log and "something inside broke" in log
 
 
-def test_out_of_memory_exits_3(tmp_path):
+def test_out_of_memory_exits_2_before_anything_is_allocated(tmp_path):
     limit = 3 * 2 ** 30
 
     def cap():
@@ -276,8 +276,10 @@ def test_out_of_memory_exits_3(tmp_path):
     proc = _cli("run", "sdof-stiffness", "--batch", "50000000", "--steps", "10", "--out", str(tmp_path / "o"),
                 "--quiet", preexec_fn=cap)
     _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 3, err
-    assert err.startswith("rcotorch: out of memory") and "try a smaller --batch" in err and err.count("\n") == 1
+    assert proc.returncode == 2, err
+    assert err.startswith("rcotorch: error: --batch 50000000: scenario 'sdof-stiffness' with nu = 15 and batch "
+                          "50000000 needs at least") and "ulimit -v" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize("listening", [True, False])

@@ -2,9 +2,10 @@
 CONFIG [options]``.
 
 Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input or
-environment (a setting, file, folder or checkpoint, a full disk, an output folder deleted during the run; one
-line on stderr names it and says what to do), 3 an internal error (out of memory included: one line on stderr,
-the traceback in the output folder's ``rcotorch.log``), 128 + the signal's number when stopped by a signal after
+environment (a setting, file, folder or checkpoint, a full disk, an output folder deleted during the run, a run
+that needs more memory than there is or that ran out of it; one line on stderr names it and says what to do),
+3 an internal error (one line on stderr, the traceback in the output folder's ``rcotorch.log``), 128 + the
+signal's number when stopped by a signal after
 saving a checkpoint: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (the message says how to resume; a signal
 while a finished run writes its summary stops that at once). See docs/cli.md.
 """
@@ -24,7 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, OutputError, RcoError
+from ..errors import ConfigError, OutputError, RcoError, SettingError
 
 EXIT_PASS, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 # The signals that stop a run or sweep at the next step boundary, with a checkpoint (exit code 128 + the
@@ -46,6 +47,29 @@ def _settings(pairs: list[str]) -> dict[str, str]:
 def _positive(value: int | None, flag: str) -> None:
     if value is not None and value < 1:
         raise ConfigError(f"{flag} must be a positive integer, got {value}")
+
+
+def _steps(value: int | None) -> None:
+    """--steps: a positive integer, at most the bound of ``runner.MAX_STEPS``."""
+    from .runner import MAX_STEPS, steps_bound_reason
+    _positive(value, "--steps")
+    if value is not None and value > MAX_STEPS:
+        raise ConfigError(f"--steps {value}: a run takes at most {MAX_STEPS} steps: {steps_bound_reason()}; "
+                          "choose fewer")
+
+
+def _seed(value: int | None) -> None:
+    """--seed: an integer in 0..SEED_MAX, the seeds whose random streams differ."""
+    from .scenario import SEED_MAX
+    if value is not None and not 0 <= value <= SEED_MAX:
+        raise ConfigError(f"--seed {value}: a seed must be an integer in 0..{SEED_MAX}: the random streams take a "
+                          "seed modulo 2**32, so another one would draw the stream of one in that range")
+
+
+def _named(e: SettingError, given: dict[str, str]) -> RcoError:
+    """``e`` with the options that gave its settings in front (``--set m=0: ...``), where the user gave them."""
+    flags = [given[k] for k in e.settings if k in given]
+    return SettingError(f"{', '.join(flags)}: {e.detail}", e.settings) if flags else e
 
 
 def sweep_report(rows: list[dict], out: str | Path) -> str:
@@ -166,6 +190,8 @@ class Session:
         self.stop = threading.Event()
         self.stop_signal = signal.SIGINT        # the last stop signal received
         self.summarizing = False                # a stop signal abandons the summary at once (StopSummary)
+        # what the work's memory grows with, for the line of a run that ran out of it (None: the batch)
+        self.memory_drivers: Callable[[], str] | None = None
 
     def command(self) -> str:
         return "rcotorch " + " ".join(shlex.quote(a) for a in self.argv)
@@ -305,21 +331,37 @@ class Session:
         return fault
 
     def internal_error(self, e: BaseException) -> int:
-        """One line on stderr; the traceback in the output folder's log (or a temporary file)."""
+        """One line on stderr; the traceback in the output folder's log (or a temporary file). Memory that ran
+        out is no internal error: ``out_of_memory``."""
+        if _out_of_memory(e):
+            return self.out_of_memory(e)
         where = self.keep_traceback(e, f"internal error in `{self.command()}`")
         message = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        if _out_of_memory(e):
-            what = f"out of memory ({message}); try a smaller --batch"
-        else:
-            what = f"internal error: {type(e).__name__}: {message}"
-        _say(f"rcotorch: {what}" + (f" (traceback in {where})" if where else ""))
+        _say(f"rcotorch: internal error: {type(e).__name__}: {message}" + (f" (traceback in {where})" if where else ""))
         return EXIT_INTERNAL
+
+    def out_of_memory(self, e: BaseException) -> int:
+        """Exit 2 with one line: memory ran out, and the settings the work's memory grows with (their values);
+        the traceback in the output folder's log (or a temporary file)."""
+        message = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        drivers = None
+        if self.memory_drivers is not None:
+            with contextlib.suppress(Exception):         # the line is written whatever the drivers' lookup meets
+                drivers = self.memory_drivers()
+        line = f"out of memory{f' ({message})' if message else ''}: " + \
+            (f"{drivers}; choose smaller ones" if drivers else "try a smaller --batch")
+        where = self.keep_traceback(e, f"error: {line}")
+        _say(f"rcotorch: error: {line}" + (f" (traceback in {where})" if where else ""))
+        return EXIT_INPUT
 
 
 def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says memory ran out: a MemoryError, or torch's RuntimeError for a failed allocation (a
+    C++ std::bad_alloc, CPU or CUDA memory exhausted)."""
     text = str(e).lower()
     return isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and (
-        "out of memory" in text or "can't allocate memory" in text or "not enough memory" in text))
+        "out of memory" in text or "can't allocate memory" in text or "not enough memory" in text
+        or "bad_alloc" in text))
 
 
 def _threads(args) -> None:
@@ -346,24 +388,35 @@ def cmd_show(args, session: Session) -> int:
 def cmd_run(args, session: Session) -> int:
     from .runner import Interrupted, Run, result_table
     _positive(args.checkpoint_every, "--checkpoint-every")
+    _positive(args.batch, "--batch")
+    _steps(args.steps)
+    _seed(args.seed)
     overrides = _settings(args.overrides)
+    given = {k: f"--set {k}={v}" for k, v in overrides.items()}       # the options that gave each setting
     if args.config:
         name, settings = _config_settings(args.config)
         if name and args.name and name != args.name:
             raise ConfigError(f"--config {args.config}: it is for scenario {name!r}, not {args.name!r}")
         args.name = args.name or name
+        given = {**{k: f"--config {args.config}: {k} = {v!r}" for k, v in settings.items()}, **given}
         overrides = {**settings, **overrides}
-    if args.resume:
-        r = Run.resume(args.resume, steps=args.steps, device=args.device, out=args.out, overwrite=args.overwrite,
-                       expect=dict(name=args.name, batch=args.batch, seed=args.seed, dtype=args.dtype,
-                                   overrides=overrides))
-    else:
-        if not args.name:
-            raise ConfigError("run needs a scenario NAME (or --resume DIR); see `rcotorch list`")
-        r = Run(args.name, steps=args.steps, batch=args.batch or 1, seed=args.seed, device=args.device or "cpu",
-                dtype=args.dtype or "float64", out=args.out, overrides=overrides, overwrite=args.overwrite,
-                validation=not args.no_validation)
+    given.update({k: f"--{k} {v}" for k, v in (("batch", args.batch), ("seed", args.seed)) if v is not None})
+    session.memory_drivers = lambda: _run_memory_drivers(session.run, args, overrides, given)
+    try:
+        if args.resume:
+            r = Run.resume(args.resume, steps=args.steps, device=args.device, out=args.out,
+                           overwrite=args.overwrite, expect=dict(name=args.name, batch=args.batch, seed=args.seed,
+                                                                 dtype=args.dtype, overrides=overrides))
+        else:
+            if not args.name:
+                raise ConfigError("run needs a scenario NAME (or --resume DIR); see `rcotorch list`")
+            r = Run(args.name, steps=args.steps, batch=args.batch or 1, seed=args.seed,
+                    device=args.device or "cpu", dtype=args.dtype or "float64", out=args.out, overrides=overrides,
+                    overwrite=args.overwrite, validation=not args.no_validation)
+    except SettingError as e:
+        raise _named(e, given) from None
     session.folder, session.run = r.folder, r
+    r.figures_expected = not args.no_figures
     session.resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
     if args.checkpoint_every:
         session.resume += f" --checkpoint-every {args.checkpoint_every}"
@@ -399,6 +452,22 @@ def cmd_run(args, session: Session) -> int:
     return EXIT_PASS if passed else EXIT_FAILED
 
 
+def _run_memory_drivers(run, args, overrides: dict[str, Any], given: dict[str, str]) -> str:
+    """What a run's memory grows with, as the user gave it or else with the run's values: the batch, and nu where
+    the scenario has it ('the run's memory grows with the batch and nu (here --batch 3, --set nu=40)')."""
+    from . import scenario as scenarios
+    batch = run.batch if run is not None else args.batch or 1
+    here = [given.get("batch", f"batch {batch}")]
+    if run is not None:
+        nu = run.settings.get("nu")
+    else:
+        sc = scenarios.get(args.name)
+        nu = sc.resolve({k: v for k, v in overrides.items() if k == "nu"}).get("nu")
+    if nu is not None:
+        here.append(given.get("nu", f"nu = {nu}"))
+    return f"the run's memory grows with the batch{' and nu' if nu is not None else ''} (here {', '.join(here)})"
+
+
 def _in_shards(session: Session, what: str, job: Callable):
     """``job(stop)`` (a sweep or a tuning, run as shards) with Ctrl-C, SIGTERM and SIGHUP asking it to stop;
     its result, or None when it stopped (the running shard saved its checkpoint)."""
@@ -418,6 +487,7 @@ def cmd_sweep(args, session: Session) -> int:
     from .sweep import Sweep, run_sweep
     sweep = Sweep.from_file(args.config)
     _device(args.device or "cpu")
+    session.memory_drivers = lambda: _shards_memory_drivers(sweep)
     session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     session.resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
                       "--resume")
@@ -430,6 +500,13 @@ def cmd_sweep(args, session: Session) -> int:
     session.log(f"finished: {len(rows)} members")
     print(sweep_report(rows, session.folder.path))
     return EXIT_PASS
+
+
+def _shards_memory_drivers(spec) -> str:
+    """What the memory of a sweep or tuning (``spec``) grows with: the members of a shard, and nu."""
+    nu = spec.fixed.get("nu") if isinstance(spec.fixed, dict) else None
+    return ("the memory grows with the members of a shard and nu (here shard_size = "
+            f"{spec.shard_size}{'' if nu is None else f', nu = {nu}'})")
 
 
 def _config_settings(path: str) -> tuple[str | None, dict[str, Any]]:
@@ -455,6 +532,7 @@ def cmd_tune(args, session: Session) -> int:
     from .tune import Tuning, run_tune
     tuning = Tuning.from_file(args.config)
     _device(args.device or "cpu")
+    session.memory_drivers = lambda: _shards_memory_drivers(tuning)
     out = Path(args.out or Path("runs") / f"tune-{tuning.scenario}")
     session.folder = OutputFolder(out, "tune")
     session.resume = f"rcotorch tune {shlex.quote(args.config)} --out {shlex.quote(str(out))} --resume"

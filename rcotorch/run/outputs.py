@@ -309,24 +309,74 @@ class OutputFolder:
         return folder.st_dev, folder.st_ino, lock.st_dev, lock.st_ino
 
     def check(self) -> None:
-        """Raise ``OutputError`` when the open folder was deleted, or replaced by another folder (one without
-        this writer's lock file), since it was opened: what the run writes would be lost, or land in a folder it
-        did not open."""
+        """Raise ``OutputError`` when the open folder was deleted, moved away or replaced by another folder (one
+        without this writer's lock file) since it was opened: what the run writes would be lost, or land in a
+        folder it did not open.
+
+        Which of these happened is told by the lock file this writer holds open (``_opened_folder``): a folder
+        moved away (and perhaps replaced) keeps it, and the line says where the folder is now, so that it can be
+        moved back and the run resumed; a deleted folder's lock file is gone. Where the lock's descriptor cannot
+        be had, a folder at the path that holds nothing but TensorBoard event files (which this run's own writer,
+        writing by path, may have made again) counts as the opened one deleted."""
         if self._identity is None:
             return
         try:
             now = self._stat()
         except OSError:
             now = None
-        if now is None and (not os.path.isdir(self.path) or self._only_event_files()):
-            # deleted (a folder that holds nothing but TensorBoard event files was made again at the same path
-            # by this run's own writer, which writes by path)
-            raise OutputError(f"the output folder {self.path} was deleted while rcotorch was writing to it; the "
-                              "results are lost: run again")
-        if now != self._identity:
-            raise OutputError(f"the output folder {self.path} was replaced by another folder while rcotorch was "
-                              "writing to it, and nothing more is written there; move the original back and "
-                              "resume, or run again")
+        if now == self._identity:
+            return
+        p = self.path
+        stop = "nothing more is written there"
+        try:
+            folder = os.stat(p)
+            same = (folder.st_dev, folder.st_ino) == self._identity[:2]
+        except OSError:
+            same = False
+        if same:                                 # the folder is the one opened; its lock file is not
+            raise OutputError(f"the lock file {p / LOCK} of the output folder {p} was removed or replaced while "
+                              f"rcotorch was writing to it, and {stop}; another process may be writing there: "
+                              "resume once none is, or run again")
+        there = os.path.isdir(p) and not self._only_event_files()      # a folder of someone else's at the path
+        exists, where = self._opened_folder()
+        at = f" (it is now {where})" if where is not None else ""
+        if exists and not os.path.isdir(p):
+            raise OutputError(f"the output folder {p} was moved away while rcotorch was writing to it{at}, and "
+                              f"{stop}; move it back and resume, or run again")
+        if exists:
+            now_at = f"; the original is now {where}:" if where is not None else ";"
+            raise OutputError(f"the output folder {p} was replaced by another folder while rcotorch was writing to "
+                              f"it, and {stop}{now_at} move the original back and resume, or run again")
+        if not there:
+            raise OutputError(f"the output folder {p} was deleted while rcotorch was writing to it; the results "
+                              "are lost: run again")
+        lost = "; the original was deleted: run again" if exists is False else \
+            "; move the original back and resume, or run again"
+        raise OutputError(f"the output folder {p} was replaced by another folder while rcotorch was writing to it, "
+                          f"and {stop}{lost}")
+
+    def _opened_folder(self) -> tuple[bool | None, Path | None]:
+        """Whether the folder that was opened still exists, wherever it is now (None: this cannot be told), and
+        where it is (None where it is gone or the system does not say). Told by the descriptor of the lock file
+        this writer holds open: a file that is no longer in any folder has no links left."""
+        fd = getattr(getattr(self._lock, "_context", None), "lock_file_fd", None)
+        if not isinstance(fd, int) or self._identity is None:
+            return None, None
+        try:
+            info = os.fstat(fd)
+        except OSError:
+            return None, None
+        if (info.st_dev, info.st_ino) != self._identity[2:]:          # not the lock file opened with the folder
+            return None, None
+        if info.st_nlink == 0:
+            return False, None
+        try:                                                           # Linux names an open file's path
+            name = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            return True, None
+        if name.endswith(" (deleted)") or not os.path.isabs(name):
+            return True, None
+        return True, Path(name).parent
 
     def _only_event_files(self) -> bool:
         try:

@@ -293,6 +293,7 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     try:
         run = Run(sc, steps=steps, batch=graph.batch_size, dtype=dtype, device=device, out=out, overwrite=overwrite,
                   health=health, intervals=intervals, level=level, validation=bool(validation), log_every=log_every)
+        run.figures_expected = bool(figures)
         try:
             run.advance(progress=progress, checkpoint_every=checkpoint_every)
             summary = run.finish(figures=figures)

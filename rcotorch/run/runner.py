@@ -18,10 +18,13 @@ so a checkpoint's size does not depend on how long the run is.
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import logging
 import math
 import re
 import sys
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -29,7 +32,7 @@ from typing import Any
 import orjson
 import torch
 
-from ..errors import CheckpointError, ConfigError, RcoError
+from ..errors import CheckpointError, ConfigError, RcoError, SettingError
 from ..estimator.tracking import ChangeDetector, _closed_loop, change_report
 from ..verdict import intervals as ci
 from ..verdict.health import STATUSES, Criteria, Health, check_every, finite_list
@@ -47,6 +50,15 @@ MIN_LOGS_CHANGE = 250    # at least, in a run that follows a change (a truth tha
 # log (with the stop of the engine before it) costs about LOG_US + LOG_US_PER_MEMBER * batch microseconds, a
 # member-step of the native engine at least ENGINE_NS nanoseconds (docs/cli.md).
 LOG_SHARE, LOG_FREE_S, LOG_US, LOG_US_PER_MEMBER, ENGINE_NS = 0.1, 0.01, 250.0, 0.7, 30.0
+# The most steps a run may take: its step counters are 64-bit integers, but the bound is time: at the engine's
+# fastest (ENGINE_NS a member-step) 10^12 steps of one member already take more than 8 hours.
+MAX_STEPS = 10 ** 12
+# The least memory a run holds while it steps (``memory_needed``), measured on sdof-stiffness: the known model's
+# Markov parameters are made one small tensor a sample, about MARKOV_SAMPLE_BYTES each until they are stacked
+# (``derive_markov`` examines max(4 nu, 64) + nu samples); the estimator's window and Markov filter hold about
+# STATE_NUMBERS numbers per member and Markov parameter; every member about MEMBER_BYTES more (its RLS state,
+# sums and health statistics). The intervals' and validation's replays at the end of a run need more.
+MARKOV_SAMPLE_BYTES, STATE_NUMBERS, MEMBER_BYTES = 600, 5, 1500
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)
 # What ``--resume`` accepts besides the checkpoint's own settings (anything else must match the checkpoint).
@@ -82,6 +94,124 @@ def _positive_int(value, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ConfigError(f"{what} must be a positive integer, got {value!r}")
     return value
+
+
+def steps_bound_reason() -> str:
+    """Why a run takes at most MAX_STEPS steps."""
+    hours = MAX_STEPS * ENGINE_NS * 1e-9 / 3600
+    return f"at the engine's fastest, about {ENGINE_NS:g} ns a member-step, that many take more than {int(hours)} hours"
+
+
+def _steps(value, what: str) -> int:
+    """A number of steps: a positive integer, at most MAX_STEPS."""
+    _positive_int(value, what)
+    if value > MAX_STEPS:
+        raise ConfigError(f"{what} must be at most {MAX_STEPS}, got {value}: {steps_bound_reason()}")
+    return value
+
+
+def _cgroup_dirs() -> list[Path]:
+    """The memory cgroup folders of this process and those above it (v2, else v1), where they can be read."""
+    root, dirs = Path("/sys/fs/cgroup"), []
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/cgroup").read_text().splitlines():
+            _, controllers, where = line.split(":", 2)
+            base = root if not controllers else root / "memory" if "memory" in controllers.split(",") else None
+            if base is None:
+                continue
+            folder = base / where.lstrip("/")
+            while True:
+                dirs.append(folder)
+                if folder == base:
+                    break
+                folder = folder.parent
+    return list(dict.fromkeys(dirs + [root]))
+
+
+def _address_space_room() -> int | None:
+    """The bytes left under this process's address-space limit (``ulimit -v``), None without one."""
+    import resource
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit == resource.RLIM_INFINITY:
+        return None
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                return max(0, limit - int(line.split()[1]) * 1024)
+    return limit
+
+
+def available_memory(meminfo: Path = Path("/proc/meminfo"), cgroups: list[Path] | None = None,
+                     address_space: Callable[[], int | None] | int | None = _address_space_room
+                     ) -> tuple[int, str] | None:
+    """The memory this process may still take, in bytes, and what sets it: the least of ``MemAvailable`` in
+    ``meminfo``, each cgroup's limit less what the cgroup uses (cgroup v2 ``memory.max`` and ``memory.current``,
+    or v1 ``memory.limit_in_bytes`` and ``memory.usage_in_bytes``; default: the process's own cgroup and the
+    ones above it, ``_cgroup_dirs``) and the room left under the address-space limit (``ulimit -v``; a number,
+    None for none, default ``_address_space_room``). None when none of them can be read."""
+    found: list[tuple[int, str]] = []
+    with contextlib.suppress(OSError, ValueError):
+        for line in meminfo.read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found.append((int(line.split()[1]) * 1024, f"MemAvailable in {meminfo}"))
+    for folder in _cgroup_dirs() if cgroups is None else cgroups:
+        for limit_name, usage_name in (("memory.max", "memory.current"),
+                                       ("memory.limit_in_bytes", "memory.usage_in_bytes")):
+            with contextlib.suppress(OSError, ValueError):
+                text = (folder / limit_name).read_text().strip()
+                if text == "max" or int(text) >= 2 ** 60:               # v1 writes a huge number for none
+                    continue
+                usage = 0
+                with contextlib.suppress(OSError, ValueError):
+                    usage = int((folder / usage_name).read_text().strip())
+                found.append((max(0, int(text) - usage), f"the limit {folder / limit_name} less what the cgroup "
+                                                            "uses"))
+    room = address_space if address_space is None or isinstance(address_space, int) else address_space()
+    if room is not None:
+        found.append((room, "the address-space limit (ulimit -v) less what this process maps"))
+    return min(found, key=lambda f: f[0]) if found else None
+
+
+def memory_needed(scenario: scenarios.Scenario, settings: Mapping[str, Any], batch: int, dtype: str
+                  ) -> list[tuple[str, int]]:
+    """What a run of ``settings`` holds at least while it steps, in bytes, part by part (its constants above):
+    the known model's Markov parameters and the estimator's window where the scenario has the setting ``nu``,
+    and the members' state."""
+    parts = []
+    nu = _nu(scenario, settings)
+    if nu is not None:
+        samples = max(4 * nu, 64) + nu
+        parts.append((f"the known model's {samples} Markov parameters", samples * MARKOV_SAMPLE_BYTES))
+        parts.append((f"the estimator's window of {nu} steps", batch * nu * STATE_NUMBERS * DTYPES[dtype].itemsize))
+    parts.append((f"{batch} member{'s' * (batch != 1)}' state", batch * MEMBER_BYTES))
+    return parts
+
+
+def _nu(scenario: scenarios.Scenario, settings: Mapping[str, Any]) -> int | None:
+    """The run's number of Markov parameters (the setting ``nu``, the largest of per-member ones), or None."""
+    nu = settings.get("nu") if "nu" in scenario.settings else None
+    nu = max(nu) if isinstance(nu, list) and nu else nu
+    return nu if isinstance(nu, int) and not isinstance(nu, bool) and nu > 0 else None
+
+
+def _size(n: float) -> str:
+    return f"{n / 1e9:.1f} GB" if n >= 1e8 else f"{n / 1e6:.0f} MB"
+
+
+def check_memory(scenario: scenarios.Scenario, settings: Mapping[str, Any], batch: int, dtype: str) -> None:
+    """Refuse (``SettingError`` naming nu and the batch) a run whose ``memory_needed`` exceeds the
+    ``available_memory``, before anything is allocated."""
+    parts = memory_needed(scenario, settings, batch, dtype)
+    needed = sum(n for _, n in parts)
+    found = available_memory()
+    if found is None or needed <= found[0]:
+        return
+    nu = _nu(scenario, settings)
+    drivers, smaller = (f"batch {batch}", "batch") if nu is None else (f"nu = {nu} and batch {batch}", "nu or batch")
+    what = "; ".join(f"{name} {_size(n)}" for name, n in parts if n >= needed / 100)
+    raise SettingError(f"scenario '{scenario.name}' with {drivers} needs at least {_size(needed)} of memory while "
+                       f"it steps ({what}), but {_size(found[0])} is available ({found[1]}); choose a smaller "
+                       f"{smaller}", settings=("batch",) if nu is None else ("nu", "batch"))
 
 
 def default_log_every(steps: int, batch: int, follows_change: bool = False) -> int:
@@ -172,13 +302,13 @@ class Run:
                                                                                   {"seed": seed})), members)
         else:
             self.settings = self.scenario.resolve(overrides, seed)
-        self.steps = _positive_int(steps if steps is not None else self.scenario.default_steps(self.settings),
-                                   "steps")
+        self.steps = _steps(steps if steps is not None else self.scenario.default_steps(self.settings), "steps")
         self.out = Path(out) if out else default_out(self.scenario.name)
         self.folder = OutputFolder(self.out, "run")
         self._mode = "overwrite" if overwrite else "new"
         if log_every is not None:
             _positive_int(log_every, "log_every")
+        check_memory(self.scenario, self.settings, self.batch, dtype)
         self.graph = self.scenario.build(self.settings, self.batch, DTYPES[dtype], self.device)
         self.graph.check_steps(self.steps)
         self.truth = self.scenario.truth(self.settings)
@@ -206,6 +336,7 @@ class Run:
         self.monitor: Monitor | None = None
         self.hparams_session = True
         self.tb_origin: float | None = None    # TensorBoard's wall time at step 0 (``Monitor.wall``)
+        self.figures_expected = True           # whether ``finish`` will draw figures (their imports start early)
 
     @property
     def k(self) -> int:
@@ -245,11 +376,12 @@ class Run:
         way. ``stop()`` is asked after each stretch of steps; when it says True the run saves a checkpoint and
         raises ``Interrupted``. Each stretch ends with a check that the output folder was not deleted or replaced
         (``OutputError``)."""
-        until = self.steps if until is None else _positive_int(until, "until")
+        until = self.steps if until is None else _steps(until, "until")
         if checkpoint_every is not None:
             _positive_int(checkpoint_every, "--checkpoint-every")
         self.graph.check_steps(until - self.k)
         self._start_monitor()
+        prefetch(figures=self.figures_expected, verdict=self.intervals_on)
         bar = None
         if progress or (progress is None and until - self.k >= 5000):
             from tqdm import tqdm
@@ -668,6 +800,26 @@ class Run:
         if close:
             self.close()
         return summary
+
+
+_PREFETCHED: set[str] = set()
+
+
+def prefetch(figures: bool, verdict: bool) -> None:
+    """Import what the end of a run needs (scipy's special functions for the verdict; matplotlib and the figures)
+    on a background thread, once per process: the engine releases Python while it steps, so the imports run
+    beside it instead of after it."""
+    wanted = [m for m, on in (("scipy.special", verdict), ("rcotorch.run.figures", figures))
+              if on and m not in _PREFETCHED and m not in sys.modules]
+    if not wanted:
+        return
+    _PREFETCHED.update(wanted)
+
+    def load() -> None:
+        for module in wanted:
+            with contextlib.suppress(Exception):       # an import that fails is reported where it is used
+                importlib.import_module(module)
+    threading.Thread(target=load, name="rcotorch-imports", daemon=True).start()
 
 
 PRIOR_SHARE = 0.5     # P_ii / p0 above this at the end: the data did less than the prior to fix parameter i

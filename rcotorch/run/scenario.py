@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from ..errors import ConfigError
+from ..errors import ConfigError, DimensionError, RcoError, SettingError
 
 if TYPE_CHECKING:        # torch and the graph are imported where used: listing scenarios needs neither
     import torch
@@ -92,6 +92,15 @@ ESTIMATOR_SETTINGS_ABOUT: Mapping[str, Setting] = {
     "lam": Setting("", "RLS forgetting factor in (0, 1]"),
     "nu": Setting("", "number of Markov parameters of u -> z in the retrospective cost"),
 }
+#: How a number setting may be bounded (``Scenario.bounds``): above 0, at least 0, or in (0, 1].
+POSITIVE, NON_NEGATIVE, UNIT_INTERVAL = "positive", "non-negative", "(0, 1]"
+BOUNDS = (POSITIVE, NON_NEGATIVE, UNIT_INTERVAL)
+#: The bounds of the estimator's usual settings and options, in a scenario that has them and declares none.
+ESTIMATOR_BOUNDS: Mapping[str, str] = {"p0": POSITIVE, "lam": UNIT_INTERVAL, "nu": POSITIVE, "r_delta": NON_NEGATIVE,
+                                       "normalize": NON_NEGATIVE, "p_max": NON_NEGATIVE}
+#: The largest seed: the random streams (``rcotorch.engine.rng``) take a seed modulo 2**32, so a seed outside
+#: 0..SEED_MAX would draw the stream of one inside it.
+SEED_MAX = 2 ** 32 - 1
 #: The options that may differ between the members of one batch (a zero penalty is the same as none; a
 #: scale or bound cannot be off for some members only, so a sweep over them runs one batch per value).
 ESTIMATOR_OPTIONS_PER_MEMBER = frozenset({"r_delta"})
@@ -109,6 +118,12 @@ class Scenario:
     returns gets them on its estimator (the block of role 'estimator', ``RCOEstimator.set_options``) when they
     are nonzero. A scenario that passes these options to its estimator itself, or offers other ones, lists
     the options it leaves to the base class in ``estimator_options`` (() for none).
+
+    ``bounds`` maps a number setting to ``POSITIVE``, ``NON_NEGATIVE`` or ``UNIT_INTERVAL``: a value outside is
+    refused naming the setting, before anything is built (``p0``, ``lam``, ``nu`` and the estimator options
+    have ``ESTIMATOR_BOUNDS`` unless the subclass declares theirs). An integer setting named ``seed`` takes
+    0..``SEED_MAX``. A graph that ``build`` cannot make from settings changed from their defaults (a
+    ``ConfigError`` or ``ValueError``) is refused naming those settings (``SettingError``).
     """
 
     name: str = ""
@@ -131,6 +146,8 @@ class Scenario:
     intervals: bool = True
     # Samples of held-out validation at the end of a run (``validation``; 0: none).
     validation_steps: int = 2000
+    # The number settings' bounds (see above): setting -> POSITIVE, NON_NEGATIVE or UNIT_INTERVAL.
+    bounds: Mapping[str, str] = {}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -144,15 +161,37 @@ class Scenario:
         cls.about = {**cls.about, **common,
                      **{k: ESTIMATOR_OPTIONS_ABOUT[k] for k in options if k not in cls.about}}
         cls.per_member = frozenset(cls.per_member) | (ESTIMATOR_OPTIONS_PER_MEMBER & set(options))
+        cls.bounds = {**{k: v for k, v in ESTIMATOR_BOUNDS.items() if k in cls.settings}, **cls.bounds}
+        _check_bounds_declared(cls)
         build = cls.__dict__.get("build")
         if build is not None and not getattr(build, "_sets_estimator_options", False):
             @functools.wraps(build)
             def build_with_options(self, settings, batch, dtype, device):
-                graph = build(self, settings, batch, dtype, device)
-                apply_estimator_options(graph, settings, self.estimator_options)
+                try:
+                    graph = build(self, settings, batch, dtype, device)
+                    apply_estimator_options(graph, settings, self.estimator_options)
+                except (ConfigError, DimensionError, ValueError) as e:
+                    refused = self.refused_with(settings, e)
+                    if refused is None:
+                        raise
+                    raise refused from e
                 return graph
             build_with_options._sets_estimator_options = True
             cls.build = build_with_options
+
+    def refused_with(self, settings: Mapping[str, Any], e: BaseException) -> SettingError | None:
+        """``e``, raised building the graph of ``settings``, as a ``SettingError`` that names the settings
+        changed from their defaults; None where it is one already, is another kind of rcotorch error (a data
+        file's, say, which names the file), or no setting was changed."""
+        if isinstance(e, SettingError) or (isinstance(e, RcoError) and not isinstance(e, (ConfigError,
+                                                                                           DimensionError))):
+            return None
+        changed = [k for k, v in settings.items() if k in self.settings and _differs(v, self.settings[k])]
+        if not changed:
+            return None
+        given = ", ".join(f"{k} = {_shown(settings[k])}" for k in changed)
+        return SettingError(f"scenario '{self.name}' with {given}: {e}", settings=tuple(changed),
+                            detail=f"scenario '{self.name}': {e}")
 
     def setting(self, key: str) -> Setting:
         """Unit, meaning and choices of one setting (meaning '' where the scenario does not document it)."""
@@ -169,7 +208,7 @@ class Scenario:
                 raise ConfigError(f"scenario '{self.name}': unknown setting {key!r}; settings are {sorted(out)}")
             out[key] = self._value(key, value)
         if seed is not None:
-            out["seed"] = int(seed)
+            out["seed"] = self._seed(seed)
         return out
 
     def resolve_members(self, common: Mapping[str, Any], members: list[Mapping[str, Any]]) -> dict[str, Any]:
@@ -198,11 +237,31 @@ class Scenario:
         return self.setting(key).unit if key in self.settings else ""
 
     def _value(self, key: str, value):
-        """An override converted to the default's type and checked against the setting's choices."""
-        value = _coerce(self.name, key, value, self.settings[key])
+        """An override converted to the default's type and checked against the setting's choices and bounds
+        (``SettingError`` naming the setting)."""
+        try:
+            value = _coerce(self.name, key, value, self.settings[key])
+        except ConfigError as e:
+            raise SettingError(str(e), settings=(key,)) from None
         choices = self.setting(key).choices
         if choices and value not in choices:
-            raise ConfigError(f"scenario '{self.name}': setting {key} must be one of {list(choices)}, got {value!r}")
+            raise SettingError(f"scenario '{self.name}': setting {key} must be one of {list(choices)}, got {value!r}",
+                               settings=(key,))
+        if key == "seed" and isinstance(self.settings[key], int):
+            return self._seed(value)
+        bound = self.bounds.get(key)
+        if bound is not None and not _within(bound, value):
+            what = f"lie in {bound}" if bound == UNIT_INTERVAL else f"be {bound}"
+            raise SettingError(f"scenario '{self.name}': setting {key} must {what}, got {_shown(value)}",
+                               settings=(key,))
+        return value
+
+    def _seed(self, value) -> int:
+        """A seed checked to lie in 0..SEED_MAX."""
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SEED_MAX:
+            raise SettingError(f"scenario '{self.name}': setting seed must be an integer in 0..{SEED_MAX}, got "
+                               f"{_shown(value)}: the random streams take a seed modulo 2**32, so another one would "
+                               "draw the stream of one in that range", settings=("seed",))
         return value
 
     def build(self, settings: Mapping[str, Any], batch: int, dtype: torch.dtype, device) -> Graph:
@@ -276,6 +335,41 @@ def describe(sc: Scenario) -> str:
     lines.append(f"Override with --set KEY=VALUE (rcotorch run {sc.name} --set KEY=VALUE ...)"
                  + ("; * may differ between the members of one batch (sweeps)." if sc.per_member else "."))
     return "\n".join(line.rstrip() for line in lines)
+
+
+def _check_bounds_declared(cls) -> None:
+    """Refuse, when a scenario class is defined, bounds of unknown kinds, of settings it does not have or that are
+    not numbers, and defaults outside their bounds."""
+    for key, bound in cls.bounds.items():
+        default = cls.settings.get(key)
+        if bound not in BOUNDS or isinstance(default, bool) or not isinstance(default, (int, float)):
+            raise ConfigError(f"scenario class {cls.__name__}: bounds[{key!r}] = {bound!r} needs a number setting "
+                              f"{key!r} and one of {list(BOUNDS)}")
+        if not _within(bound, default):
+            raise ConfigError(f"scenario class {cls.__name__}: the default {key} = {default!r} is not {bound}")
+
+
+def _within(bound: str, value) -> bool:
+    if bound == POSITIVE:
+        return value > 0
+    if bound == NON_NEGATIVE:
+        return value >= 0
+    return 0 < value <= 1
+
+
+def _differs(value, default) -> bool:
+    """Whether a resolved setting (one value, or a list of per-member values) differs from its default."""
+    return any(v != default for v in value) if isinstance(value, list) else value != default
+
+
+def _shown(value) -> str:
+    """A setting's value as a message shows it: numbers without a trailing '.0'."""
+    if isinstance(value, float) and math.isfinite(value):
+        text = repr(value)
+        return text[:-2] if text.endswith(".0") else text
+    if isinstance(value, list):
+        return "[" + ", ".join(_shown(v) for v in value) + "]"
+    return str(value)
 
 
 def _fmt_default(value) -> str:

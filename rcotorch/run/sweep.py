@@ -32,6 +32,7 @@ import io
 import itertools
 import json
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,9 +69,10 @@ _TYPES = {
 }
 
 
-def _check_types(spec: Mapping[str, Any], source: str) -> None:
+def _check_types(spec: Mapping[str, Any], source: str, types: Mapping[str, tuple] = _TYPES) -> None:
+    """Raise ``ConfigError`` naming ``source`` and the key where a config's value is not of its type."""
     for key, value in spec.items():
-        ok, what = _TYPES[key]
+        ok, what = types[key]
         if not ok(value):
             raise ConfigError(f"{source}: {key} must be {what}, got {value!r}")
 
@@ -126,6 +128,9 @@ class Sweep:
 
     # --- members -----------------------------------------------------------------------------------------
     def seed_list(self) -> list[int]:
+        if not 0 <= self.seed <= scenarios.SEED_MAX:
+            raise ConfigError(f"sweep: seed must be an integer in 0..{scenarios.SEED_MAX}, got {self.seed}: the "
+                              "random streams take a seed modulo 2**32")
         if isinstance(self.seeds, int):
             if self.seeds < 1:
                 raise ConfigError(f"sweep: seeds must be at least 1, got {self.seeds}")
@@ -159,6 +164,9 @@ class Sweep:
             raise ConfigError("sweep: random draws need samples >= 1")
         if self.steps is not None and self.steps < 1:
             raise ConfigError(f"sweep: steps must be positive, got {self.steps}")
+        if self.steps is not None:
+            from .runner import _steps
+            _steps(self.steps, "sweep: steps")
         if self.shard_size < 1:
             raise ConfigError(f"sweep: shard_size must be positive, got {self.shard_size}")
         draws = self._draws()
@@ -273,6 +281,7 @@ def make_run(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], steps
         raise ConfigError(f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]}): "
                           f"{e}") from None
     run.hparams_session = False          # the sweep writes the HParams sessions (write_hparams)
+    run.figures_expected = False         # shards draw no figures
     return run
 
 
@@ -292,14 +301,20 @@ def run_shard(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], step
     if run is None and folder is not None and (folder / MANIFEST).is_file():
         done = folder / "summary.json"
         if done.is_file():
-            summary = json.loads(done.read_text())
-            sc = scenarios.get(scenario)
-            expected = steps or sc.default_steps(sc.resolve(shard["common"]))
-            if summary["steps"] == expected:
-                return shard_rows(shard, summary)
+            summary, damage = _shard_summary(done, len(shard["members"]))
+            if summary is not None:
+                sc = scenarios.get(scenario)
+                expected = steps or sc.default_steps(sc.resolve(shard["common"]))
+                if summary["steps"] == expected:
+                    return shard_rows(shard, summary)
+            else:                         # the shard runs again, which writes its summary anew
+                start = "from its checkpoint" if (folder / CHECKPOINT).is_file() else "from its start"
+                print(f"rcotorch: {done}: not a complete summary ({damage}); the sweep runs the shard again {start}",
+                      file=sys.stderr, flush=True)
         if (folder / CHECKPOINT).is_file():
             run = Run.resume(folder, scenario=None if isinstance(scenario, str) else scenario)
             run.hparams_session = False
+            run.figures_expected = False
         else:
             run = make_run(scenario, shard, steps, dtype, device, out, overwrite=True)
     run = run or make_run(scenario, shard, steps, dtype, device, out)
@@ -311,6 +326,26 @@ def run_shard(scenario: str | scenarios.Scenario, shard: Mapping[str, Any], step
             run.close()                  # releases the shard's folder (its checkpoint is kept)
         raise
     return shard_rows(shard, summary)
+
+
+SUMMARY_KEYS = ("steps", "batch", "estimates", "truth", "metrics", "health")   # what ``shard_rows`` reads
+
+
+def _shard_summary(path: Path, members: int) -> tuple[dict[str, Any] | None, str | None]:
+    """A finished shard's ``summary.json``, or None and what is wrong with it where it cannot be read as one (cut
+    short by a full disk or a killed copy, edited, or of another batch)."""
+    try:
+        summary = json.loads(path.read_bytes())
+    except (OSError, ValueError) as e:            # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        return None, " ".join(str(e).split()) or type(e).__name__
+    if not isinstance(summary, dict):
+        return None, f"a JSON {type(summary).__name__}, not an object"
+    missing = [k for k in SUMMARY_KEYS if k not in summary]
+    if missing:
+        return None, f"no {', '.join(missing)}"
+    if summary["batch"] != members:
+        return None, f"a batch of {summary['batch']!r}, not the shard's {members} members"
+    return summary, None
 
 
 def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dict[str, Any]]:

@@ -50,7 +50,8 @@ import numpy as np
 
 from ..errors import ConfigError, RcoError
 from . import scenario as scenarios
-from .sweep import DISTRIBUTIONS, Sweep, run_sweep
+from .sweep import _TYPES as SWEEP_TYPES
+from .sweep import DISTRIBUTIONS, Sweep, _check_types, _is_int, run_sweep
 
 METHODS = ("grid", "random", "tpe")
 CONFIG_KEYS = {"scenario", "steps", "method", "samples", "rounds", "seeds", "seed", "fixed", "space", "shard_size",
@@ -58,6 +59,11 @@ CONFIG_KEYS = {"scenario", "steps", "method", "samples", "rounds", "seeds", "see
 TPE_DISTRIBUTIONS = ("uniform", "loguniform", "choice")
 SCORE = "validation_rmse"
 BINS = 4                     # quantile bins of a continuous setting in the sensitivity table
+# The type of each top-level config value: (test, what it must be); the keys a sweep has too are checked as its.
+_TYPES = {**{k: v for k, v in SWEEP_TYPES.items() if k in CONFIG_KEYS},
+          "method": (lambda v: v in METHODS, f"one of {METHODS}"),
+          "rounds": (_is_int, "an integer"),
+          "space": (lambda v: isinstance(v, Mapping) and bool(v), "a non-empty table of settings")}
 
 
 @dataclass
@@ -84,10 +90,7 @@ class Tuning:
         for key in ("scenario", "space"):
             if key not in spec:
                 raise ConfigError(f"{source}: '{key}' is missing")
-        if not isinstance(spec["space"], Mapping) or not spec["space"]:
-            raise ConfigError(f"{source}: space must be a non-empty table of settings")
-        if spec.get("method", "random") not in METHODS:
-            raise ConfigError(f"{source}: method must be one of {METHODS}, got {spec['method']!r}")
+        _check_types(spec, source, _TYPES)
         return cls(**spec)
 
     @classmethod
@@ -220,11 +223,11 @@ class Tuning:
             ends = self._choices(name)
             edges += [{**start, name: v} for v in (list(next(iter(values.values()))) if ends is None else ends)]
         sweep = self.sweep(edges)
-        for shard in sweep.shards():
-            try:
+        try:
+            for shard in sweep.shards():                 # the members' settings are checked here first
                 make_run(self.scenario, shard, self.steps, self.dtype, "cpu", None)
-            except ConfigError as e:
-                raise ConfigError(f"tune space (each listed value and each end of a range): {e}") from None
+        except ConfigError as e:
+            raise ConfigError(f"tune space (each listed value and each end of a range): {e}") from None
 
 
 @dataclass
