@@ -83,7 +83,11 @@ def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_row
                         f"({e.where}), but the setting Ts is {Ts:.10g} s; pass --set Ts={e.stated:.10g} if the file "
                         "is right, or correct the file") from None
     fit = rec.rows(*fit_rows)
-    model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
+    try:
+        model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
+    except DataError as e:
+        raise DataError(f"scenario 'silverbox-cubic-stiffness': {path}, rows {fit_rows[0]}-{fit_rows[1]} "
+                        f"(columns {w_col!r}, {y_col!r}): {e}") from None
     return rec, model
 
 

@@ -230,3 +230,18 @@ def test_values_whose_square_overflows_are_refused_at_load_in_one_line(tmp_path,
                  *QUICK]) == 2
     err = _one_line(capsys.readouterr().err)
     assert str(path) in err and "column 'V2'" in err and "can square" in err
+
+
+def test_a_linear_fit_of_data_of_extreme_scale_fails_in_one_line_without_warnings():
+    """Measurements of 1e50 (below the load's limit) overflow inside the output-error optimizer: one DataError
+    saying the fit failed and the data's scale, no RuntimeWarnings before it."""
+    import warnings
+
+    from rcotorch.models.identification import MassSpringDamper
+    k = np.arange(3000)
+    w = 0.01 * np.sin(0.1 * k)
+    y = 1e50 * np.cos(0.37 * k)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(rt.DataError, match=r"output-error fit of the linear model failed .*max \|y\| = 1e\+50"):
+            MassSpringDamper.fit(w, y, 0.0016384)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -566,10 +567,18 @@ class MassSpringDamper:
         ys = max(float(np.abs(y).max()), 1e-12)
         scale = np.array([max(abs(a0), 1.0), abs(b0), max(abs(g0), 1e-12), max(abs(d00), abs(b0) * ys * 1e-3),
                           ys, ys * math.sqrt(abs(b0))])
-        sol = scipy.optimize.least_squares(res, q0, x_scale=scale)
+        failed = DataError(f"fit: the output-error fit of the linear model failed on these data (max |y| = "
+                           f"{ys:.3g}, max |w| = {float(np.abs(w).max()):.3g}); check the columns, their units and dt")
+        # Data of extreme scale overflow inside the optimizer: that is reported once, as the fit's failure.
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            try:
+                sol = scipy.optimize.least_squares(res, q0, x_scale=scale)
+            except (ConfigError, ValueError):          # a step to parameters that are not finite
+                raise failed from None
         q = sol.x
         if not np.all(np.isfinite(q)) or q[1] <= 0:
-            raise DataError(f"fit: output-error fit failed (parameters {q[:4].tolist()})")
+            raise failed
         return cls(*(float(v) for v in q[:4]), float(dt), bool(foh), float(lead), fit_rmse=rmse(sol.fun, 0.0))
 
 
