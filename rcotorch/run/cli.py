@@ -422,6 +422,7 @@ def cmd_run(args, session: Session) -> int:
         session.resume += f" --checkpoint-every {args.checkpoint_every}"
     with session.interruptible() as stop:
         r.open_output()
+        print(r.header(), flush=True)
         session.log(f"`{session.command()}` at step {r.k} of {r.steps}")
         try:
             r.advance(progress=False if args.quiet else None, checkpoint_every=args.checkpoint_every,
@@ -433,7 +434,7 @@ def cmd_run(args, session: Session) -> int:
             return session.exit_stopped()
         session.summarizing = True
         try:
-            summary = r.finish(figures=not args.no_figures, close=False)
+            summary = r.finish(figures=not args.no_figures, close=False, progress=False if args.quiet else None)
         except StopSummary:
             path = r.save()
             session.log(f"stopped by {session.stopped_by} while writing the summary at step {r.k}; "
@@ -443,8 +444,6 @@ def cmd_run(args, session: Session) -> int:
             return session.exit_stopped()
         finally:
             session.summarizing = False
-    print(f"{summary['scenario']}: {summary['steps']} steps, batch {summary['batch']}, {summary['dtype']}, "
-          f"{summary['device']}, {summary['engine']} engine -> {r.out}")
     print(result_table(summary))
     passed = all(c["pass"] for c in summary["requirements"].values())
     session.log(f"finished at step {summary['steps']}: " + ("every requirement passes" if passed else

@@ -25,6 +25,7 @@ import math
 import re
 import sys
 import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -332,11 +333,19 @@ class Run:
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
-        self._settle: tuple[int, int | None] = (0, None)    # the replay's settling steps, and what its loop needs
+        self._settle: tuple[int, int | None, str] = (0, None, "")   # settling steps, what the loop needs, why less
         self.monitor: Monitor | None = None
         self.hparams_session = True
         self.tb_origin: float | None = None    # TensorBoard's wall time at step 0 (``Monitor.wall``)
         self.figures_expected = True           # whether ``finish`` will draw figures (their imports start early)
+        self.timings: dict[str, float] = {}    # seconds of each part of the end of the run (``finish``)
+
+    def header(self) -> str:
+        """One line on what runs and where its results go: scenario, steps, batch, dtype, device, engine and
+        output folder (the engine the graph will run on before it ran, the one it ran on after)."""
+        engine = self.graph.ran_engine or ("torch" if self.graph.native_status() else "native")
+        return (f"{self.scenario.name}: {self.steps} steps, batch {self.batch}, {self.dtype_name}, {self.device.type}, "
+                f"{engine} engine -> {self.out}")
 
     @property
     def k(self) -> int:
@@ -381,7 +390,8 @@ class Run:
             _positive_int(checkpoint_every, "--checkpoint-every")
         self.graph.check_steps(until - self.k)
         self._start_monitor()
-        prefetch(figures=self.figures_expected, verdict=self.intervals_on)
+        if self.batch * (until - self.k) >= PREFETCH_MEMBER_STEPS:
+            prefetch(figures=self.figures_expected, verdict=self.intervals_on)
         bar = None
         if progress or (progress is None and until - self.k >= 5000):
             from tqdm import tqdm
@@ -688,12 +698,14 @@ class Run:
             window = min(self.k - self.health.window_start, ci.REPLAY_STEPS)
             found = (None, None)
             if window >= 2:
+                started = time.perf_counter()
                 steps, settle = self._replay_span(window)
                 rep = ci.replay(self.graph, self.snapshot, steps, settle)
                 self.graph.role("estimator").covariance = rep.covariance   # for the scenario's figures
                 found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
                                                rep.covariance, level=self.level,
                                                scales=self.scenario.scales(self.settings)), rep.residuals)
+                self.timings["intervals"] = time.perf_counter() - started
             self._intervals = (self.k, *found)
         return self._intervals[1:]
 
@@ -710,15 +722,21 @@ class Run:
         quarter = int(ci.SETTLE * window)
         need = loop_settle(self.graph)
         if need is None:
-            self._settle = (quarter, None)
+            self._settle = (quarter, None, "")
             return window, quarter
-        settle = need.clamp_min(quarter)
+        # A member whose loop barely decays would make the whole batch replay for that long: no member settles
+        # for longer than the run has run.
+        settle = need.clamp_min(quarter).clamp_max(max(quarter, self.k))
+        why = "the replay settles for at most as long as the run ran"
         limit = self.graph.max_steps
         if limit is not None:
-            settle = settle.clamp_max(max(quarter, limit - self.health.window_start - (window - quarter)))
+            reach = max(quarter, limit - self.health.window_start - (window - quarter))
+            if bool((settle > reach).any()):
+                why = "the recorded data end sooner"
+            settle = settle.clamp_max(reach)
         short = settle < need
         self._settle = (int(settle[short].min()) if bool(short.any()) else quarter,
-                        int(need[short].max()) if bool(short.any()) else None)
+                        int(need[short].max()) if bool(short.any()) else None, why)
         return int(settle.max()) + window - quarter, settle
 
     def validation(self):
@@ -728,6 +746,7 @@ class Run:
             return None
         if self._validation is None or self._validation[0] != self.k:
             from ..verdict.validation import validate
+            started = time.perf_counter()
             found, reason = None, None
             plan = self.scenario.validation(self.graph, self.settings)
             if plan is None:
@@ -739,6 +758,7 @@ class Run:
                     reason = str(e)
                     logging.getLogger("rcotorch").warning("validation skipped: %s", reason)
             self._validation = (self.k, found, reason)
+            self.timings["validation"] = time.perf_counter() - started
         return self._validation[1]
 
     @property
@@ -777,31 +797,68 @@ class Run:
                                "pass": bool(ok.all()), "member_pass": self._plain(ok.reshape(-1).tolist())}
         return checks
 
-    def finish(self, figures: bool = True, close: bool = True) -> dict[str, Any]:
+    def finish(self, figures: bool = True, close: bool = True, progress: bool | None = None) -> dict[str, Any]:
         """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
         (unless ``close`` is False). The run's own figures (from its history) are drawn on a second thread
         while summary.json and the checkpoint are written; the scenario's figures (which may read the graph
-        and use pyplot) are drawn before, in this thread."""
-        self._start_monitor()
-        if self._pending_log():
-            self._log()
-        summary = self.summary()
-        if figures:
-            from .figures import draw_meanwhile, pngs, run_figures
-            scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
-            run_pngs = draw_meanwhile(lambda: run_figures(self))
-        write_text(self.out / "summary.json", to_json(summary) + "\n")
-        self.save()
-        if figures:
-            self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
-        self.monitor.final_intervals(self.intervals(), sorted({*self.history["step"], self.k}), self.band_over_time())
-        self.monitor.close(summary)
-        self.folder.register()
+        and use pyplot) are drawn before, in this thread. ``progress``: show the parts of the end as a progress
+        bar (None: where the steps showed one). ``timings`` then holds the seconds of each part: ``intervals``
+        (the replay of the window and the intervals), ``validation``, ``summary`` (the rest of it), ``figures``,
+        ``files`` (summary.json, the checkpoint, TensorBoard's last records) and ``end`` (all of it)."""
+        started = time.perf_counter()
+        parts = [("intervals and residual checks", self._replayed), ("validation", self.validation)]
+        bar = None
+        if progress or (progress is None and self.steps >= 5000):
+            from tqdm import tqdm
+            bar = tqdm(total=len(parts) + 2, desc="verdict", unit="part", mininterval=0, disable=None,
+                       file=sys.stderr, bar_format="{desc}: {n_fmt}/{total_fmt} parts, {elapsed}{postfix}")
+        try:
+            self._start_monitor()
+            if self._pending_log():
+                self._log()
+            for what, part in parts:             # each computed once, then kept for the summary
+                if bar is not None:
+                    bar.set_postfix_str(what)
+                part()
+                if bar is not None:
+                    bar.update(1)
+            t = time.perf_counter()
+            summary = self.summary()
+            self.timings["summary"] = time.perf_counter() - t
+            if bar is not None:
+                bar.set_postfix_str("figures" if figures else "files")
+                bar.update(1)
+            t = time.perf_counter()
+            if figures:
+                from .figures import draw_meanwhile, pngs, run_figures
+                scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
+                run_pngs = draw_meanwhile(lambda: run_figures(self))
+            t_files = time.perf_counter()
+            write_text(self.out / "summary.json", to_json(summary) + "\n")
+            self.save()
+            self.timings["files"] = time.perf_counter() - t_files
+            if figures:
+                self.monitor.figures({**run_pngs(), **scenario_pngs}, self.out)
+            self.monitor.final_intervals(self.intervals(), sorted({*self.history["step"], self.k}),
+                                         self.band_over_time())
+            self.monitor.close(summary)
+            self.folder.register()
+            self.timings["figures"] = time.perf_counter() - t - self.timings["files"] if figures else 0.0
+            if bar is not None:
+                bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        self.timings["end"] = time.perf_counter() - started
+        with contextlib.suppress(OSError, RcoError):
+            self.folder.log("the end of the run: " + ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items()))
         if close:
             self.close()
         return summary
 
-
+# A stretch of at least this many member-steps starts the imports of the end of the run beside it (a shorter one
+# would only slow its own steps: the imports hold Python between the engine's calls).
+PREFETCH_MEMBER_STEPS = 1 << 24
 _PREFETCHED: set[str] = set()
 
 
@@ -844,13 +901,13 @@ def loop_settle(graph) -> torch.Tensor | None:
     return taus.clamp_max(ci.SETTLE_MAX).ceil().to(torch.int64).to(est.theta.device)
 
 
-def _settle_note(settle: int, need: int | None, dt: float | None) -> list[str]:
+def _settle_note(settle: int, need: int | None, why: str, dt: float | None) -> list[str]:
     if need is None or settle >= need:
         return []
     unit = (lambda n: f"{n * dt:.4g} s") if dt else (lambda n: f"{n} steps")
     return [f"the intervals' replay settled for {unit(settle)} where the refined loop's slowest mode needs "
-            f"{unit(need)} ({ci.SETTLE_TAUS:g} time constants) to forget the window's start: the recorded data end "
-            "sooner; the intervals and residual checks may carry that transient"]
+            f"{unit(need)} ({ci.SETTLE_TAUS:g} time constants) to forget the window's start: {why}; the "
+            "intervals and residual checks may carry that transient"]
 
 
 def tuning_warnings(graph) -> list[str]:

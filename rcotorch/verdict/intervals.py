@@ -423,7 +423,7 @@ class _ResidualSums:
         r = auto[:, 1:]                                                          # lags 1..L
         lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
         q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
-        from scipy.special import chdtrc        # the chi-squared survival function
+        from scipy.special import chdtrc  # the chi-squared survival function
         p = torch.as_tensor(chdtrc(L, torch.nan_to_num(q, nan=math.inf).cpu().numpy()), dtype=torch.float64)
         f = self.fit
         spread = torch.sqrt(f["yy"] - (f["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
@@ -542,7 +542,7 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     variance of the difference when the errors at k0 and N are taken as independent (X at k0 is X n_N / n_k0,
     n_k = sum_{j<k} lam^j the RLS memory), so larger than the covariance it ignores. With forgetting the
     estimate keeps moving by about its interval; the window's change then says nothing about convergence."""
-    from scipy.special import chdtri          # the chi-squared quantile of an upper tail
+    from scipy.special import chdtri  # the chi-squared quantile of an upper tail
 
     B, n = pc.cov.shape[0], pc.cov.shape[1]
     eta = est.theta_free().detach().to(torch.float64).cpu()
