@@ -213,9 +213,19 @@ def test_a_biased_refinement_is_not_called_converged(tmp_path):
     assert "biased: the output error favours estimates more than 5% away" in health_line(s)
 
 
-def test_the_replays_lagged_sums_in_chunks_equal_the_sums_written_out():
+@pytest.mark.parametrize("native", [True, False], ids=["native kernel", "FFT"])
+def test_the_replays_lagged_sums_in_chunks_equal_the_sums_written_out(native):
     """The replay sums its scores and residuals in chunks of steps: the lagged products G_lag = sum_t s(t)
-    s(t - lag)^T and z(t) w(t - lag) equal the sums written out in NumPy, whatever the chunks."""
+    s(t - lag)^T and z(t) w(t - lag) equal the sums written out in NumPy, whatever the chunks, on the native
+    kernel (the CPU) and by FFT (elsewhere)."""
+    import contextlib
+
+    from rcotorch.engine import kernels
+    with contextlib.nullcontext() if native else kernels.disabled():
+        _lagged_sums_equal_the_sums_written_out()
+
+
+def _lagged_sums_equal_the_sums_written_out():
     from rcotorch.verdict import intervals as ci
     rng = np.random.default_rng(7)
     T, B, n, L = 53, 3, 2, 5
