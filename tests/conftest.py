@@ -73,3 +73,15 @@ def wait_for(predicate, timeout: float = 120.0) -> None:
             return
         time.sleep(0.05)
     raise AssertionError("timed out")
+
+
+def at_step(monkeypatch, step: int, action) -> None:
+    """Do ``action(out)`` once, when the run reaches ``step`` (a fault injected into a running run)."""
+    import rcotorch.run.runner
+    original, done = rcotorch.run.runner.Run._take_snapshot, []
+
+    def snapshot(self):
+        if self.k >= step and not done:
+            done.append(action(self.out))
+        return original(self)
+    monkeypatch.setattr(rcotorch.run.runner.Run, "_take_snapshot", snapshot)

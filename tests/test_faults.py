@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import default_signals, wait_for
+from conftest import at_step, default_signals, wait_for
 
 import rcotorch.run.runner
 from rcotorch.errors import OutputError
@@ -211,20 +211,9 @@ def test_a_full_disk_when_the_folder_is_opened_leaves_nothing_behind(tmp_path, m
 
 
 # --- the output folder --------------------------------------------------------------------------------------
-def _at_step(monkeypatch, step: int, action) -> None:
-    """Do ``action(out)`` once, when the run reaches ``step``."""
-    original, done = rcotorch.run.runner.Run._take_snapshot, []
-
-    def snapshot(self):
-        if self.k >= step and not done:
-            done.append(action(self.out))
-        return original(self)
-    monkeypatch.setattr(rcotorch.run.runner.Run, "_take_snapshot", snapshot)
-
-
 def test_the_output_folder_deleted_during_a_run_exits_2(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
-    _at_step(monkeypatch, 100, shutil.rmtree)
+    at_step(monkeypatch, 100, shutil.rmtree)
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK]) == 2
     err = _one_line(capsys.readouterr().err)
     assert f"the output folder {out} was deleted while rcotorch was writing to it" in err and "run again" in err
@@ -240,7 +229,7 @@ def test_the_output_folder_replaced_during_a_run_exits_2_and_the_new_one_is_not_
         folder.rename(tmp_path / "moved")
         folder.mkdir()
         (folder / "summary.json").write_text("the user's")
-    _at_step(monkeypatch, 100, replace)
+    at_step(monkeypatch, 100, replace)
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK, "--checkpoint-every", "50"]) == 2
     err = _one_line(capsys.readouterr().err)
     assert f"the output folder {out} was replaced by another folder while rcotorch was writing to it" in err

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import at_step
 
 import rcotorch.run.runner
 from rcotorch.errors import ConfigError, OutputError
@@ -148,17 +149,6 @@ def test_a_sweep_resumed_over_a_shard_whose_summary_is_truncated_runs_that_shard
 
 
 # --- an output folder replaced during a run -----------------------------------------------------------------
-def _at_step(monkeypatch, step: int, action) -> None:
-    """Do ``action(out)`` once, when the run reaches ``step``."""
-    original, done = rcotorch.run.runner.Run._take_snapshot, []
-
-    def snapshot(self):
-        if self.k >= step and not done:
-            done.append(action(self.out))
-        return original(self)
-    monkeypatch.setattr(rcotorch.run.runner.Run, "_take_snapshot", snapshot)
-
-
 def test_an_output_folder_moved_away_and_replaced_by_an_empty_one_is_reported_replaced(tmp_path, monkeypatch,
                                                                                         capsys):
     out, moved = tmp_path / "run", tmp_path / "moved"
@@ -166,7 +156,7 @@ def test_an_output_folder_moved_away_and_replaced_by_an_empty_one_is_reported_re
     def replace(folder):
         folder.rename(moved)
         folder.mkdir()
-    _at_step(monkeypatch, 100, replace)
+    at_step(monkeypatch, 100, replace)
     assert main(["run", "sdof-stiffness", "--out", str(out), *QUICK, "--checkpoint-every", "50"]) == 2
     err = _one_line(capsys.readouterr().err)
     assert f"the output folder {out} was replaced by another folder while rcotorch was writing to it" in err

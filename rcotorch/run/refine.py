@@ -100,27 +100,22 @@ class GraphScenario(Scenario):
     def estimates(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
         if self._estimates is None:
             return parameter_estimates(graph)
-        out = {}
-        for key, fn in self._estimates.items():
-            value = _call("estimate", key, fn, graph)
-            if value.numel() != graph.batch_size:
-                raise ConfigError(f"refine: estimate {key!r} gives {tuple(value.shape)}, expected one value per "
-                                  f"member ({graph.batch_size},)")
-            out[key] = value.reshape(graph.batch_size)
-        return out
+        return {key: _per_member("estimate", key, fn, graph) for key, fn in self._estimates.items()}
 
     def metrics(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
-        out = {}
-        for key, fn in (self._metrics or {}).items():
-            value = _call("metric", key, fn, graph)
-            if value.numel() != graph.batch_size:
-                raise ConfigError(f"refine: metric {key!r} gives {tuple(value.shape)}, expected one value per "
-                                  f"member ({graph.batch_size},)")
-            out[key] = value.reshape(graph.batch_size)
-        return out
+        return {key: _per_member("metric", key, fn, graph) for key, fn in (self._metrics or {}).items()}
 
     def scales(self, settings) -> dict[str, float]:
         return dict(self._scales)
+
+
+def _per_member(kind: str, key: str, fn, graph: Graph) -> torch.Tensor:
+    """``fn(graph)`` (an estimate's or metric's function, ``_call``) as one value per member, (B,)."""
+    value = _call(kind, key, fn, graph)
+    if value.numel() != graph.batch_size:
+        raise ConfigError(f"refine: {kind} {key!r} gives {tuple(value.shape)}, expected one value per member "
+                          f"({graph.batch_size},)")
+    return value.reshape(graph.batch_size)
 
 
 def _call(kind: str, key: str, fn: Estimate, graph: Graph) -> torch.Tensor:
