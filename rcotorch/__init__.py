@@ -25,6 +25,7 @@ _DEFINED_IN = {
     "LTI": "blocks.lti", "zoh": "blocks.lti",
     "MarkovRefresh": "blocks.nonlinear", "Nonlinear": "blocks.nonlinear",
     "RefinementResult": "run.refine", "refine": "run.refine",
+    "Requirement": "run.scenario", "Scenario": "run.scenario",
     "derive_markov": "refinement", "refinement": "refinement",
     "rls_update": "engine.rls",
     "Recorded": "blocks.sources", "WhiteNoise": "blocks.sources",

@@ -476,3 +476,22 @@ def test_a_log_writes_one_event_per_writer(tmp_path, monkeypatch):
     run.monitor.log(60, torch.ones(4, dtype=torch.float64), est)
     assert len(calls) == 4 and len(set(map(id, calls))) == 4          # the run, truth, q10, q90
     run.close()
+
+
+def test_a_member_whose_values_lie_beyond_the_histograms_bins_is_counted_not_a_crash(tmp_path):
+    """One member's z finite but enormous (2.9e136, beyond TensorBoard's outermost bin edge of 1e20) made every
+    value of a histogram fall outside its bins and TensorBoard's writer raise 'The histogram is empty'."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = Run("sdof-stiffness", batch=16, steps=200, out=tmp_path / "run")
+    run.advance(progress=False)
+    values = np.full(16, 1e-3)
+    values[3] = 2.9e136
+    run.monitor._histograms(200, {"z rms": values, "dK": np.full(16, 3e30)})
+    run.monitor.close(run.summary())
+    run.close()
+    acc = EventAccumulator(str(tmp_path / "run"), size_guidance={"histograms": 0}).Reload()
+    tags = [t for t in acc.Tags()["histograms"] if t.startswith("spread/z rms") or t.startswith("spread/dK")]
+    assert len(tags) == 2
+    for tag in tags:
+        assert acc.Histograms(tag)[-1].histogram_value.num == 16

@@ -331,7 +331,10 @@ class Monitor:
             v = v[np.isfinite(v)]
             if v.size:
                 scaled = Scaled(1.0, self.z_tag.rsplit(" [", 1)[1][:-1]) if key == "z rms" else self.tags(key).scaled
-                summary = histogram(f"spread/{key} {scaled.label}", v / scaled.scale, self.writer.default_bins)
+                bins = self.writer.default_bins
+                # a value beyond the outermost bins (a member far off, say z = 1e136) is counted in the last bin
+                shown = np.clip(v / scaled.scale, bins[0], bins[-1])
+                summary = histogram(f"spread/{key} {scaled.label}", shown, bins)
                 self.writer.add_summary(summary, step, self.wall(step))
 
     def final_intervals(self, found, steps: list[int], band=None) -> None:
