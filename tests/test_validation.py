@@ -104,3 +104,23 @@ def test_a_member_whose_loop_overflows_is_scored_nan_and_the_others_as_before():
     v = rt.validate(g, steps=300)
     assert torch.isnan(v.rmse[1]) and not v.state_fitted
     assert float(v.rmse[0]) == pytest.approx(float(before.rmse[0]), rel=1e-12)
+
+
+def test_a_run_is_validated_on_no_more_held_out_samples_than_it_ran_and_at_least_200():
+    """A 10-step run of 4,096 members was validated on 2,000 fresh samples (two simulations and the state's fit of
+    each: 2 s against its 0.01 s of steps); the default now takes as many samples as the run ran, between 200 and
+    the scenario's validation_steps."""
+    import tempfile
+    import types
+
+    from rcotorch.run import scenario as scenarios
+    from rcotorch.run.runner import Run
+    sc = scenarios.get("sdof-stiffness")
+    for ran, want in [(10, 200), (300, 300), (1999, 1999), (20000, sc.validation_steps)]:
+        graph = types.SimpleNamespace(roles={"excitation": "excitation"}, k=torch.tensor(ran))
+        assert sc.validation(graph, sc.resolve({})) == {"steps": want}
+    with tempfile.TemporaryDirectory() as out:
+        run = Run("sdof-stiffness", steps=300, out=out)
+        run.advance(progress=False)
+        assert run.validation().steps == 300
+        run.close()

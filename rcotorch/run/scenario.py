@@ -101,6 +101,7 @@ ESTIMATOR_BOUNDS: Mapping[str, str] = {"p0": POSITIVE, "lam": UNIT_INTERVAL, "nu
 #: The largest seed: the random streams (``rcotorch.engine.rng``) take a seed modulo 2**32, so a seed outside
 #: 0..SEED_MAX would draw the stream of one inside it.
 SEED_MAX = 2 ** 32 - 1
+VALIDATION_MIN_STEPS = 200    # held-out samples a short run is validated on at least (fit_steps of them fix the state)
 #: The options that may differ between the members of one batch (a zero penalty is the same as none; a
 #: scale or bound cannot be off for some members only, so a sweep over them runs one batch per value).
 ESTIMATOR_OPTIONS_PER_MEMBER = frozenset({"r_delta"})
@@ -303,11 +304,13 @@ class Scenario:
     def validation(self, graph: Graph, settings: Mapping[str, Any]) -> dict[str, Any] | None:
         """How a run's refined model is validated on held-out data: the keyword arguments of
         ``rcotorch.validate`` (``steps``, ``rows`` or ``data``), or None for no validation. By default
-        ``validation_steps`` samples of a fresh excitation where the graph simulates its physical system, and
-        none for recorded data (a scenario of recorded data names its held-out rows)."""
+        ``validation_steps`` samples of a fresh excitation where the graph simulates its physical system (no
+        more than the run's own steps, and at least ``VALIDATION_MIN_STEPS``: a short run is not validated on
+        data hundreds of times longer than itself), and none for recorded data (a scenario of recorded data
+        names its held-out rows)."""
         if not self.validation_steps or "excitation" not in graph.roles:
             return None
-        return {"steps": self.validation_steps}
+        return {"steps": min(self.validation_steps, max(int(graph.k), VALIDATION_MIN_STEPS))}
 
     def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
         """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
