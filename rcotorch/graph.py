@@ -21,6 +21,7 @@ import math
 import numbers
 import operator
 import os
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import torch
@@ -323,6 +324,22 @@ class Graph(nn.Module):
         for blk in self.blocks.values():
             blk.reset(B)
         self.k.zero_()
+        self._warn_shared_streams()
+
+    def _warn_shared_streams(self) -> None:
+        """Warn where two random sources draw the same stream for a member: their samples are the same numbers
+        (scaled), so a measurement noise drawn so is the excitation itself, not independent of it."""
+        sources = [(name, blk.stream) for name, blk in self.blocks.items()
+                   if isinstance(getattr(blk, "stream", None), torch.Tensor) and blk.stream.dim() == 2]
+        for i, (a, sa) in enumerate(sources):
+            for b, sb in sources[i + 1:]:
+                same = (sa == sb).all(1) if sa.shape == sb.shape else torch.zeros(1, dtype=torch.bool)
+                if bool(same.any()):
+                    member = int(same.nonzero()[0, 0])
+                    warnings.warn(f"graph: blocks '{a}' and '{b}' draw the same random stream (seed "
+                                  f"{int(sa[member, 0])} for member {member}{' and others' if int(same.sum()) > 1 else ''}"
+                                  "): their samples are the same numbers scaled, not independent; give each its own "
+                                  "seed", stacklevel=3)
 
     @property
     def max_steps(self) -> int | None:

@@ -212,3 +212,29 @@ def test_advancing_a_graph_by_zero_steps_or_a_numpy_integer_is_accepted():
     g.advance(0)
     g.advance(np.int64(3))
     assert int(g.k) == 3
+
+
+def test_two_random_sources_with_the_same_seed_warn_naming_both_blocks():
+    """Excitation and noise built with one seed draw the same numbers (the noise is the excitation scaled,
+    correlation 1); the graph says so when it is built. Distinct seeds, or the same seed for different members
+    only, do not warn."""
+    import warnings
+
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.4, 4.0, measured=["position"], sees=["position"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.05, name="known")
+
+    def build(w_seed, v_seed, batch=2):
+        ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=1e3)
+        return rt.refinement(known, ident, truth=rt.Gain(torch.tensor([[0.5]])), nu=10, batch_size=batch,
+                             excitation=rt.WhiteNoise(1, seed=w_seed), noise=rt.WhiteNoise(1, std=0.01, seed=v_seed))
+    with pytest.warns(UserWarning, match=r"blocks 'excitation' and 'noise' draw the same random stream \(seed 3 for "
+                                         r"member 0 and others\)"):
+        g = build(3, 3)
+    g.run(20)
+    assert torch.allclose(g.blocks["noise"].step()["out"], 0.01 * g.blocks["excitation"].step()["out"])
+    with pytest.warns(UserWarning, match="seed 8 for member 1"):
+        build([7, 8], [9, 8])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build(3, 4)
+        build([1, 2], [2, 1])                   # one member's excitation stream is the other's noise: independent
