@@ -336,10 +336,10 @@ class Graph(nn.Module):
                 same = (sa == sb).all(1) if sa.shape == sb.shape else torch.zeros(1, dtype=torch.bool)
                 if bool(same.any()):
                     member = int(same.nonzero()[0, 0])
+                    more = " and others" if int(same.sum()) > 1 else ""
                     warnings.warn(f"graph: blocks '{a}' and '{b}' draw the same random stream (seed "
-                                  f"{int(sa[member, 0])} for member {member}{' and others' if int(same.sum()) > 1 else ''}"
-                                  "): their samples are the same numbers scaled, not independent; give each its own "
-                                  "seed", stacklevel=3)
+                                  f"{int(sa[member, 0])} for member {member}{more}): their samples are the same "
+                                  "numbers scaled, not independent; give each its own seed", stacklevel=3)
 
     @property
     def max_steps(self) -> int | None:

@@ -5,6 +5,7 @@ of batched candidates (resumable), and the Ray backend."""
 import math
 import tomllib
 
+import numpy as np
 import pytest
 
 from rcotorch.errors import ConfigError, OutputError
@@ -98,8 +99,8 @@ class _Room:
                 truth = rt.LTI.continuous([[-0.06]], [[1.0]], [[1.0]], [[0]], inputs=["w"], outputs=["y"], dt=1.0)
                 ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=s["p0"], lam=s["lam"])
                 return rt.refinement(known, ident, physical=truth, excitation=rt.WhiteNoise(1, seed=s["seed"]),
-                                     noise=rt.WhiteNoise(1, std=0.05, seed=s["seed"]), nu=s["nu"],
-                                     batch_size=batch, dtype=dtype, device=device)
+                                     noise=rt.WhiteNoise(1, std=0.05, seed=np.add(s["seed"], 1000).tolist()),
+                                     nu=s["nu"], batch_size=batch, dtype=dtype, device=device)
 
             def estimates(self, g, s):
                 return {"g": 0.04 - g.role("estimator").theta[:, 0, 0]}
