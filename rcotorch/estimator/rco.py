@@ -880,19 +880,18 @@ class RCOEstimator(Block):
             before = ring[torch.arange(k0 - W, k0, device=ring.device) % W] if W else ring[:0]
             phi = torch.cat([before, phi])
             lo -= W
-        # Psi^T(k)[z, a * n_phi + j] = sum_{i = fd}^{W - 1} beta_{i - fd}[z, a] phi(k - i)[j]: with l = nu - 1 - i,
-        # the window phi(k - fd - nu + 1 + l), l = 0 .. nu - 1, times beta reversed in time, one batched product
-        # per stretch of steps (beta per member or shared)
+        # Psi^T(k)[z, a * n_phi + j] = sum_{i = fd}^{W - 1} beta_{i - fd}[z, a] phi(k - i)[j]: a product and sum
+        # per Markov parameter over a stretch of steps short enough to stay in cache (beta per member or shared)
         T, n_out = stop - start, self.n_z * self.n_u
-        beta = self.beta.to(f64).flip(1).reshape(self.beta.shape[0], 1, nu, n_out)     # (Bp, 1, nu, n_z n_u)
-        x = phi.permute(1, 2, 0)                                                   # (B, n_phi, steps)
-        first = start - lo - fd - nu + 1                                           # the window of step start
+        beta = self.beta.to(f64).reshape(self.beta.shape[0], nu, n_out, 1)
         psi = phi.new_empty(T, B, n_out, self.n_phi)
-        span = max(1, (1 << 23) // max(1, B * self.n_phi * nu))                    # steps a product takes
+        span = max(1, (1 << 19) // max(1, B * n_out * self.n_phi))                # steps of about 4 MB
         for t0 in range(0, T, span):
             t1 = min(T, t0 + span)
-            win = x[..., first + t0:first + t1 + nu - 1].unfold(-1, nu, 1)         # (B, n_phi, t1 - t0, nu)
-            psi[t0:t1] = (win @ beta).permute(2, 0, 3, 1)                          # (t1 - t0, B, n_out, n_phi)
+            part = psi[t0:t1].zero_()
+            for i in range(nu):
+                at = start - fd - i - lo                                           # phi(k - fd - i), k = start
+                part.addcmul_(beta[:, i], phi[at + t0:at + t1].unsqueeze(2))
         psi = psi.reshape(T * B, self.n_z, self.n_u * self.n_phi)
         return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
 
