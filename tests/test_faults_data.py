@@ -170,19 +170,19 @@ def test_an_npz_that_inflates_beyond_memory_is_refused_naming_array_and_sizes(tm
     path = tmp_path / "bomb.npz"
     np.savez_compressed(path, y=np.zeros(2_000_000), w=np.zeros(2_000_000))    # 32 MB in about 31 kB
     assert path.stat().st_size < 100_000
-    monkeypatch.setattr(recording, "_available_memory", lambda: 5_000_000)
+    monkeypatch.setattr(recording, "available_memory", lambda: (5_000_000, "MemAvailable"))
     with pytest.raises(rt.DataError) as e:
         rt.load(path)
     msg = str(e.value)
     assert str(path) in msg and "array 'y'" in msg and "(2000000,)" in msg and "16 MB uncompressed" in msg, msg
     assert "kB in the file" in msg and "more than the 5 MB of memory available" in msg
-    monkeypatch.setattr(recording, "_available_memory", lambda: 10 ** 9)
+    monkeypatch.setattr(recording, "available_memory", lambda: (10 ** 9, "MemAvailable"))
     assert rt.load(path).values.shape == (2_000_000, 2)
 
 
 def test_the_memory_available_is_known_on_this_machine():
-    avail = recording._available_memory()
-    assert avail is None or (isinstance(avail, int) and avail > 0)
+    found = recording.available_memory()
+    assert found is None or (isinstance(found[0], int) and found[0] > 0 and found[1])
 
 
 # --- the arguments of a Recording --------------------------------------------------------------------------------

@@ -7,7 +7,6 @@ import ast
 import csv
 import math
 import numbers
-import os
 import re
 import zipfile
 import zlib
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataError
+from ..system import available_memory
 
 SAMPLE_TIME_RTOL = 1e-9     # sample times closer than this (relative) are the same rate
 # A sample time a file states (a stored scalar, the steps of a time column beyond the rounding of the digits
@@ -880,9 +880,10 @@ def _read_npz(path: Path) -> tuple[list[str], np.ndarray, dict[str, Any], list[s
 def _check_npz_sizes(path: Path) -> None:
     """Before any array of an ``.npz`` file is read: each ``.npy`` member's header must declare as many bytes
     as the member holds (uncompressed, by the archive's directory), and the arrays, with their float64 copies,
-    must fit in the memory available (``_available_memory``); else a ``DataError`` naming the array, its
+    must fit in the memory available (``rcotorch.system.available_memory``); else a ``DataError`` naming the array, its
     declared shape, dtype and size, and why."""
-    avail = _available_memory()
+    found = available_memory()
+    avail = found[0] if found else None
     need = 0
     try:
         with zipfile.ZipFile(path) as z:
@@ -947,38 +948,6 @@ def _npy_header(f) -> tuple[tuple[int, ...], np.dtype, int] | None:
     if not isinstance(shape, tuple) or not all(isinstance(x, int) and x >= 0 for x in shape):
         raise ValueError(f"the shape {shape!r} is not a tuple of integers >= 0")
     return shape, dtype, 8 + width + size
-
-
-def _available_memory() -> int | None:
-    """Bytes of memory this process may still take: the kernel's estimate of available memory
-    (``MemAvailable``), lowered to the room left under a cgroup memory limit; the free physical pages
-    (``os.sysconf``) where the first is not known; None where neither is."""
-    avail = None
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-                    break
-    except (OSError, ValueError, IndexError):
-        pass
-    if avail is None:
-        try:
-            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):
-            return None
-    try:                                    # cgroup v2: its limit less what it holds beyond reclaimable cache
-        cgroup = Path("/sys/fs/cgroup")
-        limit = (cgroup / "memory.max").read_text().strip()
-        if limit != "max":
-            used = int((cgroup / "memory.current").read_text())
-            for line in (cgroup / "memory.stat").read_text().splitlines():
-                if line.startswith("inactive_file "):
-                    used -= int(line.split()[1])
-            avail = min(avail, max(int(limit) - used, 0))
-    except (OSError, ValueError, IndexError):
-        pass
-    return avail if avail > 0 else None
 
 
 def _bytes(n: int) -> str:
