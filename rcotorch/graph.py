@@ -150,6 +150,9 @@ class Graph(nn.Module):
         self._check_sample_times()
         self.order = self._schedule()
         self.roles = self._check_roles(dict(roles or {}))
+        # how the physics the estimator stands for acts: 'sampled' (as the refined model applies it) or
+        # 'continuous' (rcotorch.verdict.sampling measures the bias of sampling it; rcotorch.refinement sets it)
+        self.feedback = "sampled"
         self.register_buffer("k", torch.zeros((), dtype=torch.int64))
         self.to(device=device, dtype=dtype)
         self.reset(batch_size)

@@ -30,7 +30,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
                device: str | torch.device = "cpu", exogenous: str = "w", actuation: str = "u",
                measured: str = "y", feeds: Mapping[str, str] | None = None, blocks: Sequence[Block] = (),
                connections: Iterable = (), input_holdoff: int | None = None,
-               noise: Block | None = None) -> Graph:
+               noise: Block | None = None, feedback: str | None = None) -> Graph:
     """Build the seed paper's Figure 1: physical system, simulated system, z = y - y_hat, estimator.
 
     The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
@@ -105,6 +105,12 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         ``y`` (e.g. ``WhiteNoise(1, std=0.01, seed=7)``); it is added to the physical system's output in a
         block ``measurement`` (y = plant.y + noise), so the refinement sees noisy data as it would from a
         sensor.
+    feedback : {'sampled', 'continuous'}, optional
+        How the physics the identified subsystem stands for acts: once per sample, as the refined model applies
+        it, or at every instant (a stiffness or a friction of a continuous system). With ``'continuous'`` and a
+        known model that samples a continuous system (``LTI.continuous``), the verdict measures the estimates'
+        bias from sampling the feedback (``rcotorch.verdict.sampling``). By default ``'sampled'`` for a
+        ``truth`` block in feedback and ``'continuous'`` for a ``physical`` system or recorded ``data``.
 
     Returns
     -------
@@ -214,7 +220,13 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
              "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}", "exogenous": w_src}
     if data is None:
         roles["excitation"] = excitation.name
-    return Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+    graph = Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
+    if feedback is None:
+        feedback = "sampled" if truth is not None else "continuous"
+    if feedback not in ("sampled", "continuous"):
+        raise ConfigError(f"refinement: feedback must be 'sampled' or 'continuous', got {feedback!r}")
+    graph.feedback = feedback
+    return graph
 
 
 def _role_block(block: Block, name: str, taken: Sequence[Block]) -> Block:

@@ -24,7 +24,7 @@ def _clean_theta(tmp_path, name, **kw):
 @pytest.mark.parametrize("engine", ["native", "torch"])
 def test_theta_runaway_is_frozen_with_finite_state_and_the_others_untouched(tmp_path, monkeypatch, engine):
     monkeypatch.setenv("RCOTORCH_ENGINE", engine)
-    kw = dict(steps=4000, batch=3)
+    kw = dict(steps=4000, batch=3, overrides={"truth": "discrete"})     # exact: the others are converged
     run = Run("sdof-stiffness", out=tmp_path / "run", **kw)
     every = check_every(4000)
     run.advance(until=1920 - 1, progress=False)
@@ -78,7 +78,7 @@ def test_covariance_windup_without_excitation_matches_the_closed_form(tmp_path):
     convergence window, which starts at step 4000, checks are 2 * every = 200 steps apart), P finite."""
     lam, p0, steps = 0.995, 1e3, 5000
     run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"w_std": 0.0}, {"w_std": 1.0}],
-              overrides={"lam": lam, "p0": p0})
+              overrides={"lam": lam, "p0": p0, "truth": "discrete"})
     run.advance(progress=False)
     summary = run.finish(figures=False)
     every = check_every(steps)
@@ -158,7 +158,8 @@ def test_statuses_and_their_numbers_against_recorded_signals(tmp_path):
     regressors sampled at the checks, so it agrees to sampling error (member 1's theta stays near zero, so its
     change is measured against the data's scale of u)."""
     steps = 2000
-    run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}])
+    run = Run("sdof-stiffness", steps=steps, out=tmp_path, members=[{"p0": 1e6}, {"p0": 1e-5}],
+              overrides={"truth": "discrete"})
     run.advance(progress=False)
     verdict = run.summary()["health"]
     run.close()
@@ -223,7 +224,7 @@ def test_criteria_are_checked(bad):
 def test_a_million_steps_with_forgetting_and_weak_excitation_end_classified_and_finite(tmp_path):
     """1e6 steps, lambda = 0.995: members with ordinary, weak, very weak and no excitation. P would overflow
     without the windup check; every member ends classified and finite."""
-    run = Run("sdof-stiffness", steps=1_000_000, out=tmp_path, overrides={"lam": 0.995},
+    run = Run("sdof-stiffness", steps=1_000_000, out=tmp_path, overrides={"lam": 0.995, "truth": "discrete"},
               members=[{"w_std": w} for w in (1.0, 1e-3, 1e-6, 0.0)])
     run.advance(progress=False)
     summary = run.finish(figures=False)

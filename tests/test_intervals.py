@@ -210,7 +210,7 @@ def test_a_biased_refinement_is_not_called_converged(tmp_path):
         move = float(found.offset[key][0])
         assert (truth - est[key]) * move > 0, key                            # the step points at the truth
         assert float(found.half_width[key][0]) >= abs(move)                  # the interval reaches its end
-    assert "biased: the output error favours estimates more than 5% away" in health_line(s)
+    assert "output error: the data favour a point more than 5% away" in health_line(s)
 
 
 @pytest.mark.parametrize("native", [True, False], ids=["native kernel", "FFT"])

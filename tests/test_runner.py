@@ -184,11 +184,11 @@ def test_a_member_whose_refined_model_fits_worse_is_not_converged(tmp_path, monk
         out["fit_percent"] = out["fit_percent"].clone()
         out["fit_percent"][0] = out["fit_percent_initial"][0] - 10.0
         return out
-    honest = Run("sdof-stiffness", batch=2, out=tmp_path / "a", validation=False)
+    honest = Run("sdof-stiffness", batch=2, overrides={"truth": "discrete"}, out=tmp_path / "a", validation=False)
     honest.advance(progress=False)
     assert honest.summary()["health"]["status"] == ["converged", "converged"]
     monkeypatch.setattr(runner, "residual_metrics", lowered)
-    run = Run("sdof-stiffness", batch=2, out=tmp_path / "b", validation=False)
+    run = Run("sdof-stiffness", batch=2, overrides={"truth": "discrete"}, out=tmp_path / "b", validation=False)
     run.advance(progress=False)
     summary = run.summary()
     assert summary["health"]["status"] == ["not_converged", "converged"]

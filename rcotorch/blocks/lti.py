@@ -211,17 +211,21 @@ class LTI(Block):
         import control
         if isinstance(sys, control.TransferFunction):
             sys = control.tf2ss(sys)
+        continuous = None
         if not isinstance(sys, control.StateSpace):
             raise ConfigError(f"block '{name}': expected a control.StateSpace or TransferFunction, "
                               f"got {type(sys).__name__}")
         if sys.isctime(strict=True):
             if dt is None:
                 raise ConfigError(f"block '{name}': a continuous system needs dt for its ZOH discretization")
-            sys = control.sample_system(sys, dt, method="zoh")
+            continuous, sys = sys, control.sample_system(sys, dt, method="zoh")
         elif sys.dt not in (None, True) and dt is not None and not np.isclose(sys.dt, dt):
             raise ConfigError(f"block '{name}': system sample time {sys.dt} differs from dt={dt}")
         dt = dt if dt is not None else sys.dt
-        return cls(sys.A, sys.B, sys.C, sys.D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+        block = cls(sys.A, sys.B, sys.C, sys.D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+        if continuous is not None:
+            block.set_continuous(continuous.A, continuous.B)
+        return block
 
     @classmethod
     def continuous(cls, A, B, C, D, inputs, outputs, dt: float, name: str = "lti", x0=None,
@@ -258,7 +262,44 @@ class LTI(Block):
         _check_finite(A, "A (continuous)", name)
         _check_finite(B, "B (continuous)", name)
         Ad, Bd = zoh(A, B, dt, dtype)
-        return cls(Ad, Bd, C, D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+        block = cls(Ad, Bd, C, D, inputs, outputs, dt, name=name, x0=x0, dtype=dtype)
+        block.set_continuous(A, B)
+        return block
+
+    def set_continuous(self, A, B) -> None:
+        """Record that the block samples a continuous system x' = A x + B u (its A and B discretized by
+        zero-order hold at ``dt``; C and D shared): a feedback that acts on it continuously can then be simulated
+        between the samples (``continuous_form``). The constructors from continuous systems call this.
+
+        Parameters
+        ----------
+        A, B : array_like
+            Continuous state-space matrices, (n, n) and (n, m) or batched (B, ...).
+
+        Raises
+        ------
+        DimensionError
+            If A or B does not have the shape of the block's discrete A or B.
+        """
+        A = as_batched_matrix(A, "A (continuous)", self.name, self.A.dtype)
+        B = as_batched_matrix(B, "B (continuous)", self.name, self.A.dtype, rows=self.n_states)
+        if A.shape[1:] != self.A.shape[1:] or B.shape[1:] != self.B.shape[1:]:
+            raise DimensionError(f"block '{self.name}': continuous A {tuple(A.shape[1:])} and B {tuple(B.shape[1:])} "
+                                 f"must have the shapes of the discrete ones, {tuple(self.A.shape[1:])} and "
+                                 f"{tuple(self.B.shape[1:])}")
+        self.register_buffer("A_c", A.to(self.A.device), persistent=False)
+        self.register_buffer("B_c", B.to(self.A.device), persistent=False)
+
+    def continuous_form(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The continuous system this block samples.
+
+        Returns
+        -------
+        tuple of torch.Tensor or None
+            (A, B), each (1 or B, rows, cols), or None for a block built from a discrete system.
+        """
+        A, B = getattr(self, "A_c", None), getattr(self, "B_c", None)
+        return None if A is None else (A, B)
 
     # --- block protocol -------------------------------------------------------------------------------
     def feedthrough(self):

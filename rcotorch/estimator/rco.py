@@ -916,6 +916,32 @@ class RCOEstimator(Block):
         flat = torch.cat([now, past.flatten(2), past_u.flatten(2)], dim=2)
         return flat.index_select(2, self._gather.to(flat.device))
 
+    def static_output(self, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+        """u = Theta phi(s) of a structure without memory (nc = 0, exactly proper): what ``output`` gives for
+        the regressor ports' values ``inputs`` at any one instant, with theta as it is and nothing changed.
+
+        Parameters
+        ----------
+        inputs : Mapping[str, torch.Tensor]
+            The regressor ports, each (B, width).
+
+        Returns
+        -------
+        torch.Tensor or None
+            (B, n_u); None for a structure with memory (nc > 0) or one that is not exactly proper.
+        """
+        if self.nc or not self.proper:
+            return None
+        cur = self._regressors(inputs)
+        B = cur.shape[0]
+        flat = torch.cat([cur, cur.new_zeros(B, self.past[0].numel() + self.past_u[0].numel())], dim=1)
+        phi = flat.index_select(1, self._gather.to(flat.device))
+        u = torch.bmm(self.theta.to(phi.dtype), phi.unsqueeze(-1)).squeeze(-1)
+        u = torch.where(self.alive.unsqueeze(1), u, 0.0)
+        if self.u_low is not None:
+            u = torch.clamp(u, self.u_low, self.u_high)
+        return u
+
     def set_theta_free(self, eta: torch.Tensor) -> None:
         """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).
 

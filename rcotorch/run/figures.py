@@ -37,7 +37,8 @@ DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.2, zorder=5)       # a chan
 LATE_MOVE = 0.2        # the estimates settled early: they move less than this share of their range in the 2nd half
 EARLY = 0.02           # on a linear time axis, the first share of the run whose values may fall outside the y-axis
 FOCUS = 3.0            # ... where the paths' whole range is more than this many times their range after it
-STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "not_converged": "tab:orange",
+STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "biased": "tab:brown",
+                  "not_converged": "tab:orange",
                   "diverged": "tab:red", "finished": "tab:gray"}
 
 

@@ -388,7 +388,7 @@ class Monitor:
         values = []
         if self.batch > 1:
             values += [(f"health/{status}", float(count)) for status, count in summary["health"]["counts"].items()
-                       if count or status != "undetermined"]
+                       if count or status not in ("undetermined", "biased")]
         if getattr(self.run, "hparams_session", True):      # a sweep writes its own sessions (rcotorch.run.sweep)
             values += final_values(summary, logged=True).items()
         if values:
@@ -593,7 +593,12 @@ def final_values(summary: Mapping[str, Any], logged: bool = False, scenario=None
                 out[f"intervals/{key} upper {scaled.label}"] = _mean(per_member(intervals[key]["upper"]), scaled.scale)
     for key, v in summary["metrics"].items():
         out[f"final/{key}"] = _mean(per_member(v))
+    for key, iv in (summary.get("intervals") or {}).items():
+        if iv.get("bias") is not None:                   # the mean bias of the members whose estimate is biased
+            bias = np.ravel(np.array(iv["bias"], dtype=object))
+            out[f"final/{key} bias"] = _mean(per_member([np.nan if b is None else float(b) for b in bias]))
     out["final/diverged"] = float(member_status(summary).count("diverged"))
+    out["final/biased"] = float(member_status(summary).count("biased"))
     passed = requirements_passed(summary)
     if passed is not None:
         out["final/requirements passed"] = float(sum(passed))

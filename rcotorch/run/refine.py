@@ -156,7 +156,9 @@ class RefinementResult:
         The intervals' confidence level (None without intervals).
     status : list of str
         One word per member: ``converged``, ``undetermined`` (settled, but the data did not determine an
-        estimate), ``not_converged`` or ``diverged``.
+        estimate), ``biased`` (settled and determined, but an estimate carries a bias beyond its interval:
+        ``summary['intervals'][key]['bias']`` gives its size and sign, ``summary['health']['bias_reason']`` its
+        cause), ``not_converged`` or ``diverged``.
     determined : torch.Tensor
         (B,) bool, whether the data determined every estimate of the member.
     passed : dict[str, torch.Tensor]

@@ -570,34 +570,36 @@ class Run:
             met.update({"validation_rmse": held_out.rmse, "validation_rmse_initial": held_out.rmse_initial,
                         "validation_fit_percent": held_out.fit_percent,
                         "validation_fit_percent_initial": held_out.fit_percent_initial})
+        explained = determined = worse = None
         if found is not None:
             ident = self.graph.role("estimator")
             explained = ci.change_explained(ident, self.health.state["theta_ref"], self.health.state["k_ref"],
                                             ident.covariance).to(verdict["status"].device)
-            settled = (verdict["status"] == STATUSES.index("not_converged")) & explained & \
-                (verdict["z_ratio"] <= self.health.criteria.z_tol)
-            verdict["status"] = torch.where(settled, STATUSES.index("converged"), verdict["status"])
-            converged = verdict["status"] == STATUSES.index("converged")
-            determined = found.determined.to(converged.device) & converged   # a member still moving is not
-            verdict["status"] = torch.where(converged & ~determined, STATUSES.index("undetermined"),
-                                            verdict["status"])
+            determined = found.determined.to(verdict["status"].device)
         worse = fits_worse(met)
-        if worse is not None:
-            worse = worse.to(verdict["status"].device)
-            trusted = (verdict["status"] == STATUSES.index("converged")) | \
-                (verdict["status"] == STATUSES.index("undetermined"))
-            verdict["status"] = torch.where(worse & trusted, STATUSES.index("not_converged"), verdict["status"])
+        dev = verdict["status"].device
+        z_tol = self.health.criteria.z_tol
+        settled = Health.decide(verdict["status"], verdict["z_ratio"], z_tol, explained=explained)
+        verdict["status"] = Health.decide(
+            settled, verdict["z_ratio"], z_tol, determined=determined,
+            biased=None if found is None or found.biased is None else found.biased.to(dev),
+            drifting=None if found is None or found.drifting is None else found.drifting.to(dev),
+            worse=None if worse is None else worse.to(dev))
         health = self.health.report(verdict)
         if worse is not None:
             health["fits_worse"] = self._plain(worse.tolist())
         if found is not None:
-            health["determined"] = self._plain(determined.tolist())
+            health["determined"] = self._plain((determined & (settled == STATUSES.index("converged"))).tolist())
             health["change_explained"] = self._plain(explained.tolist())
         if res is not None:
             health["residuals_white"] = self._plain((res.whiteness_p >= ci.WHITE_P).tolist())
             health["undetermined"] = self._plain(found.undetermined_keys)
             if found.biased is not None:
                 health["biased"] = self._plain(found.biased.tolist())
+                health["biased_keys"] = self._plain(found.biased_keys)
+                health["bias_reason"] = self._plain(found.bias_reason)
+            if found.drifting is not None:
+                health["drifting"] = self._plain(found.drifting.tolist())
         members = (verdict["status"] == STATUSES.index("diverged")).nonzero().flatten().tolist()
         diverged = [{"member": b, "step": int(verdict["diverged_at"][b]),
                      "reason": (health["reason"] if self.batch == 1 else health["reason"][b])} for b in members]
@@ -616,7 +618,8 @@ class Run:
             "validation": None if held_out is None else {
                 k: v for k, v in held_out.summary().items() if k in ("source", "steps", "fit_steps", "state_fitted")},
             "intervals": {} if found is None else {
-                k: {"level": found.level, "lower": self._values(found.lower(k)), "upper": self._values(found.upper(k))}
+                k: {"level": found.level, "lower": self._values(found.lower(k)), "upper": self._values(found.upper(k)),
+                    **({"bias": self._values(found.bias[k])} if found.bias and bool(found.biased.any()) else {})}
                 for k in found.estimate},
         }
 
@@ -640,10 +643,14 @@ class Run:
                 started = time.perf_counter()
                 steps, settle = self._replay_span(window)
                 rep = ci.replay(self.graph, self.snapshot, steps, settle)
-                self.graph.role("estimator").covariance = rep.covariance   # for the scenario's figures
+                ident = self.graph.role("estimator")
+                ident.covariance = rep.covariance   # for the scenario's figures
+                transient = ci.remaining_transient(ident, self.health.state["theta_mid"], self.health.state["k_mid"],
+                                                   rep.covariance)
                 found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
                                                rep.covariance, level=self.level,
-                                               scales=self.scenario.scales(self.settings)), rep.residuals)
+                                               scales=self.scenario.scales(self.settings), transient=transient),
+                         rep.residuals)
                 self.timings["intervals"] = time.perf_counter() - started
             self._intervals = (self.k, *found)
         return self._intervals[1:]
@@ -1042,9 +1049,10 @@ def health_line(summary: Mapping[str, Any]) -> str:
         white = h.get("residuals_white", True)
         note = "" if white else "; residuals not white: dynamics the model leaves unexplained may bias the " \
             "estimates beyond their intervals"
-        if h.get("biased"):
-            note += ("; biased: the output error favours estimates more than 5% away, beyond their random error "
-                     "(the intervals reach them)")
+        if h["status"] == "biased":
+            return f"health: biased: {_bias_text(summary, None)} ({detail}){note}"
+        if h["status"] == "undetermined" and h.get("biased"):
+            note += f"; biased: {_bias_text(summary, None)}"
         if h["status"] == "undetermined":
             which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
             return f"health: undetermined: settled, but the data did not determine {which} ({detail}){note}"
@@ -1055,15 +1063,37 @@ def health_line(summary: Mapping[str, Any]) -> str:
     if isinstance(white, list) and not all(white):
         line += (f"; residuals not white in {len(white) - sum(white)} members (dynamics the model leaves "
                  "unexplained may bias their estimates beyond their intervals)")
-    biased = h.get("biased")
-    if isinstance(biased, list) and any(biased):
-        line += (f"; biased in {sum(biased)} members: the output error favours estimates more than 5% away, "
-                 "beyond their random error (their intervals reach them)")
+    if h["counts"].get("biased"):
+        members = [b for b, st in enumerate(h["status"]) if st == "biased"]
+        line += f"; biased: {_bias_text(summary, members)}"
     if summary["diverged"]:
         first = summary["diverged"][:5]
         line += "; diverged: " + ", ".join(f"member {d['member']} at step {d['step']} ({d['reason']})"
                                            for d in first) + (", ..." if len(summary["diverged"]) > 5 else "")
     return line
+
+
+def _bias_text(summary: Mapping[str, Any], members: list[int] | None) -> str:
+    """Which estimates are biased, by how much and why: for one member (``members`` None) each biased estimate
+    with its bias; for a batch, per estimate the members' count and median bias, and the reasons' counts."""
+    h, iv = summary["health"], summary.get("intervals") or {}
+    if members is None:
+        parts = [f"{k} by {_signed(iv.get(k, {}).get('bias'))}" for k in h.get("biased_keys") or []]
+        return ", ".join(parts) + f" ({h.get('bias_reason')})"
+    parts = []
+    for k in dict.fromkeys(k for b in members for k in h["biased_keys"][b]):
+        at = [b for b in members if k in h["biased_keys"][b]]
+        bias = sorted(x for x in (iv.get(k, {}).get("bias") or [None] * (max(at) + 1))[:] if x is not None)
+        median = bias[len(bias) // 2] if bias else None
+        parts.append(f"{k} in {len(at)} (median {_signed(median)})")
+    reasons = {}
+    for b in members:
+        reasons[h["bias_reason"][b]] = reasons.get(h["bias_reason"][b], 0) + 1
+    return ", ".join(parts) + "; " + "; ".join(f"{n}: {r}" for r, n in reasons.items())
+
+
+def _signed(v) -> str:
+    return "nan" if v is None else f"{v:+.3g}"
 
 
 def _fmt(v) -> str:

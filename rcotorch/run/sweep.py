@@ -354,7 +354,8 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
     from .runner import member_truth
     B = summary["batch"]
     health = {k: member_truth(summary["health"][k], B) for k in ("status", "reason", "diverged_at", "theta_change",
-                                                                  "z_ratio", "determined", "residuals_white")
+                                                                  "z_ratio", "determined", "residuals_white",
+                                                                  "bias_reason")
               if k in summary["health"]}
     intervals = summary.get("intervals") or {}
     checks = summary.get("requirements") or {}
@@ -374,6 +375,8 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
             if key in intervals:
                 row[f"lower_{key}"] = member_truth(intervals[key]["lower"], B)[b]
                 row[f"upper_{key}"] = member_truth(intervals[key]["upper"], B)[b]
+                if "bias" in intervals[key]:
+                    row[f"bias_{key}"] = member_truth(intervals[key]["bias"], B)[b]
         for key, v in summary["metrics"].items():
             row[key] = member_truth(v, B)[b]
         row["status"] = health["status"][b]
@@ -383,6 +386,8 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
             if key in health:
                 row[key] = health[key][b]
         row["reason"] = health["reason"][b]
+        if "bias_reason" in health:
+            row["bias_reason"] = health["bias_reason"][b]
         row["diverged"] = health["status"][b] == "diverged"
         row["diverged_at"] = health["diverged_at"][b]
         rows.append(row)

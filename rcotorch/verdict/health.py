@@ -1,4 +1,5 @@
-"""Member health: every member of a run ends ``converged``, ``not_converged`` or ``diverged``.
+"""Member health: every member of a run ends ``converged``, ``not_converged``, ``diverged``, ``undetermined`` or
+``biased`` (``decide``).
 
 **Diverged** members are frozen (theta and P held, u = 0) from a step on, for a ``Reason``:
 
@@ -55,7 +56,7 @@ import torch
 from ..engine import kernels
 from ..errors import ConfigError
 
-STATUSES = ("converged", "not_converged", "diverged", "undetermined")
+STATUSES = ("converged", "not_converged", "diverged", "undetermined", "biased")
 REASON_STATE = "diverged_reason"   # the estimator buffer that carries Reason codes
 
 
@@ -140,6 +141,7 @@ class Health:
         self.state: dict[str, Any] = {
             "reason": torch.zeros(B, dtype=torch.int64, device=dev),
             "theta_ref": self._theta(), "k_ref": int(graph.k),         # the window's start
+            "theta_mid": self._theta(), "k_mid": int(graph.k),         # the last check at or before half the run
             "phi_win": torch.zeros(B, self.est.n_phi, self.est.n_phi, dtype=f64, device=dev), "phi_n": 0,
             "z_win": torch.zeros(B, dtype=f64, device=dev), "y_win": torch.zeros(B, dtype=f64, device=dev),
             "n_win": 0,
@@ -177,6 +179,7 @@ class Health:
         more steps) checks from here on at the steps of a run made that long at once; a window already under
         way is kept, with its checks, when its start has passed."""
         every = check_every(steps)
+        self.target = steps
         W = max(every, round(self.criteria.window * steps))
         start = every * math.ceil(max(steps - W, 0) / every)
         k = int(self.graph.k)
@@ -209,6 +212,8 @@ class Health:
             phi, count = self._recent_phi(n)
             s["phi_win"] += phi
             s["phi_n"] += count
+        if 2 * k <= self.target and k > s["k_mid"]:
+            s.update(theta_mid=self._theta(), k_mid=k)
         if k == self.window_start and k > s["k_ref"]:
             s.update(theta_ref=self._theta(), k_ref=k, n_win=0, phi_n=0)
             for key in ("z_win", "y_win", "phi_win"):
@@ -345,6 +350,38 @@ class Health:
                 "theta_change": numbers(verdict["theta_change"]), "z_ratio": numbers(verdict["z_ratio"]),
                 "criteria": dict(asdict(self.criteria), check_every=self.every,
                                  window_start=self.state["k_ref"])}
+
+    @staticmethod
+    def decide(status: torch.Tensor, z_ratio: torch.Tensor, z_tol: float, explained: torch.Tensor | None = None,
+               determined: torch.Tensor | None = None, biased: torch.Tensor | None = None,
+               worse: torch.Tensor | None = None, drifting: torch.Tensor | None = None) -> torch.Tensor:
+        """Every member's final status (index into STATUSES) from the checks' ``status`` and what the end of the
+        run found, each (B,) bool where given:
+
+        * a member not converged only because theta still moved over the window, where that move is what its
+          own random error explains (``explained``, ``rcotorch.verdict.intervals.change_explained``) and its
+          z_ratio is within ``z_tol``, is converged;
+        * a converged member whose estimates still drift by more than their intervals (``drifting``) is not
+          converged;
+        * a converged member is ``undetermined`` where the data did not determine an estimate (``determined``
+          false), else ``biased`` where an estimate carries a bias beyond its interval (``biased``);
+        * a converged, undetermined or biased member whose refined model fits worse than the initial one
+          (``worse``) is not converged."""
+        code = {s: STATUSES.index(s) for s in STATUSES}
+        if explained is not None:
+            settled = (status == code["not_converged"]) & explained & (z_ratio <= z_tol)
+            status = torch.where(settled, code["converged"], status)
+        if drifting is not None:
+            status = torch.where((status == code["converged"]) & drifting, code["not_converged"], status)
+        converged = status == code["converged"]
+        if determined is not None:
+            status = torch.where(converged & ~determined, code["undetermined"], status)
+        if biased is not None:
+            status = torch.where((status == code["converged"]) & biased, code["biased"], status)
+        if worse is not None:
+            trusted = (status == code["converged"]) | (status == code["undetermined"]) | (status == code["biased"])
+            status = torch.where(worse & trusted, code["not_converged"], status)
+        return status
 
     # --- checkpoints --------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

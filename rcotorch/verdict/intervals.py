@@ -44,6 +44,7 @@ import torch
 
 from ..engine import kernels
 from ..errors import ConfigError
+from . import sampling
 
 LEVEL = 0.95             # the default confidence level
 REL_TOL = 0.5            # determined: each interval's half-width at most this fraction of max(|estimate|, scale)
@@ -59,7 +60,9 @@ WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-valu
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
 OFFSET_FACTOR_CORRELATED = 1.0  # the same where the residuals are not white (WHITE_P)
-BIAS_TOL = 0.05          # a biased estimate that step moves by more than this fraction of its size is undetermined
+BIAS_TOL = 0.05          # an estimate that step moves by more than this fraction of its size is biased
+NEGLIGIBLE = 1e-3        # a bias or drift below this fraction of an estimate's size is corrected, never flagged
+DRIFT_Z = 1.96           # a remaining transient beyond this many of its standard deviations is the estimate's drift
 
 
 @dataclass
@@ -76,6 +79,9 @@ class ParameterCovariance:
         offset: (B, n) the Gauss-Newton step of the window's output error from eta,
             -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
         correlated: (B,) bool, whether the whiteness test rejected white residuals (p-value below ``WHITE_P``).
+        sampling: (B, n) the estimate of the sampled feedback minus that of the continuous physics it stands
+            for (``rcotorch.verdict.sampling``), or None where the graph declares a sampled feedback or it cannot
+            be simulated (``sampling_note`` says why).
     """
 
     cov: torch.Tensor
@@ -86,6 +92,8 @@ class ParameterCovariance:
     measured: int
     offset: torch.Tensor | None = None
     correlated: torch.Tensor | None = None
+    sampling: torch.Tensor | None = None
+    sampling_note: str | None = None
 
     @property
     def std(self) -> torch.Tensor:
@@ -194,25 +202,40 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
     regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
     pre = max(0, settle - est.window - est.nc)              # steps advanced before recording
-    recorded = []
+    # Where the graph declares a continuous feedback, the base copy records from the replay's first step on,
+    # so that the refined model simulated with that feedback (``sampling``) settles as long as the copies.
+    how = sampling.plan(graph)
+    b0 = 0 if isinstance(how, dict) else pre
+    shift = pre - b0                                        # the base copy's steps recorded before the others'
+    recorded, sampled_minus_continuous = [], None
     for e in runs:
         g, e_est = _frozen_copy(graph, state, e, engine=graph.engine)
-        if pre:
-            g.advance(pre)
+        start = b0 if not recorded else pre
+        if start:
+            g.advance(start)
         signals = [z_sig]
         if not recorded:
             signals += [y_sig] + ([w_sig] if w_sig is not None else []) + list(regressor_inputs.values()) + \
                 [(est.name, "u")]
+            if isinstance(how, dict):
+                signals += how["record"] + [graph.role_signal("prediction")]
+                x_start = g.blocks[how["known"]].x.clone()
             base_est, history = e_est, e_est.regressor_history()
         names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
-        rec = g.run(steps - pre, record={name: name for name in names})
+        rec = g.run(steps - start, record={name: name for name in names})
         recorded.append({names[name]: v for name, v in rec.items()})
+        if len(recorded) == 1 and isinstance(how, dict):
+            with torch.no_grad():
+                y_c = recorded[0][graph.role_signal("prediction")].to(f64)
+                y_f = sampling.continuous_prediction(g, how, x_start, recorded[0], steps - start)
+            sampled_minus_continuous = (y_f - y_c)[shift:]     # z_c - z_f, over the other copies' steps
         del g
-    # From here on, steps are counted from the first recorded one.
+    # From here on, steps are counted from the first recorded one of the copies.
     settle, last, own = settle - pre, last - pre, own - pre
     first = recorded[0]
     base_inputs = {p: first[sig] for p, sig in regressor_inputs.items()}
     base_u = first[(est.name, "u")]
+    recorded[0] = first = {sig: v[shift:] for sig, v in first.items()}
     first = {sig: v.to(f64) for sig, v in first.items()}
     recorded = [first] + [{sig: v.to(f64) for sig, v in r.items()} for r in recorded[1:]]
     zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
@@ -235,6 +258,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     within = None if settle == last else ((at >= 0) & (at < measured)).to(f64)
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
+    jwd = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W (z_f - z_c)
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
@@ -245,9 +269,9 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
 
     def flush(t0: int, upto: int) -> None:
         """Add the regressors of the measured steps t0 .. upto - 1 (relative to settle)."""
-        nonlocal jwj, jwz, grams, cross, zz
+        nonlocal jwj, jwz, jwd, grams, cross, zz
         C = upto - t0
-        psi = base_est.regressors_over(history, base_inputs, base_u, settle + t0, settle + upto)
+        psi = base_est.regressors_over(history, base_inputs, base_u, shift + settle + t0, shift + settle + upto)
         psi = psi.transpose(0, 1)                                                  # (B, C, n_z, n)
         z = z_all[t0:upto].transpose(0, 1)                                         # (B, C, n_z)
         jac = (zs[settle + t0:settle + upto].transpose(0, 1) - z.unsqueeze(3)) / eps64.reshape(B, 1, 1, n)
@@ -258,6 +282,11 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
         jac_w = weight @ jac                                                       # W J (W symmetric)
         jwj += _tsum(jac, jac_w)
         jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
+        if sampled_minus_continuous is not None:
+            d = sampled_minus_continuous[settle + t0:settle + upto].transpose(0, 1)      # (B, C, n_z)
+            if within is not None:
+                d = d * inside.unsqueeze(-1)
+            jwd += _tsum(jac_w, d.unsqueeze(-1)).squeeze(-1)
         m = base_est.row_scale(psi.reshape(-1, n_z, n))
         if m is not None:                                                     # the rows as weighed
             m = m.to(f64).reshape(B, C)
@@ -312,8 +341,14 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     offset = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
                torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
     offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
+    bias = None
+    if sampled_minus_continuous is not None:   # the sampled estimate minus the continuous physics' (``sampling``)
+        bias = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
+                 torch.where(step_ok.reshape(-1, 1), jwd, 0.0).unsqueeze(-1)).squeeze(-1)
+        bias = torch.where(step_ok.reshape(-1, 1), bias, math.nan)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
-                             offset=offset, correlated=correlated)
+                             offset=offset, correlated=correlated, sampling=bias,
+                             sampling_note=None if isinstance(how, dict) else how)
     return Replay(covariance=pc, residuals=residuals)
 
 
@@ -566,6 +601,49 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     return ok & (stat <= float(chdtri(n, 1 - p)))
 
 
+def remaining_transient(est, theta_start: torch.Tensor, k_start: int, pc: ParameterCovariance
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The part of the parameters' error that the recursion has not yet forgotten, from their drift over the
+    convergence window: with the error's deterministic part relaxing as d eta~ / dT = -A eta~ in the gain's time
+    T (``_gain_time``; ln k for lam = 1), eta~(N) = exp(-A D) eta~(k0) over the window's D = T(N) - T(k0), so
+
+        tau = eta~(N) = (I - exp(A D))^-1 (eta(N) - eta(k0)).
+
+    Its random part: the change's covariance X_N + X_k0 - E X_k0 - X_k0 E^T with E = exp(-A D) and
+    X_k0 = X_N n_N / n_k0 (n_k the RLS memory), carried through the same matrix. With lam = 1 and a gain A
+    near I the window's last fifth leaves about a quarter of the start's error, so tau is four times the
+    drift; with forgetting D is large and tau near 0. Returns tau (B, n) and its covariance (B, n, n), NaN for
+    members without a finite covariance."""
+    B, n = pc.cov.shape[0], pc.cov.shape[1]
+    f64 = torch.float64
+    eta = est.theta_free().detach().to(f64).cpu()
+    start = theta_start.reshape(B, -1).to(f64).cpu().index_select(1, est.free_idx.cpu())
+    lam = est.lam.to(f64).cpu().reshape(-1).expand(B)
+    N = int(est.k)
+    k0 = max(1, min(int(k_start), N))
+    D = (_gain_time(lam, N) - _gain_time(lam, k0)).reshape(-1, 1, 1)
+
+    def memory(k: int) -> torch.Tensor:
+        return torch.where(lam < 1, (1 - lam ** k) / (1 - lam).clamp_min(1e-300), torch.full_like(lam, float(k)))
+    X = pc.cov.cpu().to(f64)
+    A = pc.gain.cpu().to(f64)
+    ok = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(A).flatten(1).all(1)
+    eye = torch.eye(n, dtype=f64)
+    A = torch.where(ok.reshape(-1, 1, 1), A, eye)
+    X = torch.where(ok.reshape(-1, 1, 1), X, 0.0)
+    E = torch.linalg.matrix_exp(-A * D)
+    ok = ok & torch.isfinite(E).flatten(1).all(1) & (E.flatten(1).abs().amax(1) < 1e6)
+    E = torch.where(ok.reshape(-1, 1, 1), E, 0.0)
+    M = -E @ torch.linalg.pinv(eye - E)              # (I - exp(A D))^-1, written to stay finite as exp(-A D) -> 0
+    X0 = X * (memory(N) / memory(k0)).reshape(-1, 1, 1)
+    Xd = X + X0 - E @ X0 - X0 @ E.mT
+    tau = (M @ (eta - start).unsqueeze(-1)).squeeze(-1)
+    cov = M @ (0.5 * (Xd + Xd.mT)) @ M.mT
+    tau = torch.where(ok.reshape(-1, 1), tau, math.nan)
+    cov = torch.where(ok.reshape(-1, 1, 1), cov, math.nan)
+    return tau, cov
+
+
 def band(graph, fn: Callable[[object], torch.Tensor], pc: ParameterCovariance, level: float = LEVEL
          ) -> tuple[torch.Tensor, torch.Tensor]:
     """The value of ``fn(graph)`` ((B, F) float, e.g. a frequency response's magnitude on a grid) and the
@@ -619,7 +697,11 @@ def quantile(level: float) -> float:
 
 @dataclass
 class Intervals:
-    """Confidence intervals of named estimates, per member (each value a (B,) float64 tensor)."""
+    """Confidence intervals of named estimates, per member (each value a (B,) float64 tensor).
+
+    ``bias[key]``: the estimate's bias where one beyond its interval was found (NaN elsewhere): the sampled
+    estimate minus the continuous physics' (``rcotorch.verdict.sampling``), or the estimate minus the
+    output error's optimum; ``biased_keys`` and ``bias_reason`` say which and why, per member."""
 
     level: float
     estimate: dict[str, torch.Tensor]
@@ -628,7 +710,12 @@ class Intervals:
     undetermined_keys: list[list[str]]    # per member, the estimates whose interval is too wide
     offset: dict[str, torch.Tensor] | None = None   # the estimates' move by the output error's step (B,)
     widened: torch.Tensor | None = None   # (B,) bool: an interval includes that move (``OFFSET_FACTOR``)
-    biased: torch.Tensor | None = None    # (B,) bool: an estimate undetermined for it (``BIAS_TOL``)
+    biased: torch.Tensor | None = None    # (B,) bool: an estimate carries a bias beyond its interval
+    bias: dict[str, torch.Tensor] | None = None
+    biased_keys: list[list[str]] | None = None
+    bias_reason: list[str | None] | None = None
+    drifting: torch.Tensor | None = None   # (B,) bool: an estimate still drifts by more than its interval
+    drift: dict[str, torch.Tensor] | None = None   # the estimates' part of the remaining transient (0 if none)
 
     def lower(self, key: str) -> torch.Tensor:
         return self.estimate[key] - self.half_width[key]
@@ -637,21 +724,37 @@ class Intervals:
         return self.estimate[key] + self.half_width[key]
 
 
+SAMPLING_REASON = "sampling: the sampled feedback's estimate differs from the continuous physics' by more than " \
+    "its interval"
+OUTPUT_ERROR_REASON = "output error: the data favour a point more than 5% away, beyond the random error"
+
+
 def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]], pc: ParameterCovariance,
                        level: float = LEVEL, scales: Mapping[str, float] | None = None,
-                       rel_tol: float = REL_TOL) -> Intervals:
+                       rel_tol: float = REL_TOL,
+                       transient: tuple[torch.Tensor, torch.Tensor] | None = None) -> Intervals:
     """Intervals est +- q sd of every estimate, sd^2 = g X g^T with g its gradient in eta (delta method).
 
-    Where the window's output error is smaller away from the estimate by more than its random error (the
-    estimate's move d = g offset by the output error's Gauss-Newton step, ``pc.offset``, exceeds
-    ``OFFSET_FACTOR`` half-widths, or ``OFFSET_FACTOR_CORRELATED`` where the residuals are not white: the model
-    leaves dynamics unexplained, and a step beyond the interval is then the bias they cause, significant at the
-    interval's level), the estimate is biased beyond its interval (a structure the refinement cannot fit
-    without bias, e.g. a non-smooth regressor with many Markov parameters): the half-width becomes
-    q sd + |d|, so that the interval reaches the point the data favour (as it does wherever the residuals are
-    not white); where |d| is also more than
-    ``BIAS_TOL`` times max(|estimate|, scale), the estimate is not determined (the refinement settled well away
-    from what the data determine).
+    Two biases are measured against the half-width:
+
+    * **the output error's optimum** (``pc.offset``): where the window's output error is smaller away from the
+      estimate by more than its random error (the estimate's move d = g offset exceeds ``OFFSET_FACTOR``
+      half-widths, or ``OFFSET_FACTOR_CORRELATED`` where the residuals are not white: the model leaves
+      dynamics unexplained, and a step beyond the interval is then the bias they cause), the half-width
+      becomes q sd + |d|, so that the interval reaches the point the data favour; where |d| is also more than
+      ``BIAS_TOL`` times max(|estimate|, scale), the estimate is *biased* (the refinement settled well away
+      from what the data determine);
+    * **sampling a continuous feedback** (``pc.sampling``, where the graph declares one): the estimate's
+      bias against the continuous physics, beta = g b - d (d as above where it widens the interval, else 0).
+      Where |beta| is at most the half-width q sd (or below ``NEGLIGIBLE`` of the estimate's size), the
+      half-width is q sd + |beta|, so that the interval holds the continuous parameter; where it is more, the
+      estimate is *biased* by beta.
+
+    And the error the recursion has not yet forgotten (``transient``, ``remaining_transient``'s tau and its
+    covariance): where the estimate's part t = g tau exceeds ``DRIFT_Z`` of its own standard deviations (the
+    estimate still drifts beyond what its noise explains), the half-width grows by |t| where |t| is at most
+    the half-width (or below ``NEGLIGIBLE`` of the estimate's size), and the member is *drifting* (not
+    converged) where it is more.
 
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
@@ -662,8 +765,10 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     grads = estimate_gradients(graph, estimates, pc.std)
     X = pc.cov.cpu()
     det = pc.settles.cpu().clone()
-    half, bad, moved = {}, [], {}
-    widened, far_off = torch.zeros_like(det), torch.zeros_like(det)
+    half, bad, moved, biases, flagged = {}, [], {}, {}, []
+    widened = torch.zeros_like(det)
+    any_off, any_sampled, drifting = torch.zeros_like(det), torch.zeros_like(det), torch.zeros_like(det)
+    drifts = {}
     factor = torch.full(det.shape, OFFSET_FACTOR, dtype=torch.float64)
     if pc.correlated is not None:
         factor = torch.where(pc.correlated.cpu(), OFFSET_FACTOR_CORRELATED, factor)
@@ -671,25 +776,55 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
         hw = q * var.clamp_min(0).sqrt()
-        biased = torch.zeros_like(det)
+        scale = float((scales or {}).get(key, 0.0))
+        size = torch.clamp(v.abs(), min=scale)
+        bias = torch.full_like(v, math.nan)
+        off = torch.zeros_like(det)
+        d, extra = torch.zeros_like(v), torch.zeros_like(v)      # the output error's move, the widening
         if pc.offset is not None:
             d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
             moved[key] = d
-            biased = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
-            widen = biased if pc.correlated is None else biased | (pc.correlated.cpu() & torch.isfinite(d))
-            hw = torch.where(widen, hw + d.abs(), hw)
+            beyond = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
+            widen = beyond if pc.correlated is None else beyond | (pc.correlated.cpu() & torch.isfinite(d))
+            off = beyond & (d.abs() > BIAS_TOL * size)          # the data favour a point well away
+            bias = torch.where(off, -d, bias)
+            d = torch.where(widen, d, 0.0)
+            extra = d.abs()
             widened |= widen
+        sampled = torch.zeros_like(det)
+        if pc.sampling is not None:
+            # the estimate minus the continuous physics' parameter: the sampled feedback's bias, less the part of
+            # it that the output error's move already takes back
+            total = torch.einsum("bi,bi->b", g, pc.sampling.cpu()) - d
+            known = torch.isfinite(total) & torch.isfinite(hw)
+            sampled = known & (total.abs() > hw) & (total.abs() > NEGLIGIBLE * size)
+            bias = torch.where(sampled, total, bias)
+            extra = torch.where(known & ~sampled, total.abs(), extra)
+        hw = hw + extra
+        if transient is not None:
+            t = torch.einsum("bi,bi->b", g, transient[0])
+            sd_t = torch.einsum("bi,bij,bj->b", g, transient[1], g).clamp_min(0).sqrt()
+            moving = torch.isfinite(t) & torch.isfinite(hw) & (t.abs() > DRIFT_Z * sd_t)
+            drifts[key] = torch.where(moving, t, 0.0)
+            far = moving & (t.abs() > hw) & (t.abs() > NEGLIGIBLE * size)
+            drifting |= far
+            hw = torch.where(moving & ~far, hw + t.abs(), hw)
         half[key] = torch.where(torch.isfinite(var), hw, math.nan)
-        scale = float((scales or {}).get(key, 0.0))
-        ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * torch.clamp(v.abs(), min=scale))
-        if key in moved:                      # the data favour a point well away from the estimate
-            away = biased & (moved[key].abs() > BIAS_TOL * torch.clamp(v.abs(), min=scale))
-            ok &= ~away
-            far_off |= away
+        biases[key] = bias
+        ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * size)
         bad.append(~ok)
+        flagged.append(off | sampled)
+        any_off |= off
+        any_sampled |= sampled
         det &= ok
     keys = list(values)
-    undetermined = [[k for k, b in zip(keys, row) if b] for row in
-                    (torch.stack(bad, 1).tolist() if bad else [[]] * det.numel())]
-    return Intervals(level=level, estimate=values, half_width=half, determined=det, undetermined_keys=undetermined,
-                     offset=moved or None, widened=widened, biased=far_off)
+
+    def per_member(rows: list[torch.Tensor]) -> list[list[str]]:
+        return [[k for k, b in zip(keys, row) if b] for row in
+                (torch.stack(rows, 1).tolist() if rows else [[]] * det.numel())]
+    reason = [SAMPLING_REASON if a else OUTPUT_ERROR_REASON if b else None
+              for a, b in zip(any_sampled.tolist(), any_off.tolist())]
+    return Intervals(level=level, estimate=values, half_width=half, determined=det,
+                     undetermined_keys=per_member(bad), offset=moved or None, widened=widened,
+                     biased=any_off | any_sampled, bias=biases, biased_keys=per_member(flagged),
+                     bias_reason=reason, drifting=drifting if transient is not None else None, drift=drifts or None)
