@@ -76,6 +76,9 @@ CASES = {
     "sdof-shipped": ("sdof-stiffness", {}, 20000),
     "sdof-shipped-100k": ("sdof-stiffness", {}, 100000),
     "rlc-circuit": ("rlc-circuit", {}, 20000),
+    "sdof-damping-shipped": ("sdof-stiffness-damping", {}, 20000),
+    "sdof-damping-noise": ("sdof-stiffness-damping", {"noise": 0.05}, 20000),
+    "mass-friction-shipped": ("mass-friction", {}, 20000),
     "duffing": (duffing, {}, 20000),
 }
 

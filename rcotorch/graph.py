@@ -362,8 +362,9 @@ class Graph(nn.Module):
             upds = [(name, blk, [(p, self.sources[(name, p)]) for p in blk.inputs if (name, p) in self.sources])
                     for name, blk in self.blocks.items()]
             return outs, upds
-        return memo.derived(self, "plan", (tuple(self.order), tuple(self.sources.items()), tuple(self.blocks)),
-                            make)
+        # keyed by the blocks themselves too: a block replaced under its name gets a new plan
+        return memo.derived(self, "plan", (tuple(self.order), tuple(self.sources.items()),
+                                           tuple((n, id(b)) for n, b in self.blocks.items())), make)
 
     def step(self, overrides: Mapping[Signal, torch.Tensor] | None = None,
              frozen: Iterable[str] = ()) -> dict[Signal, torch.Tensor]:

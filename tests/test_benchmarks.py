@@ -187,3 +187,20 @@ def test_the_paired_comparison_of_errors_tells_apart_only_what_differs():
     f = np.random.default_rng(6).exponential(1e-3, 64)
     tie = ukf_peer.compare(e, f)
     assert tie["median_difference_95"][0] < 0 < tie["median_difference_95"][1]
+
+
+def test_the_coverage_table_in_the_docs_is_the_one_the_script_prints():
+    """docs/intervals.md shows benchmarks/interval_coverage.py's table of the results on record, as printed."""
+    import interval_coverage
+    root = Path(__file__).resolve().parents[1]
+    results = json.loads((root / "benchmarks" / "results" / "interval_coverage.json").read_text())
+    table = interval_coverage.table({k: v for k, v in results.items() if k in interval_coverage.CASES})
+    assert set(interval_coverage.CASES) <= set(results)
+    assert table in (root / "docs" / "intervals.md").read_text()
+
+
+def test_the_coverage_script_runs_a_case_built_in_python(tmp_path):
+    """The Duffing case (a graph built in Python with a continuous nonlinear truth) at a tiny size."""
+    import interval_coverage
+    r = interval_coverage.coverage("duffing", 2, tmp_path)
+    assert sum(r["shares"].values()) == pytest.approx(1.0) and "k3" in r["estimates"]

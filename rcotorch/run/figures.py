@@ -79,7 +79,7 @@ def run_figures(run) -> dict:
         if zoom:
             axes[-1, 1].set_xlabel(xlabel)
             _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
-        _legend_below(fig, axes[0, 0])
+        _legend_below(fig, axes[0, 0], more=list(axes.flat[1:]))
         figs["estimates"] = fig
     if len(t):
         figs["model_error"] = _model_error_figure(run, t, xlabel, log_t, members, dt)
@@ -243,6 +243,13 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
         est = found.estimate[key].cpu().numpy()[idx]
         ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
                     zorder=4, label=f"{found.level:.0%} interval at the end")
+        bias = (found.bias or {}).get(key)
+        if bias is not None:                   # a biased estimate: where the physics' parameter lies
+            b = bias.cpu().numpy()[idx]
+            shown = np.isfinite(b)
+            if shown.any():
+                ax.plot(np.full(int(shown.sum()), t[-1]), (est - b)[shown], ls="none", marker="x", ms=8, mew=2,
+                        color=STATUS_COLOURS["biased"], zorder=5, label="estimate - bias (biased)")
     truth = run.truth.get(key)
     history = (getattr(run, "truth_history", None) or {}).get(key)
     if history and len(t):                      # a truth that changes: as it was at each time
@@ -321,6 +328,12 @@ def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> Non
         for b, line in zip(members, lines):
             if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
                 ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
+        bias = (found.bias or {}).get(key)
+        if bias is not None:                   # a biased member: the physics' parameter, estimate - bias
+            est, b_ = found.estimate[key].cpu().numpy(), bias.cpu().numpy()
+            for i, b in enumerate(m for m in members[:len(lines)] if m < len(b_) and np.isfinite(b_[m])):
+                ax.axhline(est[b] - b_[b], color=STATUS_COLOURS["biased"], ls="--", lw=1.2, zorder=3,
+                           label="estimate - bias (biased)" if i == 0 else None)
     truth = run.truth_now().get(key)
     if truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
@@ -334,10 +347,15 @@ def _members_shown(n: int, batch: int) -> str:
     return f" ({n} of {batch} members)" if batch > n else ""
 
 
-def _legend_below(fig, ax, axes=None) -> None:
-    """A legend of ``ax``'s labelled artists below the figure (or, with ``axes``, below those axes), outside
-    them, in as many columns as fit."""
+def _legend_below(fig, ax, axes=None, more=()) -> None:
+    """A legend of ``ax``'s labelled artists (and those of the axes ``more`` whose labels ``ax`` lacks) below the
+    figure (or, with ``axes``, below those axes), outside them, in as many columns as fit."""
     handles, labels = ax.get_legend_handles_labels()
+    for other in more:
+        for h, label in zip(*other.get_legend_handles_labels()):
+            if label not in labels:
+                handles.append(h)
+                labels.append(label)
     if not handles:
         return
     ncol = min(len(handles), 4 if max(len(s) for s in labels) < 28 else 2)

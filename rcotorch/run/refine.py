@@ -45,7 +45,8 @@ class GraphScenario(Scenario):
                  requirements: Sequence[Requirement] = (), scales: Mapping[str, float] | None = None,
                  units: Mapping[str, str] | None = None, name: str = "refinement", metrics=None,
                  steps: int = 10000, validation: Mapping[str, Any] | None = None,
-                 truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None):
+                 truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None,
+                 physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None):
         if not isinstance(graph, Graph):
             raise ConfigError(f"refine: expected an rcotorch Graph, got {type(graph).__name__}")
         if "estimator" not in graph.roles or "error" not in graph.roles:
@@ -61,6 +62,7 @@ class GraphScenario(Scenario):
             if key not in self._truth and pairs:
                 self._truth[key] = list(pairs)[-1][1]
         self._metrics = metrics
+        self._physics = physics
         self.requirements = tuple(requirements)
         self._scales = dict(scales or {})
         self.units = dict(units or {})
@@ -101,6 +103,9 @@ class GraphScenario(Scenario):
         if self._estimates is None:
             return parameter_estimates(graph)
         return {key: _per_member("estimate", key, fn, graph) for key, fn in self._estimates.items()}
+
+    def physics(self, settings, estimates, batch, dtype, device) -> Graph | None:
+        return None if self._physics is None else self._physics(dict(estimates))
 
     def metrics(self, graph: Graph, settings) -> dict[str, torch.Tensor]:
         return {key: _per_member("metric", key, fn, graph) for key, fn in (self._metrics or {}).items()}
@@ -220,7 +225,8 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
            checkpoint_every: int | None = None, health: Criteria | None = None,
            validation: bool | Mapping[str, Any] = True,
            truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None,
-           log_every: int | None = None) -> RefinementResult:
+           log_every: int | None = None,
+           physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None) -> RefinementResult:
     """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
     for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
 
@@ -264,6 +270,12 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     log_every : int, optional
         Steps between logs (TensorBoard and the figures' history); by default as many as take about a tenth of
         the run's time, at least 20, or 250 where the run follows a change (docs/cli.md).
+    physics : callable, optional
+        ``physics(estimates)`` -> a graph built as ``graph`` was, whose physical system (``physical=`` or
+        ``truth=`` of ``rcotorch.refinement``) takes each member's estimates ({key: (B,) tensor}) as its
+        parameters: the verdict simulates it to measure how far the refined model's estimates are from the
+        physics' (a sampled or otherwise approximate model class), and calls a member ``biased`` where that
+        exceeds its interval (docs/intervals.md).
 
     Returns
     -------
@@ -284,7 +296,7 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     sc = GraphScenario(graph, estimates, truth=truth, requirements=requirements, scales=scales, units=units,
                        name=name, metrics=metrics, steps=steps,
                        validation=validation if isinstance(validation, Mapping) else None,
-                       truth_history=truth_history)
+                       truth_history=truth_history, physics=physics)
     dtype = _dtype_name(graph)
     device = str(graph.k.device)
     try:

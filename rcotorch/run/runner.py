@@ -269,6 +269,7 @@ class Run:
         # the history members' RLS covariance at each logged step (``_remember``), for the band over time
         self.p_history: list[torch.Tensor] = []
         self._band: tuple[int, Any] | None = None        # band_over_time at a step, made once
+        self._physics_note: str | None = None             # why the physics at the estimates was not simulated
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
@@ -593,6 +594,9 @@ class Run:
             health["change_explained"] = self._plain(explained.tolist())
         if res is not None:
             health["residuals_white"] = self._plain((res.whiteness_p >= ci.WHITE_P).tolist())
+            matter, widening = ci.residuals_matter(self.graph.role("estimator").covariance, found)
+            health["residuals_matter"] = self._plain(matter.tolist())
+            health["residual_widening"] = self._plain(finite_list(widening))
             health["undetermined"] = self._plain(found.undetermined_keys)
             if found.biased is not None:
                 health["biased"] = self._plain(found.biased.tolist())
@@ -642,7 +646,17 @@ class Run:
             if window >= 2:
                 started = time.perf_counter()
                 steps, settle = self._replay_span(window)
-                rep = ci.replay(self.graph, self.snapshot, steps, settle)
+                with torch.no_grad():
+                    now = self.scenario.estimates(self.graph, self.settings)
+                physics, self._physics_note = None, None
+                if self.graph.roles.get("physical"):
+                    try:
+                        physics = self.scenario.physics(self.settings, now, self.batch, DTYPES[self.dtype_name],
+                                                        self.device)
+                    except Exception as e:        # e.g. an estimate outside its setting's bounds
+                        self._physics_note = (f"the physics at the estimates could not be built ({e}); the "
+                                              "estimates' bias against it is not measured")
+                rep = ci.replay(self.graph, self.snapshot, steps, settle, physics=physics)
                 ident = self.graph.role("estimator")
                 ident.covariance = rep.covariance   # for the scenario's figures
                 transient = ci.remaining_transient(ident, self.health.state["theta_mid"], self.health.state["k_mid"],
@@ -657,7 +671,8 @@ class Run:
 
     def _settle_warnings(self) -> list[str]:
         self._replayed()
-        return _settle_note(*self._settle, self.graph.known_sample_time())
+        note = self._physics_note
+        return _settle_note(*self._settle, self.graph.known_sample_time()) + ([note] if note else [])
 
     def _replay_span(self, window: int) -> tuple[int, int | torch.Tensor]:
         """Steps to replay from the window's start, and how many of them only settle, per member: the window with
@@ -1046,9 +1061,10 @@ def health_line(summary: Mapping[str, Any]) -> str:
         if h["status"] == "diverged":
             return f"health: diverged at step {h['diverged_at']} ({h['reason']})"
         detail = ", ".join(f"{k} {_fmt(h[k])}" for k in ("theta_change", "z_ratio"))
-        white = h.get("residuals_white", True)
-        note = "" if white else "; residuals not white: dynamics the model leaves unexplained may bias the " \
-            "estimates beyond their intervals"
+        note = ""
+        if h.get("residuals_matter"):
+            note = (f"; residuals not white: dynamics the model leaves unexplained bias the estimates or widen "
+                    f"their intervals ({_fmt(h.get('residual_widening'))} times)")
         if h["status"] == "biased":
             return f"health: biased: {_bias_text(summary, None)} ({detail}){note}"
         if h["status"] == "undetermined" and h.get("biased"):
@@ -1057,12 +1073,14 @@ def health_line(summary: Mapping[str, Any]) -> str:
             which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
             return f"health: undetermined: settled, but the data did not determine {which} ({detail}){note}"
         return f"health: {h['status']} ({detail}){note}"
-    counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items() if n or status != "undetermined")
+    counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items()
+                       if n or status not in ("undetermined", "biased"))
     line = f"health: {counts}"
-    white = h.get("residuals_white")
-    if isinstance(white, list) and not all(white):
-        line += (f"; residuals not white in {len(white) - sum(white)} members (dynamics the model leaves "
-                 "unexplained may bias their estimates beyond their intervals)")
+    matter = h.get("residuals_matter")
+    if isinstance(matter, list) and any(matter):
+        widest = max(w for w, m in zip(h["residual_widening"], matter) if m and w is not None)
+        line += (f"; residuals not white in {sum(matter)} members: dynamics the model leaves unexplained bias "
+                 f"their estimates or widen their intervals (up to {widest:.3g} times)")
     if h["counts"].get("biased"):
         members = [b for b, st in enumerate(h["status"]) if st == "biased"]
         line += f"; biased: {_bias_text(summary, members)}"

@@ -291,6 +291,21 @@ class Scenario:
         """Current estimates, each a (B,) tensor (physical units)."""
         raise NotImplementedError
 
+    def physics(self, settings: Mapping[str, Any], estimates: Mapping[str, torch.Tensor], batch: int,
+                dtype: torch.dtype, device) -> Graph | None:
+        """The physical system with its parameters at the run's estimates, for the verdict to measure how far the
+        refined model's estimates are from the physics' (``rcotorch.verdict.intervals.replay``'s ``physics``):
+        a graph like ``build``'s whose physical blocks (the physical system and the truth it holds) take each
+        member's estimate in place of the setting of the same name. By default every estimate that is also a
+        per-member setting (``per_member``) is substituted; None where there is none."""
+        keys = [k for k in estimates if k in self.settings and k in self.per_member]
+        if not keys:
+            return None
+        values = dict(settings)
+        for k in keys:
+            values[k] = estimates[k].detach().double().reshape(-1).tolist()
+        return self.build(values, batch, dtype, device)
+
     def scales(self, settings: Mapping[str, Any]) -> dict[str, float]:
         """A size for each estimate that may be near zero (e.g. the nominal value a change is relative to): an
         estimate is determined when its interval's half-width is at most ``rcotorch.verdict.intervals.REL_TOL`` times

@@ -38,6 +38,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from statistics import NormalDist
+from typing import Any
 
 import numpy as np
 import torch
@@ -62,6 +63,9 @@ OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more hal
 OFFSET_FACTOR_CORRELATED = 1.0  # the same where the residuals are not white (WHITE_P)
 BIAS_TOL = 0.05          # an estimate that step moves by more than this fraction of its size is biased
 NEGLIGIBLE = 1e-3        # a bias or drift below this fraction of an estimate's size is corrected, never flagged
+UNEXPLAINED_MIN = 0.01   # residuals_matter: the least share of z's energy no parameter explains
+WIDENING_MATTERS = 1.25  # ... and the least widening of a standard deviation by the residuals' correlation
+DRIFT_FAR = 2.0          # ... and one beyond this many half-widths is a member still drifting (not converged)
 DRIFT_Z = 1.96           # a remaining transient beyond this many of its standard deviations is the estimate's drift
 
 
@@ -79,9 +83,15 @@ class ParameterCovariance:
         offset: (B, n) the Gauss-Newton step of the window's output error from eta,
             -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
         correlated: (B,) bool, whether the whiteness test rejected white residuals (p-value below ``WHITE_P``).
-        sampling: (B, n) the estimate of the sampled feedback minus that of the continuous physics it stands
-            for (``rcotorch.verdict.sampling``), or None where the graph declares a sampled feedback or it cannot
-            be simulated (``sampling_note`` says why).
+        widening: (B,) how many times wider the correlation of the residuals makes the parameters' standard
+            deviations (the largest ratio over the parameters; 1 where the residuals are white).
+        unexplained: (B,) the share of z's weighted energy over the window that the output error's Gauss-Newton
+            step leaves: near 0 where z is a parameter error the model can take back (a noise-free run still
+            converging), near 1 where it is noise or dynamics no parameter represents.
+        sampling: (B, n) the refined model's estimate minus the physics' (``bias_source``: 'physics', the
+            physics at the estimates that ``replay`` was given, or 'sampling', the continuous feedback a sampled
+            one stands for, ``rcotorch.verdict.sampling``), or None where neither applies (``sampling_note``
+            says why).
     """
 
     cov: torch.Tensor
@@ -92,8 +102,11 @@ class ParameterCovariance:
     measured: int
     offset: torch.Tensor | None = None
     correlated: torch.Tensor | None = None
+    widening: torch.Tensor | None = None
+    unexplained: torch.Tensor | None = None
     sampling: torch.Tensor | None = None
     sampling_note: str | None = None
+    bias_source: str | None = None
 
     @property
     def std(self) -> torch.Tensor:
@@ -159,7 +172,7 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int,
 
 def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | torch.Tensor | None = None,
            rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS,
-           score_lags: int = SCORE_LAGS) -> Replay:
+           score_lags: int = SCORE_LAGS, physics=None) -> Replay:
     """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
     estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
     and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
@@ -168,8 +181,12 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     that what a member finds does not depend on the others).
     ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
     float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
-    figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). The graph itself is not
-    changed."""
+    figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). ``physics``: a graph like
+    ``graph`` whose physical blocks (``physical_blocks``) hold the physics at the estimates; one more copy runs
+    with those blocks in place of ``graph``'s, and the Gauss-Newton step of its output against the refined
+    model's prediction is the estimates' bias against the physics (``ParameterCovariance.sampling``; without it,
+    where the graph declares a continuous feedback, ``rcotorch.verdict.sampling`` measures that bias). The graph
+    itself is not changed."""
     steps = int(steps)
     if steps < 2:
         raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
@@ -204,8 +221,9 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     pre = max(0, settle - est.window - est.nc)              # steps advanced before recording
     # Where the graph declares a continuous feedback, the base copy records from the replay's first step on,
     # so that the refined model simulated with that feedback (``sampling``) settles as long as the copies.
-    how = sampling.plan(graph)
-    b0 = 0 if isinstance(how, dict) else pre
+    swap = physical_blocks(graph) if physics is not None else None
+    how = sampling.plan(graph) if not swap else "the physics at the estimates are simulated instead"
+    b0 = 0 if isinstance(how, dict) or swap else pre
     shift = pre - b0                                        # the base copy's steps recorded before the others'
     recorded, sampled_minus_continuous = [], None
     for e in runs:
@@ -220,6 +238,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
             if isinstance(how, dict):
                 signals += how["record"] + [graph.role_signal("prediction")]
                 x_start = g.blocks[how["known"]].x.clone()
+            elif swap:
+                signals += [graph.role_signal("prediction")]
             base_est, history = e_est, e_est.regressor_history()
         names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
         rec = g.run(steps - start, record={name: name for name in names})
@@ -229,6 +249,10 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
                 y_c = recorded[0][graph.role_signal("prediction")].to(f64)
                 y_f = sampling.continuous_prediction(g, how, x_start, recorded[0], steps - start)
             sampled_minus_continuous = (y_f - y_c)[shift:]     # z_c - z_f, over the other copies' steps
+        if len(recorded) == 1 and swap:
+            y_c = recorded[0][graph.role_signal("prediction")].to(f64)
+            y_p = _physics_output(graph, state, eta, physics, swap, steps - b0, b0)
+            sampled_minus_continuous = (y_p - y_c)[shift:]
         del g
     # From here on, steps are counted from the first recorded one of the copies.
     settle, last, own = settle - pre, last - pre, own - pre
@@ -259,6 +283,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
     jwd = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W (z_f - z_c)
+    zwz = torch.zeros(B, dtype=f64, device=dev)                     # sum z^T W z
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
@@ -269,7 +294,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
 
     def flush(t0: int, upto: int) -> None:
         """Add the regressors of the measured steps t0 .. upto - 1 (relative to settle)."""
-        nonlocal jwj, jwz, jwd, grams, cross, zz
+        nonlocal jwj, jwz, jwd, zwz, grams, cross, zz
         C = upto - t0
         psi = base_est.regressors_over(history, base_inputs, base_u, shift + settle + t0, shift + settle + upto)
         psi = psi.transpose(0, 1)                                                  # (B, C, n_z, n)
@@ -282,6 +307,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
         jac_w = weight @ jac                                                       # W J (W symmetric)
         jwj += _tsum(jac, jac_w)
         jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
+        zwz += ((z @ weight) * z).sum((1, 2))
         if sampled_minus_continuous is not None:
             d = sampled_minus_continuous[settle + t0:settle + upto].transpose(0, 1)      # (B, C, n_z)
             if within is not None:
@@ -310,27 +336,35 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     residuals = res.result()
     correlated = (residuals.whiteness_p < WHITE_P).to(dev)
     noise_info = scores.long_run(correlated)          # sum Psi W z z^T W Psi^T, lagged terms where z is not white
+    white_info = scores.long_run(torch.zeros_like(correlated))
     finite = finite & torch.isfinite(noise_info).flatten(1).all(1)
     info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
     cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
     noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
+    white_info = torch.where(finite.reshape(-1, 1, 1), white_info, eye)
     info_inv = torch.linalg.pinv(info)
     A = info_inv @ cross
     P = est.P.detach().to(f64)
-    rhs = info_inv @ noise_info @ P
-    rhs = 0.5 * (rhs + rhs.mT)
     lam = est.lam.to(f64).reshape(-1, 1, 1).expand(B, 1, 1)
     N = int(est.k)
     c = 0.5 * lam ** N
     M = A - c * torch.eye(n, dtype=f64, device=A.device)
-    X = _lyapunov(M, rhs)
     # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
     # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
     # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
     E = torch.linalg.matrix_exp(-M * _gain_time(est.lam.to(f64).cpu().reshape(-1).expand(B), N
                                                  ).to(M.device).reshape(-1, 1, 1))
-    X = X - E @ X @ E.mT
-    X = 0.5 * (X + X.mT)
+
+    def covariance(omega: torch.Tensor) -> torch.Tensor:
+        rhs = info_inv @ omega @ P
+        X = _lyapunov(M, 0.5 * (rhs + rhs.mT))
+        X = X - E @ X @ E.mT
+        return 0.5 * (X + X.mT)
+    X = covariance(noise_info)
+    # how much wider the correlation of the residuals makes the intervals (1 where they are white)
+    X_white = covariance(white_info) if bool(correlated.any()) else X
+    widening = (X.diagonal(dim1=1, dim2=2) / X_white.diagonal(dim1=1, dim2=2).clamp_min(1e-300)).clamp_min(0).sqrt()
+    widening = torch.where(correlated.to(dev), widening.amax(1), 1.0)
     settles = torch.linalg.eigvals(torch.where(finite.reshape(-1, 1, 1), A, eye)).real.amin(1) > EXCITED
     alive = est.alive.to(settles.device)
     settles = settles & finite.to(settles.device)
@@ -346,10 +380,59 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
         bias = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
                  torch.where(step_ok.reshape(-1, 1), jwd, 0.0).unsqueeze(-1)).squeeze(-1)
         bias = torch.where(step_ok.reshape(-1, 1), bias, math.nan)
+    # the share of z's weighted energy that no parameter explains (what the Gauss-Newton step leaves)
+    explained = (jwz.unsqueeze(1) @ torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
+                 jwz.unsqueeze(-1)).reshape(B)
+    unexplained = torch.where(zwz > 0, (1 - explained / zwz.clamp_min(1e-300)).clamp(0, 1), 0.0)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
-                             offset=offset, correlated=correlated, sampling=bias,
-                             sampling_note=None if isinstance(how, dict) else how)
+                             offset=offset, correlated=correlated, widening=widening,
+                             unexplained=unexplained,
+                             sampling=bias, sampling_note=None if isinstance(how, dict) or swap else how,
+                             bias_source="physics" if swap else "sampling" if isinstance(how, dict) else None)
     return Replay(covariance=pc, residuals=residuals)
+
+
+def physical_blocks(graph) -> dict[str, str] | None:
+    """The blocks of ``graph`` that make its measured output: {block name: the signal it yields the measured
+    output on} for the physical system (role 'physical'), and the blocks that feed its inputs other than the
+    exogenous source (the truth in feedback of a ``truth=`` refinement), or None where the graph has no physical
+    system (recorded data, no roles)."""
+    if "physical" not in graph.roles or "error" not in graph.roles:
+        return None
+    name = graph.roles["physical"]
+    if name not in graph.blocks or graph.roles.get("excitation") is None:
+        return None
+    out = {name: None}
+    w_blk = graph.role_signal("exogenous")[0] if "exogenous" in graph.roles else None
+    model = {graph.roles.get("known"), graph.roles.get("estimator")}
+    for (blk, _), (src, _) in graph.sources.items():
+        if blk == name and src not in (w_blk, *model):
+            out[src] = None
+    return out
+
+
+def _physics_output(graph, state, eta, physics, swap: Mapping[str, Any], steps: int, start: int) -> torch.Tensor:
+    """The noise-free measured output of ``graph`` with ``swap``'s blocks taken from ``physics`` (their state
+    from ``state`` where a buffer of the same name and shape exists), over ``steps`` steps after ``start``,
+    (steps, B, n_y) float64."""
+    g, _ = _frozen_copy(graph, state, eta, engine=graph.engine)
+    for name in swap:
+        if name not in physics.blocks:
+            raise ConfigError(f"intervals: the physics graph has no block '{name}' (the graph's physical system)")
+        blk = copy.deepcopy(physics.blocks[name]).to(device=eta.device)
+        blk.reset(eta.shape[0])
+        for key, value in g.blocks[name]._buffers.items():
+            mine = blk._buffers.get(key)
+            if value is not None and mine is not None and mine.shape == value.shape and key in ("x", "k"):
+                blk._buffers[key] = value.clone()
+        g.blocks[name] = blk
+    if start:
+        g.advance(start)
+    y_sig = graph.role_signal("measured")
+    if y_sig[0] == "measurement":                          # the physical output before the measurement noise
+        y_sig = graph.sources[("measurement", "clean")]
+    rec = g.run(steps, record={"y": f"{y_sig[0]}.{y_sig[1]}"})
+    return rec["y"].to(torch.float64)
 
 
 class _ScoreSums:
@@ -601,6 +684,22 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     return ok & (stat <= float(chdtri(n, 1 - p)))
 
 
+def residuals_matter(pc: ParameterCovariance, found: Intervals) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,) bool, where the residuals' lack of whiteness matters for the estimates, and (B,) the factor by which
+    their correlation widened the parameters' standard deviations. It matters where z fails the whiteness test
+    (``WHITE_P``), what the test saw is not a parameter error the model can take back (at least
+    ``UNEXPLAINED_MIN`` of z's energy is left by the output error's Gauss-Newton step: a noise-free run still
+    converging leaves almost none), and it changes the intervals: their correlation widens a standard deviation
+    by ``WIDENING_MATTERS`` or more, or an estimate is biased beyond its interval."""
+    B = pc.cov.shape[0]
+    correlated = pc.correlated.cpu() if pc.correlated is not None else torch.zeros(B, dtype=torch.bool)
+    widening = pc.widening.cpu() if pc.widening is not None else torch.ones(B, dtype=torch.float64)
+    unexplained = pc.unexplained.cpu() if pc.unexplained is not None else torch.ones(B, dtype=torch.float64)
+    biased = found.biased.cpu() if found.biased is not None else torch.zeros(B, dtype=torch.bool)
+    matter = correlated & (unexplained >= UNEXPLAINED_MIN) & ((widening >= WIDENING_MATTERS) | biased)
+    return matter, widening
+
+
 def remaining_transient(est, theta_start: torch.Tensor, k_start: int, pc: ParameterCovariance
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """The part of the parameters' error that the recursion has not yet forgotten, from their drift over the
@@ -726,7 +825,10 @@ class Intervals:
 
 SAMPLING_REASON = "sampling: the sampled feedback's estimate differs from the continuous physics' by more than " \
     "its interval"
-OUTPUT_ERROR_REASON = "output error: the data favour a point more than 5% away, beyond the random error"
+PHYSICS_REASON = "model: the refined model's estimate differs from the physics' at that estimate by more than " \
+    "its interval"
+OUTPUT_ERROR_REASON = "output error: the refinement settled away from the point the data favour, by more than " \
+    "the interval"
 
 
 def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.Tensor]], pc: ParameterCovariance,
@@ -746,9 +848,9 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
       from what the data determine);
     * **sampling a continuous feedback** (``pc.sampling``, where the graph declares one): the estimate's
       bias against the continuous physics, beta = g b - d (d as above where it widens the interval, else 0).
-      Where |beta| is at most the half-width q sd (or below ``NEGLIGIBLE`` of the estimate's size), the
-      half-width is q sd + |beta|, so that the interval holds the continuous parameter; where it is more, the
-      estimate is *biased* by beta.
+      Where |beta| is more than the half-width q sd and than ``NEGLIGIBLE`` of the estimate's size, the
+      estimate is *biased* by beta (its cause the model where |g b| >= |d|, else the output error); otherwise
+      the half-width is q sd + |beta|, so that the interval holds the physics' parameter.
 
     And the error the recursion has not yet forgotten (``transient``, ``remaining_transient``'s tau and its
     covariance): where the estimate's part t = g tau exceeds ``DRIFT_Z`` of its own standard deviations (the
@@ -793,20 +895,23 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             widened |= widen
         sampled = torch.zeros_like(det)
         if pc.sampling is not None:
-            # the estimate minus the continuous physics' parameter: the sampled feedback's bias, less the part of
-            # it that the output error's move already takes back
-            total = torch.einsum("bi,bi->b", g, pc.sampling.cpu()) - d
+            # the estimate minus the physics' parameter: the model's bias, less the part of it that the output
+            # error's move already takes back
+            model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
+            total = model - d
             known = torch.isfinite(total) & torch.isfinite(hw)
-            sampled = known & (total.abs() > hw) & (total.abs() > NEGLIGIBLE * size)
-            bias = torch.where(sampled, total, bias)
-            extra = torch.where(known & ~sampled, total.abs(), extra)
+            flag = known & (total.abs() > hw) & (total.abs() > NEGLIGIBLE * size)
+            bias = torch.where(flag, total, bias)
+            extra = torch.where(known & ~flag, total.abs(), extra)
+            sampled = flag & (model.abs() >= d.abs())      # the model's part dominates, else the output error's
+            off = off | (flag & ~sampled)
         hw = hw + extra
         if transient is not None:
             t = torch.einsum("bi,bi->b", g, transient[0])
             sd_t = torch.einsum("bi,bij,bj->b", g, transient[1], g).clamp_min(0).sqrt()
             moving = torch.isfinite(t) & torch.isfinite(hw) & (t.abs() > DRIFT_Z * sd_t)
             drifts[key] = torch.where(moving, t, 0.0)
-            far = moving & (t.abs() > hw) & (t.abs() > NEGLIGIBLE * size)
+            far = moving & (t.abs() > DRIFT_FAR * hw) & (t.abs() > NEGLIGIBLE * size)
             drifting |= far
             hw = torch.where(moving & ~far, hw + t.abs(), hw)
         half[key] = torch.where(torch.isfinite(var), hw, math.nan)
@@ -822,7 +927,8 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     def per_member(rows: list[torch.Tensor]) -> list[list[str]]:
         return [[k for k, b in zip(keys, row) if b] for row in
                 (torch.stack(rows, 1).tolist() if rows else [[]] * det.numel())]
-    reason = [SAMPLING_REASON if a else OUTPUT_ERROR_REASON if b else None
+    model_reason = PHYSICS_REASON if pc.bias_source == "physics" else SAMPLING_REASON
+    reason = [model_reason if a else OUTPUT_ERROR_REASON if b else None
               for a, b in zip(any_sampled.tolist(), any_off.tolist())]
     return Intervals(level=level, estimate=values, half_width=half, determined=det,
                      undetermined_keys=per_member(bad), offset=moved or None, widened=widened,
