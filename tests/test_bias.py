@@ -210,3 +210,27 @@ def test_a_physics_that_cannot_be_built_is_said_and_the_run_ends(tmp_path):
     assert any("the physics at the estimates could not be built (a damping below zero)" in w
                for w in res.summary["warnings"])
     assert all(s in STATUSES for s in res.status)
+
+
+def test_the_health_line_says_why_members_are_not_converged_and_summary_why_an_interval_is_missing(tmp_path):
+    """Faults reproduced: a batch's health line gave counts only, and an estimate without an interval had null
+    bounds and no reason. Now every member not converged or undetermined has its reason (health.why), the line
+    counts them with the members, and a member without an interval says why (intervals.KEY.reason)."""
+    run = Run("sdof-stiffness", batch=3, steps=4000, overrides={"truth": "discrete", "noise": 0.05},
+              out=tmp_path / "r", validation=False)
+    run.advance(until=1999, progress=False)
+    est = run.graph.role("estimator")
+    theta = est.theta.clone()
+    theta[1] = 1e8                                   # member 1 runs away and is frozen
+    est.set_state(theta=theta)
+    run.advance(progress=False)
+    s = run.finish(figures=False)
+    assert s["health"]["status"][1] == "diverged"
+    assert s["intervals"]["dK"]["lower"][1] is None
+    assert s["intervals"]["dK"]["reason"][1] == "diverged: the member was frozen"
+    assert s["intervals"]["dK"]["reason"][0] is None
+    why = s["health"]["why"]
+    assert why[1] is None and len(why) == 3
+    # a member held from converging: its reason is counted in the line with its index
+    s["health"]["status"][2], s["health"]["why"][2] = "not_converged", "z_ratio above 0.1"
+    assert "1 not_converged: z_ratio above 0.1 (member 2)" in health_line(s)

@@ -587,6 +587,7 @@ class Run:
             drifting=None if found is None or found.drifting is None else found.drifting.to(dev),
             worse=None if worse is None else worse.to(dev))
         health = self.health.report(verdict)
+        health["why"] = self._plain(_why(verdict, self.health.criteria, worse, found))
         if worse is not None:
             health["fits_worse"] = self._plain(worse.tolist())
         if found is not None:
@@ -623,9 +624,26 @@ class Run:
                 k: v for k, v in held_out.summary().items() if k in ("source", "steps", "fit_steps", "state_fitted")},
             "intervals": {} if found is None else {
                 k: {"level": found.level, "lower": self._values(found.lower(k)), "upper": self._values(found.upper(k)),
-                    **({"bias": self._values(found.bias[k])} if found.bias and bool(found.biased.any()) else {})}
+                    **({"bias": self._values(found.bias[k])} if found.bias and bool(found.biased.any()) else {}),
+                    **self._no_interval(found, k)}
                 for k in found.estimate},
         }
+
+    def _no_interval(self, found: ci.Intervals, key: str) -> dict[str, Any]:
+        """{'reason': ...}: why a member has no interval for ``key`` (None where it has one), or {} where every
+        member has one."""
+        missing = ~torch.isfinite(found.half_width[key])
+        if not bool(missing.any()):
+            return {}
+        est = self.graph.role("estimator")
+        pc = est.covariance
+        alive = est.alive.cpu().tolist()
+        settles = pc.settles.cpu().tolist()
+        reasons = [None if not m else "diverged: the member was frozen" if not a else
+                   "a direction of theta was not excited by the data (an eigenvalue of A below "
+                   f"{ci.EXCITED})" if not s else "the parameters' covariance is not finite"
+                   for m, a, s in zip(missing.tolist(), alive, settles)]
+        return {"reason": self._plain(reasons)}
 
     def intervals(self) -> ci.Intervals | None:
         """The estimates' confidence intervals at the current step, or None when the run computes none or has
@@ -1072,7 +1090,8 @@ def health_line(summary: Mapping[str, Any]) -> str:
         if h["status"] == "undetermined":
             which = ", ".join(h.get("undetermined") or []) or "a direction of theta"
             return f"health: undetermined: settled, but the data did not determine {which} ({detail}){note}"
-        return f"health: {h['status']} ({detail}){note}"
+        why = f": {h['why']}" if h.get("why") else ""
+        return f"health: {h['status']}{why} ({detail}){note}"
     counts = ", ".join(f"{n} {status}" for status, n in h["counts"].items()
                        if n or status not in ("undetermined", "biased"))
     line = f"health: {counts}"
@@ -1084,11 +1103,61 @@ def health_line(summary: Mapping[str, Any]) -> str:
     if h["counts"].get("biased"):
         members = [b for b, st in enumerate(h["status"]) if st == "biased"]
         line += f"; biased: {_bias_text(summary, members)}"
+    why = _why_text(h)
+    if why:
+        line += f"; {why}"
     if summary["diverged"]:
         first = summary["diverged"][:5]
         line += "; diverged: " + ", ".join(f"member {d['member']} at step {d['step']} ({d['reason']})"
                                            for d in first) + (", ..." if len(summary["diverged"]) > 5 else "")
     return line
+
+
+def _why(verdict: Mapping[str, torch.Tensor], criteria: Criteria, worse: torch.Tensor | None,
+         found: ci.Intervals | None) -> list[str | None]:
+    """Per member, why it is not converged, undetermined or biased, in a few words (None for a converged or
+    diverged member: a diverged one has its ``reason``)."""
+    code = verdict["status"].cpu().tolist()
+    ratio = verdict["z_ratio"].cpu().tolist()
+    drifting = found.drifting.tolist() if found is not None and found.drifting is not None else [False] * len(code)
+    worse_ = worse.tolist() if worse is not None else [False] * len(code)
+    out: list[str | None] = []
+    for b, c in enumerate(code):
+        status = STATUSES[c]
+        if status == "not_converged":
+            if worse_[b]:
+                out.append("fits worse than the initial model")
+            elif drifting[b]:
+                out.append("still drifting beyond its interval")
+            elif not ratio[b] <= criteria.z_tol:
+                out.append(f"z_ratio above {criteria.z_tol:g}")
+            else:
+                out.append(f"theta_change above {criteria.theta_tol:g}")
+        elif status == "undetermined":
+            keys = found.undetermined_keys[b] if found is not None else []
+            out.append(f"interval too wide: {', '.join(keys)}" if keys else "a direction of theta not excited")
+        elif status == "biased":
+            out.append("biased: " + ", ".join(found.biased_keys[b]) if found is not None and found.biased_keys
+                       else "biased")
+        else:
+            out.append(None)
+    return out
+
+
+def _why_text(h: Mapping[str, Any]) -> str:
+    """The reasons of the members not converged or undetermined, counted, with up to five members each."""
+    why, status = h.get("why"), h.get("status")
+    if not isinstance(why, list):
+        return ""
+    groups: dict[str, list[int]] = {}
+    for b, (w, s) in enumerate(zip(why, status)):
+        if w is not None and s in ("not_converged", "undetermined"):
+            groups.setdefault(f"{s}: {w}", []).append(b)
+    parts = []
+    for text, members in groups.items():
+        shown = ", ".join(map(str, members[:5])) + (", ..." if len(members) > 5 else "")
+        parts.append(f"{len(members)} {text} (member{'s' if len(members) > 1 else ''} {shown})")
+    return "; ".join(parts)
 
 
 def _bias_text(summary: Mapping[str, Any], members: list[int] | None) -> str:
