@@ -667,7 +667,7 @@ class Run:
                 with torch.no_grad():
                     now = self.scenario.estimates(self.graph, self.settings)
                 physics, self._physics_note = None, None
-                if self.graph.roles.get("physical"):
+                if ci.physical_blocks(self.graph):     # a simulated physical system to rebuild
                     try:
                         physics = self.scenario.physics(self.settings, now, self.batch, DTYPES[self.dtype_name],
                                                         self.device)

@@ -65,6 +65,7 @@ BIAS_TOL = 0.05          # an estimate that step moves by more than this fractio
 NEGLIGIBLE = 1e-3        # a bias or drift below this fraction of an estimate's size is corrected, never flagged
 UNEXPLAINED_MIN = 0.01   # residuals_matter: the least share of z's energy no parameter explains
 WIDENING_MATTERS = 1.25  # ... and the least widening of a standard deviation by the residuals' correlation
+OFFSET_Z = 1.96          # a move beyond this many of the step's own standard deviations widens the interval too
 DRIFT_FAR = 2.0          # ... and one beyond this many half-widths is a member still drifting (not converged)
 DRIFT_Z = 1.96           # a remaining transient beyond this many of its standard deviations is the estimate's drift
 
@@ -83,6 +84,8 @@ class ParameterCovariance:
         offset: (B, n) the Gauss-Newton step of the window's output error from eta,
             -(sum J^T W J)^-1 sum J^T W z with J = dz/d eta of the frozen loop (``OFFSET_FACTOR``).
         correlated: (B,) bool, whether the whiteness test rejected white residuals (p-value below ``WHITE_P``).
+        offset_cov: (B, n, n) the covariance of ``offset``'s random error (white residuals; with forgetting the
+            parameters' own covariance added).
         widening: (B,) how many times wider the correlation of the residuals makes the parameters' standard
             deviations (the largest ratio over the parameters; 1 where the residuals are white).
         unexplained: (B,) the share of z's weighted energy over the window that the output error's Gauss-Newton
@@ -104,6 +107,7 @@ class ParameterCovariance:
     correlated: torch.Tensor | None = None
     widening: torch.Tensor | None = None
     unexplained: torch.Tensor | None = None
+    offset_cov: torch.Tensor | None = None
     sampling: torch.Tensor | None = None
     sampling_note: str | None = None
     bias_source: str | None = None
@@ -284,6 +288,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
     jwd = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W (z_f - z_c)
     zwz = torch.zeros(B, dtype=f64, device=dev)                     # sum z^T W z
+    jgram = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum J[z, i] J[y, j]
     grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
     cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
     zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
@@ -294,7 +299,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
 
     def flush(t0: int, upto: int) -> None:
         """Add the regressors of the measured steps t0 .. upto - 1 (relative to settle)."""
-        nonlocal jwj, jwz, jwd, zwz, grams, cross, zz
+        nonlocal jwj, jwz, jwd, zwz, jgram, grams, cross, zz
         C = upto - t0
         psi = base_est.regressors_over(history, base_inputs, base_u, shift + settle + t0, shift + settle + upto)
         psi = psi.transpose(0, 1)                                                  # (B, C, n_z, n)
@@ -308,6 +313,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
         jwj += _tsum(jac, jac_w)
         jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
         zwz += ((z @ weight) * z).sum((1, 2))
+        flat_j = jac.reshape(B, C, n_z * n)
+        jgram += (flat_j.mT @ flat_j).reshape(B, n_z, n, n_z, n).permute(0, 1, 3, 2, 4)
         if sampled_minus_continuous is not None:
             d = sampled_minus_continuous[settle + t0:settle + upto].transpose(0, 1)      # (B, C, n_z)
             if within is not None:
@@ -375,6 +382,12 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     offset = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
                torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
     offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
+    # the step's random error, (sum J^T W J)^-1 (sum J^T W V W J) (sum J^T W J)^-1 for white residuals (the window's
+    # output-error estimate's), with the parameters' own X added under forgetting (the two are then not nested)
+    jwj_inv = torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye))
+    offset_cov = jwj_inv @ torch.einsum("bzy,bzyij->bij", weight @ V @ weight, jgram) @ jwj_inv
+    forgets = (est.lam.to(f64).reshape(-1).expand(B) < 1).to(dev).reshape(-1, 1, 1)
+    offset_cov = torch.where(step_ok.reshape(-1, 1, 1), offset_cov + torch.where(forgets, X, 0.0), math.nan)
     bias = None
     if sampled_minus_continuous is not None:   # the sampled estimate minus the continuous physics' (``sampling``)
         bias = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
@@ -385,7 +398,7 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
                  jwz.unsqueeze(-1)).reshape(B)
     unexplained = torch.where(zwz > 0, (1 - explained / zwz.clamp_min(1e-300)).clamp(0, 1), 0.0)
     pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
-                             offset=offset, correlated=correlated, widening=widening,
+                             offset=offset, offset_cov=offset_cov, correlated=correlated, widening=widening,
                              unexplained=unexplained,
                              sampling=bias, sampling_note=None if isinstance(how, dict) or swap else how,
                              bias_source="physics" if swap else "sampling" if isinstance(how, dict) else None)
@@ -883,6 +896,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         bias = torch.full_like(v, math.nan)
         off = torch.zeros_like(det)
         d, extra = torch.zeros_like(v), torch.zeros_like(v)      # the output error's move, the widening
+        d_seen = torch.zeros_like(v)                              # ... where only its own noise says it counts
         if pc.offset is not None:
             d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
             moved[key] = d
@@ -890,9 +904,14 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             widen = beyond if pc.correlated is None else beyond | (pc.correlated.cpu() & torch.isfinite(d))
             off = beyond & (d.abs() > BIAS_TOL * size)          # the data favour a point well away
             bias = torch.where(off, -d, bias)
+            significant = torch.zeros_like(widen)   # beyond the step's own random error: widens, never flags
+            if pc.offset_cov is not None:
+                sd_d = torch.einsum("bi,bij,bj->b", g, pc.offset_cov.cpu(), g).clamp_min(0).sqrt()
+                significant = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_Z * sd_d) & ~widen
+            d_seen = torch.where(significant, d, 0.0)
             d = torch.where(widen, d, 0.0)
-            extra = d.abs()
-            widened |= widen
+            extra = d.abs() + d_seen.abs()
+            widened |= widen | significant
         sampled = torch.zeros_like(det)
         if pc.sampling is not None:
             # the estimate minus the physics' parameter: the model's bias, less the part of it that the output
@@ -902,7 +921,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             known = torch.isfinite(total) & torch.isfinite(hw)
             flag = known & (total.abs() > hw) & (total.abs() > NEGLIGIBLE * size)
             bias = torch.where(flag, total, bias)
-            extra = torch.where(known & ~flag, total.abs(), extra)
+            extra = torch.where(known & ~flag, (total - d_seen).abs(), extra)
             sampled = flag & (model.abs() >= d.abs())      # the model's part dominates, else the output error's
             off = off | (flag & ~sampled)
         hw = hw + extra
