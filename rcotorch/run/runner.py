@@ -664,10 +664,10 @@ class Run:
             if window >= 2:
                 started = time.perf_counter()
                 steps, settle = self._replay_span(window)
-                with torch.no_grad():
-                    now = self.scenario.estimates(self.graph, self.settings)
                 physics, self._physics_note = None, None
                 if ci.physical_blocks(self.graph):     # a simulated physical system to rebuild
+                    with torch.no_grad():
+                        now = self.scenario.estimates(self.graph, self.settings)
                     try:
                         physics = self.scenario.physics(self.settings, now, self.batch, DTYPES[self.dtype_name],
                                                         self.device)

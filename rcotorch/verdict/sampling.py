@@ -128,7 +128,7 @@ def continuous_prediction(graph, plan_: Mapping, x0: torch.Tensor, signals: Mapp
 
     out = x.new_empty(steps, B, outs[y_port].stop - outs[y_port].start)
     Bu = Bc[:, :, ins[u_port]]
-    gain = _linear_gain(est, sees, graph, known, B)
+    gain = _linear_gain(est, B)
     if gain is not None:
         # u = sum_p K_p s_p + u0 is linear: the continuous closed loop x' = A_cl x + B_v v with v the held
         # inputs (the known model's other inputs, the estimator's other inputs, 1), discretized exactly.
@@ -176,8 +176,7 @@ def continuous_prediction(graph, plan_: Mapping, x0: torch.Tensor, signals: Mapp
     return out
 
 
-def _linear_gain(est, sees: Mapping[str, tuple], graph, known, B: int
-                 ) -> tuple[dict[str, torch.Tensor], torch.Tensor] | None:
+def _linear_gain(est, B: int) -> tuple[dict[str, torch.Tensor], torch.Tensor] | None:
     """The estimator's map as u = sum_p K_p s_p + u0 ({port: (B, n_u, width)}, (B, n_u)) where it is affine in
     its inputs (checked on random inputs), else None."""
     f64 = torch.float64
