@@ -3,8 +3,8 @@
     python benchmarks/cli_cost.py --threads 1            # about a minute
     python benchmarks/cli_cost.py --threads 1 --quick    # shorter runs, for a check
 
-``sdof-stiffness-damping`` (the scenario of ``benchmarks/numba_peer.py``) at B = 1 for 2,000,000 steps and at
-B = 4096 for its 20,000 default steps, each measured three ways in one process:
+``sdof-stiffness-damping`` (the scenario of the numba peer, ``tests/numba_loop.py``) at B = 1 for 2,000,000 steps
+and at B = 4096 for its 20,000 default steps, each measured three ways in one process:
 
 * **the command line**: ``Run`` as ``rcotorch run NAME --batch B --steps S`` makes it (health checks, TensorBoard
   logs, figures' history, the output folder's checks), stepped with ``Run.advance`` after a first stretch of
@@ -12,7 +12,7 @@ B = 4096 for its 20,000 default steps, each measured three ways in one process:
   the imports they need; it is reported apart, as is ``finish``: the summary, intervals, validation, figures and
   the final checkpoint);
 * **the engine alone**: a copy of the same graph, ``Graph.advance`` for the same steps;
-* **the numba peer**: the best of its variants (``numba_peer.py``) for the same number of member-steps.
+* **the numba peer**: the best of its variants (``benchmarks/peer.py``) for the same number of member-steps.
 
 Goals: the command line's member-step within 1.5x the engine's at both B; the end of the run (``finish``: the
 intervals' replay, validation, summary, figures and files, reported part by part from ``Run.timings``) within

@@ -1,7 +1,7 @@
 """A plain NumPy loop of a Figure-1 refinement with a static-gain identified subsystem, for any such graph.
 
 The per-step cost baseline of ``benchmarks/engine_cost.py`` for graphs other than ``sdof-stiffness-damping``
-(which has its own loop, ``numpy_reference.py``): ``silverbox-cubic-stiffness``, ``twodof-stiffness`` and a
+(which has its own loop, ``tests/numpy_loop.py``): ``silverbox-cubic-stiffness``, ``twodof-stiffness`` and a
 graph with basis features. One refinement at a time, a Python loop over steps, the equations written out:
 
 * known model x(k+1) = A x + B [w; u], outputs [y; y0] = C x + D [w; u] (matrices read from the built graph);

@@ -1,4 +1,4 @@
-"""rcotorch's native engine against the numba peer (``numba_peer.py``) on ``sdof-stiffness-damping``.
+"""rcotorch's native engine against the numba peer (``tests/numba_loop.py``) on ``sdof-stiffness-damping``.
 
     python benchmarks/peer.py [--threads 1,2] [--batches 1,64,4096,65536] [--seconds 0.5] [--quick]
 
@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+from pathlib import Path
 
 import numba
 import numba_peer
@@ -32,6 +34,9 @@ from common import machine, setup, table, write_json
 
 from rcotorch.run import scenario as scenarios
 
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))   # the peer lives with the tests that check it
+import numba_loop  # noqa: E402
+
 NAME = "sdof-stiffness-damping"
 VARIANTS = ("numba one", "numba one pairs", "numba prange", "numba prange pairs", "numba lanes", "numba lanes pairs")
 
@@ -39,14 +44,14 @@ VARIANTS = ("numba one", "numba one pairs", "numba prange", "numba prange pairs"
 def _numba_call(variant: str, B: int, pairs: bool = False):
     """A call of the variant for B members (its argument: the steps), on precomputed arguments; ``pairs``: normals
     drawn two at a time."""
-    m = numba_peer.model()
+    m = numba_loop.model()
     seed = m.pop("seed")
     args = [m[k] for k in ("w_std", "Ad", "Bw", "Bu", "Atd", "Btd", "beta", "p0", "lam")]
-    seeds, members = numba_peer.streams(B, seed)
+    seeds, members = numba_loop.streams(B, seed)
     theta, P = np.empty((B, 3)), np.empty((B, 3, 3))
     if variant == "one":
-        return lambda steps: numba_peer.refine_one(steps, seeds[0], members[0], *args, theta[0], P[0], pairs)
-    fn = {"prange": numba_peer.refine_prange, "lanes": numba_peer.refine_lanes}[variant]
+        return lambda steps: numba_loop.refine_one(steps, seeds[0], members[0], *args, theta[0], P[0], pairs)
+    fn = {"prange": numba_loop.refine_prange, "lanes": numba_loop.refine_lanes}[variant]
     return lambda steps: fn(steps, seeds, members, *args, theta, P, pairs)
 
 

@@ -1,6 +1,7 @@
 """The thermosphere scenario's results table: identified-subsystem structure x measured altitudes x metrics.
 
-    python benchmarks/thermosphere_table.py [--only LABEL ...] [--steps N] [--figures] [--markdown] [--out FILE]
+    python benchmarks/thermosphere_table.py [--only LABEL ...] [--steps N] [--set KEY=VALUE ...] [--figures]
+                                            [--markdown] [--out FILE]
 
 Runs ``thermosphere-no-cooling`` once per configuration, one after the other (each run is single-threaded work
 on the column; run the table while nothing else is heavy), and writes benchmarks/results/thermosphere_table.json:
@@ -8,8 +9,9 @@ for each configuration its settings, the goals' metrics over the evaluation wind
 km over the last day, ``cooling_corr_152km`` and ``cooling_rel_rms_152km`` from one day on), the per-node and
 profile cooling errors, whether each goal is met, and the frozen replay on the other space weather (the same
 metrics over the whole replay, the density against the initial model). ``--only`` reruns some configurations
-and keeps the others' rows of an existing file. ``--figures`` writes each run's figures under
-runs/thermosphere-table/LABEL/.
+and keeps the others' rows of an existing file. ``--set`` changes a setting of the scenario in every
+configuration (a coarser column for a quick look: ``--set dz_km=10 --set Ts=3600``). ``--figures`` writes each
+run's figures under runs/thermosphere-table/LABEL/.
 """
 
 from __future__ import annotations
@@ -95,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="+", default=None, help=f"labels among {list(CONFIGS)}")
     ap.add_argument("--steps", type=int, default=None, help="steps per run (default: the scenario's 480)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of the scenario in every configuration (dz_km=10, ...)")
     ap.add_argument("--figures", action="store_true", help="write each run's figures under runs/thermosphere-table/")
     ap.add_argument("--markdown", action="store_true", help="also print the table as Markdown")
     ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results/thermosphere_table.json)")
@@ -109,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     result["goals"] = {k: f"{op} {b:g}" for k, (op, b) in GOALS.items()}
     for label in labels:
         out = ROOT / "runs" / "thermosphere-table" / label.replace(",", "+") if args.figures else None
-        result["rows"][label] = run_config(CONFIGS[label], args.steps, out, args.figures)
+        settings = {**CONFIGS[label], **dict(item.split("=", 1) for item in args.set)}
+        result["rows"][label] = run_config(settings, args.steps, out, args.figures)
         result["machine"] = machine(torch.device("cpu"))
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(result, indent=2) + "\n")        # after each run: a partial table survives

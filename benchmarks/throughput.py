@@ -11,8 +11,9 @@ Writes benchmarks/results/throughput.json and prints a table.
   it applies (``--engine``), and on the PyTorch engine (step after step) for comparison; refinement-steps per second =
   B * steps / seconds, the best of 3 runs of ``--seconds / 3`` each (the excitation is drawn inside the
   timing; the best run is the one least disturbed by other processes on a shared machine).
-* numpy: ``benchmarks/numpy_reference.py``, the same equations for one refinement in a plain Python loop
-  (refinement-steps per second, best of 3), timed before and after the torch runs; the ratio uses their mean.
+* numpy: ``tests/numpy_loop.py``, the same equations for one refinement in a plain Python loop, timed by
+  ``benchmarks/numpy_reference.py`` (refinement-steps per second, best of 3) before and after the torch runs; the
+  ratio uses their mean.
 * peak memory: each B in a fresh subprocess, the resident-set high-water mark during the run (VmHWM, reset
   after a warm batch-of-one step) minus the resident set before it, so library start-up is not counted; on
   CUDA ``torch.cuda.max_memory_allocated``. ``state_bytes`` is the graph's registered state alone.

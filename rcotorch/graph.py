@@ -471,8 +471,13 @@ class Graph(nn.Module):
         steps = _step_count(steps)
         if steps == 0:
             return
-        prog = "engine='torch'" if self.engine == "torch" else lowering.program(self)
-        why = prog if isinstance(prog, str) else None
+        if self.engine == "torch":
+            why = "engine='torch'"
+        else:
+            try:
+                prog, why = lowering.program(self), None
+            except lowering.NotLowerable as e:
+                why = str(e)
         if why is None:
             start = int(self.k)
             with compiled.raised_in_compiled() as raised:

@@ -2,24 +2,15 @@
 measured by the scripts in benchmarks/, not here)."""
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
 import torch
+from bench_scripts import ROOT, run_script
 
 import rcotorch as rt
 from rcotorch.blocks.sources import _normal_grid
 from rcotorch.engine import rng
 from rcotorch.run import scenario as scenarios
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import csv_memory  # noqa: E402
-import duffing  # noqa: E402
-import rls_kernel  # noqa: E402
-import thermosphere_native  # noqa: E402
-import throughput  # noqa: E402
-import user_function  # noqa: E402
 
 
 @pytest.mark.parametrize("start,length,width", [(0, 512, 1), (517, 3, 2), (2**33 + 5, 4, 3)])
@@ -79,7 +70,7 @@ def test_rls_inplace_equals_functional_bitwise(lam):
 
 def test_throughput_script_quick(tmp_path):
     out = tmp_path / "t.json"
-    throughput.main(["--quick", "--batches", "1,8", "--no-memory", "--out", str(out)])
+    run_script("throughput", "--quick", "--batches", "1,8", "--no-memory", "--out", str(out))
     res = json.loads(out.read_text())
     assert [r["B"] for r in res["torch"]] == [1, 8]
     assert all(r["refinement_steps_per_s"] > 0 and r["ratio_vs_numpy"] > 0 for r in res["torch"])
@@ -88,29 +79,31 @@ def test_throughput_script_quick(tmp_path):
 
 
 def test_peak_memory_in_a_subprocess():
-    m = throughput.memory("sdof-stiffness-damping", 16, "cpu", 3, 1)
+    done = run_script("throughput", "--_memory", "sdof-stiffness-damping", "16", "3", "--device", "cpu",
+                      "--threads", "1")
+    m = json.loads(done.stdout.strip().splitlines()[-1])
     assert m["B"] == 16 and m["n_theta"] == 3 and m["peak_bytes"] >= 0 and m["state_bytes"] > 0
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_user_function_script_quick(tmp_path):
     out = tmp_path / "uf.json"
-    result = user_function.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
+    run_script("user_function", "--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out))
     row = json.loads(out.read_text())["results"][0]
-    assert row["batch"] == 1 and row["compiled_ns"] > 0 and row["gain_ns"] > 0 and result["results"]
+    assert row["batch"] == 1 and row["compiled_ns"] > 0 and row["gain_ns"] > 0
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_duffing_script_quick(tmp_path):
     out = tmp_path / "duffing.json"
-    duffing.main(["--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out)])
+    run_script("duffing", "--quick", "--batches", "1", "--seconds", "0.1", "--out", str(out))
     row = json.loads(out.read_text())["results"][0]
     assert row["batch"] == 1 and row["engine_ns"] > 0 and row["numba_loop_ns"] > 0
 
 
 def test_thermosphere_native_script_quick(tmp_path):
     out = tmp_path / "th.json"
-    thermosphere_native.main(["--quick", "--no-figures", "--out", str(out)])
+    run_script("thermosphere_native", "--quick", "--no-figures", "--out", str(out))
     res = json.loads(out.read_text())
     assert res["steps"] == 48 and res["run_ratio"] > 0 and res["metrics_relative_difference"] < 1e-6
     assert res["native"]["run_s"] > 0 and res["torch"]["process_s"] > res["torch"]["run_s"]
@@ -118,7 +111,7 @@ def test_thermosphere_native_script_quick(tmp_path):
 
 def test_rls_kernel_script_quick(tmp_path):
     out = tmp_path / "r.json"
-    rls_kernel.main(["--quick", "--batches", "64", "--n", "3", "--no-compile", "--out", str(out)])
+    run_script("rls_kernel", "--quick", "--batches", "64", "--n", "3", "--no-compile", "--out", str(out))
     res = json.loads(out.read_text())
     v = res["results"][0]["variants"]
     assert set(v) == {"inplace", "inplace_torch", "functional", "before"}
@@ -127,80 +120,79 @@ def test_rls_kernel_script_quick(tmp_path):
 
 def test_csv_memory_script_quick(tmp_path):
     out = tmp_path / "c.json"
-    csv_memory.main(["--quick", "--out", str(out)])
+    run_script("csv_memory", "--quick", "--out", str(out))
     res = json.loads(out.read_text())
     assert res["values_equal"] and res["file"]["rows"] == 20000 and res["asked_bytes"] == 8 * 20000 * 2
     assert res["rcotorch"]["seconds"] > 0 and res["loadtxt"]["seconds"] > 0
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-CUDA path")
-def test_cuda_request_is_skipped_cleanly_without_cuda(tmp_path, capsys):
+def test_cuda_request_is_skipped_cleanly_without_cuda(tmp_path):
     out = tmp_path / "x.json"
-    throughput.main(["--device", "cuda", "--quick", "--out", str(out)])
-    rls_kernel.main(["--device", "cuda", "--quick", "--out", str(out)])
-    assert "no CUDA device" in capsys.readouterr().out and not out.exists()
+    for script in ("throughput", "rls_kernel"):
+        assert "no CUDA device" in run_script(script, "--device", "cuda", "--quick", "--out", str(out)).stdout
+    assert not out.exists()
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_benchmarks_run_on_cuda(tmp_path):
     out = tmp_path / "g.json"
-    throughput.main(["--device", "cuda", "--quick", "--batches", "1,64", "--out", str(out)])
+    run_script("throughput", "--device", "cuda", "--quick", "--batches", "1,64", "--out", str(out))
     assert json.loads(out.read_text())["machine"]["device"].startswith("cuda")
-    rls_kernel.main(["--device", "cuda", "--quick", "--batches", "1024", "--n", "3", "--no-compile",
-                     "--out", str(out)])
+    run_script("rls_kernel", "--device", "cuda", "--quick", "--batches", "1024", "--n", "3", "--no-compile",
+               "--out", str(out))
 
 
 def test_the_batched_unscented_filter_is_filterpys():
-    """The performance-minded peer of benchmarks/ukf_peer.py computes what filterpy's UnscentedKalmanFilter does,
-    step for step, on the damaged building's data."""
+    """The batched unscented filter that benchmarks/ukf_peer.py runs (ukf_filters.py) computes what filterpy's
+    UnscentedKalmanFilter does, step for step, on the damaged building's data."""
     pytest.importorskip("filterpy")
     import numpy as np
-    import ukf_peer
-    sc = scenarios.get(ukf_peer.NAME)
-    s = sc.resolve(ukf_peer.VELOCITY)
-    A, Bw, Bu, Cy, Cd = ukf_peer.model(sc, s)
+    import ukf_filters
+    sc = scenarios.get(ukf_filters.NAME)
+    s = sc.resolve(ukf_filters.VELOCITY)
+    A, Bw, Bu, Cy, Cd = ukf_filters.model(sc, s)
     R = np.eye(Cy.shape[0]) * s["noise"] ** 2
-    w, y = ukf_peer.record(sc, s, 2, [sc.steps])[:2]
+    w, y = ukf_filters.record(sc, s, 2, [sc.steps])[:2]
     steps = 600
-    batched = ukf_peer.batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w[:steps], y[:steps], R)[0]
+    batched = ukf_filters.batched_ukf(A, Bw, Bu, Cy, Cd, s["k"], w[:steps], y[:steps], R)[0]
     for b in range(2):
-        one = ukf_peer.filterpy_run(A, Bw, Bu, Cy, Cd, s["k"], w[:steps, b], y[:steps, b], R)[0]
+        one = ukf_filters.filterpy_run(A, Bw, Bu, Cy, Cd, s["k"], w[:steps, b], y[:steps, b], R)[0]
         # the first steps divide tiny innovations by tiny variances (P0 of the states 1e-8): rounding grows to 1e-8
         np.testing.assert_allclose(batched[:, b], one, rtol=1e-6, atol=1e-7)
         assert np.abs(one).max() > 0.01
 
 
 def test_the_paired_comparison_of_errors_tells_apart_only_what_differs():
-    """ukf_peer.compare: identical errors differ by 0 with an interval of 0; errors larger by 1e-3 in every member
+    """ukf_filters.compare: identical errors differ by 0 with an interval of 0; errors larger by 1e-3 in every member
     give median and largest differences of -1e-3 whose intervals exclude 0; two independent draws of one
     distribution have intervals that hold 0."""
     import numpy as np
-    import ukf_peer
+    import ukf_filters
     e = np.random.default_rng(5).exponential(1e-3, 64)
-    same = ukf_peer.compare(e, e)
+    same = ukf_filters.compare(e, e)
     assert same["a_smaller_share"] == 0 and same["median_difference_95"] == [0.0, 0.0]
-    better = ukf_peer.compare(e, e + 1e-3)
+    better = ukf_filters.compare(e, e + 1e-3)
     assert better["a_smaller_share"] == 1
     assert better["median_difference"] == pytest.approx(-1e-3) and better["max_difference"] == pytest.approx(-1e-3)
     assert better["median_difference_95"][1] < 0 and better["max_difference_95"][1] < 0
     f = np.random.default_rng(6).exponential(1e-3, 64)
-    tie = ukf_peer.compare(e, f)
+    tie = ukf_filters.compare(e, f)
     assert tie["median_difference_95"][0] < 0 < tie["median_difference_95"][1]
 
 
 def test_the_coverage_table_in_the_docs_is_the_one_the_script_prints():
     """docs/intervals.md shows benchmarks/interval_coverage.py's table of the results on record, as printed."""
-    import interval_coverage
-    root = Path(__file__).resolve().parents[1]
-    results = json.loads((root / "benchmarks" / "results" / "interval_coverage.json").read_text())
-    table = interval_coverage.table({k: v for k, v in results.items() if k in interval_coverage.CASES})
-    assert set(interval_coverage.CASES) <= set(results)
-    assert table in (root / "docs" / "intervals.md").read_text()
+    from coverage_cases import CASES
+    results = json.loads((ROOT / "benchmarks" / "results" / "interval_coverage.json").read_text())
+    assert set(CASES) <= set(results)
+    table = run_script("interval_coverage", "--table").stdout.rstrip("\n")
+    assert table.startswith("| case |") and table in (ROOT / "docs" / "intervals.md").read_text()
 
 
-def test_the_coverage_script_runs_a_case_built_in_python(tmp_path):
+def test_the_coverage_of_a_case_built_in_python_is_measured(tmp_path):
     """The Duffing case (a graph built in Python with a continuous nonlinear truth) at a tiny size."""
-    import interval_coverage
-    r = interval_coverage.coverage("duffing", 2, tmp_path)
+    from coverage_cases import coverage
+    r = coverage("duffing", 2, tmp_path)
     assert sum(r["shares"].values()) == pytest.approx(1.0) and "k3" in r["estimates"]

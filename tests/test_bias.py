@@ -4,20 +4,17 @@ one place; the residual warning where it matters and not on exact, noise-free ru
 cases off the exact model (slow)."""
 
 import math
-import sys
 from fractions import Fraction
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from coverage_cases import coverage
 
 import rcotorch as rt
 from rcotorch.run.runner import Run, health_line
 from rcotorch.verdict import intervals as ci
 from rcotorch.verdict.health import STATUSES, Health
-
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
 def _finish(name, tmp_path, batch=2, **overrides):
@@ -168,24 +165,15 @@ def test_the_residual_warning_is_silent_on_an_exact_noise_free_run_and_speaks_on
     assert "residuals not white in 2 members" in health_line(s)
 
 
-def _coverage(case: str, members: int, out: Path) -> dict:
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import interval_coverage
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return interval_coverage.coverage(case, members, out)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["twodof-discrete", "duffing"])
 def test_converged_means_covered_off_the_exact_model_over_200_seeds(case, tmp_path):
-    """Two hard cases of benchmarks/interval_coverage.py, 200 members with their own streams: the exact model
+    """Two hard cases of the interval coverage (coverage_cases.py), 200 members with their own streams: the exact model
     with lam = 1 (a recursion that forgets its start slowly) and a Duffing truth built in Python (a continuous
     nonlinear truth, a cubic feature). Among the members called converged the 95% intervals hold the truth in
     90-98% (up to 98.5%: with about 160 converged members a coverage's sampling error is about 1.1%, and lam = 1
     covers dk1 in 154 of 157), and at least a third of the members are converged."""
-    r = _coverage(case, 200, tmp_path)
+    r = coverage(case, 200, tmp_path)
     assert r["shares"]["converged"] >= 1 / 3, r["shares"]
     for key, row in r["estimates"].items():
         assert 0.90 <= row["coverage"] <= 0.985, (key, row)
@@ -195,7 +183,7 @@ def test_converged_means_covered_off_the_exact_model_over_200_seeds(case, tmp_pa
 def test_the_shipped_continuous_truths_are_biased_not_converged(tmp_path):
     """sdof-stiffness at 100 000 steps (the interval shrinks, the sampling bias stays): no member converged,
     every member biased."""
-    r = _coverage("sdof-shipped-100k", 200, tmp_path)
+    r = coverage("sdof-shipped-100k", 200, tmp_path)
     assert r["shares"]["converged"] == 0.0 and r["shares"]["biased"] >= 0.99, r["shares"]
 
 

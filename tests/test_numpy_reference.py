@@ -1,21 +1,16 @@
-"""benchmarks/numpy_reference.py, a plain per-refinement NumPy loop of sdof-stiffness-damping, against rcotorch.
+"""numpy_loop.py, a plain per-refinement NumPy loop of sdof-stiffness-damping, against rcotorch.
 
 The loop shares only the excitation samples with the library (rcotorch.engine.rng); its discretization (scipy
 expm), Markov parameters, regressor bookkeeping and RLS are written out independently, so agreement to ~1e-9
 is a check of the library as well as of the speed baseline."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
+import numpy_loop as nr
 import pytest
 import torch
 
 from rcotorch.engine import kernels
 from rcotorch.run import scenario as scenarios
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import numpy_reference as nr  # noqa: E402
 
 NAME = "sdof-stiffness-damping"
 

@@ -3,12 +3,14 @@ matplotlib (the modules each command imports, read from ``python -X importtime``
 its parts on first use and still offers every public name; a user's scenario folder whose files import torch at
 the top still lists and shows. The times themselves are measured by benchmarks/startup.py."""
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from bench_scripts import run_script
 
 import rcotorch as rt
 
@@ -93,13 +95,8 @@ def test_a_user_scenario_that_imports_torch_at_the_top_lists_and_shows(tmp_path)
 
 
 def test_startup_benchmark_quick(tmp_path):
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import startup
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    out = startup.main(["--quick", "--out", str(tmp_path / "startup.json")])
-    assert (tmp_path / "startup.json").is_file()
+    run_script("startup", "--quick", "--out", str(tmp_path / "startup.json"))
+    out = json.loads((tmp_path / "startup.json").read_text())
     rows = {r["command"]: r for r in out["results"]}
     assert set(rows) >= {"import torch", "import rcotorch", "rcotorch --version", "rcotorch list",
                          "rcotorch show sdof-stiffness"}

@@ -2,13 +2,13 @@
 nothing else, its basis and memory against closed forms and scipy, densities at several altitudes, prefilter
 blocks in ``refinement``, the frozen replay, and (slow) the goals with the smallest measurement set."""
 
+import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from bench_scripts import run_script
 from scipy.signal import lfilter
 
 import rcotorch as rt
@@ -198,13 +198,13 @@ def test_temperature_structure_meets_the_goals_with_densities_at_407_and_150_km(
         assert (tmp_path / f"{fig}.png").is_file()
 
 
-def test_results_table_script_runs_a_configuration():
+def test_results_table_script_runs_a_configuration(tmp_path):
     """benchmarks/thermosphere_table.py on a tiny column: every table column present, the goals judged by the
     bounds of docs/scenarios.md (density ratio < 0.25, correlation >= 0.8, relative rms <= 0.3)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import thermosphere_table
-
-    row = thermosphere_table.run_config({**SMALL, "structure": "temperature", "measured_km": "407,250"}, steps=30)
+    out = tmp_path / "table.json"
+    run_script("thermosphere_table", "--only", "temperature@407,250", "--steps", "30", "--out", str(out),
+               *(f"--set={k}={v}" for k, v in SMALL.items()))
+    row = json.loads(out.read_text())["rows"]["temperature@407,250"]
     m = row["metrics"]
     assert row["steps"] == 30 and all(v is not None and math.isfinite(v) for v in m.values())
     assert set(m) >= {"density_err_ratio", "cooling_corr_152km", "cooling_rel_rms_152km", "replay_density_err_ratio",

@@ -548,10 +548,12 @@ class StaticMap(Block):
             Receives the compiled function, the ports and the ``CALL`` instruction.
         """
         from ..engine.compiled import compile_map, describe
+        from ..engine.lowering import NotLowerable
         n_in, n_out = self.inputs["in"], self.outputs["out"]
-        c = compile_map(self.fn, n_in, n_out)
-        if isinstance(c, str):
-            b.refuse(f"function {describe(self.fn)} is not compiled: {c}")
+        try:
+            c = compile_map(self.fn, n_in, n_out)
+        except NotLowerable as e:
+            b.refuse(f"function {describe(self.fn)} is not compiled: {e}")
         b.emit("CALL", port="out", NIN=n_in, IN=b.input("in"), NOUT=n_out, OUT=b.output("out"),
                FUNCTION=b.function(c.address, c))
 

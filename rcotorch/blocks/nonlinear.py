@@ -224,18 +224,21 @@ class Nonlinear(Block):
             a function does not compile or an input is not connected.
         """
         from ..engine.compiled import compile_map, compile_step, describe
+        from ..engine.lowering import NotLowerable
         n, n_out = self.n_states, sum(self.outputs.values())
         x = b.state("x")
         m = sum(self.inputs.values())
         # In the components form the step reads each member's state and inputs before it writes its next state,
         # so it may read them where they are: the inputs' slots right after the state's.
         beside = b.scratch(m) if self.form == "components" else None
-        h = compile_map(self.h, n, n_out, self.form)
-        if isinstance(h, str):
-            b.refuse(f"output function h {describe(self.h)} is not compiled: {h}")
-        c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form)
-        if isinstance(c, str):
-            b.refuse(f"state function f {describe(self.f)} is not compiled: {c}")
+        try:
+            h = compile_map(self.h, n, n_out, self.form)
+        except NotLowerable as e:
+            b.refuse(f"output function h {describe(self.h)} is not compiled: {e}")
+        try:
+            c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form)
+        except NotLowerable as e:
+            b.refuse(f"state function f {describe(self.f)} is not compiled: {e}")
         for port, sl in self._out_slices.items():
             if len(self._out_slices) == 1:           # h writes the port itself
                 b.emit("CALL", port=port, NIN=n, IN=x, NOUT=n_out, OUT=b.output(port),
@@ -289,10 +292,13 @@ class Nonlinear(Block):
             The step map, [x, inputs in port order] -> x(k+1), and h.
         """
         from ..engine.compiled import compile_map, compile_step
+        from ..engine.lowering import NotLowerable
         n, n_out = self.n_states, sum(self.outputs.values())
-        c = compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form)
-        h = compile_map(self.h, n, n_out, self.form)
-        return None if isinstance(c, str) or isinstance(h, str) else (c, h)
+        try:
+            return (compile_step(self.f, n, self.inputs, self.dt, self.continuous, self.substeps, self.form),
+                    compile_map(self.h, n, n_out, self.form))
+        except NotLowerable:
+            return None
 
     def markov(self, input: str, output: str, n: int, x: torch.Tensor | None = None,
                inputs: Mapping[str, torch.Tensor] | None = None, method: str = "auto",

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from ..errors import DimensionError
+from .lowering import NotLowerable
 
 PROBES = 64                 # test inputs the compiled function must reproduce
 RTOL = 1e-12
@@ -66,7 +67,8 @@ class Compiled:
         return self         # compiled code is immutable: copies of a graph (and of its program) share it
 
 
-_cache: dict[tuple, tuple[Any, Compiled | str]] = {}
+# key -> (the function, its fingerprint, its compilation or the refusal, kept without a traceback)
+_cache: dict[tuple, tuple[Any, str | None, Compiled | NotLowerable]] = {}
 _lock = threading.Lock()
 
 
@@ -233,21 +235,35 @@ def components(out, n: int, batch: int, dtype, device=None) -> torch.Tensor:
     return torch.stack(cols, dim=1)
 
 
-def _lookup(key: tuple, fn) -> tuple[Compiled | str | None, str | None]:
+def _lookup(key: tuple, fn) -> tuple[Compiled | None, str | None]:
     """The compilation kept for ``key`` if it was made of ``fn`` reading the same values as now (its fingerprint:
     a global or a closure variable changed since is compiled afresh, as numba bakes them in), and ``fn``'s
-    fingerprint."""
+    fingerprint. A refusal kept for it is raised again, as a new ``NotLowerable`` with the same reason."""
     fp = _fingerprint(fn)
     hit = _cache.get(key)
     if hit is not None and hit[0] is fn and hit[1] == fp:
+        if isinstance(hit[2], NotLowerable):
+            raise NotLowerable(*hit[2].args)
         return hit[2], fp
     return None, fp
 
 
-def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | str:
+def _keep(key: tuple, fn, fp: str | None, compile_) -> Compiled:
+    """``compile_()``, kept for ``key`` with ``fn`` (so that its id is not reused while kept) and its fingerprint;
+    a ``NotLowerable`` it raises is kept too, and raised."""
+    try:
+        result = compile_()
+    except NotLowerable as e:
+        _cache[key] = (fn, fp, NotLowerable(*e.args))
+        raise
+    _cache[key] = (fn, fp, result)
+    return result
+
+
+def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled:
     """``fn`` (a (B, n_in) -> (B, n_out) map; in the ``components`` form, a function of the sequence of n_in
-    components returning n_out components, ``rcotorch.blocks.nonlinear``) as a compiled C function, or why it cannot
-    be compiled; it must reproduce ``fn`` called with tensors."""
+    components returning n_out components, ``rcotorch.blocks.nonlinear``) as a compiled C function; it must
+    reproduce ``fn`` called with tensors. Raises ``NotLowerable`` (why it cannot be compiled)."""
     key = (id(fn), n_in, n_out, form)
     with _lock:
         found, fp = _lookup(key, fn)
@@ -258,14 +274,11 @@ def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled | st
             source = f"def call({args}):\n    return f(({args},))\n"
             reference: dict = {"f": fn}
             exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
-            result = _compile_member(lambda module: _numba().njit(module.call),
-                                     _batch_reference(reference["call"], n_out), n_in, n_out, source, fn,
-                                     None if fp is None else f"components map {n_in} {n_out} {fp}")
-        else:
-            result = _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
-                              None if fp is None else f"map {n_in} {n_out} {fp}")
-        _cache[key] = (fn, fp, result)        # holds fn, so its id is not reused while cached
-        return result
+            return _keep(key, fn, fp, lambda: _compile_member(
+                lambda module: _numba().njit(module.call), _batch_reference(reference["call"], n_out), n_in, n_out,
+                source, fn, None if fp is None else f"components map {n_in} {n_out} {fp}"))
+        return _keep(key, fn, fp, lambda: _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
+                                                   None if fp is None else f"map {n_in} {n_out} {fp}"))
 
 
 def _batch_reference(member, n_out: int):
@@ -277,11 +290,12 @@ def _batch_reference(member, n_out: int):
 
 
 def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int,
-                 form: str = "batch") -> Compiled | str:
+                 form: str = "batch") -> Compiled:
     """The discrete map of a ``Nonlinear`` block compiled, x(k+1) from [x(k), inputs(k)] stacked in one
     (B, n + m) array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held,
     as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
-    builds the inputs' dict as the PyTorch engine passes it."""
+    builds the inputs' dict as the PyTorch engine passes it. Raises ``NotLowerable`` (why it cannot be
+    compiled)."""
     if form == "components":
         return _compile_member_step(f, n, inputs, dt, continuous, substeps)
     key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
@@ -301,10 +315,9 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         source = "def step(xu):\n" + body
         reference: dict = {"f": f}                 # the same source calling f itself: what is checked against
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
-        result = _compile(lambda module: _numba().njit(module.step), reference["step"], n + sum(inputs.values()), n,
-                          source, {"f": _jit(f)}, None if fp is None else f"step {fp}")
-        _cache[key] = (f, fp, result)
-        return result
+        return _keep(key, f, fp, lambda: _compile(lambda module: _numba().njit(module.step), reference["step"],
+                                                  n + sum(inputs.values()), n, source, {"f": _jit(f)},
+                                                  None if fp is None else f"step {fp}"))
 
 
 def _ports_literal(array: str, ports: dict[str, int], start: int) -> tuple[str, int]:
@@ -318,11 +331,12 @@ def _ports_literal(array: str, ports: dict[str, int], start: int) -> tuple[str, 
     return "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}", start
 
 
-def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
+def compile_features(fn, ports: dict[str, int], width: int) -> Compiled:
     """An estimator's feature function compiled: ``fn`` takes the dict of its ports, each (B, w), and returns
     the (B, width) feature signals; compiled, it takes the ports stacked in one (B, sum w) array, in the order of
     ``ports``, and is called once per chunk of members. Written as Python source with the port names as
-    literals, as ``compile_step`` does, so numba builds the dict as the PyTorch engine passes it."""
+    literals, as ``compile_step`` does, so numba builds the dict as the PyTorch engine passes it. Raises
+    ``NotLowerable`` (why it cannot be compiled)."""
     key = ("features", id(fn), tuple(ports.items()), int(width))
     with _lock:
         found, fp = _lookup(key, fn)
@@ -332,15 +346,14 @@ def compile_features(fn, ports: dict[str, int], width: int) -> Compiled | str:
         source = f"def features(s):\n    return f({ins})\n"
         reference: dict = {"f": fn}
         exec(compile(source, f"<rcotorch features of {describe(fn)}>", "exec"), reference)
-        result = _compile(lambda module: _numba().njit(module.features), reference["features"], start, width,
-                          source, {"f": _jit(fn)}, None if fp is None else f"features {ports} {width} {fp}",
-                          ("array",))
-        _cache[key] = (fn, fp, result)
-        return result
+        return _keep(key, fn, fp, lambda: _compile(lambda module: _numba().njit(module.features),
+                                                   reference["features"], start, width, source, {"f": _jit(fn)},
+                                                   None if fp is None else f"features {ports} {width} {fp}",
+                                                   ("array",)))
 
 
 def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
-                         substeps: int) -> Compiled | str:
+                         substeps: int) -> Compiled:
     """``compile_step`` for a components-form ``f``: one member at a time, the state and the inputs as tuples
     of floats, the RK4 stages written out component by component, so that no array is made in a step."""
     key = ("member step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
@@ -375,10 +388,9 @@ def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuou
         source = "\n".join(lines) + "\n"
         reference: dict = {"f": f, "item": _item}
         exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
-        result = _compile_member(lambda module: _numba().njit(module.step), _batch_reference(reference["step"], n),
-                                 n + m, n, source, f, None if fp is None else f"member step {fp}")
-        _cache[key] = (f, fp, result)
-        return result
+        return _keep(key, f, fp, lambda: _compile_member(lambda module: _numba().njit(module.step),
+                                                         _batch_reference(reference["step"], n), n + m, n, source, f,
+                                                         None if fp is None else f"member step {fp}"))
 
 
 def _item(r, i: int):
@@ -424,17 +436,16 @@ def _jit(f):
         return f
 
 
-def _compile_member(entry, reference, n_in: int, n_out: int, source: str, f, key: str | None) -> Compiled | str:
+def _compile_member(entry, reference, n_in: int, n_out: int, source: str, f, key: str | None) -> Compiled:
     """``_compile`` of the member-by-member wrapper of a components-form ``f``, bound as ``f`` (and ``item``) in
     ``source``: first ``f`` with the lists it returns built as tuples (``_returning_tuples``; its disk cache key
     says so), then, when that fails to compile or to reproduce ``f`` (a function that also returns a list made
-    elsewhere, say), ``f`` as it is."""
+    elsewhere, say), ``f`` as it is, whose ``NotLowerable`` is the one raised."""
     as_tuples = _returning_tuples(f)
     if as_tuples is not f:
-        result = _compile(entry, reference, n_in, n_out, source, {"f": _jit(as_tuples), "item": _numba_item()},
-                          None if key is None else key + " tuples", ("member",))
-        if not isinstance(result, str):
-            return result
+        with contextlib.suppress(NotLowerable):
+            return _compile(entry, reference, n_in, n_out, source, {"f": _jit(as_tuples), "item": _numba_item()},
+                            None if key is None else key + " tuples", ("member",))
     return _compile(entry, reference, n_in, n_out, source, {"f": _jit(f), "item": _numba_item()}, key, ("member",))
 
 
@@ -808,15 +819,16 @@ def _member_wrapper(n_in: int, n_out: int) -> str:
 
 
 def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None,
-             forms: tuple[str, ...] | None = None) -> Compiled | str:
+             forms: tuple[str, ...] | None = None) -> Compiled:
     """Compile the wrappers of a module holding ``source`` with ``bind`` as globals and ``jfn = entry(module)``;
     the result must reproduce ``reference``. ``key`` names everything the code depends on (None: not known, so
     nothing is kept on disk); a module loaded from the disk cache that does not reproduce ``reference`` is
-    compiled again without it."""
+    compiled again without it. Raises ``NotLowerable`` with the last form's reason where none compiles and
+    reproduces ``reference``."""
     try:
         numba = _numba()
     except ImportError:
-        return "numba is not installed (pip install numba)"
+        raise NotLowerable("numba is not installed (pip install numba)") from None
     reasons: list[str] = []
     for cached in ((True, False) if key is not None and cache_folder() is not None else (False,)):
         module = _module(source + (_member_wrapper(n_in, n_out) if forms == ("member",) else ""), n_in, n_out,
@@ -825,7 +837,7 @@ def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, k
             module.__dict__.update(bind)
             module.jfn = entry(module)
         except Exception as e:                # not a Python function numba can take
-            return f"numba cannot take it: {_first_line(e)}"
+            raise NotLowerable(f"numba cannot take it: {_first_line(e)}") from None
         for form in forms or (["scalar"] if n_in == 1 and n_out == 1 else []) + ["array"]:
             try:
                 cf = numba.cfunc(module.SIG, nopython=True, cache=cached)(getattr(module, form))
@@ -837,7 +849,7 @@ def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, k
                 reasons.append(mismatch)
                 continue
             return Compiled(address=cf.address, owner=cf, form=form)
-    return reasons[-1] if reasons else "no form compiled"
+    raise NotLowerable(reasons[-1] if reasons else "no form compiled")
 
 
 def cache_folder() -> Path | None:

@@ -18,6 +18,7 @@ can take turns in one run. Signals can be recorded every step inside the engine 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import NoReturn
 
 import torch
 
@@ -86,7 +87,7 @@ class Builder:
                          for sig, t in self.signals.items()}
 
     # --- for blocks ---------------------------------------------------------------------------------------
-    def refuse(self, why: str) -> None:
+    def refuse(self, why: str) -> NoReturn:
         """Stop: this block cannot run natively (``why`` is reported to the user)."""
         raise NotLowerable(f"block '{self.block.name}' ({type(self.block).__name__}): {why}")
 
@@ -155,9 +156,7 @@ class Builder:
         """Lower a block held inside the current one (a composite block): its input ports read the slots
         ``inputs``, its output ports write ``outputs`` (scratch where not given), its output instructions are
         computed as part of this block's output ``port`` and its update with this block's."""
-        why = _lowerable(inner)
-        if why is not None:
-            raise NotLowerable(why)
+        _check_lowerable(inner)
         prefix = next(name for name, m in self.block.named_modules() if m is inner)
         outer = (self.block, self._inner)
         top_prefix = "" if self._inner is None else self._inner[3]
@@ -313,24 +312,23 @@ def _state_tensor(blk, name: str) -> torch.Tensor:
     return t
 
 
-def _lowerable(blk) -> str | None:
-    """Why a block has no native form, or None. A subclass that changes ``output``, ``update`` or ``reset``
-    without its own ``lower`` has none (its parent's lowering would compute something else)."""
+def _check_lowerable(blk) -> None:
+    """Raise ``NotLowerable`` where a block has no native form. A subclass that changes ``output``, ``update`` or
+    ``reset`` without its own ``lower`` has none (its parent's lowering would compute something else)."""
     cls = type(blk)
     owner = next((c for c in cls.__mro__ if "lower" in c.__dict__), None)
     if owner is None or owner.__dict__["lower"] is None:
-        return f"block '{blk.name}' ({cls.__name__}) has no native form"
+        raise NotLowerable(f"block '{blk.name}' ({cls.__name__}) has no native form")
     for attr in ("output", "update"):
         defined = next(c for c in cls.__mro__ if attr in c.__dict__)
         if defined is not owner and owner in defined.__mro__:
-            return (f"block '{blk.name}' ({cls.__name__}) overrides {attr}() of {owner.__name__} and has no native "
-                    "form")
+            raise NotLowerable(f"block '{blk.name}' ({cls.__name__}) overrides {attr}() of {owner.__name__} and has "
+                               "no native form")
     for t in blk.buffers():
         if t.device.type != "cpu":
-            return "the graph is not on the CPU"
+            raise NotLowerable("the graph is not on the CPU")
         if t.is_floating_point() and t.dtype != torch.float64:
-            return f"block '{blk.name}' is {t.dtype} (the native engine is float64)"
-    return None
+            raise NotLowerable(f"block '{blk.name}' is {t.dtype} (the native engine is float64)")
 
 
 class Program:
@@ -417,39 +415,46 @@ def _unchanged(places: list[tuple[dict, tuple[str, ...], int]], key: tuple) -> b
     return i == len(key)
 
 
-def _lower(graph) -> Program | str:
-    """The program of ``graph``, or why it has none."""
+def _lower(graph) -> Program:
+    """The program of ``graph``; raises ``NotLowerable`` (why it has none)."""
     if not kernels.available():
-        return f"the native engine is unavailable ({kernels.why_unavailable()})"
+        raise NotLowerable(f"the native engine is unavailable ({kernels.why_unavailable()})")
     for hook in graph.hooks:
         if not periodic(hook):
-            return (f"the graph has a step hook ({describe_hook(hook)}) that runs after every step; a hook "
-                    "with an integer attribute 'every' runs natively between its calls")
+            raise NotLowerable(f"the graph has a step hook ({describe_hook(hook)}) that runs after every step; a "
+                               "hook with an integer attribute 'every' runs natively between its calls")
     for blk in graph.blocks.values():
-        why = _lowerable(blk)
-        if why:
-            return why
+        _check_lowerable(blk)
     b = Builder(graph, graph.batch_size)
-    try:
-        for blk in graph.blocks.values():
-            b.block = b._top = blk
-            blk.lower(b)
-    except NotLowerable as e:
-        return str(e)
+    for blk in graph.blocks.values():
+        b.block = b._top = blk
+        blk.lower(b)
     return Program(graph, b)
 
 
-def program(graph) -> Program | str:
-    """The graph's program (kept until its structure or a parameter changes: a buffer modified in place or
-    replaced by another tensor), or why it has none."""
+def program(graph) -> Program:
+    """The graph's program, kept until its structure or a parameter changes (a buffer modified in place or
+    replaced by another tensor); raises ``NotLowerable`` (why it has none). A refusal is kept likewise, as its
+    reason, and raised again as a new ``NotLowerable`` while nothing changed."""
     entry = graph.__dict__.get("_lowered")
     if entry is not None and entry[0] == _structure(graph) and _unchanged(entry[3], entry[1]):
+        if isinstance(entry[2], NotLowerable):
+            raise NotLowerable(*entry[2].args)
         return entry[2]
-    prog = _lower(graph)
-    places = _param_places(graph, prog.state_names if isinstance(prog, Program) else {})
-    params = [buffers[k] for buffers, keys, _ in places for k in keys]
-    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), prog, places)
+    try:
+        prog = _lower(graph)
+    except NotLowerable as e:
+        _keep(graph, NotLowerable(*e.args), {})
+        raise
+    _keep(graph, prog, prog.state_names)
     return prog
+
+
+def _keep(graph, outcome: Program | NotLowerable, state_names: Mapping[str, set[str]]) -> None:
+    """Keep ``outcome`` (the program, or a refusal without its traceback) with what it stays valid for."""
+    places = _param_places(graph, state_names)
+    params = [buffers[k] for buffers, keys, _ in places for k in keys]
+    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), outcome, places)
 
 
 def refilled(graph, *tensors: torch.Tensor) -> None:
@@ -465,9 +470,13 @@ def refilled(graph, *tensors: torch.Tensor) -> None:
 
 
 def unsupported(graph) -> str | None:
-    """Why ``graph`` cannot run on the native engine, or None when it can."""
-    prog = program(graph)
-    return prog if isinstance(prog, str) else None
+    """Why ``graph`` cannot run on the native engine (the message of ``program``'s ``NotLowerable``), or None
+    when it can."""
+    try:
+        program(graph)
+    except NotLowerable as e:
+        return str(e)
+    return None
 
 
 def _observers(prog: Program, accumulate, record, done: int, every: int) -> tuple[torch.Tensor, list]:
@@ -527,6 +536,7 @@ def advance(graph, prog: Program, steps: int, accumulate: Mapping[Signal, torch.
             for hook in graph.hooks:
                 hook(graph)
             if done < steps:                   # a hook may have changed a parameter: the program follows
-                prog = program(graph)
-                if isinstance(prog, str):
-                    raise NotLowerable(f"after a step hook, {prog}")
+                try:
+                    prog = program(graph)
+                except NotLowerable as e:
+                    raise NotLowerable(f"after a step hook, {e}") from None
