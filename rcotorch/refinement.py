@@ -141,70 +141,13 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     kn, en = known.name, identified.name
     parts: list[Block] = [known, identified, *blocks]
     conns: list = list(connections)
-    if data is not None:
-        if data.name != "data":
-            raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
-        parts.append(data)
-        w_src, y_src = f"data.{exogenous}", f"data.{measured}"
-        for p in (exogenous, measured):
-            if p not in data.outputs:
-                raise PortError(f"refinement: data block has no output '{p}'; its outputs are {list(data.outputs)}")
-    else:
-        if excitation is None:
-            raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
-        excitation = _role_block(excitation, "excitation", parts)
-        parts.append(excitation)
-        w_src = f"{excitation.name}.out"
-        if truth is not None:
-            if len(truth.inputs) != 1 or len(truth.outputs) != 1:
-                raise PortError(f"refinement: truth= must be a block with one input and one output port (the "
-                                f"unknown subsystem: what it sees -> the force it adds); block '{truth.name}' has "
-                                f"inputs {list(truth.inputs)} and outputs {list(truth.outputs)}")
-            plant = copy.deepcopy(known)
-            plant.name = "plant"
-            truth = _role_block(truth, "unknown", [*parts, plant])
-            (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
-            sees = [p for p in known.outputs if p != measured]
-            if len(sees) != 1:
-                raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
-                                  f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
-            parts += [plant, truth]
-            tn = truth.name
-            conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"{tn}.{t_in}"),
-                      (f"{tn}.{t_out}", f"plant.{actuation}")]
-            y_src = f"plant.{measured}"
-        else:
-            physical = _role_block(physical, "plant", parts)
-            parts.append(physical)
-            conns.append((w_src, f"{physical.name}.{exogenous}"))
-            y_src = f"{physical.name}.{measured}"
-    width = known.outputs[measured]
-    if noise is not None:
-        if data is not None:
-            raise ConfigError("refinement: noise= is for a simulated physical system; recorded data carry "
-                              "their own noise")
-        if list(noise.inputs) or "out" not in noise.outputs or noise.outputs["out"] != width:
-            raise PortError(f"refinement: noise block '{noise.name}' must be a source with one output 'out' "
-                            f"of width {width} (the width of '{measured}'); it has inputs {list(noise.inputs)} "
-                            f"and outputs {dict(noise.outputs)}")
-        noise = _role_block(noise, "noise", parts)
-        parts += [noise, Sum({"clean": 1, "noise": 1}, width, name="measurement")]
-        conns += [(y_src, "measurement.clean"), (f"{noise.name}.out", "measurement.noise")]
-        y_src = "measurement.out"
-    parts.append(Sum({"y": 1, "y_hat": -1}, width, name="error"))
+    w_src, y_src, physical_name = _physical_system(known, parts, conns, truth, physical, data, excitation,
+                                                   exogenous, actuation, measured)
+    y_src = _measurement(noise, data, known.outputs[measured], measured, y_src, parts, conns)
+    parts.append(Sum({"y": 1, "y_hat": -1}, known.outputs[measured], name="error"))
     conns += [(y_src, "error.y"), (f"{kn}.{measured}", "error.y_hat"), (w_src, f"{kn}.{exogenous}"),
               (f"{en}.u", f"{kn}.{actuation}"), ("error.out", f"{en}.z")]
-    feeds = dict(feeds or {})
-    for port in identified.ports:
-        if port in feeds:
-            conns.append((feeds[port], f"{en}.{port}"))
-        elif port == exogenous:
-            conns.append((w_src, f"{en}.{port}"))
-        elif port in known.outputs:
-            conns.append((f"{kn}.{port}", f"{en}.{port}"))
-        else:
-            raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
-                            f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
+    conns += _feeds(known, identified, dict(feeds or {}), exogenous, w_src)
     if identified.beta.shape[1] == 0:
         if nu is None:
             raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
@@ -215,11 +158,10 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         data.set_holdoff({exogenous: n})
     if data is not None and "valid" in data.outputs:
         conns.append(("data.valid", f"{en}.valid"))
-    physical_name = "data" if data is not None else "plant" if truth is not None else physical.name
     roles = {"estimator": en, "known": kn, "physical": physical_name,
              "error": "error.out", "measured": y_src, "prediction": f"{kn}.{measured}", "exogenous": w_src}
     if data is None:
-        roles["excitation"] = excitation.name
+        roles["excitation"] = next(b.name for b in parts if w_src == f"{b.name}.out")
     graph = Graph(parts, conns, batch_size=batch_size, dtype=dtype, device=device, roles=roles)
     if feedback is None:
         feedback = "sampled" if truth is not None else "continuous"
@@ -227,6 +169,82 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
         raise ConfigError(f"refinement: feedback must be 'sampled' or 'continuous', got {feedback!r}")
     graph.feedback = feedback
     return graph
+
+
+def _physical_system(known: Block, parts: list, conns: list, truth, physical, data, excitation, exogenous: str,
+                     actuation: str, measured: str) -> tuple[str, str, str]:
+    """Add the physical system of ``refinement`` (recorded ``data``, the known model with ``truth`` in feedback, or
+    a ``physical`` block, driven by ``excitation``) to ``parts`` and ``conns``: its exogenous signal, its measured
+    output ('block.port') and its block's name."""
+    if data is not None:
+        if data.name != "data":
+            raise ConfigError(f"refinement: name the recorded-data block 'data' (got '{data.name}')")
+        parts.append(data)
+        for p in (exogenous, measured):
+            if p not in data.outputs:
+                raise PortError(f"refinement: data block has no output '{p}'; its outputs are {list(data.outputs)}")
+        return f"data.{exogenous}", f"data.{measured}", "data"
+    if excitation is None:
+        raise ConfigError("refinement: a simulated physical system needs excitation= (e.g. WhiteNoise)")
+    excitation = _role_block(excitation, "excitation", parts)
+    parts.append(excitation)
+    w_src = f"{excitation.name}.out"
+    if truth is None:
+        physical = _role_block(physical, "plant", parts)
+        parts.append(physical)
+        conns.append((w_src, f"{physical.name}.{exogenous}"))
+        return w_src, f"{physical.name}.{measured}", physical.name
+    if len(truth.inputs) != 1 or len(truth.outputs) != 1:
+        raise PortError(f"refinement: truth= must be a block with one input and one output port (the "
+                        f"unknown subsystem: what it sees -> the force it adds); block '{truth.name}' has "
+                        f"inputs {list(truth.inputs)} and outputs {list(truth.outputs)}")
+    plant = copy.deepcopy(known)
+    plant.name = "plant"
+    truth = _role_block(truth, "unknown", [*parts, plant])
+    (t_in,), (t_out,) = list(truth.inputs), list(truth.outputs)
+    sees = [p for p in known.outputs if p != measured]
+    if len(sees) != 1:
+        raise ConfigError(f"refinement: with truth=, the known model needs exactly one output besides "
+                          f"'{measured}' for the unknown subsystem to see; it has {list(known.outputs)}")
+    parts += [plant, truth]
+    conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"{truth.name}.{t_in}"),
+              (f"{truth.name}.{t_out}", f"plant.{actuation}")]
+    return w_src, f"plant.{measured}", "plant"
+
+
+def _measurement(noise, data, width: int, measured: str, y_src: str, parts: list, conns: list) -> str:
+    """Add the measurement noise of a simulated physical system (``refinement``'s ``noise``) to its output ``y_src``
+    in a block ``measurement``; the measured signal."""
+    if noise is None:
+        return y_src
+    if data is not None:
+        raise ConfigError("refinement: noise= is for a simulated physical system; recorded data carry "
+                          "their own noise")
+    if list(noise.inputs) or "out" not in noise.outputs or noise.outputs["out"] != width:
+        raise PortError(f"refinement: noise block '{noise.name}' must be a source with one output 'out' "
+                        f"of width {width} (the width of '{measured}'); it has inputs {list(noise.inputs)} "
+                        f"and outputs {dict(noise.outputs)}")
+    noise = _role_block(noise, "noise", parts)
+    parts += [noise, Sum({"clean": 1, "noise": 1}, width, name="measurement")]
+    conns += [(y_src, "measurement.clean"), (f"{noise.name}.out", "measurement.noise")]
+    return "measurement.out"
+
+
+def _feeds(known: Block, identified: RCOEstimator, feeds: Mapping[str, str], exogenous: str, w_src: str) -> list:
+    """The connections into the estimator's regressor ports: as ``feeds`` maps them, else from the exogenous signal
+    or the known model's output of the same name."""
+    conns = []
+    for port in identified.ports:
+        if port in feeds:
+            conns.append((feeds[port], f"{identified.name}.{port}"))
+        elif port == exogenous:
+            conns.append((w_src, f"{identified.name}.{port}"))
+        elif port in known.outputs:
+            conns.append((f"{known.name}.{port}", f"{identified.name}.{port}"))
+        else:
+            raise PortError(f"refinement: estimator input '{port}' has no source: the known model's outputs are "
+                            f"{list(known.outputs)}; map it with feeds={{'{port}': 'block.port'}}")
+    return conns
 
 
 def _role_block(block: Block, name: str, taken: Sequence[Block]) -> Block:

@@ -234,13 +234,26 @@ def _lagged_sums_equal_the_sums_written_out():
     for lag in range(L + 1):
         for t in range(lag, T):
             want[lag] += np.einsum("bi,bj->bij", s[t], s[t - lag])
+    # the Newey-West long-run covariance with Bartlett weights, written out
+    bartlett = want[0] + sum((1 - lag / (L + 1)) * (want[lag] + want[lag].transpose(0, 2, 1))
+                             for lag in range(1, L + 1))
+    members = torch.tensor([True, False, True])
     for cuts in ([T], [1, 7, 20, T], [L - 1, L, T]):
         sums = ci._ScoreSums(B, n, L, "cpu")
         start = 0
         for end in cuts:
             sums.add(torch.as_tensor(s[start:end]))
             start = end
-        np.testing.assert_allclose(sums.gram.numpy(), want, rtol=1e-12, atol=1e-12)
+        got = sums.long_run(members).numpy()
+        np.testing.assert_allclose(got[[0, 2]], bartlett[[0, 2]], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got[1], want[0][1], rtol=1e-12, atol=1e-12)
+    for cuts in ([T], [3, 4, 30, T]):                 # the residual checks' lagged sums, stretch by stretch
+        acc = ci._LagSums(L, outer=True)
+        start = 0
+        for end in cuts:
+            acc.add(torch.as_tensor(s[start:end]), torch.as_tensor(s[start:end]))
+            start = end
+        np.testing.assert_allclose(acc.sum.numpy(), want, rtol=1e-12, atol=1e-12)
     w = rng.standard_normal((T, B, 1))
     z = rng.standard_normal((T, B, 2))
     zw = ci._lag_sums(torch.as_tensor(z), torch.as_tensor(w), L, outer=True).numpy()
@@ -345,3 +358,39 @@ def test_recorded_data_that_end_before_the_loop_settles_are_replayed_as_far_as_t
                     progress=False, figures=False, validation=False)
     said = [x for x in res.summary["warnings"] if "replay settled for" in x]
     assert len(said) == 1 and "5400 s" in said[0] and "the recorded data end sooner" in said[0], said
+
+
+@pytest.mark.parametrize("normalize", [None, 0.5])
+def test_the_native_replay_sums_equal_pytorchs(normalize):
+    """The replay's sums over each stretch taken by the native kernel (``kernels.window_sums``) equal PyTorch's
+    (two measured outputs, a weight R, normalized regressors, members measuring from different steps, stretches
+    of a few steps)."""
+    from rcotorch.engine import kernels
+    from rcotorch.verdict import intervals as ci
+    Ts = 0.05
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.4, 4.0, measured=["position", "velocity"],
+                                                       sees=["position", "velocity"]),
+                              inputs=["w", "u"], outputs={"y": 2, "y0": 2}, dt=Ts, name="known")
+    est = rt.RCOEstimator.static_gain({"y0": 2}, n_z=2, p0=1e3, normalize=normalize, R=[[1.0, 0.2], [0.2, 2.0]])
+    g = rt.refinement(known, est, truth=rt.Gain(torch.tensor([[0.5, -0.2]])), excitation=rt.WhiteNoise(1, seed=3),
+                      noise=rt.WhiteNoise(2, std=0.01, seed=4), nu=12)
+    g.reset(3)
+    g.advance(300)
+    state = ci.snapshot(g)
+    g.advance(300)
+    settle = torch.tensor([40, 55, 61])
+    import unittest.mock
+    took = []
+    summed = kernels.window_sums
+    with unittest.mock.patch.object(ci, "STRETCH_BYTES", 8 * 3 * 2 * 2 * 7), \
+            unittest.mock.patch.object(kernels, "window_sums", lambda *a: took.append(summed(*a)) or took[-1]):
+        native = ci.replay(g, state, 300, settle)           # 7 steps a stretch
+    assert len(took) == -(-(300 - 40) // 7) and all(t is not None for t in took)    # the kernel took each stretch
+    with unittest.mock.patch.object(ci, "STRETCH_BYTES", 8 * 3 * 2 * 2 * 7):
+        with kernels.disabled():
+            plain = ci.replay(g, state, 300, settle)
+    for key in ("cov", "gain", "noise", "offset", "offset_cov", "unexplained", "widening"):
+        a, b = getattr(native.covariance, key), getattr(plain.covariance, key)
+        assert torch.isfinite(a).all(), key
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-8, atol=1e-12 * float(b.abs().max()), err_msg=key)
+    np.testing.assert_allclose(native.residuals.whiteness_p.numpy(), plain.residuals.whiteness_p.numpy(), rtol=1e-8)

@@ -32,6 +32,8 @@ CASES = {
     "normalized": lambda: _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, normalize=0.5)),
     "features": lambda: _sdof(rt.RCOEstimator.static_gain(
         {"y0": 2}, p0=1e3, features={"x3": lambda s: s["y0"][:, :1] ** 3, "v": lambda s: s["y0"][:, 1:]})),
+    # at least CONVOLVE_NU Markov parameters: filtered as one convolution over time
+    "many Markov parameters": lambda: _sdof(rt.RCOEstimator({"y0": 2}, nc=2, p0=1e2), nu=40),
 }
 
 
@@ -64,8 +66,9 @@ def test_rebuilt_regressors_equal_those_of_each_update(case, start):
                                    atol=1e-13 * float(stepped.abs().max()))
 
 
-def test_markov_parameters_per_member_are_filtered_member_by_member():
-    g = CASES["static gain"]()
+@pytest.mark.parametrize("nu", [12, 40])
+def test_markov_parameters_per_member_are_filtered_member_by_member(nu):
+    g = _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3), nu=nu)
     est = g.role("estimator")
     beta = est.beta.expand(3, -1, -1, -1).clone()
     beta[1] *= 0.5

@@ -124,3 +124,24 @@ def test_a_run_is_validated_on_no_more_held_out_samples_than_it_ran_and_at_least
         run.advance(progress=False)
         assert run.validation().steps == 300
         run.close()
+
+
+def test_scores_summed_stretch_by_stretch_equal_those_of_the_whole_traces(monkeypatch):
+    """The scores are summed over stretches of the simulation (a few steps each here); they equal the formulas
+    applied to the whole traces, and keeping the traces of the first member only changes no score."""
+    import rcotorch.verdict.validation as val
+    g = _refined(steps=1500)
+    monkeypatch.setattr(val, "STRETCH_BYTES", 8 * 2 * 13)              # 13 steps a stretch
+    full = validate(g, 600)
+    y, y_hat = full.measured.numpy(), full.refined.numpy()
+    assert y.shape == (600, 2, 1)
+    z, yy = (y - y_hat)[val.FIT_STEPS:], y[val.FIT_STEPS:]
+    rmse = np.sqrt((z ** 2).sum(2).mean(0))
+    fit = 100 * (1 - np.sqrt((z ** 2).sum((0, 2))) / np.sqrt(((yy - yy.mean(0)) ** 2).sum((0, 2))))
+    np.testing.assert_allclose(full.rmse.numpy(), rmse, rtol=1e-10)
+    np.testing.assert_allclose(full.fit_percent.numpy(), fit, rtol=1e-10)
+    one = validate(g, 600, keep=1)
+    assert one.measured.shape == (600, 1, 1) and one.initial.shape == (600, 1, 1)
+    np.testing.assert_array_equal(one.refined.numpy(), full.refined[:, :1].numpy())
+    for key in ("rmse", "fit_percent", "rmse_initial", "fit_percent_initial"):
+        np.testing.assert_array_equal(getattr(one, key).numpy(), getattr(full, key).numpy())

@@ -43,6 +43,7 @@ Robustness options (each off by default, each a scalar or one value per member):
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -53,6 +54,7 @@ from ..blocks.base import DEFAULT_DTYPE, Block, first_bad, tensor_result
 from ..blocks.features import Term, as_terms
 from ..engine import kernels, memo
 from ..engine.compiled import call_user, compile_features, describe
+from ..engine.lowering import NotLowerable
 from ..engine.rls import rls_update
 from ..errors import ConfigError, DimensionError
 from . import transfer
@@ -63,6 +65,21 @@ if TYPE_CHECKING:
 
 # The buffer that holds each robustness option (see ``RCOEstimator._options``).
 _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_max"}
+# ``regressors_over`` filters phi by this many Markov parameters or more as one depthwise convolution over time
+# (one product and sum per parameter below it)
+CONVOLVE_NU = 32
+
+
+def _markov_convolution(phi: torch.Tensor, beta: torch.Tensor, B: int) -> torch.Tensor:
+    """Psi(t)[o, j] = sum_i beta_i[o] phi(t + nu - 1 - i)[j] for t = 0 .. len(phi) - nu: phi (T + nu - 1, B, n_phi)
+    filtered by the Markov parameters beta (1 or B, nu, n_out, 1), as one depthwise convolution over time (a
+    filter per member, output and regressor), (T, B, n_out, n_phi)."""
+    nu, n_out, n_phi = beta.shape[1], beta.shape[2], phi.shape[2]
+    x = phi.permute(1, 2, 0).reshape(1, B * n_phi, phi.shape[0])                   # (1, B n_phi, time)
+    w = beta[..., 0].flip(1).transpose(1, 2).expand(B, n_out, nu)                 # cross-correlation: flipped
+    w = w.unsqueeze(1).expand(B, n_phi, n_out, nu).reshape(B * n_phi * n_out, 1, nu)
+    out = torch.nn.functional.conv1d(x, w, groups=B * n_phi)                        # (1, B n_phi n_out, T)
+    return out.reshape(B, n_phi, n_out, -1).permute(3, 0, 2, 1)
 
 
 class RCOEstimator(Block):
@@ -201,6 +218,8 @@ class RCOEstimator(Block):
                 raise ConfigError(f"block '{name}': {key} {need}, got {bad}")
             self.register_buffer(key, t)
         self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
+        # the parameters' covariance the end of a run measured (``record_covariance``), None before
+        self.covariance = None
         R = torch.as_tensor(R, dtype=dtype, device="cpu")
         R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
         if tuple(R.shape) != (n_z, n_z):
@@ -313,6 +332,35 @@ class RCOEstimator(Block):
     def all_free(self) -> bool:
         """Whether every entry of theta is its own parameter (T = I; ``parameter_map.identity``)."""
         return self.parameter_map.identity
+
+    def hold(self, eta: torch.Tensor | None = None, alive: torch.Tensor | None = None) -> None:
+        """Hold theta (at ``eta``, the free parameters (B, n_theta), where given): a zero gain P makes every update
+        leave it where it is, while u = Theta phi goes on. ``alive`` (B,) bool: the members that go on at all
+        (the others frozen, as diverged members are).
+
+        Parameters
+        ----------
+        eta : torch.Tensor, optional
+            (B, n_theta), in the order of ``theta_names``.
+        alive : torch.Tensor, optional
+            (B,) bool.
+        """
+        if eta is not None:
+            self.set_theta_free(eta)
+        self.set_state(P=torch.zeros_like(self.P))
+        if alive is not None:
+            self.set_state(alive=alive.to(device=self.alive.device, dtype=torch.bool).reshape(self.alive.shape).clone())
+
+    def record_covariance(self, covariance) -> None:
+        """Keep the parameters' covariance that the end of a run measured (a
+        ``rcotorch.verdict.intervals.ParameterCovariance``) as ``covariance``, for what reads the estimator
+        afterwards (a scenario's figures, the verdict).
+
+        Parameters
+        ----------
+        covariance : ParameterCovariance or None
+        """
+        self.covariance = covariance
 
     def theta_free(self) -> torch.Tensor:
         """The free parameters eta, in the order of ``theta_names``.
@@ -884,14 +932,17 @@ class RCOEstimator(Block):
         # per Markov parameter over a stretch of steps short enough to stay in cache (beta per member or shared)
         T, n_out = stop - start, self.n_z * self.n_u
         beta = self.beta.to(f64).reshape(self.beta.shape[0], nu, n_out, 1)
-        psi = phi.new_empty(T, B, n_out, self.n_phi)
-        span = max(1, (1 << 19) // max(1, B * n_out * self.n_phi))                # steps of about 4 MB
-        for t0 in range(0, T, span):
-            t1 = min(T, t0 + span)
-            part = psi[t0:t1].zero_()
-            for i in range(nu):
-                at = start - fd - i - lo                                           # phi(k - fd - i), k = start
-                part.addcmul_(beta[:, i], phi[at + t0:at + t1].unsqueeze(2))
+        if nu >= CONVOLVE_NU:
+            psi = _markov_convolution(phi[start - fd - nu + 1 - lo:stop - fd - lo], beta, B)
+        else:
+            psi = phi.new_empty(T, B, n_out, self.n_phi)
+            span = max(1, (1 << 19) // max(1, B * n_out * self.n_phi))                # steps of about 4 MB
+            for t0 in range(0, T, span):
+                t1 = min(T, t0 + span)
+                part = psi[t0:t1].zero_()
+                for i in range(nu):
+                    at = start - fd - i - lo                                           # phi(k - fd - i), k = start
+                    part.addcmul_(beta[:, i], phi[at + t0:at + t1].unsqueeze(2))
         psi = psi.reshape(T * B, self.n_z, self.n_u * self.n_phi)
         return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
 
@@ -941,6 +992,19 @@ class RCOEstimator(Block):
         if self.u_low is not None:
             u = torch.clamp(u, self.u_low, self.u_high)
         return u
+
+    @contextlib.contextmanager
+    def theta_kept(self):
+        """A context within which theta may be moved (``set_theta_free``, e.g. for finite differences): on leaving
+        it, theta is back in the tensor that held it before, with its values, so that a graph (or a native program
+        reading that tensor) steps on as if nothing had happened."""
+        held = self.theta
+        saved = held.clone()
+        try:
+            yield
+        finally:
+            held.copy_(saved)
+            self.set_state(theta=held)
 
     def set_theta_free(self, eta: torch.Tensor) -> None:
         """Set theta from the free parameters: Theta = T eta (pinned entries stay 0).
@@ -1067,9 +1131,10 @@ class RCOEstimator(Block):
             if isinstance(f, Term):
                 b.emit("FEATURE", port=port, OUT=at, terms=[f.encode(self.ports, b.input, b.const)])
             else:
-                c = compile_features(f, self.ports, width)
-                if isinstance(c, str):
-                    b.refuse(f"feature {name!r}, function {describe(f)}, is not compiled: {c}")
+                try:
+                    c = compile_features(f, self.ports, width)
+                except NotLowerable as e:
+                    b.refuse(f"feature {name!r}, function {describe(f)}, is not compiled: {e}")
                 if stacked is None:
                     stacked = self._lower_ports_stacked(b, port)
                 b.emit("CALL", port=port, NIN=sum(self.ports.values()), IN=stacked, NOUT=width, OUT=at,

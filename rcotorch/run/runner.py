@@ -19,6 +19,7 @@ so a checkpoint's size does not depend on how long the run is.
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
 import logging
 import math
@@ -273,6 +274,7 @@ class Run:
         self.history_members = traced_members(trace, self.batch)[:HISTORY_MEMBERS]
         self.snapshot: dict[str, torch.Tensor] | None = None     # the graph at the window's start
         self._intervals: tuple[int, ci.Intervals | None, ci.Residuals | None] | None = None
+        self._replay_progress = None           # told the replay's steps done and in all, while a bar shows the end
         self._settle: tuple[int, int | None, str] = (0, None, "")   # settling steps, what the loop needs, why less
         self.monitor: Monitor | None = None
         self.hparams_session = True
@@ -674,9 +676,10 @@ class Run:
                     except Exception as e:        # e.g. an estimate outside its setting's bounds
                         self._physics_note = (f"the physics at the estimates could not be built ({e}); the "
                                               "estimates' bias against it is not measured")
-                rep = ci.replay(self.graph, self.snapshot, steps, settle, physics=physics)
+                rep = ci.replay(self.graph, self.snapshot, steps, settle, physics=physics,
+                                progress=self._replay_progress)
                 ident = self.graph.role("estimator")
-                ident.covariance = rep.covariance   # for the scenario's figures
+                ident.record_covariance(rep.covariance)        # for the verdict and the scenario's figures
                 transient = ci.remaining_transient(ident, self.health.state["theta_mid"], self.health.state["k_mid"],
                                                    rep.covariance)
                 found = (ci.estimate_intervals(self.graph, lambda g: self.scenario.estimates(g, self.settings),
@@ -732,7 +735,7 @@ class Run:
                 reason = "the scenario has no held-out data"
             else:
                 try:
-                    found = validate(self.graph, **plan)
+                    found = validate(self.graph, **{"keep": ci.KEEP_MEMBERS, **plan})
                 except RcoError as e:
                     reason = str(e)
                     logging.getLogger("rcotorch").warning("validation skipped: %s", reason)
@@ -798,7 +801,9 @@ class Run:
             for what, part in parts:             # each computed once, then kept for the summary
                 if bar is not None:
                     bar.set_postfix_str(what)
+                    self._replay_progress = functools.partial(_say_share, bar, what)
                 part()
+                self._replay_progress = None
                 if bar is not None:
                     bar.update(1)
             t = time.perf_counter()
@@ -834,6 +839,11 @@ class Run:
         if close:
             self.close()
         return summary
+
+def _say_share(bar, what: str, done: int, total: int) -> None:
+    """Show on the end's progress bar how far ``what`` has come."""
+    bar.set_postfix_str(f"{what} {100 * done // max(1, total)}%")
+
 
 # A stretch of at least this many member-steps starts the imports of the end of the run beside it (a shorter one
 # would only slow its own steps: the imports hold Python between the engine's calls).

@@ -56,7 +56,8 @@ SETTLE_MAX = 4 * REPLAY_STEPS    # at most this many steps to settle (rcotorch.r
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
-CHUNK_BYTES = 1 << 26    # the replay's regressors are summed in chunks of steps of at most this many bytes
+CHUNK_BYTES = 1 << 26    # the FFT of the lagged sums (off the CPU) takes members in blocks of about this many bytes
+STRETCH_BYTES = 1 << 23  # the replay steps in stretches whose J (C x B x n_z x n float64) takes about this many bytes
 WHITE_P = 0.01           # residuals whose whiteness test gives a smaller p-value are treated as correlated
 EXCITED = 0.05           # a direction of theta whose eigenvalue of A is smaller was not excited by the data
 OFFSET_FACTOR = 2.0      # an estimate the output error's step moves by more half-widths than this is biased
@@ -128,8 +129,7 @@ def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor, en
     g.load_state_dict(state)
     g.engine = engine
     est = g.role("estimator")
-    est.set_theta_free(eta)
-    est.set_state(P=torch.zeros_like(est.P))          # a zero gain: theta stays where it is
+    est.hold(eta)
     return g, est
 
 
@@ -176,7 +176,8 @@ def parameter_covariance(graph, state: Mapping[str, torch.Tensor], steps: int,
 
 def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | torch.Tensor | None = None,
            rel_step: float | None = None, lags: int = LAGS, keep: int = KEEP_MEMBERS,
-           score_lags: int = SCORE_LAGS, physics=None) -> Replay:
+           score_lags: int = SCORE_LAGS, physics=None, progress: Callable[[int, int], None] | None = None
+           ) -> Replay:
     """Replay ``steps`` steps of ``graph`` from ``state`` (a ``snapshot`` taken earlier in the same run) with the
     estimator's theta frozen at its current value, to measure the parameters' covariance (module docstring)
     and to check the refined model's residuals: copies with each parameter moved by a small step, and one with
@@ -190,219 +191,298 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     with those blocks in place of ``graph``'s, and the Gauss-Newton step of its output against the refined
     model's prediction is the estimates' bias against the physics (``ParameterCovariance.sampling``; without it,
     where the graph declares a continuous feedback, ``rcotorch.verdict.sampling`` measures that bias). The graph
-    itself is not changed."""
+    itself is not changed. ``progress``: called with the steps replayed and ``steps`` after each stretch.
+
+    The copies step side by side through the measured steps in stretches short enough for their records to stay
+    in cache, and every sum is taken stretch by stretch: nothing of the length of the window is kept."""
     steps = int(steps)
     if steps < 2:
         raise ConfigError(f"intervals: at least 2 steps to replay, got {steps}")
     est = graph.role("estimator")
-    B_all = est.theta.shape[0]
-    own = torch.as_tensor(int(SETTLE * steps) if settle is None else settle, dtype=torch.int64).reshape(-1)
-    own = own.expand(B_all).to(est.theta.device) if own.numel() == 1 else own.to(est.theta.device)
-    if own.shape != (B_all,) or int(own.min()) < 0 or int(own.max()) >= steps:
+    B = est.theta.shape[0]
+    settle_of = torch.as_tensor(int(SETTLE * steps) if settle is None else settle, dtype=torch.int64).reshape(-1)
+    settle_of = (settle_of.expand(B) if settle_of.numel() == 1 else settle_of).to(est.theta.device)
+    if settle_of.shape != (B,) or int(settle_of.min()) < 0 or int(settle_of.max()) >= steps:
         raise ConfigError(f"intervals: settle must be one number or one per member in [0, {steps}), got {settle}")
-    settle, last = int(own.min()), int(own.max())           # the steps before every member's and any member's
-    measured = steps - last                                 # the steps each member measures, after its own settle
-    z_sig = graph.role_signal("error")
-    y_sig = graph.role_signal("measured") if "measured" in graph.roles else z_sig
-    w_sig = graph.role_signal("exogenous") if "exogenous" in graph.roles else None
-    eta = est.theta_free().detach()
-    B, n, n_z = eta.shape[0], eta.shape[1], est.n_z
-    f64, dev = torch.float64, eta.device
-    if rel_step is None:
-        rel_step = 1e-7 if eta.dtype == torch.float64 else 1e-3
-    size = eta.abs().amax(1, keepdim=True).expand(B, n)
-    size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
-    eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))            # (B, n)
-    # Every copy runs on the graph's engine (native where it can): it advances to where the steps that count
-    # begin (less the Markov parameters' reach), then records its outputs: the base copy (theta frozen at its
-    # value) also the estimator's inputs and u, from which its regressors are rebuilt (``regressors_over``);
-    # the copies with each parameter moved and with the initial theta, z.
-    theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1)
-    runs = [eta] + [eta + eps[:, j:j + 1] * torch.eye(n, dtype=eta.dtype, device=dev)[j] for j in range(n)]
-    runs.append(theta0.index_select(1, est.free_idx.to(theta0.device)))
-    ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
-    regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
-    pre = max(0, settle - est.window - est.nc)              # steps advanced before recording
-    # Where the graph declares a continuous feedback, the base copy records from the replay's first step on,
-    # so that the refined model simulated with that feedback (``sampling``) settles as long as the copies.
-    swap = physical_blocks(graph) if physics is not None else None
-    how = sampling.plan(graph) if not swap else "the physics at the estimates are simulated instead"
-    b0 = 0 if isinstance(how, dict) or swap else pre
-    shift = pre - b0                                        # the base copy's steps recorded before the others'
-    recorded, sampled_minus_continuous = [], None
-    for e in runs:
-        g, e_est = _frozen_copy(graph, state, e, engine=graph.engine)
-        start = b0 if not recorded else pre
-        if start:
-            g.advance(start)
-        signals = [z_sig]
-        if not recorded:
-            signals += [y_sig] + ([w_sig] if w_sig is not None else []) + list(regressor_inputs.values()) + \
-                [(est.name, "u")]
-            if isinstance(how, dict):
-                signals += how["record"] + [graph.role_signal("prediction")]
-                x_start = g.blocks[how["known"]].x.clone()
-            elif swap:
-                signals += [graph.role_signal("prediction")]
-            base_est, history = e_est, e_est.regressor_history()
-        names = {f"{blk}.{port}": (blk, port) for blk, port in dict.fromkeys(signals)}
-        rec = g.run(steps - start, record={name: name for name in names})
-        recorded.append({names[name]: v for name, v in rec.items()})
-        if len(recorded) == 1 and isinstance(how, dict):
-            with torch.no_grad():
-                y_c = recorded[0][graph.role_signal("prediction")].to(f64)
-                y_f = sampling.continuous_prediction(g, how, x_start, recorded[0], steps - start)
-            sampled_minus_continuous = (y_f - y_c)[shift:]     # z_c - z_f, over the other copies' steps
-        if len(recorded) == 1 and swap:
-            y_c = recorded[0][graph.role_signal("prediction")].to(f64)
-            y_p = _physics_output(graph, state, eta, physics, swap, steps - b0, b0)
-            sampled_minus_continuous = (y_p - y_c)[shift:]
-        del g
-    # From here on, steps are counted from the first recorded one of the copies.
-    settle, last, own = settle - pre, last - pre, own - pre
-    first = recorded[0]
-    base_inputs = {p: first[sig] for p, sig in regressor_inputs.items()}
-    base_u = first[(est.name, "u")]
-    recorded[0] = first = {sig: v[shift:] for sig, v in first.items()}
-    first = {sig: v.to(f64) for sig, v in first.items()}
-    recorded = [first] + [{sig: v.to(f64) for sig, v in r.items()} for r in recorded[1:]]
-    zs = torch.stack([r[z_sig] for r in recorded[1:n + 1]], dim=3)                      # (steps, B, n_z, n)
-    weight = est.r_weight.to(f64)
-    eps64 = eps.to(f64)
-    # The residual checks need only the recorded outputs: all at once, each member's own measured steps.
-    ahead = own.reshape(1, B) + torch.arange(measured, device=dev).reshape(-1, 1)          # (T, B) step of each
-
-    def measured_part(x: torch.Tensor) -> torch.Tensor:
-        if settle == last:                                  # every member measures the same steps
-            return x[settle:settle + measured]
-        return x.gather(0, ahead.reshape(measured, B, *([1] * (x.dim() - 2))).expand(measured, B, *x.shape[2:]))
-
-    res = _ResidualSums(B, lags, keep, dev)
-    res.add(measured_part(first[z_sig]), None if w_sig is None else measured_part(first[w_sig]),
-            measured_part(first[y_sig]), measured_part(recorded[-1][z_sig]))
-    z_all = first[z_sig][settle:]                                                       # (T', B, n_z), T' >= T
-    # where a member's measured steps begin after the first member's, the steps outside its own count zero
-    at = torch.arange(settle, steps - pre, device=dev).reshape(-1, 1) - own.reshape(1, B)   # each member's own step
-    within = None if settle == last else ((at >= 0) & (at < measured)).to(f64)
-    jwj = torch.zeros(B, n, n, dtype=f64, device=dev)               # sum J^T W J, J = Psi_true^T = dz / d eta
-    jwz = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W z
-    jwd = torch.zeros(B, n, dtype=f64, device=dev)                  # sum J^T W (z_f - z_c)
-    zwz = torch.zeros(B, dtype=f64, device=dev)                     # sum z^T W z
-    jgram = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum J[z, i] J[y, j]
-    grams = torch.zeros(B, n_z, n_z, n, n, dtype=f64, device=dev)   # sum Psi[z, i] Psi[y, j]
-    cross = torch.zeros(B, n, n, dtype=f64, device=dev)             # sum Psi W Psi_true^T
-    zz = torch.zeros(B, n_z, n_z, dtype=f64, device=dev)
-    scores = _ScoreSums(B, n, score_lags, dev)
-    # The base copy's regressors, summed in chunks of steps (each sum over a chunk is one batched product):
-    # chunk x B x n_z x n values at most CHUNK_BYTES.
-    chunk = max(1, min(steps - pre - settle, CHUNK_BYTES // max(1, 8 * B * n_z * n * 2)))
-
-    def flush(t0: int, upto: int) -> None:
-        """Add the regressors of the measured steps t0 .. upto - 1 (relative to settle)."""
-        nonlocal jwj, jwz, jwd, zwz, jgram, grams, cross, zz
-        C = upto - t0
-        psi = base_est.regressors_over(history, base_inputs, base_u, shift + settle + t0, shift + settle + upto)
-        psi = psi.transpose(0, 1)                                                  # (B, C, n_z, n)
-        z = z_all[t0:upto].transpose(0, 1)                                         # (B, C, n_z)
-        jac = (zs[settle + t0:settle + upto].transpose(0, 1) - z.unsqueeze(3)) / eps64.reshape(B, 1, 1, n)
-        if within is not None:
-            inside = within[t0:upto].transpose(0, 1)                               # (B, C)
-            z, jac = z * inside.unsqueeze(-1), jac * inside.reshape(B, C, 1, 1)
-            psi = psi * inside.reshape(B, C, 1, 1)
-        jac_w = weight @ jac                                                       # W J (W symmetric)
-        jwj += _tsum(jac, jac_w)
-        jwz += _tsum(jac_w, z.unsqueeze(-1)).squeeze(-1)
-        zwz += ((z @ weight) * z).sum((1, 2))
-        flat_j = jac.reshape(B, C, n_z * n)
-        jgram += (flat_j.mT @ flat_j).reshape(B, n_z, n, n_z, n).permute(0, 1, 3, 2, 4)
-        if sampled_minus_continuous is not None:
-            d = sampled_minus_continuous[settle + t0:settle + upto].transpose(0, 1)      # (B, C, n_z)
-            if within is not None:
-                d = d * inside.unsqueeze(-1)
-            jwd += _tsum(jac_w, d.unsqueeze(-1)).squeeze(-1)
-        m = base_est.row_scale(psi.reshape(-1, n_z, n))
-        if m is not None:                                                     # the rows as weighed
-            m = m.to(f64).reshape(B, C)
-            z = z / m.unsqueeze(-1)
-            jac_w = jac_w / m.reshape(B, C, 1, 1)
-            psi = psi / m.reshape(B, C, 1, 1)
-        flat = psi.reshape(B, C, n_z * n)
-        grams += (flat.mT @ flat).reshape(B, n_z, n, n_z, n).permute(0, 1, 3, 2, 4)
-        cross += _tsum(psi, jac_w)
-        zz += z.mT @ z
-        scores.add(_tsum_rows(psi, z @ weight))
-
+    copies = _Copies(graph, state, rel_step, physics)
+    n = copies.eps.shape[1]
+    first = int(settle_of.min())                          # the first step any member measures
+    measured = steps - int(settle_of.max())               # the steps each member measures, after its own settle
+    sums = _WindowSums(B, n, est.n_z, score_lags, est.r_weight, copies.eps, settle_of, measured, est.theta.device)
+    res = _ResidualSums(B, lags, keep, measured, settle_of, copies.w_sig is not None, est.theta.device)
+    copies.settle(first)
+    # steps per stretch: J's records of a stretch (C x B x n_z x n float64) about STRETCH_BYTES
+    stretch = max(1, min(steps - first, STRETCH_BYTES // max(1, 8 * B * est.n_z * n)))
     with torch.no_grad():
-        for t0 in range(0, steps - pre - settle, chunk):
-            flush(t0, min(steps - pre - settle, t0 + chunk))
-    V = zz / measured
-    finite = torch.isfinite(grams).flatten(1).all(1) & torch.isfinite(cross).flatten(1).all(1) & \
-        torch.isfinite(V).flatten(1).all(1)
-    eye = torch.eye(n, dtype=f64, device=dev)
-    info = torch.einsum("zy,bzyij->bij", weight, grams)                           # sum Psi W Psi^T
+        for t0 in range(first, steps, stretch):
+            C = min(stretch, steps - t0)
+            rec = copies.record(C)
+            # 1 at each member's own measured steps, None where every member measures the same ones
+            own = torch.arange(t0, t0 + C, device=settle_of.device).reshape(-1, 1) - settle_of.reshape(1, B)
+            inside = None if measured == steps - first else ((own >= 0) & (own < measured)).to(torch.float64)
+            res.add(t0, rec, inside)
+            psi = copies.regressors(rec, C)
+            sums.add(psi, rec, t0, inside, copies.base_est)
+            if progress is not None:
+                progress(t0 + C, steps)
     residuals = res.result()
-    correlated = (residuals.whiteness_p < WHITE_P).to(dev)
-    noise_info = scores.long_run(correlated)          # sum Psi W z z^T W Psi^T, lagged terms where z is not white
-    white_info = scores.long_run(torch.zeros_like(correlated))
-    finite = finite & torch.isfinite(noise_info).flatten(1).all(1)
-    info = torch.where(finite.reshape(-1, 1, 1), info, eye)            # frozen members: NaN at the end
-    cross = torch.where(finite.reshape(-1, 1, 1), cross, eye)
-    noise_info = torch.where(finite.reshape(-1, 1, 1), noise_info, eye)
-    white_info = torch.where(finite.reshape(-1, 1, 1), white_info, eye)
-    info_inv = torch.linalg.pinv(info)
-    A = info_inv @ cross
-    P = est.P.detach().to(f64)
-    lam = est.lam.to(f64).reshape(-1, 1, 1).expand(B, 1, 1)
-    N = int(est.k)
-    c = 0.5 * lam ** N
-    M = A - c * torch.eye(n, dtype=f64, device=A.device)
-    # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
-    # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
-    # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
-    E = torch.linalg.matrix_exp(-M * _gain_time(est.lam.to(f64).cpu().reshape(-1).expand(B), N
-                                                 ).to(M.device).reshape(-1, 1, 1))
+    return Replay(covariance=sums.covariance(est, residuals, steps, measured, copies), residuals=residuals)
 
-    def covariance(omega: torch.Tensor) -> torch.Tensor:
-        rhs = info_inv @ omega @ P
-        X = _lyapunov(M, 0.5 * (rhs + rhs.mT))
-        X = X - E @ X @ E.mT
-        return 0.5 * (X + X.mT)
-    X = covariance(noise_info)
-    # how much wider the correlation of the residuals makes the intervals (1 where they are white)
-    X_white = covariance(white_info) if bool(correlated.any()) else X
-    widening = (X.diagonal(dim1=1, dim2=2) / X_white.diagonal(dim1=1, dim2=2).clamp_min(1e-300)).clamp_min(0).sqrt()
-    widening = torch.where(correlated.to(dev), widening.amax(1), 1.0)
-    settles = torch.linalg.eigvals(torch.where(finite.reshape(-1, 1, 1), A, eye)).real.amin(1) > EXCITED
-    alive = est.alive.to(settles.device)
-    settles = settles & finite.to(settles.device)
-    ok = settles & alive & torch.isfinite(X).flatten(1).all(1)
-    X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
-    # The output error's Gauss-Newton step over the window: where the frozen loop's error is smaller.
-    step_ok = ok & torch.isfinite(jwj).flatten(1).all(1) & torch.isfinite(jwz).all(1)
-    offset = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
-               torch.where(step_ok.reshape(-1, 1), jwz, 0.0).unsqueeze(-1)).squeeze(-1)
-    offset = torch.where(step_ok.reshape(-1, 1), offset, math.nan)
-    # the step's random error, (sum J^T W J)^-1 (sum J^T W V W J) (sum J^T W J)^-1 for white residuals (the window's
-    # output-error estimate's), with the parameters' own X added under forgetting (the two are then not nested)
-    jwj_inv = torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye))
-    offset_cov = jwj_inv @ torch.einsum("bzy,bzyij->bij", weight @ V @ weight, jgram) @ jwj_inv
-    forgets = (est.lam.to(f64).reshape(-1).expand(B) < 1).to(dev).reshape(-1, 1, 1)
-    offset_cov = torch.where(step_ok.reshape(-1, 1, 1), offset_cov + torch.where(forgets, X, 0.0), math.nan)
-    bias = None
-    if sampled_minus_continuous is not None:   # the sampled estimate minus the continuous physics' (``sampling``)
-        bias = -(torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
-                 torch.where(step_ok.reshape(-1, 1), jwd, 0.0).unsqueeze(-1)).squeeze(-1)
-        bias = torch.where(step_ok.reshape(-1, 1), bias, math.nan)
-    # the share of z's weighted energy that no parameter explains (what the Gauss-Newton step leaves)
-    explained = (jwz.unsqueeze(1) @ torch.linalg.pinv(torch.where(step_ok.reshape(-1, 1, 1), jwj, eye)) @
-                 jwz.unsqueeze(-1)).reshape(B)
-    unexplained = torch.where(zwz > 0, (1 - explained / zwz.clamp_min(1e-300)).clamp(0, 1), 0.0)
-    pc = ParameterCovariance(cov=X, gain=A, noise=V, settles=settles & alive, replayed=steps, measured=measured,
-                             offset=offset, offset_cov=offset_cov, correlated=correlated, widening=widening,
-                             unexplained=unexplained,
-                             sampling=bias, sampling_note=None if isinstance(how, dict) or swap else how,
-                             bias_source="physics" if swap else "sampling" if isinstance(how, dict) else None)
-    return Replay(covariance=pc, residuals=residuals)
+
+class _Copies:
+    """The frozen copies of a replay, stepped side by side from the same state: the base copy (theta = eta, the
+    estimate), one per parameter with that parameter moved by eps (their differences of z from the base copy's are
+    J = Psi_true^T), one with the initial theta (the initial model's fit), and where a physics at the estimates is
+    given (``physics``) a copy with its physical blocks in place of the graph's (``_physics_copy``). Each
+    stretch's records land in buffers kept from stretch to stretch."""
+
+    def __init__(self, graph, state, rel_step: float | None, physics):
+        est = graph.role("estimator")
+        self.graph = graph
+        self.z_sig = graph.role_signal("error")
+        self.y_sig = graph.role_signal("measured") if "measured" in graph.roles else self.z_sig
+        self.w_sig = graph.role_signal("exogenous") if "exogenous" in graph.roles else None
+        eta = est.theta_free().detach()
+        B, n = eta.shape
+        if rel_step is None:
+            rel_step = 1e-7 if eta.dtype == torch.float64 else 1e-3
+        size = eta.abs().amax(1, keepdim=True).expand(B, n)
+        size = torch.where(size > 0, size, est.P.diagonal(dim1=1, dim2=2).abs().sqrt())
+        self.eps = rel_step * torch.where(size > 0, size, torch.ones_like(size))           # (B, n)
+        eye = torch.eye(n, dtype=eta.dtype, device=eta.device)
+        theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1).index_select(1, est.free_idx.to(eta.device))
+        self.base, self.base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
+        self.moved = [_frozen_copy(graph, state, eta + self.eps[:, j:j + 1] * eye[j], engine=graph.engine)[0]
+                      for j in range(n)]
+        self.initial = _frozen_copy(graph, state, theta0, engine=graph.engine)[0]
+        ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
+        self.regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
+        self.u_sig = (est.name, "u")
+        # Where the graph declares a continuous feedback, the refined model is also simulated with that feedback
+        # (``sampling``) from the replay's first step on, so that it settles as long as the copies.
+        swap = physical_blocks(graph) if physics is not None else None
+        self.how = sampling.plan(graph) if not swap else "the physics at the estimates are simulated instead"
+        self.physical = _physics_copy(graph, state, eta, physics, swap) if swap else None
+        self.continuous = None
+        if isinstance(self.how, dict):
+            self.continuous = sampling.ContinuousPrediction(self.base, self.how,
+                                                            self.base.blocks[self.how["known"]].x.clone())
+        self.bias_source = "physics" if swap else "sampling" if self.continuous is not None else None
+        self.note = None if self.bias_source else self.how
+        self.buffers: dict = {}
+        self.history = None
+
+    def _signals(self, copy_: str) -> list:
+        if copy_ != "base":
+            return [self.z_sig] if copy_ != "physical" else [self.physical_y]
+        out = [self.z_sig, self.y_sig] + ([self.w_sig] if self.w_sig is not None else [])
+        out += list(self.regressor_inputs.values()) + [self.u_sig]
+        if self.bias_source:
+            out.append(self.graph.role_signal("prediction"))
+        if self.continuous is not None:
+            out += self.how["record"]
+        return list(dict.fromkeys(out))
+
+    def _run(self, g, name: str, C: int) -> dict:
+        """Advance copy ``g`` ``C`` steps, recording its signals into the kept buffers: {signal: (C, B, w)}."""
+        bufs = self.buffers.get(name)
+        if bufs is None or next(iter(bufs.values())).shape[0] < C:
+            bufs = self.buffers[name] = {
+                sig: kernels.empty((C, g.batch_size, g.blocks[sig[0]].outputs[sig[1]]), self.base_est.theta.dtype,
+                                   self.base_est.theta.device) for sig in self._signals(name)}
+        g.advance(C, record={sig: buf[:C] for sig, buf in bufs.items()})
+        return {sig: buf[:C].to(torch.float64) for sig, buf in bufs.items()}
+
+    def settle(self, steps: int) -> None:
+        """Advance every copy the first ``steps`` steps (nothing recorded), carrying the continuous simulation on
+        over them where there is one."""
+        for g in self.moved + [self.initial] + ([self.physical] if self.physical is not None else []):
+            g.advance(steps)
+        if self.continuous is None:
+            self.base.advance(steps)
+            return
+        span = max(1, STRETCH_BYTES // max(1, 8 * self.base.batch_size * 8))
+        for t0 in range(0, steps, span):
+            C = min(span, steps - t0)
+            self.continuous.predict(self._run(self.base, "base", C), C)
+
+    def record(self, C: int) -> dict:
+        """Step every copy ``C`` steps and return, float64, the base copy's z, y, w (None without an exogenous
+        signal), regressor inputs {port: (C, B, w)} and u; the moved copies' z as ``'moved'`` (C, B, n_z, n); the
+        initial copy's as ``'initial'``; and where a physics or a continuous feedback is simulated, its prediction
+        less the refined model's as ``'d'`` (z_c - z_f, ``sampling``)."""
+        self.history = self.base_est.regressor_history()
+        base = self._run(self.base, "base", C)
+        rec = {"z": base[self.z_sig], "y": base[self.y_sig], "w": None if self.w_sig is None else base[self.w_sig],
+               "inputs": {p: base[sig] for p, sig in self.regressor_inputs.items()}, "u": base[self.u_sig]}
+        rec["moved"] = torch.stack([self._run(g, f"moved{j}", C)[self.z_sig] for j, g in enumerate(self.moved)],
+                                   dim=3)
+        rec["initial"] = self._run(self.initial, "initial", C)[self.z_sig]
+        if self.physical is not None:
+            rec["d"] = self._run(self.physical, "physical", C)[self.physical_y] - \
+                base[self.graph.role_signal("prediction")]
+        elif self.continuous is not None:
+            rec["d"] = self.continuous.predict(base, C) - base[self.graph.role_signal("prediction")]
+        return rec
+
+    def regressors(self, rec: Mapping, C: int) -> torch.Tensor:
+        """The base copy's regressors Psi^T over the stretch just recorded, (C, B, n_z, n) float64."""
+        return self.base_est.regressors_over(self.history, rec["inputs"], rec["u"], 0, C)
+
+    @property
+    def physical_y(self):
+        """The physics copy's noise-free measured output."""
+        y_sig = self.graph.role_signal("measured")
+        if y_sig[0] == "measurement":                      # the physical output before the measurement noise
+            y_sig = self.graph.sources[("measurement", "clean")]
+        return y_sig
+
+
+class _WindowSums:
+    """The sums over a replay's measured steps that the covariance (module docstring) and the output error's
+    Gauss-Newton step need, added stretch by stretch. With J = Psi_true^T = dz / d eta (the moved copies' z less
+    the base copy's, over eps), d the physics' prediction less the refined model's, and Psi, z as the update
+    weighs them (rows divided by m where they are normalized: Psi_m, z_m), every sum is a block of one Gram
+    matrix sum_t G(t)^T G(t) of the rows G = [J, z, d, Psi_m, J_m, z_m] (each row of z its own columns): sum
+    J^T W J, J^T W z, J^T W d, z^T W z, sum Psi_m W Psi_m^T, Psi_m W J_m^T, z_m z_m^T. The scores Psi_m W z_m of
+    each step go to ``_ScoreSums``."""
+
+    PARTS = ("J", "z", "d", "psi", "J_m", "z_m")
+
+    def __init__(self, B: int, n: int, n_z: int, score_lags: int, weight: torch.Tensor, eps: torch.Tensor,
+                 settle_of: torch.Tensor, measured: int, device):
+        self.B, self.n, self.n_z = B, n, n_z
+        self.weight, self.eps = weight.to(torch.float64), eps.to(torch.float64)
+        self.settle_of, self.measured = settle_of, measured
+        self.upper = False                    # whether the native kernel summed the upper triangle only
+        widths = {"J": n_z * n, "z": n_z, "d": n_z, "psi": n_z * n, "J_m": n_z * n, "z_m": n_z}
+        self.cols, at = {}, 0
+        for part in self.PARTS:
+            self.cols[part] = slice(at, at + widths[part])
+            at += widths[part]
+        self.gram = torch.zeros(B, at, at, dtype=torch.float64, device=device)
+        self.scores = _ScoreSums(B, n, score_lags, device)
+        self.has_d = False
+
+    def add(self, psi: torch.Tensor, rec: Mapping, t0: int, inside: torch.Tensor | None, est) -> None:
+        """Add the stretch from step ``t0``: ``psi`` (C, B, n_z, n) the base copy's regressors, ``rec`` its records
+        (``_Copies.record``), ``inside`` (C, B) 1 at each member's measured steps (None: all of them). On the CPU
+        the native kernel (``kernels.window_sums``) takes a stretch in one pass."""
+        B, n, n_z, C = self.B, self.n, self.n_z, psi.shape[0]
+        z, d = rec["z"], rec.get("d")
+        self.has_d = self.has_d or d is not None
+        norm = getattr(est, "norm_inv_s2", None)
+        scores = kernels.window_sums(z, rec["moved"], psi, d, self.eps, self.settle_of, t0, self.measured,
+                                     self.weight, norm, self.gram)
+        if scores is not None:
+            self.upper = True
+            self.scores.add(scores)
+            return
+        jac = (rec["moved"] - z.unsqueeze(3)) / self.eps.reshape(1, B, 1, n)          # (C, B, n_z, n)
+        m = est.row_scale(psi.transpose(0, 1).reshape(-1, n_z, n))          # the rows as weighed, (B C,)
+        m = None if m is None else m.to(torch.float64).reshape(B, C).transpose(0, 1).unsqueeze(-1)   # (C, B, 1)
+        flat_j, flat_psi = jac.reshape(C, B, n_z * n), psi.reshape(C, B, n_z * n)
+        rows = [flat_j, z, d if d is not None else torch.zeros_like(z)]
+        rows += [flat_psi, flat_j, z] if m is None else [flat_psi / m, flat_j / m, z / m]
+        G = torch.cat(rows, dim=2)                                                     # (C, B, K)
+        if inside is not None:
+            G = G * inside.unsqueeze(-1)
+        G = G.transpose(0, 1)                                                          # (B, C, K)
+        self.gram += G.mT @ G
+        psi_m, z_m = G[..., self.cols["psi"]].reshape(B, C, n_z, n), G[..., self.cols["z_m"]]
+        self.scores.add(_tsum_rows(psi_m, z_m @ self.weight))
+
+    def block(self, a: str, b: str) -> torch.Tensor:
+        """The sum of G_a^T G_b, (B, width a, width b)."""
+        if self.upper:                                  # the lower triangle from the upper one
+            self.gram = self.gram.triu() + self.gram.triu(1).mT
+            self.upper = False
+        return self.gram[:, self.cols[a], self.cols[b]]
+
+    def weighted(self, a: str, b: str) -> torch.Tensor:
+        """sum_t a^T W b for parts a, b of n_z rows (each of width n or 1): (B, width a / n_z, width b / n_z)."""
+        B, n_z = self.B, self.n_z
+        g = self.block(a, b)
+        wa, wb = g.shape[1] // n_z, g.shape[2] // n_z
+        return torch.einsum("zy,bzkyl->bkl", self.weight, g.reshape(B, n_z, wa, n_z, wb))
+
+    def pairs(self, a: str, b: str) -> torch.Tensor:
+        """sum_t a[z, i] b[y, j] per pair of rows: (B, n_z, n_z, width a / n_z, width b / n_z)."""
+        B, n_z = self.B, self.n_z
+        g = self.block(a, b)
+        return g.reshape(B, n_z, g.shape[1] // n_z, n_z, g.shape[2] // n_z).permute(0, 1, 3, 2, 4)
+
+    def covariance(self, est, residuals: Residuals, steps: int, measured: int, copies: _Copies
+                   ) -> ParameterCovariance:
+        """The parameters' covariance X and what the end of the run reads with it, from the sums."""
+        f64, B, n = torch.float64, self.B, self.n
+        dev = self.gram.device
+        V = self.block("z_m", "z_m") / measured
+        eye = torch.eye(n, dtype=f64, device=dev)
+        info = self.weighted("psi", "psi")                                            # sum Psi W Psi^T
+        cross = self.weighted("psi", "J_m")                                           # sum Psi W Psi_true^T
+        correlated = (residuals.whiteness_p < WHITE_P).to(dev)
+        omega = self.scores.long_run(correlated)          # sum Psi W z z^T W Psi^T, lagged terms where z is not white
+        omega_white = self.scores.long_run(torch.zeros_like(correlated))
+        finite = torch.isfinite(self.gram).flatten(1).all(1) & torch.isfinite(omega).flatten(1).all(1)
+        keep = finite.reshape(-1, 1, 1)
+        info, cross = torch.where(keep, info, eye), torch.where(keep, cross, eye)       # frozen: NaN at the end
+        omega, omega_white = torch.where(keep, omega, eye), torch.where(keep, omega_white, eye)
+        info_inv = torch.linalg.pinv(info)
+        A = info_inv @ cross
+        P = est.P.detach().to(f64)
+        lam = est.lam.to(f64).reshape(-1, 1, 1).expand(B, 1, 1)
+        N = int(est.k)
+        M = A - 0.5 * lam ** N * eye
+        # The recursion has run for the time sum_k 1/n_k in the units of its gain (ln N + 0.58 for lam = 1): a
+        # direction that relaxes slowly (an eigenvalue of A - cI near or below 0) has gathered its variance over
+        # that time only, X_T = X - exp(-M T) X exp(-M T)^T (the integral of the variance's equation from 0 to T).
+        T = _gain_time(est.lam.to(f64).cpu().reshape(-1).expand(B), N).to(dev).reshape(-1, 1, 1)
+        E = torch.linalg.matrix_exp(-M * T)
+
+        def variance(o: torch.Tensor) -> torch.Tensor:
+            rhs = info_inv @ o @ P
+            X = _lyapunov(M, 0.5 * (rhs + rhs.mT))
+            X = X - E @ X @ E.mT
+            return 0.5 * (X + X.mT)
+        X = variance(omega)
+        # how much wider the correlation of the residuals makes the intervals (1 where they are white)
+        X_white = variance(omega_white) if bool(correlated.any()) else X
+        widening = (X.diagonal(dim1=1, dim2=2) / X_white.diagonal(dim1=1, dim2=2).clamp_min(1e-300)).clamp_min(0).sqrt()
+        widening = torch.where(correlated, widening.amax(1), 1.0)
+        settles = torch.linalg.eigvals(torch.where(keep, A, eye)).real.amin(1) > EXCITED
+        settles = settles & finite & est.alive.to(dev)
+        ok = settles & torch.isfinite(X).flatten(1).all(1)
+        X = torch.where(ok.reshape(-1, 1, 1), X, math.nan)
+        step = self._output_error_step(ok, V, X, est)
+        return ParameterCovariance(cov=X, gain=A, noise=V, settles=settles, replayed=steps, measured=measured,
+                                   correlated=correlated, widening=widening, sampling_note=copies.note,
+                                   bias_source=copies.bias_source, **step)
+
+    def _output_error_step(self, ok: torch.Tensor, V: torch.Tensor, X: torch.Tensor, est) -> dict:
+        """The output error's Gauss-Newton step over the window (where the frozen loop's error is smaller), its
+        random error, the bias against the physics, and the share of z's energy the step leaves."""
+        f64, B, W = torch.float64, self.B, self.weight
+        eye = torch.eye(self.n, dtype=f64, device=self.gram.device)
+        jwj, jwz = self.weighted("J", "J"), self.weighted("J", "z").squeeze(-1)
+        zwz = self.weighted("z", "z").reshape(B)
+        ok = ok & torch.isfinite(jwj).flatten(1).all(1) & torch.isfinite(jwz).all(1)
+        jwj_inv = torch.linalg.pinv(torch.where(ok.reshape(-1, 1, 1), jwj, eye))
+
+        def step(g: torch.Tensor) -> torch.Tensor:
+            s = -(jwj_inv @ torch.where(ok.reshape(-1, 1), g, 0.0).unsqueeze(-1)).squeeze(-1)
+            return torch.where(ok.reshape(-1, 1), s, math.nan)
+        # its random error (sum J^T W J)^-1 (sum J^T W V W J) (sum J^T W J)^-1 for white residuals (the window's
+        # output-error estimate's), with the parameters' own X added under forgetting (the two are then not nested)
+        offset_cov = jwj_inv @ torch.einsum("bzy,bzyij->bij", W @ V @ W, self.pairs("J", "J")) @ jwj_inv
+        forgets = (est.lam.to(f64).reshape(-1).expand(B) < 1).to(ok.device).reshape(-1, 1, 1)
+        offset_cov = torch.where(ok.reshape(-1, 1, 1), offset_cov + torch.where(forgets, X, 0.0), math.nan)
+        # the share of z's weighted energy that no parameter explains (what the Gauss-Newton step leaves)
+        explained = (jwz.unsqueeze(1) @ jwj_inv @ jwz.unsqueeze(-1)).reshape(B)
+        unexplained = torch.where(zwz > 0, (1 - explained / zwz.clamp_min(1e-300)).clamp(0, 1), 0.0)
+        # the sampled estimate minus the physics' (``sampling``): the step the physics' output would add
+        return {"offset": step(jwz), "offset_cov": offset_cov, "unexplained": unexplained,
+                "sampling": step(self.weighted("J", "d").squeeze(-1)) if self.has_d else None}
 
 
 def physical_blocks(graph) -> dict[str, str] | None:
@@ -424,59 +504,55 @@ def physical_blocks(graph) -> dict[str, str] | None:
     return out
 
 
-def _physics_output(graph, state, eta, physics, swap: Mapping[str, Any], steps: int, start: int) -> torch.Tensor:
-    """The noise-free measured output of ``graph`` with ``swap``'s blocks taken from ``physics`` (their state
-    from ``state`` where a buffer of the same name and shape exists), over ``steps`` steps after ``start``,
-    (steps, B, n_y) float64."""
+def _physics_copy(graph, state, eta, physics, swap: Mapping[str, Any]):
+    """A frozen copy of ``graph`` with ``swap``'s blocks taken from ``physics`` (their state from ``state`` where
+    a buffer of the same name and shape exists): its measured output is the physics' at the estimates."""
     g, _ = _frozen_copy(graph, state, eta, engine=graph.engine)
     for name in swap:
         if name not in physics.blocks:
             raise ConfigError(f"intervals: the physics graph has no block '{name}' (the graph's physical system)")
         blk = copy.deepcopy(physics.blocks[name]).to(device=eta.device)
         blk.reset(eta.shape[0])
-        for key, value in g.blocks[name]._buffers.items():
-            mine = blk._buffers.get(key)
-            if value is not None and mine is not None and mine.shape == value.shape and key in ("x", "k"):
-                blk._buffers[key] = value.clone()
+        mine = dict(blk.named_buffers(recurse=False))
+        for key, value in g.blocks[name].named_buffers(recurse=False):
+            if key in ("x", "k") and key in mine and mine[key].shape == value.shape:
+                blk.set_state(**{key: value.clone()})
         g.blocks[name] = blk
-    if start:
-        g.advance(start)
-    y_sig = graph.role_signal("measured")
-    if y_sig[0] == "measurement":                          # the physical output before the measurement noise
-        y_sig = graph.sources[("measurement", "clean")]
-    rec = g.run(steps, record={"y": f"{y_sig[0]}.{y_sig[1]}"})
-    return rec["y"].to(torch.float64)
+    return g
 
 
 class _ScoreSums:
-    """The long-run covariance of the scores s(k) = Psi(k) W z(k): sum_k s(k) s(k)^T plus, for lags 1..L,
-    (1 - lag / (L + 1)) (G_lag + G_lag^T) with G_lag = sum_k s(k) s(k - lag)^T (Bartlett weights, as the
-    Newey-West estimator). For white z this is sum Psi W V W Psi^T; where z is correlated (dynamics the refined
-    model does not explain; its whiteness test's p-value below WHITE_P) the lagged terms widen the intervals."""
+    """The long-run covariance of the scores s(k) = Psi(k) W z(k) with Bartlett weights (the Newey-West
+    estimator), Omega_L = sum_k s(k) s(k)^T + sum_{lag=1..L} (1 - lag / (L + 1)) (G_lag + G_lag^T),
+    G_lag = sum_k s(k) s(k - lag)^T. With S(k) = s(k) + ... + s(k - L), the moving sum of L + 1 scores (zero
+    before the first score and after the last), sum_k S(k) S(k)^T over every k where S is not zero counts each
+    pair of scores lag apart L + 1 - lag times: Omega_L = sum_k S S^T / (L + 1), one outer product per step for
+    all the lags. For white z Omega_0 = sum Psi W V W Psi^T; where z is correlated (dynamics the refined model
+    does not explain; its whiteness test's p-value below WHITE_P) the lagged terms widen the intervals."""
 
     def __init__(self, B: int, n: int, lags: int, device):
         self.L, self.n = lags, 0
         self.ring = torch.zeros(B, lags, n, dtype=torch.float64, device=device)      # the last L scores
-        self.gram = torch.zeros(lags + 1, B, n, n, dtype=torch.float64, device=device)
+        self.gram = torch.zeros(B, n, n, dtype=torch.float64, device=device)          # sum s s^T
+        self.moving = torch.zeros(B, n, n, dtype=torch.float64, device=device)        # sum S S^T
 
     def add(self, s: torch.Tensor) -> None:
-        """Add the scores of consecutive steps, (C, B, n): G_lag += sum_t s(t) s(t - lag)^T, the last L scores
-        of the previous chunk (zeros before the first) supplying s(t - lag) at the chunk's start."""
+        """Add the scores of consecutive steps, (C, B, n)."""
         L, C = self.L, s.shape[0]
-        x = torch.cat([self.ring, s.transpose(0, 1)], dim=1)                   # (B, L + C, n), batch first
-        now = torch.cat([torch.zeros_like(self.ring), x[:, L:]], dim=1)        # the chunk's own steps only
-        self.gram += _lag_sums(now.transpose(0, 1), x.transpose(0, 1), L, outer=True)
+        s = s.transpose(0, 1)                                                   # (B, C, n), batch first
+        x = torch.cat([self.ring, s], dim=1)                                    # (B, L + C, n)
+        S = x.unfold(1, L + 1, 1).sum(-1)                                       # (B, C, n): windows ending at s
+        self.gram += s.mT @ s
+        self.moving += S.mT @ S
         self.ring = x[:, x.shape[1] - L:].contiguous()
         self.n += C
 
     def long_run(self, members: torch.Tensor) -> torch.Tensor:
-        """sum s s^T for every member, with the lagged terms for ``members`` ((B,) bool) only: where z is
-        white they have expectation zero and would only add their sampling noise."""
-        g = self.gram
-        lagged = torch.zeros_like(g[0])
-        for lag in range(1, self.L + 1):
-            lagged += (1 - lag / (self.L + 1)) * (g[lag] + g[lag].mT)
-        return g[0] + torch.where(members.reshape(-1, 1, 1), lagged, 0.0)
+        """Omega_0 for every member, Omega_L for ``members`` ((B,) bool) only: where z is white the lagged terms
+        have expectation zero and would only add their sampling noise."""
+        tail = self.ring.flip(1).cumsum(1)                      # S after the last score: its last 1, 2, ... L
+        lagged = (self.moving + tail.mT @ tail) / (self.L + 1)
+        return torch.where(members.reshape(-1, 1, 1), lagged, self.gram)
 
 
 def _tsum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -489,6 +565,25 @@ def _tsum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def _tsum_rows(psi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """The scores of each step, s(t) = Psi(t) v(t): psi (B, C, n_z, n), v (B, C, n_z) -> (C, B, n)."""
     return (psi * v.unsqueeze(-1)).sum(2).transpose(0, 1)
+
+
+class _LagSums:
+    """sum over t of a(t) * b(t - lag) (``outer``: the outer product a(t) b(t - lag)^T) for lag = 0 .. ``lags``,
+    of series given stretch by stretch, time-major (C, B, n) and (C, B, m); b's last ``lags`` rows (zeros before
+    the first) carry over to the next stretch."""
+
+    def __init__(self, lags: int, outer: bool):
+        self.L, self.outer, self.sum, self.ring = lags, outer, None, None
+
+    def add(self, a: torch.Tensor, b: torch.Tensor) -> None:
+        L = self.L
+        if self.ring is None:
+            self.ring = b.new_zeros(L, *b.shape[1:])
+        x = torch.cat([self.ring, b])                                       # b from L steps before the stretch
+        now = torch.cat([a.new_zeros(L, *a.shape[1:]), a])                  # a over the stretch only
+        part = _lag_sums(now, x, L, self.outer)
+        self.sum = part if self.sum is None else self.sum + part
+        self.ring = x[x.shape[0] - L:]
 
 
 def _lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch.Tensor:
@@ -517,43 +612,56 @@ def _lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch
 
 
 class _ResidualSums:
-    """The sums of the residual checks over the replay: lagged products of z and w, the fit's sums, and the first
-    members' outputs."""
+    """The sums of the residual checks over each member's measured steps, added stretch by stretch: lagged
+    products of z and w, the fit's sums, and the first members' outputs."""
 
-    def __init__(self, B: int, lags: int, keep: int, device):
-        self.B, self.L, self.keep, self.dev = B, lags, keep, device
-        self.n = 0
+    def __init__(self, B: int, lags: int, keep: int, measured: int, settle_of: torch.Tensor, w_on: bool, device):
+        self.B, self.L, self.keep, self.dev, self.n = B, lags, min(keep, B), device, measured
+        self.settle_of = settle_of.tolist()[:self.keep]
+        self.zz, self.zw = _LagSums(lags, outer=False), _LagSums(lags, outer=True) if w_on else None
+        self.sums: dict[str, torch.Tensor] = {}
+        self.series: dict[str, torch.Tensor] = {}
 
-    def add(self, z: torch.Tensor, w: torch.Tensor | None, y: torch.Tensor, z_init: torch.Tensor) -> None:
-        """The sums of the replay's measured steps, from its recorded outputs: z and z_init (T, B, n_z), w
-        (T, B, n_w) or None, y (T, B, n_y)."""
-        f64, L, kept = torch.float64, self.L, slice(0, self.keep)
-        z, y, z_init = z.to(f64), y.to(f64), z_init.to(f64)
-        self.n = z.shape[0]
-        self.zz = _lag_sums(z, z, L, outer=False)                              # z(k) z(k - lag)
-        self.z_sum = z.sum(0)
-        self.w_on = w is not None
-        if self.w_on:
-            w = w.to(f64)
-            self.zw = _lag_sums(z, w, L, outer=True)                           # z(k) w(k - lag)
-            self.w_sq = (w * w).sum(0)
-            self.w_sum = w.sum(0)
-        self.fit = {"zz": (z * z).sum((0, 2)), "zi": (z_init * z_init).sum((0, 2)), "y": y.sum(0),
-                    "yy": (y * y).sum((0, 2))}
-        self.series = {"measured": y[:, kept].cpu(), "refined": (y[:, kept] - z[:, kept]).cpu(),
-                       "initial": (y[:, kept] - z_init[:, kept]).cpu()}
+    def _sum(self, key: str, value: torch.Tensor) -> None:
+        self.sums[key] = value if key not in self.sums else self.sums[key] + value
+
+    def add(self, t0: int, rec: Mapping, inside: torch.Tensor | None) -> None:
+        """Add the stretch of steps from ``t0`` (``_Copies.record``'s records; ``inside`` (C, B) 1 at each member's
+        measured steps, None where all are measured)."""
+        z, y, z_init, w = rec["z"], rec["y"], rec["initial"], rec["w"]
+        C = z.shape[0]
+        if inside is not None:                 # outside a member's measured steps every sum counts zero
+            z, y, z_init = (v * inside.unsqueeze(-1) for v in (z, y, z_init))
+            w = None if w is None else w * inside.unsqueeze(-1)
+        self.zz.add(z, z)                                                      # z(k) z(k - lag)
+        self._sum("z", z.sum(0))
+        if w is not None:
+            self.zw.add(z, w)                                                  # z(k) w(k - lag)
+            self._sum("ww", (w * w).sum(0))
+            self._sum("w", w.sum(0))
+        self._sum("zz", (z * z).sum((0, 2)))
+        self._sum("zi", (z_init * z_init).sum((0, 2)))
+        self._sum("y", y.sum(0))
+        self._sum("yy", (y * y).sum((0, 2)))
+        for name, v in (("measured", y), ("refined", y - z), ("initial", y - z_init)):
+            if name not in self.series:
+                self.series[name] = v.new_zeros(self.n, self.keep, v.shape[2], device="cpu")
+            for b, own in enumerate(self.settle_of):     # the member's own measured steps in this stretch
+                lo, hi = max(t0, own), min(t0 + C, own + self.n)
+                if hi > lo:
+                    self.series[name][lo - own:hi - own, b] = v[lo - t0:hi - t0, b].cpu()
 
     def result(self) -> Residuals:
-        N, L = self.n, self.L
+        N, L, s = self.n, self.L, self.sums
         counts = (N - torch.arange(L + 1, dtype=torch.float64, device=self.dev)).clamp_min(1).reshape(-1, 1, 1)
-        mean_z = self.z_sum / N
-        cov_z = self.zz / counts - mean_z.unsqueeze(0) ** 2                     # (L + 1, B, n_z)
+        mean_z = s["z"] / N
+        cov_z = self.zz.sum / counts - mean_z.unsqueeze(0) ** 2                 # (L + 1, B, n_z)
         auto = (cov_z / cov_z[:1]).permute(1, 0, 2)                              # (B, L + 1, n_z)
         xcorr = None
-        if self.w_on:
-            mean_w = self.w_sum / N
-            cov_zw = self.zw / counts.unsqueeze(-1) - (mean_z.unsqueeze(-1) * mean_w.unsqueeze(1)).unsqueeze(0)
-            var_w = self.w_sq / N - mean_w ** 2
+        if self.zw is not None:
+            mean_w = s["w"] / N
+            cov_zw = self.zw.sum / counts.unsqueeze(-1) - (mean_z.unsqueeze(-1) * mean_w.unsqueeze(1)).unsqueeze(0)
+            var_w = s["ww"] / N - mean_w ** 2
             scale = torch.sqrt(cov_z[0].unsqueeze(-1) * var_w.unsqueeze(1))         # (B, n_z, n_w)
             xcorr = (cov_zw / scale.unsqueeze(0)).permute(1, 0, 2, 3)
         r = auto[:, 1:]                                                          # lags 1..L
@@ -561,12 +669,11 @@ class _ResidualSums:
         q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
         from scipy.special import chdtrc  # the chi-squared survival function
         p = torch.as_tensor(chdtrc(L, torch.nan_to_num(q, nan=math.inf).cpu().numpy()), dtype=torch.float64)
-        f = self.fit
-        spread = torch.sqrt(f["yy"] - (f["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
+        spread = torch.sqrt(s["yy"] - (s["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
         return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
                          bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
-                         fit=(100 * (1 - torch.sqrt(f["zz"]) / spread)).cpu(),
-                         fit_initial=(100 * (1 - torch.sqrt(f["zi"]) / spread)).cpu(),
+                         fit=(100 * (1 - torch.sqrt(s["zz"]) / spread)).cpu(),
+                         fit_initial=(100 * (1 - torch.sqrt(s["zi"]) / spread)).cpu(),
                          series=dict(self.series))
 
 
@@ -608,14 +715,12 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
     same values), so that the graph can go on stepping."""
     est = graph.role("estimator")
     eta = est.theta_free().detach().clone()
-    held = est._buffers["theta"]
-    theta = held.clone()
     B, n = eta.shape
     h = 1e-3 * std.to(eta.dtype)
     fallback = 1e-6 * torch.maximum(eta.abs(), eta.abs().amax(1, keepdim=True)).clamp_min(1e-12)
     h = torch.where(torch.isfinite(h) & (h > 0), h, fallback)
     grads: dict[str, list] = {}
-    try:
+    with est.theta_kept():
         for j in range(n):
             vals = []
             for sign in (1.0, -1.0):
@@ -626,9 +731,6 @@ def estimate_gradients(graph, estimates: Callable[[object], Mapping[str, torch.T
                     vals.append({k: v.detach().to(torch.float64).reshape(B) for k, v in estimates(graph).items()})
             for key in vals[0]:
                 grads.setdefault(key, []).append((vals[0][key] - vals[1][key]) / (2 * h[:, j].to(torch.float64)))
-    finally:
-        held.copy_(theta)
-        est.set_state(theta=held)
     return {k: torch.stack(v, dim=1) for k, v in grads.items()}
 
 
@@ -777,13 +879,12 @@ def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, 
     if not bool(torch.isfinite(X).all()):
         return None
     est = graph.role("estimator")
-    eta, held = est.theta_free().detach().clone(), est._buffers["theta"]
-    theta = held.clone()
+    eta = est.theta_free().detach().clone()
     sd = pc.std[member].cpu()
     h = torch.where(sd > 0, 1e-3 * sd, 1e-6 * eta[member].abs().clamp_min(1e-12).cpu())
     value = np.asarray(fn(graph), dtype=float)
     grads = []
-    try:
+    with est.theta_kept():
         for j in range(eta.shape[1]):
             sides = []
             for sign in (1.0, -1.0):
@@ -792,9 +893,6 @@ def member_band(graph, fn: Callable[[object], object], pc: ParameterCovariance, 
                 est.set_theta_free(e)
                 sides.append(np.asarray(fn(graph), dtype=float))
             grads.append((sides[0] - sides[1]) / (2 * float(h[j])))
-    finally:
-        held.copy_(theta)
-        est.set_state(theta=held)
     G = np.stack(grads, axis=-1)                                                    # (F, n)
     var = np.einsum("fi,ij,fj->f", G, X.numpy(), G)
     return value, quantile(level) * np.sqrt(np.clip(var, 0, None))

@@ -8,9 +8,9 @@ theta that best fits data of the continuous system differs from its physical val
 and Workman, *Digital Control of Dynamic Systems*, ch. 6, on emulating a continuous controller). That
 difference is a bias no interval width covers; it shrinks with Ts, not with the data.
 
-``continuous_prediction`` simulates the refined model with the feedback acting continuously, over a recorded
-stretch: the known model's continuous matrices in feedback with the identified subsystem's map, the other
-inputs held over each sample as the ZOH model holds them. Where f_theta is linear in its inputs (a static gain)
+``ContinuousPrediction`` simulates the refined model with the feedback acting continuously, stretch by stretch
+of recorded signals: the known model's continuous matrices in feedback with the identified subsystem's map, the
+other inputs held over each sample as the ZOH model holds them. Where f_theta is linear in its inputs (a static gain)
 the closed loop is one linear system, discretized exactly; otherwise it is integrated with ``SUBSTEPS``
 exponential-midpoint steps per sample. With y_c the sampled model's prediction and y_f the continuous one's,
 both at theta, the sampled fit to data of the continuous system (z = y - y_c) moves theta by the Gauss-Newton
@@ -81,99 +81,109 @@ def _zoh(A: torch.Tensor, B: torch.Tensor, dt: float) -> tuple[torch.Tensor, tor
     return E[..., :n, :n], E[..., :n, n:]
 
 
-def continuous_prediction(graph, plan_: Mapping, x0: torch.Tensor, signals: Mapping[tuple, torch.Tensor],
-                          steps: int) -> torch.Tensor:
+class ContinuousPrediction:
     """The prediction (the known model's measured output) of ``graph``'s refined model with its feedback acting
-    continuously, over ``steps`` samples from the known model's state ``x0`` (B, n): (steps, B, n_y) float64.
-    ``signals``: the recorded signals of ``plan_['record']``, each (>= steps, B, width). theta is the
-    estimator's as it is (nothing is changed)."""
-    known, est = graph.blocks[plan_["known"]], graph.role("estimator")
-    f64 = torch.float64
-    A, Bc = (t.to(f64) for t in known.continuous_form())
-    C, D = known.C.to(f64), known.D.to(f64)
-    dt = float(known.dt)
-    u_port, sees = plan_["u_port"], plan_["sees"]
-    ins, outs = known._in_slices, known._out_slices
-    y_port = graph.role_signal("prediction")[1]
-    held = [p for p in known.inputs if p != u_port]
-    x = x0.to(f64)
-    B = x.shape[0]
+    continuously, simulated stretch by stretch from the known model's state ``x0`` (B, n): ``predict`` takes the
+    next stretch's recorded signals and carries the state on. theta is the estimator's as it is (nothing is
+    changed)."""
 
-    def inputs_of(k: int) -> dict[str, torch.Tensor]:
-        return {p: signals[graph.sources[(known.name, p)]][k].to(f64) for p in held}
+    def __init__(self, graph, plan_: Mapping, x0: torch.Tensor):
+        known, est = graph.blocks[plan_["known"]], graph.role("estimator")
+        f64 = torch.float64
+        self.graph, self.known, self.est = graph, known, est
+        A, Bc = (t.to(f64) for t in known.continuous_form())
+        self.C, self.D = known.C.to(f64), known.D.to(f64)
+        dt = float(known.dt)
+        self.u_port, self.sees = plan_["u_port"], plan_["sees"]
+        ins, outs = known._in_slices, known._out_slices
+        self.y_port = graph.role_signal("prediction")[1]
+        self.held = [p for p in known.inputs if p != self.u_port]
+        self.x = x0.to(f64)
+        B = self.x.shape[0]
+        Bu = Bc[:, :, ins[self.u_port]]
+        self.gain = _linear_gain(est, B)
+        if self.gain is not None:
+            # u = sum_p K_p s_p + u0 is linear: the continuous closed loop x' = A_cl x + B_v v with v the held
+            # inputs (the known model's other inputs, the estimator's other inputs, 1), discretized exactly.
+            K, u0 = self.gain
+            A_cl = A.expand(B, -1, -1).clone()
+            cols = []
+            for p, (blk, port) in self.sees.items():
+                if blk == known.name:
+                    A_cl = A_cl + Bu @ K[p] @ self.C[:, outs[port]]
+            for q in self.held:
+                term = Bc[:, :, ins[q]]
+                for p, (blk, port) in self.sees.items():
+                    if blk == known.name:
+                        term = term + Bu @ K[p] @ self.D[:, outs[port], ins[q]]
+                cols.append(term.expand(B, -1, -1))
+            for p, (blk, _) in self.sees.items():
+                if blk != known.name:
+                    cols.append((Bu @ K[p]).expand(B, -1, -1))
+            cols.append((Bu @ u0.unsqueeze(-1)).expand(B, -1, -1))
+            self.Phi, self.Gamma = _zoh(A_cl, torch.cat(cols, dim=2), dt)
+        else:
+            # a map that is not linear: exponential-midpoint steps of h = dt / SUBSTEPS, u held over half a step
+            # to predict the midpoint, then over the step from the midpoint's u
+            h = dt / SUBSTEPS
+            Bh = torch.cat([Bc[:, :, ins[q]] for q in self.held] + [Bu], dim=2)
+            self.Ph, self.Gh = _zoh(A, Bh, h)
+            self.Ph2, self.Gh2 = _zoh(A, Bh, h / 2)
 
-    def seen(x: torch.Tensor, held_now: Mapping[str, torch.Tensor], k: int) -> dict[str, torch.Tensor]:
-        out = {}
-        for p, (blk, port) in sees.items():
-            if blk == known.name:
-                v = (C[:, outs[port]] @ x.unsqueeze(-1)).squeeze(-1)
+    def _inputs_of(self, signals: Mapping[tuple, torch.Tensor], k: int) -> dict[str, torch.Tensor]:
+        return {p: signals[self.graph.sources[(self.known.name, p)]][k].to(torch.float64) for p in self.held}
+
+    def _seen(self, x: torch.Tensor, held_now: Mapping[str, torch.Tensor], signals, k: int) -> dict:
+        ins, outs, out = self.known._in_slices, self.known._out_slices, {}
+        for p, (blk, port) in self.sees.items():
+            if blk == self.known.name:
+                v = (self.C[:, outs[port]] @ x.unsqueeze(-1)).squeeze(-1)
                 for q, cs in ins.items():
-                    if q != u_port:
-                        v = v + (D[:, outs[port], cs] @ held_now[q].unsqueeze(-1)).squeeze(-1)
+                    if q != self.u_port:
+                        v = v + (self.D[:, outs[port], cs] @ held_now[q].unsqueeze(-1)).squeeze(-1)
                 out[p] = v
             else:
-                out[p] = signals[(blk, port)][k].to(f64)
+                out[p] = signals[(blk, port)][k].to(torch.float64)
         return out
 
-    def u_of(values: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        return est.static_output({p: v.to(est.theta.dtype) for p, v in values.items()}).to(f64)
+    def _u_of(self, values: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        dtype = self.est.theta.dtype
+        return self.est.static_output({p: v.to(dtype) for p, v in values.items()}).to(torch.float64)
 
-    def predict(x: torch.Tensor, held_now: Mapping[str, torch.Tensor], u: torch.Tensor) -> torch.Tensor:
-        ys = outs[y_port]
-        y = (C[:, ys] @ x.unsqueeze(-1)).squeeze(-1)
+    def _predict(self, x: torch.Tensor, held_now: Mapping[str, torch.Tensor], u: torch.Tensor) -> torch.Tensor:
+        ins, ys = self.known._in_slices, self.known._out_slices[self.y_port]
+        y = (self.C[:, ys] @ x.unsqueeze(-1)).squeeze(-1)
         for q, cs in ins.items():
-            v = u if q == u_port else held_now[q]
-            y = y + (D[:, ys, cs] @ v.unsqueeze(-1)).squeeze(-1)
+            v = u if q == self.u_port else held_now[q]
+            y = y + (self.D[:, ys, cs] @ v.unsqueeze(-1)).squeeze(-1)
         return y
 
-    out = x.new_empty(steps, B, outs[y_port].stop - outs[y_port].start)
-    Bu = Bc[:, :, ins[u_port]]
-    gain = _linear_gain(est, B)
-    if gain is not None:
-        # u = sum_p K_p s_p + u0 is linear: the continuous closed loop x' = A_cl x + B_v v with v the held
-        # inputs (the known model's other inputs, the estimator's other inputs, 1), discretized exactly.
-        K, u0 = gain
-        A_cl = A.expand(B, -1, -1).clone()
-        cols = []
-        for p, (blk, port) in sees.items():
-            if blk == known.name:
-                A_cl = A_cl + Bu @ K[p] @ C[:, outs[port]]
-        for q in held:
-            term = Bc[:, :, ins[q]]
-            for p, (blk, port) in sees.items():
-                if blk == known.name:
-                    term = term + Bu @ K[p] @ D[:, outs[port], ins[q]]
-            cols.append(term.expand(B, -1, -1))
-        for p, (blk, _) in sees.items():
-            if blk != known.name:
-                cols.append((Bu @ K[p]).expand(B, -1, -1))
-        cols.append((Bu @ u0.unsqueeze(-1)).expand(B, -1, -1))
-        Phi, Gamma = _zoh(A_cl, torch.cat(cols, dim=2), dt)
+    def predict(self, signals: Mapping[tuple, torch.Tensor], steps: int) -> torch.Tensor:
+        """The prediction over the next ``steps`` samples, (steps, B, n_y) float64. ``signals``: the recorded
+        signals of the plan's ``record`` over those samples, each (>= steps, B, width)."""
+        x = self.x
+        B, ys = x.shape[0], self.known._out_slices[self.y_port]
+        out = x.new_empty(steps, B, ys.stop - ys.start)
+        mv = lambda M, v: (M @ v.unsqueeze(-1)).squeeze(-1)             # noqa: E731
         for k in range(steps):
-            held_now = inputs_of(k)
-            now = seen(x, held_now, k)
-            out[k] = predict(x, held_now, u_of(now))
-            v = [held_now[q] for q in held] + [now[p] for p, (blk, _) in sees.items() if blk != known.name]
-            v.append(x.new_ones(B, 1))
-            x = (Phi @ x.unsqueeze(-1)).squeeze(-1) + (Gamma @ torch.cat(v, dim=1).unsqueeze(-1)).squeeze(-1)
+            held_now = self._inputs_of(signals, k)
+            now = self._seen(x, held_now, signals, k)
+            u = self._u_of(now)
+            out[k] = self._predict(x, held_now, u)
+            if self.gain is not None:
+                v = [held_now[q] for q in self.held] + [now[p] for p, (blk, _) in self.sees.items()
+                                                        if blk != self.known.name]
+                v.append(x.new_ones(B, 1))
+                x = mv(self.Phi, x) + mv(self.Gamma, torch.cat(v, dim=1))
+                continue
+            hv = [held_now[q] for q in self.held]
+            for _ in range(SUBSTEPS):
+                mid = mv(self.Ph2, x) + mv(self.Gh2, torch.cat(hv + [u], 1))
+                u_mid = self._u_of(self._seen(mid, held_now, signals, k))
+                x = mv(self.Ph, x) + mv(self.Gh, torch.cat(hv + [u_mid], 1))
+                u = self._u_of(self._seen(x, held_now, signals, k))
+        self.x = x
         return out
-    # a map that is not linear: exponential-midpoint steps of h = dt / SUBSTEPS, u held over half a step to
-    # predict the midpoint, then over the step from the midpoint's u
-    h = dt / SUBSTEPS
-    Bh = torch.cat([Bc[:, :, ins[q]] for q in held] + [Bu], dim=2)
-    Ph, Gh = _zoh(A, Bh, h)
-    Ph2, Gh2 = _zoh(A, Bh, h / 2)
-    for k in range(steps):
-        held_now = inputs_of(k)
-        hv = [held_now[q] for q in held]
-        u = u_of(seen(x, held_now, k))
-        out[k] = predict(x, held_now, u)
-        for _ in range(SUBSTEPS):
-            mid = (Ph2 @ x.unsqueeze(-1)).squeeze(-1) + (Gh2 @ torch.cat(hv + [u], 1).unsqueeze(-1)).squeeze(-1)
-            u_mid = u_of(seen(mid, held_now, k))
-            x = (Ph @ x.unsqueeze(-1)).squeeze(-1) + (Gh @ torch.cat(hv + [u_mid], 1).unsqueeze(-1)).squeeze(-1)
-            u = u_of(seen(x, held_now, k))
-    return out
 
 
 def _linear_gain(est, B: int) -> tuple[dict[str, torch.Tensor], torch.Tensor] | None:

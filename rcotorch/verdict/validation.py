@@ -59,16 +59,17 @@ class Validation:
     x0_initial : torch.Tensor or None
         (B, n), the initial model's.
     measured : torch.Tensor
-        (T, B, width), y.
+        (T, M, width), y.
     refined : torch.Tensor
-        (T, B, width), y_hat of the refined model.
+        (T, M, width), y_hat of the refined model.
     initial : torch.Tensor
-        (T, B, width), y_hat of the initial model.
+        (T, M, width), y_hat of the initial model.
 
     Shape
     -----
-    ``measured``, ``refined``, ``initial`` are (T, B, width), T = ``steps`` (the first ``fit_steps`` samples fix
-    the initial state and are not scored); the scores are (B,).
+    ``measured``, ``refined``, ``initial`` are (T, M, width), T = ``steps`` (the first ``fit_steps`` samples fix
+    the initial state and are not scored), M the members ``validate`` kept (all of them unless ``keep``); the
+    scores are (B,).
     """
 
     source: str              # what the held-out data are
@@ -104,7 +105,7 @@ class Validation:
 
 
 def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = None, data=None,
-             fit_steps: int = FIT_STEPS) -> Validation:
+             fit_steps: int = FIT_STEPS, keep: int | None = None) -> Validation:
     """Simulate ``graph``'s refined model (its present theta, frozen) and its initial model on held-out data.
 
     Parameters
@@ -122,6 +123,8 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
         Another recording: a source block with the data block's output ports (e.g. ``rcotorch.Recorded``).
     fit_steps : int
         Leading samples that fix the initial state and are left out of the scores.
+    keep : int, optional
+        Keep the traces of the first ``keep`` members only (default: all); the scores are every member's.
 
     Returns
     -------
@@ -195,17 +198,50 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
         x0, fitted = _fit_state(g, fit_steps)
         fitted_both = fitted_both and fitted
         states[which] = x0
-        y, y_hat = _simulate(g, steps, x0)
-        traces[which], traces["measured"] = y_hat, y
-        z = (y - y_hat)[fit_steps:]
-        yy = y[fit_steps:]
-        spread = torch.sqrt(((yy - yy.mean(0)) ** 2).sum((0, 2))).clamp_min(1e-300)
-        scored[which] = (torch.sqrt((z * z).sum(2).mean(0)), 100 * (1 - torch.sqrt((z * z).sum((0, 2))) / spread))
+        if x0 is not None:
+            g.role("known").x.copy_(x0)
+        scores = _Scores(fit_steps, keep)
+        _stream(g, steps, scores.add)
+        traces[which], traces["measured"] = scores.kept["y_hat"], scores.kept["y"]
+        scored[which] = scores.result()
     return Validation(source=source, steps=steps, fit_steps=fit_steps, rmse=scored["refined"][0],
                       rmse_initial=scored["initial"][0], fit_percent=scored["refined"][1],
                       fit_percent_initial=scored["initial"][1], state_fitted=fitted_both, x0=states["refined"],
                       x0_initial=states["initial"], measured=traces["measured"],
                       refined=traces["refined"], initial=traces["initial"])
+
+
+class _Scores:
+    """The scores' sums over the samples after the first ``fit_steps``, added stretch by stretch, and the traces
+    of the first ``keep`` members (all where None)."""
+
+    def __init__(self, fit_steps: int, keep: int | None):
+        self.fit, self.keep, self.at = fit_steps, keep, 0
+        self.sums: dict[str, torch.Tensor] = {}
+        self.parts: dict[str, list] = {"y": [], "y_hat": []}
+
+    def add(self, y: torch.Tensor, y_hat: torch.Tensor) -> None:
+        """The next stretch's y and y_hat, (C, B, width) float64."""
+        kept = slice(None) if self.keep is None else slice(0, self.keep)
+        self.parts["y"].append(y[:, kept].clone())
+        self.parts["y_hat"].append(y_hat[:, kept].clone())
+        lo = max(0, self.fit - self.at)
+        self.at += y.shape[0]
+        y, z = y[lo:], (y - y_hat)[lo:]
+        for key, value in (("zz", (z * z).sum((0, 2))), ("y", y.sum(0)), ("yy", (y * y).sum(0)),
+                           ("n", torch.tensor(y.shape[0]))):
+            self.sums[key] = value if key not in self.sums else self.sums[key] + value
+
+    @property
+    def kept(self) -> dict[str, torch.Tensor]:
+        return {k: torch.cat(v) for k, v in self.parts.items()}
+
+    def result(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """rmse and fit in percent, (B,) each."""
+        s = self.sums
+        n = s["n"].to(s["zz"].dtype)
+        spread = torch.sqrt((s["yy"] - s["y"] ** 2 / n).sum(1).clamp_min(0)).clamp_min(1e-300)
+        return torch.sqrt(s["zz"] / n), 100 * (1 - torch.sqrt(s["zz"]) / spread)
 
 
 def _dtype(graph) -> torch.dtype:
@@ -220,9 +256,24 @@ def _continue_sources(graph, offset: int) -> None:
 
 
 def _freeze(graph, eta: torch.Tensor) -> None:
-    est = graph.role("estimator")
-    est.set_theta_free(eta)
-    est.set_state(P=torch.zeros_like(est.P))          # a zero gain: theta stays where it is
+    graph.role("estimator").hold(eta)
+
+
+STRETCH_BYTES = 1 << 23   # the simulation records y and y_hat in stretches of about this many bytes each
+
+
+def _stream(graph, steps: int, take) -> None:
+    """Run ``graph`` (changed) ``steps`` steps, handing each stretch's y and y_hat, (C, B, width) float64, to
+    ``take``; the stretches are recorded into the same buffers."""
+    signals = {"y": graph.role_signal("measured"), "y_hat": graph.role_signal("prediction")}
+    widths = {k: graph.blocks[blk].outputs[port] for k, (blk, port) in signals.items()}
+    stretch = max(1, min(steps, STRETCH_BYTES // (8 * graph.batch_size * max(widths.values()))))
+    bufs = {k: torch.empty(stretch, graph.batch_size, w, dtype=_dtype(graph), device=graph.k.device)
+            for k, w in widths.items()}
+    for done in range(0, steps, stretch):
+        C = min(stretch, steps - done)
+        graph.advance(C, record={signals[k]: b[:C] for k, b in bufs.items()})
+        take(bufs["y"][:C].to(torch.float64), bufs["y_hat"][:C].to(torch.float64))
 
 
 def _simulate(graph, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -6,6 +6,7 @@
  *   health_bounds the member health checks' bounds (definiteness, windup, runaway) of every member
  *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
  *   lag_sums     the lagged products of two time series, per member (the intervals' correlations and scores)
+ *   window_sums  the intervals' replay: the Gram sums of a stretch's sensitivities and regressors, per member
  *   lti_markov   the Markov parameters of one linear system per member, written where the estimator keeps them
  *
  * Members are independent, so a batch is cut into chunks of VL lanes (VL = 1, 4, 8 or 16, chosen by the
@@ -574,6 +575,92 @@ static PyObject *py_lag_sums(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* The replay's sums over a stretch of C steps (verdict/intervals.py, _WindowSums), per member b, from time-major
+ * records: z (C, B, nz), the moved copies' z (C, B, nz, n), the regressors psi (C, B, nz, n) and d (C, B, nz) or
+ * none. At a step t0 + t inside the member's measured steps [own_b, own_b + measured), with J = (moved - z) / eps_b
+ * and, where norm is given (normalized regressors, norm_b = 1 / s^2 per member),
+ * m = sqrt(1 + norm_b sum_{r,i} psi[r,i] (W psi)[r,i]) (else m = 1),
+ * the row g = [J, z, d, psi / m, J / m, z / m] (K = 3 nz n + 3 nz) adds g g^T to gram[b] (K x K) in the blocks the
+ * covariance reads (upper triangle: [J, z, d] x [J, z, d], psi / m x [psi / m, J / m], z / m x z / m) and the
+ * score (psi / m)^T W (z / m) is written to scores (C, B, n); outside, the score is 0 and nothing is added.
+ * Members in blocks of 64, the steps of a block in order. */
+static void window_sums(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t t0, int64_t measured, const double *z,
+                        const double *moved, const double *psi, const double *d, const double *eps,
+                        const int64_t *own, const double *W, const double *norm, double *gram, double *scores,
+                        int nthreads) {
+    const int64_t nj = nz * n, K = 3 * nj + 3 * nz;
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#endif
+    for (int64_t b0 = 0; b0 < B; b0 += 64) {
+        int64_t b1 = b0 + 64 < B ? b0 + 64 : B;
+        double g[K], wz[nz];
+        for (int64_t t = 0; t < C; t++)
+            for (int64_t b = b0; b < b1; b++) {
+                double *sc = scores + (t * B + b) * n;
+                int64_t at = t0 + t - own[b];
+                if (at < 0 || at >= measured) {
+                    for (int64_t i = 0; i < n; i++) sc[i] = 0.0;
+                    continue;
+                }
+                const double *zt = z + (t * B + b) * nz, *mv = moved + (t * B + b) * nj,
+                             *ps = psi + (t * B + b) * nj, *e = eps + b * n;
+                double m = 1.0;
+                if (norm) {
+                    double q = 0.0;
+                    for (int64_t r = 0; r < nz; r++)
+                        for (int64_t s2 = 0; s2 < nz; s2++)
+                            for (int64_t i = 0; i < n; i++) q += ps[r * n + i] * W[r * nz + s2] * ps[s2 * n + i];
+                    m = sqrt(1.0 + q * norm[b]);
+                }
+                for (int64_t r = 0; r < nz; r++) {
+                    for (int64_t i = 0; i < n; i++) {
+                        double j = (mv[r * n + i] - zt[r]) / e[i];
+                        g[r * n + i] = j;
+                        g[nj + 2 * nz + r * n + i] = ps[r * n + i] / m;
+                        g[2 * nj + 2 * nz + r * n + i] = j / m;
+                    }
+                    g[nj + r] = zt[r];
+                    g[nj + nz + r] = d ? d[(t * B + b) * nz + r] : 0.0;
+                    g[3 * nj + 2 * nz + r] = zt[r] / m;
+                }
+                /* the blocks the covariance reads, upper triangle: [J, z, d] with themselves, psi / m with
+                 * itself and J / m, z / m with itself */
+                double *o = gram + b * K * K;
+                const int64_t top[3] = {nj + 2 * nz, 3 * nj + 2 * nz, K};
+                for (int64_t a = 0; a < K; a++) {
+                    if (a >= 2 * nj + 2 * nz && a < 3 * nj + 2 * nz) continue;     /* J / m: only beside psi */
+                    const int64_t end = a < top[0] ? top[0] : a < 2 * nj + 2 * nz ? top[1] : top[2];
+                    const double ga = g[a];
+                    for (int64_t c = a; c < end; c++) o[a * K + c] += ga * g[c];
+                }
+                for (int64_t r = 0; r < nz; r++) {
+                    wz[r] = 0.0;
+                    for (int64_t s2 = 0; s2 < nz; s2++) wz[r] += W[r * nz + s2] * zt[s2] / m;
+                }
+                for (int64_t i = 0; i < n; i++) {
+                    double acc = 0.0;
+                    for (int64_t r = 0; r < nz; r++) acc += ps[r * n + i] / m * wz[r];
+                    sc[i] = acc;
+                }
+            }
+    }
+}
+
+static PyObject *py_window_sums(PyObject *self, PyObject *args) {
+    long long C, B, nz, n, t0, measured;
+    unsigned long long z, moved, psi, d, eps, own, W, norm, gram, scores;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "LLLLLLKKKKKKKKKKi", &C, &B, &nz, &n, &t0, &measured, &z, &moved, &psi, &d, &eps,
+                          &own, &W, &norm, &gram, &scores, &nthreads))
+        return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    window_sums(C, B, nz, n, t0, measured, ADDR(z), ADDR(moved), ADDR(psi), d ? ADDR(d) : NULL, ADDR(eps),
+                ADDR(own), ADDR(W), norm ? ADDR(norm) : NULL, ADDR(gram), ADDR(scores), nthreads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static PyObject *py_window_gram(PyObject *self, PyObject *args) {
     long long W, B, m, n;
     unsigned long long win, out;
@@ -728,6 +815,9 @@ static PyMethodDef METHODS[] = {
     {"health_bounds", py_health_bounds, METH_VARARGS,
      "health_bounds(B, n, n_u, n_phi, P, theta, u_now, phi_rms, bound, windup, alive, reason, code, threads): "
      "the health checks' bounds"},
+    {"window_sums", py_window_sums, METH_VARARGS,
+     "window_sums(C, B, nz, n, t0, measured, z, moved, psi, d, eps, own, W, norm, gram, scores, threads): the "
+     "replay's Gram sums and scores over a stretch, per member"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"lag_sums", py_lag_sums, METH_VARARGS,
