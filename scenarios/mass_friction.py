@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, member_values
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, estimator_space, member_values
 
 from .sdof_stiffness import noise_seed
 
@@ -45,6 +45,7 @@ class MassFriction(Scenario):
     per_member = frozenset({"m", "K", "C", "w_std", "noise", "p0", "lam", "seed"})
     bounds = dict(Ts=POSITIVE, m=POSITIVE, K=NON_NEGATIVE, C=NON_NEGATIVE, Fc=NON_NEGATIVE, c=NON_NEGATIVE,
                   w_std=NON_NEGATIVE, noise=NON_NEGATIVE)
+    tuning_space = estimator_space(nu=30)    # what `rcotorch tune mass-friction` searches
     units = {"Fc": "N", "c": "N s/m", "y": "m/s", "sliding_fraction": ""}
     about = dict(
         Ts=("s", "sample time (known model ZOH-discretized at Ts; the friction force is held over a sample)"),

@@ -68,7 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, estimator_space
 
 if TYPE_CHECKING:
     import control
@@ -145,6 +145,7 @@ class RlcCircuit(Scenario):
     units = {"y": "V", "rel_rms_err_initial": "", "rel_rms_err_refined": ""}
     per_member = frozenset({"seed"})        # one seed per member: member b draws the streams of its own seed
     bounds = dict(Ts=POSITIVE, R=POSITIVE, L=POSITIVE, C=POSITIVE, noise=NON_NEGATIVE, w_std=NON_NEGATIVE)
+    tuning_space = estimator_space(nu=50)    # what `rcotorch tune rlc-circuit` searches
     about = dict(
         Ts=("s", "sample time"),
         R=("ohm", "true resistance"),
@@ -240,7 +241,7 @@ class RlcCircuit(Scenario):
         curves["true circuit, sampled"] = np.asarray(truth_discrete(s)(zs)).reshape(-1)
         curves["refined, sampled (known model + gain)"] = np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)
         bands = None
-        cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals
+        cov = g.role("estimator").covariance              # measured by the run's intervals
         if cov is not None:
             found = member_band(g, lambda g: np.abs(np.asarray(self._refined_discrete(g, 0)(zs)).reshape(-1)), cov)
             if found is not None:

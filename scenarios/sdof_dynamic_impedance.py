@@ -19,7 +19,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, estimator_space
 
 if TYPE_CHECKING:
     import control
@@ -38,6 +38,7 @@ class SdofDynamicImpedance(Scenario):
                     Requirement("metrics.freq_rel_err_max", "max", 0.01))
     per_member = frozenset({"p0", "lam", "w_std", "seed"})
     bounds = dict(Ts=POSITIVE, m=POSITIVE, nc=NON_NEGATIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE, n_freq=POSITIVE)
+    tuning_space = estimator_space(nu=10)    # what `rcotorch tune sdof-dynamic-impedance` searches
     units = {"dc_gain": "N s/m", "y": "m/s", **{k: "N s/m" for k in (*FREQUENCIES, "gain_nyquist90")}}
     about = dict(
         Ts=("s", "sample time (known model and unknown subsystem each ZOH-discretized at Ts)"),
@@ -106,7 +107,7 @@ class SdofDynamicImpedance(Scenario):
         est = g.role("estimator")
         ident = est.frequency_response(w)[0, :, 0, 0].cpu().numpy()
         bands = None
-        cov = getattr(est, "covariance", None)                   # set by the run's intervals
+        cov = est.covariance                   # measured by the run's intervals
         if cov is not None and bool(torch.isfinite(cov.cov[0]).all()):
             mag, half = band(g, lambda g: g.role("estimator").frequency_response(w)[:, :, 0, 0].abs(), cov)
             lo, hi = (mag[0] - half[0]).cpu().numpy(), (mag[0] + half[0]).cpu().numpy()

@@ -15,7 +15,7 @@ dC = -theta_v; nc >= 1 gives a strictly proper controller of order nc and dK, dC
 import numpy as np
 
 import rcotorch as rt
-from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, member_values
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, estimator_space, member_values
 
 NOISE_SEED = 7919       # the measurement noise of member b draws the stream (seed + NOISE_SEED, b)
 
@@ -55,6 +55,7 @@ class SdofStiffness(Scenario):
     requirements = (Requirement("estimates.dK", "abs_err", 0.01), Requirement("estimates.dC", "abs_err", 0.03))
     per_member = frozenset({"m", "K", "C", "dK", "dC", "p0", "lam", "w_std", "seed"})
     bounds = dict(Ts=POSITIVE, m=POSITIVE, nc=NON_NEGATIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE)
+    tuning_space = estimator_space(nu=15)    # what `rcotorch tune sdof-stiffness` searches
     units = {"y": "m/s"}
     about = dict(
         Ts=("s", "sample time (known model and truth ZOH-discretized at Ts)"),

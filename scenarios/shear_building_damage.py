@@ -96,6 +96,10 @@ class ShearBuildingDamage(Scenario):
         if key in ("y", "noise"):
             return "m/s" if settings is not None and settings.get("sensor") == "velocity" else "m/s^2"
         return super().unit(key, settings)
+
+    def output_names(self, settings) -> list[str]:
+        """Each measured floor's sensor: 'floor 2 acceleration', 'floor 3 acceleration'."""
+        return [f"floor {int(f)} {settings['sensor']}" for f in str(settings["measured"]).split(",")]
     requirements = (Requirement("estimates.dk1", "abs_err", 0.016), Requirement("estimates.dk2", "abs_err", 0.016),
                     Requirement("estimates.dk3", "abs_err", 0.016),
                     Requirement("metrics.detection_delay_periods", "max", 5.0, inclusive=True),

@@ -231,6 +231,10 @@ class ThermosphereNoCooling(Scenario):
     def build(self, s, batch, dtype, device):
         return self._graph(s, batch, dtype, device)
 
+    def output_names(self, settings) -> list[str]:
+        """The mass density at each measured altitude: 'density at 407 km', ..."""
+        return [f"density at {a / 1e3:g} km" for a in measured_altitudes(settings)]
+
     def _graph(self, s, batch, dtype, device, frozen: rt.Graph | None = None) -> rt.Graph:
         """The refinement graph; with ``frozen`` (a trained graph) its identified subsystem, held fixed."""
         import torch
@@ -289,9 +293,8 @@ class ThermosphereNoCooling(Scenario):
             feeds = {"e": "error.out"}
         graph = rt.refinement(known, ident, physical=plant, excitation=driver, feeds=feeds, blocks=extra,
                               connections=wiring, batch_size=batch, dtype=dtype, device=device)
-        if frozen is not None:     # theta held: P = 0 makes every update a no-op
-            ident.P.zero_()
-            ident.alive.copy_(frozen.role("estimator").alive)
+        if frozen is not None:     # theta held at theta0, the trained graph's theta
+            ident.hold(alive=frozen.role("estimator").alive)
         elif s["refresh_every"] > 0:   # Markov parameters from the column at its present state, w and u
             graph.add_hook(rt.MarkovRefresh(graph, s["refresh_every"], method=s["markov_method"]))
         return graph

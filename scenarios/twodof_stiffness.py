@@ -63,7 +63,7 @@ import numpy as np
 from rcotorch.scenarios.sdof_stiffness import noise_block
 
 import rcotorch as rt
-from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario
+from rcotorch.run.scenario import NON_NEGATIVE, POSITIVE, Requirement, Scenario, estimator_space
 
 if TYPE_CHECKING:
     import control
@@ -105,6 +105,7 @@ class TwoDofStiffness(Scenario):
     units = {"y": "m/s"}
     per_member = frozenset({"seed"})        # one seed per member: member b draws the stream (seed[b], 0)
     bounds = dict(Ts=POSITIVE, w_std=NON_NEGATIVE, noise=NON_NEGATIVE)
+    tuning_space = estimator_space(nu=60)    # what `rcotorch tune twodof-stiffness` searches
     about = dict(
         Ts=("s", "sample time"),
         k1=("N/m", "wall-mass 1 spring of the known model"),
@@ -184,7 +185,7 @@ class TwoDofStiffness(Scenario):
         from rcotorch.verdict.intervals import member_band
         omega = np.logspace(-2, np.log10(np.pi / s["Ts"]), 400)
         bands = None
-        cov = getattr(g.role("estimator"), "covariance", None)              # set by the run's intervals
+        cov = g.role("estimator").covariance              # measured by the run's intervals
         if cov is not None:
             found = member_band(g, lambda g: np.abs(self._responses(g, s, omega)["refined model"]), cov)
             if found is not None:

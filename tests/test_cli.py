@@ -302,3 +302,59 @@ def test_a_ray_address_where_nothing_answers_gives_up_within_30_s(listening, tmp
         sock.close()
     assert rc == 2 and time.monotonic() - start < 30
     assert f"--ray-address 127.0.0.1:{port}: no Ray cluster answered within" in capsys.readouterr().err
+
+
+# --- rcotorch tune NAME: the search space a scenario declares ------------------------------------------------
+def test_tune_by_name_searches_the_declared_space_with_the_settings_given(tmp_path, capsys):
+    """`rcotorch tune sdof-stiffness --set noise=0.05 --set lam=1 --trials 3`: the scenario's declared space
+    (p0, lam, nu) less lam, held at 1 with the noise for every candidate; best.toml holds them as numbers and
+    its comment gives a `rcotorch run` command that runs them."""
+    import tomllib
+
+    from rcotorch.run import scenario as scenarios
+    out = tmp_path / "tune"
+    assert main(["tune", "sdof-stiffness", "--set", "noise=0.05", "--set", "lam=1", "--trials", "3", "--seeds", "1",
+                 "--steps", "600", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "sdof-stiffness: 3 candidates x seeds = 3 members" in printed
+    header = (out / "tune.csv").read_text().splitlines()[0].split(",")
+    assert header[:3] == ["rank", "p0", "nu"] and "lam" not in header       # searched: the declared space less lam
+    assert set(scenarios.get("sdof-stiffness").tuning_space) == {"p0", "lam", "nu"}
+    text = (out / "best.toml").read_text()
+    best = tomllib.loads(text)
+    assert best["scenario"] == "sdof-stiffness" and best["settings"]["noise"] == 0.05
+    assert best["settings"]["lam"] == 1.0 and set(best["settings"]) == {"noise", "lam", "p0", "nu"}
+    [command] = [line[len("# run it: "):] for line in text.splitlines() if line.startswith("# run it: ")]
+    assert command == f"rcotorch run sdof-stiffness --config {out / 'best.toml'} --steps 600"   # the steps scored
+    argv = command.split()[1:]
+    assert main([*argv, "--out", str(tmp_path / "run"), "--quiet", "--no-figures"]) in (0, 1)    # it runs
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["settings"]["noise"] == 0.05 and summary["steps"] == 600
+    assert main(["tune", "sdof-stiffness", "--trials", "2", "--steps", "300", "--out", str(out)]) == 2
+    assert "use --resume to continue it, --overwrite to replace it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["silverbox-cubic-stiffness"], "tune: scenario 'silverbox-cubic-stiffness' declares no search space; give one "
+                                    "in a tuning config file"),
+    (["no-such-scenario"], "tune no-such-scenario: not a tuning config file (.toml or .json), and no scenario named "
+                           "'no-such-scenario'"),
+    (["sdof-stiffness", "--set", "m=0"], "--set m=0: scenario 'sdof-stiffness': setting m must be positive"),
+    (["sdof-stiffness", "--set", "p0=1", "--set", "lam=1", "--set", "nu=3"], "nothing is left to search"),
+    (["sdof-stiffness", "--trials", "0"], "--trials must be a positive integer, got 0"),
+    (["sdof-stiffness", "--method", "grid", "--trials", "4"], "--trials is the number of candidates of a random or "
+                                                              "tpe search"),
+])
+def test_tune_by_name_refuses_bad_input_with_exit_2(args, message, tmp_path, capsys):
+    assert main(["tune", *args, "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and not (tmp_path / "t").exists()
+
+
+def test_a_stopped_tuning_says_how_to_resume_it_with_the_options_it_was_given():
+    from rcotorch.run.cli import _tune_resume
+    argv = ["tune", "sdof-stiffness", "--set", "noise=0.05", "--trials", "8", "--out", "runs/t", "--overwrite"]
+    assert _tune_resume(argv, Path("runs/t")) == ("rcotorch tune sdof-stiffness --set noise=0.05 --trials 8 "
+                                                  "--out runs/t --resume")
+    assert _tune_resume(["tune", "my tune.toml", "--out=x"], Path("x")) == \
+        "rcotorch tune 'my tune.toml' --out x --resume"

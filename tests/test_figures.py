@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PathCollection
 from matplotlib.colors import to_rgba
 
 from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, pngs, run_figures, sweep_figures
@@ -155,9 +156,11 @@ def test_sweep_figures_draw_each_estimate_and_error_against_each_swept_setting()
     assert sorted(points["not converged"]) == [(1e3, rows[1]["est_dK"])]
     truth = [c for c in axes[0].collections if c.get_label() == "truth"][0]
     assert truth.get_zorder() > max(c.get_zorder() for c in axes[0].collections if c is not truth)
-    errors = sorted(y for c in axes[1].collections for _, y in c.get_offsets())
+    errors = sorted(y for c in axes[1].collections if isinstance(c, PathCollection) for _, y in c.get_offsets())
     assert errors == pytest.approx(sorted(abs(r["err_dK"]) for r in rows))
-    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["converged", "not converged", "diverged", "truth"]
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["converged", "not converged", "diverged", "truth",
+                                                                  "range over members", "median over members",
+                                                                  "smallest median |error|"]
     # a setting of words is drawn as categories
     basis = figs["sweep_basis"].axes[-1]
     assert [t.get_text() for t in basis.get_xticklabels()] == ["a", "b"]
@@ -212,3 +215,163 @@ def test_on_a_linear_time_axis_the_first_steps_wild_values_stay_off_the_axis():
     before = ax.get_ylim()
     _focus_after_start(ax, run, "dk", t, path[:, None])
     assert ax.get_ylim() == before and not ax.texts
+
+
+# --- the residual checks: how small z is, whether it matters, the outputs by name; titles within the figure ---
+def _titles_within_the_figure(fig) -> None:
+    """Every title (the axes' and the figure's) lies inside the figure once drawn: none is clipped."""
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    titles = [ax.title for ax in fig.axes if ax.get_title()] + ([fig._suptitle] if fig._suptitle else [])
+    assert titles
+    for text in titles:
+        box = text.get_window_extent(renderer)
+        assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1, text.get_text()
+
+
+def _residual_line(fig) -> str:
+    return fig.axes[0].get_title().replace("\n", " ")
+
+
+def test_the_residual_figure_says_how_small_z_is_and_that_a_continuous_truths_mismatch_matters(tmp_path):
+    """sdof-stiffness with its continuous truth sampled coarsely (Ts = 0.05 s), no noise: z is not white and
+    the verdict says it matters (summary.json health.residuals_matter, with the widening); the figure says so,
+    with z's rms against y's."""
+    run = Run("sdof-stiffness", steps=3000, out=tmp_path / "coarse", overrides={"Ts": 0.05})
+    run.advance(progress=False)
+    summary = run.summary()
+    figs = run_figures(run)
+    res = run.residuals()
+    y = res.series["measured"][:, 0, 0].numpy()
+    z = y - res.series["refined"][:, 0, 0].numpy()
+    z_rms, share = np.sqrt(np.mean(z ** 2)), 100 * np.sqrt(np.mean(z ** 2) / np.mean(y ** 2))
+    line = _residual_line(figs["residuals"])
+    assert line.startswith(f"z rms {z_rms:.2g} m/s, {share:.2g} % of y's rms; z is not white (Ljung-Box p = ")
+    assert summary["health"]["residuals_matter"] is True and "and it matters" in line
+    assert f"({summary['health']['residual_widening']:.3g} times)" in line
+    assert figs["residuals"].get_suptitle() == "sdof-stiffness: residual z = y - y_hat of the refined model, member 0"
+    _titles_within_the_figure(figs["residuals"])
+    run.close()
+
+
+def test_the_residual_figure_of_an_exact_noise_free_run_says_its_correlation_does_not_matter(tmp_path):
+    """The discrete truth, represented exactly, no noise: z is tiny and smooth, so the whiteness test fails
+    (autocorrelation near 1, p = 0); the figure says how small z is and that this does not matter, as the
+    summary does, instead of a bare alarm."""
+    run = Run("sdof-stiffness", steps=2000, out=tmp_path / "exact", overrides={"truth": "discrete"})
+    run.advance(progress=False)
+    summary = run.summary()
+    res = run.residuals()
+    fig = run_figures(run)["residuals"]
+    line = _residual_line(fig)
+    share = float(line.split(", ")[1].split(" %")[0])
+    assert float(res.whiteness_p[0]) < 0.01 and summary["health"]["residuals_matter"] is False
+    assert share < 1.0                                                     # z below a hundredth of y
+    assert "z is not white" in line and "which does not matter here: it is a parameter error the model can " \
+        "take back" in line
+    [z_line] = [ln for ln in fig.axes[0].get_lines() if ln.get_label() == "z"]
+    assert z_line.get_ydata()[0] > 0.9                                   # the autocorrelation the line explains
+    _titles_within_the_figure(fig)
+    run.close()
+
+
+def test_the_residual_and_output_figures_of_a_two_output_run_name_each_output(tmp_path):
+    """shear-building-damage measures floors 2 and 3: the residuals are labelled by floor (not z[0], z[1]), each
+    with its rms against its output's, and the output fit draws both floors, each named with its fit; the long
+    scenario name leaves every title inside the figure."""
+    run = Run("shear-building-damage", steps=1500, out=tmp_path / "shear")
+    run.advance(progress=False)
+    figs = run_figures(run)
+    res = run.residuals()
+    names = ["floor 2 acceleration", "floor 3 acceleration"]
+    auto = [ln.get_label() for ln in figs["residuals"].axes[0].get_lines()]
+    assert [label.split(" (")[0] for label in auto] == [f"z of {n}" for n in names]
+    assert all("% of the output's)" in label for label in auto)
+    cross = [ln.get_label() for ln in figs["residuals"].axes[1].get_lines()]
+    assert cross == [f"z of {n}, w" for n in names]
+    fit = figs["output_fit"]
+    assert [ax.get_ylabel() for ax in fit.axes] == [f"{n} [m/s^2]" for n in names]
+    for c, ax in enumerate(fit.axes):
+        measured = [ln for ln in ax.get_lines() if ln.get_label() == "measured"][0]
+        assert np.array_equal(measured.get_ydata(), res.series["measured"][-600:, 0, c].numpy())
+        assert ax.get_title().startswith(f"{names[c]}: fit ")
+    assert fit.get_suptitle().startswith("shear-building-damage: measured and model outputs")
+    assert figs["model_error"].axes[1].get_title().endswith(f"output {names[0]}")
+    for name in ("residuals", "output_fit", "estimates", "model_error"):
+        _titles_within_the_figure(figs[name])
+    run.close()
+
+
+def _two_output_graph():
+    """y = [theta* w(k-1), 2 theta* w(k-1)] + noise against the known model y_hat = [u(k-1), 2 u(k-1)]: one
+    parameter seen by two outputs."""
+    import rcotorch as rt
+    known = rt.LTI(np.zeros((1, 1)), np.array([[0.0, 1.0]]), np.array([[1.0], [2.0]]), np.zeros((2, 2)),
+                   inputs={"w": 1, "u": 1}, outputs={"y": 2}, dt=1.0, name="known")
+    physical = rt.LTI(np.zeros((1, 1)), np.eye(1), np.array([[0.7], [1.4]]), np.zeros((2, 1)), inputs={"w": 1},
+                      outputs={"y": 2}, dt=1.0)
+    ident = rt.RCOEstimator.static_gain({"w": 1}, n_z=2, p0=1e8)
+    return rt.refinement(known, ident, physical=physical, excitation=rt.WhiteNoise(1, seed=3),
+                         noise=rt.WhiteNoise(2, std=0.05, seed=4), nu=1)
+
+
+def test_the_figures_of_a_graph_built_in_python_carry_the_name_given_and_its_outputs_names(tmp_path):
+    """rt.refine titles its figures with the name it was given, else with the output folder the user named (not
+    'refinement'), and labels the outputs with output_names."""
+    import rcotorch as rt
+    from rcotorch.run.refine import GraphScenario
+    res = rt.refine(_two_output_graph(), 600, out=tmp_path / "bench", progress=False, figures=False,
+                    output_names=["left", "right"])
+    figs = run_figures(res.run)
+    assert figs["estimates"].axes[0].get_title().startswith("bench: estimates")
+    assert figs["residuals"].get_suptitle().startswith("bench: residual z")
+    assert [ax.get_ylabel() for ax in figs["output_fit"].axes] == ["left", "right"]
+    assert [ln.get_label().split(" (")[0] for ln in figs["residuals"].axes[0].get_lines()] == ["z of left",
+                                                                                                "z of right"]
+    assert res.summary["scenario"] == "refinement"                     # the run's name stays the default
+    named = GraphScenario(_two_output_graph(), name="storeys")
+    unnamed = GraphScenario(_two_output_graph())
+    assert (named.name, named.figure_name, unnamed.name, unnamed.figure_name) == ("storeys", "storeys",
+                                                                                   "refinement", "")
+    from rcotorch.run.figures import _named
+    assert _named(named, "estimates") == "storeys: estimates" and _named(unnamed, "estimates") == "estimates"
+    with pytest.raises(rt.ConfigError, match="output_names names 3 outputs, but the graph measures 2"):
+        GraphScenario(_two_output_graph(), output_names=["a", "b", "c"])
+    res.run.close()
+
+
+def test_a_sweep_figure_of_close_values_draws_them_apart_in_full_with_medians_and_names_the_best():
+    """lam at 0.9, 0.99, 0.999 and 1, two seeds each, the estimates within 1e-5 of 0.5: the values are drawn
+    as categories (0.999 and 1 apart), every tick label writes its value in full (no offset such as
+    '1e-5+5e-1' above the axis), the median over the seeds is drawn with their range, and the |error| panel
+    names the value with the smallest median error."""
+    lams = [0.9, 0.99, 0.999, 1.0]
+    errors = {0.9: (4e-6, 6e-6), 0.99: (2e-6, 3e-6), 0.999: (1e-6, 1.5e-6), 1.0: (2e-6, 8e-6)}
+    rows = [{"member": 2 * i + s, "lam": lam, "seed": s, "est_dK": 0.5 + errors[lam][s],
+             "truth_dK": 0.5, "err_dK": errors[lam][s], "status": "converged"}
+            for i, lam in enumerate(lams) for s in (0, 1)]
+    fig = sweep_figures(rows, ["lam"], "sdof-stiffness")["sweep_lam"]
+    est, err = fig.axes
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    assert [t.get_text() for t in est.get_xticklabels()] == ["0.9", "0.99", "0.999", "1"]
+    assert list(est.get_xticks()) == [0, 1, 2, 3]
+    for ax in (est, err):
+        assert ax.yaxis.get_offset_text().get_text() == "" and ax.xaxis.get_offset_text().get_text() == ""
+    labels = [(t.get_text(), t.get_position()[1]) for t in est.get_yticklabels() if t.get_text()]
+    assert len({text for text, _ in labels}) == len(labels) >= 3
+    for text, where in labels:                                   # each label is its tick's value, whole
+        assert float(text) == pytest.approx(where, rel=1e-12, abs=1e-15)
+    [median] = [ln for ln in err.get_lines() if ln.get_label() == "median over members"]
+    assert list(median.get_ydata()) == pytest.approx([np.median(errors[lam]) for lam in lams])
+    [best] = [ln for ln in err.get_lines() if ln.get_label() == "smallest median |error|"]
+    assert list(best.get_xdata()) == [2]
+    assert err.get_title() == "|estimate - truth|: smallest median at lam = 0.999"
+    assert est.get_title() == "sdof-stiffness: estimates against lam (8 members)"
+    _titles_within_the_figure(fig)
+    # values far enough apart stay on a linear axis of their own values
+    spread = sweep_figures([dict(r, lam=r["lam"] * 0 + 0.2 * (i // 2)) for i, r in enumerate(rows)],
+                           ["lam"])["sweep_lam"]
+    assert spread.axes[-1].get_xscale() == "linear" and list(spread.axes[0].collections[0].get_offsets()[:, 0]) == \
+        pytest.approx([0.0, 0.0, 0.2, 0.2, 0.4, 0.4, 0.6, 0.6])

@@ -262,3 +262,76 @@ def test_a_tuning_whose_scenario_validates_nothing_for_its_settings_says_so(tmp_
                fixed={"dz_km": 10.0, "nu": 8, "refresh_every": 0, "spinup_days": 1.0})
     with pytest.raises(ConfigError, match="no candidate of scenario 'thermosphere-no-cooling' was validated"):
         run_tune(t, out=tmp_path / "t", progress=False)
+
+
+# --- a second run, an aborted run, the declared space, and best.toml of a scenario declared in a script ---------
+def test_a_second_tuning_into_its_folder_is_refused_in_the_words_of_run_tune(tmp_path):
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1e3]}, seeds=1, steps=300)
+    run_tune(t, out=tmp_path / "t", progress=False)
+    with pytest.raises(OutputError, match="pass resume=True to continue it, overwrite=True to replace it, or choose "
+                                          "another out") as refused:
+        run_tune(t, out=tmp_path / "t", progress=False)
+    assert "--" not in str(refused.value)                     # no command-line option in a Python caller's message
+
+
+@pytest.mark.parametrize("abort", [KeyboardInterrupt, RuntimeError])
+def test_a_tuning_aborted_before_any_candidate_ran_leaves_nothing_that_blocks_the_next(abort, tmp_path,
+                                                                                       monkeypatch):
+    """Ctrl-C or an error after the folder was opened but before any candidate ran: the folder is left as it was
+    found (no manifest), so the next tuning there starts without resume or overwrite."""
+    import rcotorch.run.tune as tune_module
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1e3]}, seeds=1, steps=300)
+
+    def aborted(*args, **kwargs):
+        raise abort("stopped")
+    with monkeypatch.context() as m:
+        m.setattr(tune_module, "run_sweep", aborted)
+        with pytest.raises(abort):
+            run_tune(t, out=tmp_path / "t", progress=False)
+    assert not (tmp_path / "t").exists()
+    assert run_tune(t, out=tmp_path / "t", progress=False).best == {"p0": 1e3}
+
+
+def test_a_tuning_whose_sweep_never_started_resumes(tmp_path):
+    """A tuning folder whose manifest lists the candidates' sweep, which never opened its folder (a tuning
+    stopped in between): resume runs the sweep afresh instead of refusing a sweep it cannot find."""
+    import json
+
+    from rcotorch.run.outputs import MANIFEST
+    t = Tuning(scenario="sdof-stiffness", method="grid", space={"p0": [1e3]}, seeds=1, steps=300)
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / MANIFEST).write_text(json.dumps({"scenario": "sdof-stiffness", "kind": "tune", "files": [],
+                                                       "children": ["runs"]}))
+    assert run_tune(t, out=tmp_path / "t", progress=False, resume=True).best == {"p0": 1e3}
+
+
+def test_a_scenario_declares_the_space_that_tune_by_name_searches():
+    from rcotorch.run import scenario as scenarios
+    t = Tuning.declared("sdof-stiffness", samples=4, fixed={"noise": 0.05})
+    assert t.space == {"p0": {"loguniform": [1e-2, 1e10]}, "lam": [0.98, 0.995, 0.999, 1.0], "nu": [5, 15, 45]}
+    held = t.fixing({"lam": 1.0})
+    assert set(held.space) == {"p0", "nu"} and held.fixed == {"noise": 0.05, "lam": 1.0}
+    declared = [n for n, sc in scenarios.available().items() if sc.tuning_space]
+    assert {"sdof-stiffness", "sdof-stiffness-damping", "twodof-stiffness", "sdof-dynamic-impedance", "rlc-circuit",
+            "mass-friction"} <= set(declared)
+    for name in declared:                               # every declared space draws candidates a sweep can run
+        assert len(Tuning.declared(name, samples=3, seeds=1).sweep().members()) == 3
+    with pytest.raises(ConfigError, match="scenario 'silverbox-cubic-stiffness' declares no search space"):
+        Tuning.declared("silverbox-cubic-stiffness")
+
+
+def test_best_toml_of_a_scenario_declared_in_a_script_says_how_to_run_it_from_that_script(tmp_path, monkeypatch):
+    """The comment of best.toml gives the lines that run the chosen settings from the script that declares the
+    scenario (`rcotorch run my-room` would not find it), and they run."""
+    room = _Room.scenario()
+    result = run_tune(Tuning(scenario=room, method="grid", space={"p0": [1e-2]}, seeds=1), out=tmp_path / "room",
+                      progress=False)
+    text = (tmp_path / "room" / "best.toml").read_text()
+    assert "# run it: rcotorch run" not in text and "declared in a script, not registered" in text
+    code = "\n".join(line[len("#     "):] for line in text.splitlines() if line.startswith("#     "))
+    assert "Run(Room(), overrides=settings)" in code
+    monkeypatch.chdir(tmp_path)
+    namespace = {"Room": type(room)}
+    exec(code, namespace)                                            # the lines as a user pastes them
+    assert namespace["settings"] == result.best and namespace["run"].settings["p0"] == 1e-2
+    assert (tmp_path / "runs" / "my-room" / "summary.json").exists()

@@ -997,7 +997,13 @@ class RCOEstimator(Block):
     def theta_kept(self):
         """A context within which theta may be moved (``set_theta_free``, e.g. for finite differences): on leaving
         it, theta is back in the tensor that held it before, with its values, so that a graph (or a native program
-        reading that tensor) steps on as if nothing had happened."""
+        reading that tensor) steps on as if nothing had happened.
+
+        Returns
+        -------
+        contextlib.AbstractContextManager
+            Entered with ``with``; it yields nothing.
+        """
         held = self.theta
         saved = held.clone()
         try:

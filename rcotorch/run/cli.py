@@ -1,5 +1,5 @@
 """Command line: ``rcotorch list``, ``rcotorch show NAME``, ``rcotorch run NAME [options]``, ``rcotorch sweep
-CONFIG [options]``.
+CONFIG [options]``, ``rcotorch tune NAME|CONFIG [options]``.
 
 Exit codes: 0 the run passed its requirements (a sweep finished), 1 a requirement failed, 2 bad input or
 environment (a setting, file, folder or checkpoint, a full disk, an output folder deleted during the run, a run
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import shlex
 import signal
@@ -149,8 +150,19 @@ def _add_sweep(sub) -> None:
 
 def _add_tune(sub) -> None:
     tu = sub.add_parser("tune", help="choose a scenario's tuning (p0, nu, lam, ...) from held-out data")
-    tu.add_argument("config", help="tuning config file (.toml or .json): scenario, method, samples, seeds, "
-                    "[fixed], [space]; see docs/tuning.md")
+    tu.add_argument("config", metavar="NAME|CONFIG",
+                    help="a scenario's name (the search space it declares), or a tuning config file (.toml or "
+                         ".json): scenario, method, samples, seeds, [fixed], [space]; see docs/tuning.md")
+    tu.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="hold a scenario setting for every candidate (repeatable); a searched setting so held is "
+                         "no longer searched")
+    tu.add_argument("--trials", type=int, metavar="N", help="candidates to draw (random or tpe; config: samples; "
+                    "default 32)")
+    tu.add_argument("--seeds", type=int, metavar="N", help="seeds each candidate runs with; its score is their "
+                    "mean (default 2)")
+    tu.add_argument("--steps", type=int, help="steps of each run (default: the scenario's)")
+    tu.add_argument("--method", choices=["random", "grid", "tpe"], help="random (default), grid or tpe")
+    tu.add_argument("--seed", type=int, help="seed of the search's draws (default 0)")
     _add_shards(tu, "tuning", "tune")
 
 
@@ -525,16 +537,66 @@ def _config_settings(path: str) -> tuple[str | None, dict[str, Any]]:
     return name, dict(settings)
 
 
+def _tuning(args):
+    """The search of ``rcotorch tune NAME|CONFIG``: a config file's, or the one scenario NAME declares, with the
+    options given (``--set`` holds settings for every candidate; the others replace the config's values)."""
+    from . import scenario as scenarios
+    from .tune import Tuning
+    _positive(args.trials, "--trials")
+    _positive(args.seeds, "--seeds")
+    _steps(args.steps)
+    _seed(args.seed)
+    options = {k: v for k, v in (("samples", args.trials), ("seeds", args.seeds), ("steps", args.steps),
+                                 ("method", args.method), ("seed", args.seed)) if v is not None}
+    if Path(args.config).suffix.lower() in (".toml", ".json") or Path(args.config).is_file():
+        tuning = dataclasses.replace(Tuning.from_file(args.config), **options)
+    else:
+        try:
+            scenarios.get(args.config)
+        except ConfigError as e:
+            raise ConfigError(f"tune {args.config}: not a tuning config file (.toml or .json), and {e}") from None
+        tuning = Tuning.declared(args.config, **options)
+    if tuning.method == "grid" and args.trials is not None:
+        raise ConfigError("--trials is the number of candidates of a random or tpe search; a grid search runs every "
+                          "combination of its lists")
+    sets = _settings(args.overrides)
+    if sets:
+        sc = scenarios.get(tuning.scenario)
+        try:
+            resolved = sc.resolve(sets)
+        except SettingError as e:
+            raise _named(e, {k: f"--set {k}={v}" for k, v in sets.items()}) from None
+        tuning = tuning.fixing({k: resolved[k] for k in sets})
+    return tuning
+
+
+def _tune_resume(argv: list[str], out: Path) -> str:
+    """The command that continues the tuning of ``argv`` in ``out``: the same options, --out OUT --resume."""
+    kept, skip = [], False
+    for a in argv[1:]:
+        if skip:
+            skip = False
+            continue
+        if a == "--out":
+            skip = True
+            continue
+        if a.startswith("--out=") or a in ("--resume", "--overwrite"):
+            continue
+        kept.append(a)
+    return " ".join(["rcotorch tune", *map(shlex.quote, kept), "--out", shlex.quote(str(out)), "--resume"])
+
+
 def cmd_tune(args, session: Session) -> int:
     from .outputs import OutputFolder
     from .runner import _device
-    from .tune import Tuning, run_tune
-    tuning = Tuning.from_file(args.config)
+    from .tune import run_tune
+    tuning = _tuning(args)
     _device(args.device or "cpu")
     session.memory_drivers = lambda: _shards_memory_drivers(tuning)
-    out = Path(args.out or Path("runs") / f"tune-{tuning.scenario}")
+    name = getattr(tuning.scenario, "name", tuning.scenario)
+    out = Path(args.out or Path("runs") / f"tune-{name}")
     session.folder = OutputFolder(out, "tune")
-    session.resume = f"rcotorch tune {shlex.quote(args.config)} --out {shlex.quote(str(out))} --resume"
+    session.resume = _tune_resume(session.argv, out)
     session.log(f"`{session.command()}`")            # written once run_tune opens the folder
     result = _in_shards(session, "tuning", lambda stop: run_tune(
         tuning, out=out, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
@@ -542,10 +604,10 @@ def cmd_tune(args, session: Session) -> int:
     if result is None:
         return session.exit_stopped()
     session.log(f"finished: {len(result.candidates)} candidates, {result.members} members")
-    print(f"{tuning.scenario}: {len(result.candidates)} candidates x seeds = {result.members} members, scored on "
+    print(f"{name}: {len(result.candidates)} candidates x seeds = {result.members} members, scored on "
           f"held-out data (validation_rmse) -> {out}")
     print(result.table())
-    print(f"best: {out / 'best.toml'}  (rcotorch run {tuning.scenario} --config {out / 'best.toml'})")
+    print(f"best: {out / 'best.toml'}  (rcotorch run {name} --config {shlex.quote(str(out / 'best.toml'))})")
     print(f"sensitivity of the score to each setting: {out / 'sensitivity.csv'}")
     return EXIT_PASS
 

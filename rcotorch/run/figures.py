@@ -6,7 +6,8 @@ Conventions of every figure here: the truth is drawn dashed in black on top of e
 visible where an estimate covers it), the initial model dotted in grey below the estimates; legends sit below the
 axes, outside them, so that they never cover a curve. Where the estimates settle early (they move little in the
 second half of the run) and the run spans two decades of logged times or more, the time axis is logarithmic, so
-that the transient and the end are both visible.
+that the transient and the end are both visible. Titles start with the name the run shows (``_named``) and are
+broken into lines that fit the figure; each measured output is drawn under its name (``output_names``).
 
 The figures are made with matplotlib's ``Figure`` (Agg), not pyplot: pyplot keeps one list of open figures
 for the whole process, so only figures made without it can be drawn off the main thread.
@@ -17,6 +18,7 @@ from __future__ import annotations
 import io
 import threading
 from collections.abc import Callable, Mapping, Sequence
+from types import SimpleNamespace
 
 import matplotlib
 
@@ -24,8 +26,11 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.font_manager import FontProperties  # noqa: E402
+from matplotlib.ticker import Formatter  # noqa: E402
 
 from ..estimator.tracking import change_report  # noqa: E402
+from ..verdict import intervals as ci  # noqa: E402
 from .scenario import truth_at  # noqa: E402
 
 MAX_LINES = 8
@@ -40,6 +45,11 @@ FOCUS = 3.0            # ... where the paths' whole range is more than this many
 STATUS_COLOURS = {"converged": "tab:green", "undetermined": "tab:purple", "biased": "tab:brown",
                   "not_converged": "tab:orange",
                   "diverged": "tab:red", "finished": "tab:gray"}
+MAX_CATEGORIES = 12    # a sweep's numeric setting with at most this many values may be drawn as categories
+CROWDED = 0.5          # ... when two neighbours lie closer than this share of the mean spacing
+TITLE_MARGIN = 90.0    # points of a figure's width beside an axes' title: its tick labels and y label
+TITLE_OVERHANG = 60.0  # points by which a title may be wider than its axes (over their tick labels)
+_MEASURE_LOCK = threading.Lock()
 
 
 def run_figures(run) -> dict:
@@ -75,7 +85,7 @@ def run_figures(run) -> dict:
                 _window_panel(row[1], run, key, t[t >= start], v[t >= start], found)
         axes[-1, 0].set_xlabel(xlabel + (", log scale" if log_t else ""))
         shown = _members_shown(len(members), run.batch)
-        _title(axes[0, 0], f"{run.scenario.name}: estimates{shown}")
+        _title(axes[0, 0], _named(run.scenario, f"estimates{shown}"))
         if zoom:
             axes[-1, 1].set_xlabel(xlabel)
             _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
@@ -131,11 +141,11 @@ def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: l
     y_unit = run.scenario.unit("y", run.settings)
     ax.set_ylabel(_with_unit("rms of z = y - y_hat", y_unit))
     shown = _members_shown(len(members), run.batch)
-    _title(ax, f"{run.scenario.name}: model error (rms over each log interval){shown}")
+    _title(ax, _named(run.scenario, f"model error (rms over each log interval){shown}"))
     ax.grid(alpha=0.3, which="both")
     _legend_below(fig, ax, axes=ax)
     if trace:
-        where, k, z_init, z_ref = trace
+        where, k, z_init, z_ref, n_y = trace
         ax = axes[1]
         x = k * (dt or 1.0)
         rms = [f"rms {float(np.sqrt(np.mean(v ** 2))):.3g} {y_unit}".rstrip() for v in (z_init, z_ref)]
@@ -143,22 +153,23 @@ def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: l
         ax.plot(x, z_ref, color="tab:red", lw=1.0, zorder=3, label=f"refined model ({rms[1]})")
         ax.set_xlabel(("time" if dt else "samples") + f" into the {where}" + (" [s]" if dt else ""))
         ax.set_ylabel(_with_unit("z = y - y_hat", y_unit))
-        _title(ax, f"z of the initial and the refined model on the {where}, member 0")
+        output = f", output {output_names(run, n_y)[0]}" if n_y > 1 else ""
+        _title(ax, f"z of the initial and the refined model on the {where}, member 0{output}")
         ax.grid(alpha=0.3)
         _legend_below(fig, ax, axes=ax)
     return fig
 
 
 def _initial_and_refined(run):
-    """(where, sample indices, z of the initial model, z of the refined one) for member 0, output 0: on the
-    held-out data where the run validated its model (after the samples that fixed the initial state), else on
-    the replayed window (its last 600 samples); None without either."""
+    """(where, sample indices, z of the initial model, z of the refined one, the number of outputs) for member 0,
+    output 0: on the held-out data where the run validated its model (after the samples that fixed the initial
+    state), else on the replayed window (its last 600 samples); None without either."""
     held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
     if held is not None:
         y = held.measured[held.fit_steps:, 0, 0].cpu().numpy()
         k = np.arange(len(y))
         return ("held-out data", k, y - held.initial[held.fit_steps:, 0, 0].cpu().numpy(),
-                y - held.refined[held.fit_steps:, 0, 0].cpu().numpy())
+                y - held.refined[held.fit_steps:, 0, 0].cpu().numpy(), held.measured.shape[-1])
     res = run.residuals() if hasattr(run, "residuals") else None
     if res is None:
         return None
@@ -166,27 +177,42 @@ def _initial_and_refined(run):
     n = min(len(y), 600)
     k = np.arange(len(y))[-n:]
     return ("replayed window", k, y[-n:] - res.series["initial"][-n:, 0, 0].cpu().numpy(),
-            y[-n:] - res.series["refined"][-n:, 0, 0].cpu().numpy())
+            y[-n:] - res.series["refined"][-n:, 0, 0].cpu().numpy(), res.series["measured"].shape[-1])
 
 
 def residual_figures(run, res, dt: float | None) -> dict:
     """The refined model checked on the replayed window (member 0): z's autocorrelation and its
-    cross-correlation with w against the 95% band of white, independent signals; the measured output against
-    the refined and the initial model's outputs, with their fit in percent."""
+    cross-correlation with w against the 95% band of white, independent signals, one line per measured output
+    (named, ``output_names``), under a line that says how small z is against the measured output and whether
+    its correlation matters for the estimates (``residual_verdict``); the measured output against the refined
+    and the initial model's outputs, with their fit in percent, one panel per output."""
     figs = {}
     lags = np.arange(res.autocorr.shape[1])
+    y = res.series["measured"][:, 0].cpu().numpy()                     # (T, n_y), member 0
+    refined = res.series["refined"][:, 0].cpu().numpy()
+    initial = res.series["initial"][:, 0].cpu().numpy()
+    names = output_names(run, y.shape[1])
+    y_unit = run.scenario.unit("y", run.settings)
+    z_rms, y_rms = _rms(y - refined), _rms(y)
     n_panels = 2 if res.xcorr is not None else 1
-    fig = Figure(figsize=(7.5, 2.6 * n_panels + 1.0), layout="constrained")
+    fig = Figure(figsize=(7.5, 2.6 * n_panels + 1.5), layout="constrained")
     axes = fig.subplots(n_panels, 1, squeeze=False)[:, 0]
     ax = axes[0]
     auto = res.autocorr[0].cpu().numpy()                               # (L + 1, n_z)
+    several = auto.shape[1] > 1
     for c in range(auto.shape[1]):
-        ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=f"z[{c}]" if auto.shape[1] > 1 else "z")
+        label = f"z of {names[c]} (rms {_share(z_rms[c], y_rms[c])} of the output's)" if several else "z"
+        ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=label)
     ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
     ax.set_xlabel("lag [samples]")
     ax.set_ylabel("autocorrelation")
-    _title(ax, f"{run.scenario.name}: residual z of the refined model, member 0 "
-               f"(Ljung-Box p = {float(res.whiteness_p[0]):.2g})")
+    if several:
+        size = f"z rms at most {_share(float(np.max(z_rms / np.maximum(y_rms, 1e-300))), 1.0)} of its output's rms"
+    else:
+        size = f"z rms {z_rms[0]:.2g}{' ' + y_unit if y_unit else ''}, {_share(z_rms[0], y_rms[0])} of y's rms"
+    fig.suptitle(_wrap(_named(run.scenario, "residual z = y - y_hat of the refined model, member 0"),
+                       fig.get_figwidth() * 72.0 - 20, 12.0), fontsize=12)
+    _title(ax, f"{size}; {residual_verdict(run, res)}", fontsize=9)
     ax.grid(alpha=0.3)
     _legend_below(fig, ax, axes=ax)
     if res.xcorr is not None:
@@ -194,7 +220,8 @@ def residual_figures(run, res, dt: float | None) -> dict:
         x = res.xcorr[0].cpu().numpy()                                  # (L + 1, n_z, n_w)
         for c in range(x.shape[1]):
             for d in range(x.shape[2]):
-                ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z[{c}], w[{d}]" if x.shape[1] * x.shape[2] > 1
+                w = f"w[{d}]" if x.shape[2] > 1 else "w"
+                ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z of {names[c]}, {w}" if x.shape[1] * x.shape[2] > 1
                         else "z(k), w(k - lag)")
         ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
         ax.set_xlabel("lag [samples]")
@@ -202,23 +229,97 @@ def residual_figures(run, res, dt: float | None) -> dict:
         ax.grid(alpha=0.3)
         _legend_below(fig, ax, axes=ax)
     figs["residuals"] = fig
-    y = res.series["measured"][:, 0].cpu().numpy()
     n = min(len(y), 600)                                          # the last samples of the window
     t = (np.arange(len(y)) - len(y) + 1) * (dt or 1.0)            # 0 at the window's end
-    fig = Figure(figsize=(7.5, 3.8), layout="constrained")
-    ax = fig.subplots()
-    ax.plot(t[-n:], y[-n:, 0], color="k", lw=1.6, label="measured", zorder=2)
-    ax.plot(t[-n:], res.series["initial"][-n:, 0, 0].cpu().numpy(), color="tab:gray", ls=":", lw=1.3, zorder=3,
-            label=f"initial model (fit {float(res.fit_initial[0]):.1f}%)")
-    ax.plot(t[-n:], res.series["refined"][-n:, 0, 0].cpu().numpy(), color="tab:orange", ls="--", lw=1.2, zorder=4,
-            label=f"refined model (fit {float(res.fit[0]):.1f}%)")
-    ax.set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
-    ax.set_ylabel(_with_unit("y", run.scenario.unit("y", run.settings)))
-    _title(ax, f"{run.scenario.name}: measured and model outputs, member 0 (theta frozen)")
-    ax.grid(alpha=0.3)
-    _legend_below(fig, ax)
+    n_y = y.shape[1]
+    fig = Figure(figsize=(7.5, 3.8 if n_y == 1 else 2.4 * n_y + 1.4), layout="constrained")
+    axes = fig.subplots(n_y, 1, sharex=True, squeeze=False)[:, 0]
+    fits = [(float(res.fit[0]), float(res.fit_initial[0]))] if n_y == 1 else \
+        [(_fit(y[:, c], refined[:, c]), _fit(y[:, c], initial[:, c])) for c in range(n_y)]
+    for c, (ax, (fit, fit_initial)) in enumerate(zip(axes, fits)):
+        ax.plot(t[-n:], y[-n:, c], color="k", lw=1.6, label="measured", zorder=2)
+        ax.plot(t[-n:], initial[-n:, c], color="tab:gray", ls=":", lw=1.3, zorder=3,
+                label="initial model" + (f" (fit {fit_initial:.1f}%)" if n_y == 1 else ""))
+        ax.plot(t[-n:], refined[-n:, c], color="tab:orange", ls="--", lw=1.2, zorder=4,
+                label="refined model" + (f" (fit {fit:.1f}%)" if n_y == 1 else ""))
+        ax.set_ylabel(_with_unit(names[c], y_unit))
+        ax.grid(alpha=0.3)
+        if n_y > 1:
+            _title(ax, f"{names[c]}: fit {fit:.1f}% (initial model {fit_initial:.1f}%)", fontsize=9)
+    axes[-1].set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
+    what = "measured and model outputs, member 0 (theta frozen)"
+    if n_y == 1:
+        _title(axes[0], _named(run.scenario, what))
+    else:
+        fig.suptitle(_wrap(_named(run.scenario, what), fig.get_figwidth() * 72.0 - 20, 12.0), fontsize=12)
+    _legend_below(fig, axes[0])
     figs["output_fit"] = fig
     return figs
+
+
+def residual_verdict(run, res) -> str:
+    """What the whiteness test of member 0's residuals says, and whether it matters for the estimates
+    (``rcotorch.verdict.intervals.residuals_matter``, as ``health.residuals_matter`` of summary.json): white; or
+    not white, and then either dynamics the model leaves unexplained that bias the estimates or widen their
+    intervals, or a correlation that does not matter (a parameter error the model can take back, as a noise-free
+    run still converging leaves, or one that hardly widens the intervals)."""
+    p = float(res.whiteness_p[0])
+    test = f"Ljung-Box p = {p:.2g}"
+    if p >= ci.WHITE_P:
+        return f"z is white ({test})"
+    graph = getattr(run, "graph", None)
+    pc = getattr(graph.role("estimator"), "covariance", None) if graph is not None and "estimator" in graph.roles \
+        else None
+    found = run.intervals() if hasattr(run, "intervals") else None
+    if not isinstance(pc, ci.ParameterCovariance) or found is None:
+        return f"z is not white ({test})"
+    matter, widening = ci.residuals_matter(pc, found)
+    w = float(widening[0])
+    if bool(matter[0]):
+        return (f"z is not white ({test}), and it matters: dynamics the model leaves unexplained bias the "
+                f"estimates or widen their intervals ({w:.3g} times)")
+    unexplained = float(pc.unexplained[0]) if pc.unexplained is not None else 1.0
+    if unexplained < ci.UNEXPLAINED_MIN:
+        return (f"z is not white ({test}), which does not matter here: it is a parameter error the model can "
+                f"take back (it leaves {unexplained:.2g} of z's energy unexplained)")
+    return (f"z is not white ({test}), which does not matter here: its correlation widens the intervals "
+            f"{_below(w, ci.WIDENING_MATTERS)} times (less than {ci.WIDENING_MATTERS:g}) and biases no estimate "
+            "beyond its interval")
+
+
+def output_names(run, n: int) -> list[str]:
+    """The names of a run's ``n`` measured outputs: the scenario's (``Scenario.output_names``), else 'y' for one
+    and 'y[0]', 'y[1]', ... for several (the channels of the known model's measured port)."""
+    sc = getattr(run, "scenario", None)
+    names = list(sc.output_names(run.settings)) if hasattr(sc, "output_names") else []
+    if len(names) == n:
+        return [str(name) for name in names]
+    return ["y"] if n == 1 else [f"y[{c}]" for c in range(n)]
+
+
+def _below(value: float, limit: float) -> str:
+    """``value`` (below ``limit``) to three significant digits, or to as many more as keep it below the limit."""
+    for digits in range(3, 10):
+        text = f"{value:.{digits}g}"
+        if float(text) < limit:
+            return text
+    return f"{value:.10g}"
+
+
+def _rms(v: np.ndarray) -> np.ndarray:
+    """The rms of each column of ``v`` (T, n)."""
+    return np.sqrt(np.mean(np.asarray(v, dtype=float) ** 2, axis=0))
+
+
+def _share(part: float, whole: float) -> str:
+    """``part`` in percent of ``whole``, to two significant digits ('0.046 %')."""
+    return f"{100.0 * part / whole:.2g} %" if whole > 0 else "-"
+
+
+def _fit(y: np.ndarray, y_hat: np.ndarray) -> float:
+    """The fit of a model output in percent: 100 (1 - |y - y_hat| / |y - mean y|)."""
+    spread = float(np.linalg.norm(y - y.mean()))
+    return 100.0 * (1.0 - float(np.linalg.norm(y - y_hat)) / spread) if spread > 0 else float("nan")
 
 
 def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: list[int]) -> None:
@@ -366,14 +467,60 @@ def _legend_below(fig, ax, axes=None, more=()) -> None:
                     frameon=False)
 
 
-def _title(ax, text: str) -> None:
-    """A title on the axes' top edge: where matplotlib puts it on axes without tick labels above them, which it
-    would otherwise confirm by laying out every tick label of the figure once more."""
-    ax.set_title(text, y=1.0)
+def _title(ax, text: str, fontsize: float | None = None) -> None:
+    """A title on the axes' top edge (where matplotlib puts it on axes without tick labels above them, which it
+    would otherwise confirm by laying out every tick label of the figure once more), broken into lines that fit
+    the axes' width, so that no title runs off the figure."""
+    size = FontProperties(size=fontsize or matplotlib.rcParams["axes.titlesize"]).get_size_in_points()
+    fig = ax.get_figure()
+    wide = fig.get_figwidth() * 72.0
+    # the axes' width once laid out (about its width before the layout over the default subplot share, 0.775)
+    # and a little beyond its edges, within the figure less the room of the tick labels and the y label
+    width = min(ax.get_position().width * wide / 0.775 + TITLE_OVERHANG, wide - TITLE_MARGIN)
+    ax.set_title(_wrap(text, width, size), y=1.0, fontsize=size)
+
+
+def _wrap(text: str, width: float, size: float) -> str:
+    """``text`` broken at spaces into lines at most ``width`` points wide in the default font at ``size`` points
+    (a word longer than that stays whole on its line); its own line breaks are kept."""
+    out = []
+    for paragraph in text.split("\n"):
+        line = ""
+        for word in paragraph.split(" "):
+            longer = f"{line} {word}" if line else word
+            if line and _text_width(longer, size) > width:
+                out.append(line)
+                line = word
+            else:
+                line = longer
+        out.append(line)
+    return "\n".join(out)
+
+
+_MEASURE: list = []     # one renderer that measures text, made on first use
+
+
+def _text_width(text: str, size: float) -> float:
+    """The width in points of one line of text in the default font at ``size`` points."""
+    with _MEASURE_LOCK:                    # figures are drawn on more than one thread
+        if not _MEASURE:
+            from matplotlib.backends.backend_agg import RendererAgg
+            _MEASURE.append(RendererAgg(10, 10, 72))
+        return _MEASURE[0].get_text_width_height_descent(text, FontProperties(size=size), ismath=False)[0]
 
 
 def _with_unit(label: str, unit: str) -> str:
     return f"{label} [{unit}]" if unit else label
+
+
+def _named(scenario, what: str) -> str:
+    """A figure's title 'NAME: what', NAME being the name the scenario shows in figures: ``figure_name`` where it
+    has one (a graph built in Python: the name ``rcotorch.refine`` was given, else its output folder's; '' for
+    neither, and the title is then ``what`` alone), else its name."""
+    name = getattr(scenario, "figure_name", None)
+    if name is None:
+        name = getattr(scenario, "name", "") or ""
+    return f"{name}: {what}" if name else what
 
 
 def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = None, unit: str = "",
@@ -414,10 +561,13 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
 def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) -> dict:
     """The figures of a finished sweep, one per swept setting: for each estimate (the rows' ``est_<key>``
     columns) the estimate against the setting, the truth on top (``truth_<key>``, black crosses), and its
-    |error| (``err_<key>``) against the setting, each member a dot coloured by its status. ``rows``: the
-    sweep's table (``rcotorch.run.sweep.run_sweep``, sweep.json); ``swept``: the settings to draw against (columns of
-    the rows; numbers, or words drawn as categories); ``scenario`` (a name or object, optional): the units of
-    the axes. Returns {``sweep_<setting>``: Figure}."""
+    |error| (``err_<key>``) against the setting, each member a dot coloured by its status. Where members share a
+    setting's value (seeds, a grid), the median over them is drawn at each value, joined by a line, with their
+    range, and the |error| panel's title names the value of the smallest median |error|. Tick labels write each
+    value in full (no offset above the axis). ``rows``: the sweep's table (``rcotorch.run.sweep.run_sweep``,
+    sweep.json); ``swept``: the settings to draw against (columns of the rows; numbers, or words drawn as
+    categories; numbers too, where a few values crowd together, as 0.999 and 1 beside 0.99 do); ``scenario`` (a
+    name or object, optional): the units of the axes. Returns {``sweep_<setting>``: Figure}."""
     sc = _scenario(scenario)
     keys = list(dict.fromkeys(c[4:] for r in rows for c in r if c.startswith("est_")))
     figs = {}
@@ -429,9 +579,10 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
         if all(v is None for v in raw):
             continue
         x, ticks = _axis_values(raw)
+        groups = _groups(x)
         fig = Figure(figsize=(9, 2.4 * len(keys) + 1.2), layout="constrained")
         axes = fig.subplots(len(keys), 2, sharex=True, squeeze=False)
-        for row, key in zip(axes, keys):
+        for i, (row, key) in enumerate(zip(axes, keys)):
             est = _column(rows, f"est_{key}")
             truth = _column(rows, f"truth_{key}")
             err = np.abs(_column(rows, f"err_{key}"))
@@ -448,8 +599,24 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
             positive = err[np.isfinite(err)]
             if positive.size and (positive > 0).all() and positive.max() / positive.min() > 100:
                 row[1].set_yscale("log")
+            best = None
+            if groups:
+                _median_and_range(row[0], groups, est)
+                medians = _median_and_range(row[1], groups, err)
+                if np.isfinite(medians).any():
+                    best = int(np.nanargmin(medians))
+                    row[1].plot([groups[best][0]], [medians[best]], ls="none", marker="*", ms=13, mec="k",
+                                mfc="gold", zorder=7, label="smallest median |error|")
             for ax in row:
                 ax.grid(alpha=0.3, which="both")
+                for axis in (ax.xaxis, ax.yaxis):              # a log axis keeps its powers of ten
+                    if axis.get_scale() == "linear":
+                        axis.set_major_formatter(FullTicks())
+            head = "|estimate - truth|" if i == 0 else f"|error| of {key}"
+            if best is not None:
+                value = ticks[int(groups[best][0])] if ticks is not None else _value_text(groups[best][0])
+                head += f": smallest median at {setting} = {value}"
+            _title(row[1], head, fontsize=10)
         s_unit = sc.unit(setting) if sc is not None and setting in getattr(sc, "settings", {}) else ""
         for ax in axes[-1]:
             ax.set_xlabel(_with_unit(setting, s_unit))
@@ -457,12 +624,71 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
                 ax.set_xticks(range(len(ticks)), ticks)
             elif _log_spread(x):
                 ax.set_xscale("log")
-        name = getattr(sc, "name", None) or (rows[0].get("scenario") if isinstance(rows[0], Mapping) else None)
-        _title(axes[0, 0], f"{name + ': ' if name else ''}estimates against {setting} ({len(rows)} members)")
-        _title(axes[0, 1], "|estimate - truth|")
-        _legend_below(fig, axes[0, 0])
+        shown = sc if sc is not None else SimpleNamespace(
+            name=rows[0].get("scenario") if isinstance(rows[0], Mapping) else None)
+        _title(axes[0, 0], _named(shown, f"estimates against {setting} ({len(rows)} members)"))
+        _legend_below(fig, axes[0, 0], more=list(axes.flat[1:]))
         figs[f"sweep_{setting}"] = fig
     return figs
+
+
+class FullTicks(Formatter):
+    """Tick labels that each write their value in full ('0.50001', '1.5e-05'), to as many significant digits as
+    the ticks' spacing needs: no offset or multiplier above the axis (matplotlib's '1e-5+5e-1'), which would meet
+    the title and leave the values to be added up."""
+
+    ticks: Sequence[float] = ()
+
+    def set_locs(self, locs) -> None:
+        """Keep the ticks' positions: their spacing sets the digits."""
+        self.ticks = list(locs)
+        super().set_locs(locs)
+
+    def __call__(self, x, pos=None) -> str:
+        locs = np.asarray(self.ticks, dtype=float)
+        locs = np.unique(locs[np.isfinite(locs)])
+        step = float(np.min(np.diff(locs))) if len(locs) > 1 else abs(float(x)) or 1.0
+        if not np.isfinite(x):
+            return ""
+        if step <= 0 or abs(x) < 1e-9 * step:
+            return "0"
+        # the spacing's own significant digits (1 for 0.002, 2 for 0.0025), then those of x down to its last one
+        own = next((n for n in range(1, 16) if abs(float(f"{step:.{n}g}") - step) <= 1e-9 * step), 15)
+        digits = int(np.floor(np.log10(abs(x)))) - int(np.floor(np.log10(step))) + own
+        return f"{x:.{min(max(digits, 1), 15)}g}"
+
+
+def _groups(x: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """(value, the members' indices) of each distinct finite position, in order, where members share one (a
+    value drawn more than once); [] where every member has a value of its own (nothing to take a median of)."""
+    finite = np.isfinite(x)
+    values = np.unique(x[finite])
+    if len(values) == int(finite.sum()):
+        return []
+    return [(float(v), np.flatnonzero(x == v)) for v in values]
+
+
+def _median_and_range(ax, groups, y: np.ndarray) -> np.ndarray:
+    """The median of ``y`` over the members at each value of ``groups`` (``_groups``), drawn as a line through the
+    values with the range of the members' values as a bar at each; returns the medians (NaN where none is
+    finite)."""
+    medians = np.full(len(groups), np.nan)
+    for i, (value, idx) in enumerate(groups):
+        v = y[idx][np.isfinite(y[idx])]
+        if v.size:
+            medians[i] = float(np.median(v))
+            ax.vlines(value, v.min(), v.max(), color="tab:blue", lw=5, alpha=0.2, zorder=2,
+                      label="range over members" if i == 0 else None)
+    xs = np.array([g[0] for g in groups])
+    shown = np.isfinite(medians)
+    ax.plot(xs[shown], medians[shown], color="tab:blue", lw=1.2, marker="_", ms=16, mew=2, zorder=4,
+            label="median over members")
+    return medians
+
+
+def _value_text(v: float) -> str:
+    """A setting's value as a label: '0.999', '1', '1e+06'."""
+    return f"{v:.6g}"
 
 
 def _column(rows: Sequence[Mapping], name: str) -> np.ndarray:
@@ -476,12 +702,29 @@ def _column(rows: Sequence[Mapping], name: str) -> np.ndarray:
 
 
 def _axis_values(raw: list) -> tuple[np.ndarray, list[str] | None]:
-    """Positions of a swept setting's values: the numbers themselves, or for words (or a mix) the index of
-    each distinct value in order of appearance, with those values as tick labels."""
+    """Positions of a swept setting's values: the numbers themselves, or the index of each distinct value (in
+    order of appearance for words or a mix, in increasing order for numbers) with those values as tick labels,
+    for words and for a few numbers that would crowd each other on a linear axis (``_crowded``)."""
     if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in raw):
-        return np.asarray(raw, dtype=float), None
+        x = np.asarray(raw, dtype=float)
+        values = np.unique(x[np.isfinite(x)])
+        if not _crowded(values):
+            return x, None
+        index = {v: i for i, v in enumerate(values)}
+        return np.array([index.get(v, np.nan) for v in x], dtype=float), [_value_text(v) for v in values]
     labels = list(dict.fromkeys(str(v) for v in raw))
     return np.array([labels.index(str(v)) for v in raw], dtype=float), labels
+
+
+def _crowded(values: np.ndarray) -> bool:
+    """Whether a few distinct values (3 to ``MAX_CATEGORIES``; not spread over two decades, which a log axis
+    shows) have two neighbours closer than ``CROWDED`` of the mean spacing: on a linear axis their members and
+    medians would crowd together while the others lie far apart (lam at 0.99, 0.995, 0.999 and 1). Evenly
+    spaced values stay on a linear axis."""
+    if not 3 <= len(values) <= MAX_CATEGORIES or _log_spread(values):
+        return False
+    gaps = np.diff(values)
+    return bool(gaps.min() < CROWDED * gaps.mean())
 
 
 def _log_spread(x: np.ndarray) -> bool:

@@ -35,24 +35,36 @@ def parameter_estimates(graph: Graph) -> dict[str, torch.Tensor]:
 
 class GraphScenario(Scenario):
     """A scenario made of one graph that is already built: its estimates (functions of the graph, each
-    returning a (B,) tensor), truth, requirements, scales and units. It has no settings of its own; its
-    batch, dtype and device are the graph's. The estimator's options are the graph's own (no settings)."""
+    returning a (B,) tensor), truth, requirements, scales, units and the names of its measured outputs. It has no
+    settings of its own; its batch, dtype and device are the graph's. The estimator's options are the graph's
+    own (no settings). Its name is ``name``, or 'refinement' where none is given; the figures show the name
+    given (``figure_name``), and no name where there is none."""
 
     estimator_options = ()
 
     def __init__(self, graph: Graph, estimates: Mapping[str, Estimate] | None = None,
                  truth: Mapping[str, float | Sequence[float]] | None = None,
                  requirements: Sequence[Requirement] = (), scales: Mapping[str, float] | None = None,
-                 units: Mapping[str, str] | None = None, name: str = "refinement", metrics=None,
+                 units: Mapping[str, str] | None = None, name: str | None = None, metrics=None,
                  steps: int = 10000, validation: Mapping[str, Any] | None = None,
                  truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None,
-                 physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None):
+                 physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None,
+                 output_names: Sequence[str] | None = None):
         if not isinstance(graph, Graph):
             raise ConfigError(f"refine: expected an rcotorch Graph, got {type(graph).__name__}")
         if "estimator" not in graph.roles or "error" not in graph.roles:
             raise ConfigError("refine: the graph needs the roles 'estimator' and 'error' (rcotorch.refinement "
                               f"declares them; Graph(..., roles=...) otherwise); it has {sorted(graph.roles)}")
-        self.graph, self.name, self.steps = graph, name, steps
+        self.graph, self.name, self.steps = graph, name or "refinement", steps
+        self.figure_name = name or ""
+        self._output_names = [str(n) for n in output_names] if output_names is not None else []
+        width = None
+        if "measured" in graph.roles:
+            block, port = graph.role_signal("measured")
+            width = graph.blocks[block].outputs.get(port)
+        if self._output_names and width is not None and len(self._output_names) != width:
+            raise ConfigError(f"refine: output_names names {len(self._output_names)} outputs, but the graph "
+                              f"measures {width}")
         self._validation = None if validation is None else dict(validation)
         self.description = f"a graph built in Python ({len(graph.blocks)} blocks)"
         self._estimates = dict(estimates) if estimates is not None else None
@@ -112,6 +124,9 @@ class GraphScenario(Scenario):
 
     def scales(self, settings) -> dict[str, float]:
         return dict(self._scales)
+
+    def output_names(self, settings) -> list[str]:
+        return list(self._output_names)
 
 
 def _per_member(kind: str, key: str, fn, graph: Graph) -> torch.Tensor:
@@ -219,14 +234,15 @@ class RefinementResult:
 def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = None, *,
            truth: Mapping[str, float | Sequence[float]] | None = None, requirements: Sequence[Requirement] = (),
            scales: Mapping[str, float] | None = None, units: Mapping[str, str] | None = None,
-           metrics: Mapping[str, Estimate] | None = None, name: str = "refinement",
+           metrics: Mapping[str, Estimate] | None = None, name: str | None = None,
            out: str | Path | None = None, overwrite: bool = False, level: float = ci.LEVEL,
            intervals: bool = True, figures: bool = True, progress: bool | None = None,
            checkpoint_every: int | None = None, health: Criteria | None = None,
            validation: bool | Mapping[str, Any] = True,
            truth_history: Mapping[str, Sequence[tuple[float, float]]] | None = None,
            log_every: int | None = None,
-           physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None) -> RefinementResult:
+           physics: Callable[[dict[str, torch.Tensor]], Graph] | None = None,
+           output_names: Sequence[str] | None = None) -> RefinementResult:
     """Run ``graph`` (made by ``rcotorch.refinement``, or any graph with the roles 'estimator' and 'error')
     for ``steps`` steps as ``rcotorch run`` runs a scenario, and return what it found.
 
@@ -250,7 +266,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     units, metrics : optional
         Units of estimates; further final metrics as functions of the graph.
     name, out, overwrite : optional
-        The run's name and output folder (default ``runs/NAME``, or ``runs/NAME-2``, ...).
+        The run's name (default 'refinement') and output folder (default ``runs/NAME``, or ``runs/NAME-2``,
+        ...). The figures' titles start with the name given, else with the output folder's name where ``out``
+        is given, else with neither.
     level : float
         Confidence level of the intervals (0.95).
     intervals, figures, progress, checkpoint_every, health : optional
@@ -276,6 +294,10 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
         parameters: the verdict simulates it to measure how far the refined model's estimates are from the
         physics' (a sampled or otherwise approximate model class), and calls a member ``biased`` where that
         exceeds its interval (docs/intervals.md).
+    output_names : sequence of str, optional
+        The names of the measured outputs, one per channel of the graph's measured signal (e.g. ``['floor 1',
+        'floor 2', 'floor 3']``): the figures label each output and its residual with them (default 'y', or
+        'y[0]', 'y[1]', ...).
 
     Returns
     -------
@@ -286,9 +308,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     ------
     ConfigError
         If the graph has already run, is not a ``Graph`` with the roles 'estimator' and 'error', its dtype is
-        not one the runner knows, or truth, scales, requirements or estimates do not fit the estimates; or if an
-        estimate's or a metric's function raises, when ``refine`` is called or during the run (the message names
-        its key; its exception is the cause).
+        not one the runner knows, truth, scales, requirements or estimates do not fit the estimates, or
+        output_names do not fit the measured outputs; or if an estimate's or a metric's function raises, when
+        ``refine`` is called or during the run (the message names its key; its exception is the cause).
     """
     if int(graph.k) != 0:
         raise ConfigError(f"refine: the graph has already run {int(graph.k)} steps; pass a fresh graph (or call "
@@ -296,7 +318,9 @@ def refine(graph: Graph, steps: int, estimates: Mapping[str, Estimate] | None = 
     sc = GraphScenario(graph, estimates, truth=truth, requirements=requirements, scales=scales, units=units,
                        name=name, metrics=metrics, steps=steps,
                        validation=validation if isinstance(validation, Mapping) else None,
-                       truth_history=truth_history, physics=physics)
+                       truth_history=truth_history, physics=physics, output_names=output_names)
+    if name is None and out is not None:           # the figures are titled with the folder the user named
+        sc.figure_name = Path(out).name
     dtype = _dtype_name(graph)
     device = str(graph.k.device)
     try:

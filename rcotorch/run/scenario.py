@@ -149,6 +149,9 @@ class Scenario:
     validation_steps: int = 2000
     # The number settings' bounds (see above): setting -> POSITIVE, NON_NEGATIVE or UNIT_INTERVAL.
     bounds: Mapping[str, str] = {}
+    # The search space of ``rcotorch tune NAME`` (the [space] of a tuning config, rcotorch.run.tune), e.g.
+    # ``estimator_space(nu=15)``; {} where the scenario declares none (a tuning then needs a config file).
+    tuning_space: Mapping[str, Any] = {}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -330,6 +333,20 @@ class Scenario:
     def figures(self, graph: Graph, settings: Mapping[str, Any]) -> dict:
         """Scenario-specific matplotlib figures {name: Figure} (the runner adds estimate-vs-time and z)."""
         return {}
+
+    def output_names(self, settings: Mapping[str, Any]) -> list[str]:
+        """The names of the measured outputs, in the order of the graph's measured port, e.g. ['floor 2',
+        'floor 3']: the figures label each output and its residual z with them. [] where the scenario names none
+        (the figures then say 'y', or 'y[0]', 'y[1]', ... for several)."""
+        return []
+
+
+def estimator_space(nu: int, p0: tuple[float, float] = (1e-2, 1e10)) -> dict[str, Any]:
+    """The usual search space of a refinement's tuning (``Scenario.tuning_space``): p0 log-uniform over ``p0``;
+    lam among 0.98, 0.995, 0.999 and 1, the values a user tries by hand (a continuous draw rarely lands near 1,
+    where a long run's best lam often lies); nu among a third of ``nu``, ``nu`` and three times it."""
+    return {"p0": {"loguniform": [float(p0[0]), float(p0[1])]}, "lam": [0.98, 0.995, 0.999, 1.0],
+            "nu": sorted({max(1, nu // 3), nu, 3 * nu})}
 
 
 def describe(sc: Scenario) -> str:

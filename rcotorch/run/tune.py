@@ -11,6 +11,10 @@ scores; the first round is a random draw. Each candidate runs with
 ``seeds`` seeds; its score is the mean over them of the held-out RMS error (``metrics.validation_rmse``, the
 first output's units), a seed that diverged or could not be validated scoring infinity.
 
+A scenario may declare its search space (``Scenario.tuning_space``): ``rcotorch tune NAME`` searches it
+(``Tuning.declared``), ``--set`` holding settings for every candidate (``Tuning.fixing``: a held setting is no
+longer searched). Otherwise a config file declares the search.
+
 Config file (TOML or JSON)::
 
     scenario = "sdof-stiffness-damping"
@@ -28,7 +32,8 @@ Config file (TOML or JSON)::
 
 Results in the output folder: ``tune.csv`` (one row per candidate, ranked: score, its spread over seeds, the
 held-out fit in percent against the initial model's, how many seeds diverged), ``best.toml`` (the best
-candidate's settings and the fixed ones, which ``rcotorch run NAME --config best.toml`` accepts),
+candidate's settings and the fixed ones, which ``rcotorch run NAME --config best.toml`` accepts; its comment
+says how to run them, from the script that declares a scenario that is not registered),
 ``sensitivity.csv`` (for each searched setting, the best and median score at each of its values, or in
 quantile bins of a continuous one) and the sweep's own ``sweep.csv`` under ``runs/`` (tpe: one sweep per round,
 ``runs/round_000``, ...).
@@ -38,9 +43,11 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import json
 import math
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, RcoError
+from ..errors import ConfigError, OutputError, RcoError
 from . import scenario as scenarios
 from .sweep import _TYPES as SWEEP_TYPES
 from .sweep import DISTRIBUTIONS, Sweep, _check_types, _is_int, run_sweep
@@ -97,6 +104,29 @@ class Tuning:
     def from_file(cls, path: str | Path) -> Tuning:
         from .sweep import read_config
         return cls.from_dict(read_config(path, "tuning"), str(path))
+
+    @classmethod
+    def declared(cls, scenario: str | scenarios.Scenario, **options) -> Tuning:
+        """The search a scenario declares (``Scenario.tuning_space``, what ``rcotorch tune NAME`` runs), with
+        ``options`` (method, samples, seeds, steps, fixed, ...) as for the constructor."""
+        sc = scenarios.get(scenario)
+        if not sc.tuning_space:
+            raise ConfigError(f"tune: scenario '{sc.name}' declares no search space; give one in a tuning config "
+                              f"file (scenario = \"{sc.name}\" and a table [space], docs/tuning.md) and run "
+                              "`rcotorch tune CONFIG`")
+        space = {k: v if isinstance(v, Mapping) else list(v) for k, v in sc.tuning_space.items()}
+        return cls(scenario=scenario, space=space, **options)
+
+    def fixing(self, settings: Mapping[str, Any]) -> Tuning:
+        """This search with ``settings`` held for every candidate: added to ``fixed``, and no longer searched
+        where the space held them (``rcotorch tune ... --set lam=1`` searches the rest)."""
+        if not settings:
+            return self
+        space = {k: v for k, v in self.space.items() if k not in settings}
+        if not space:
+            raise ConfigError(f"tune: {', '.join(sorted(settings))} fixed, nothing is left to search (the space is "
+                              f"{sorted(self.space)})")
+        return dataclasses.replace(self, space=space, fixed={**dict(self.fixed), **dict(settings)})
 
     def sweep(self, points: Sequence[Mapping[str, Any]] | None = None) -> Sweep:
         """The sweep of every candidate and seed. Grid: the lists' full factorial. Random: ``samples`` draws,
@@ -285,7 +315,34 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
     ``stop()`` is asked between steps (``rcotorch.run.runner.Interrupted`` is raised after the running shard saved
     its checkpoint); ``resume`` continues an interrupted tuning (a tpe search re-reads its finished rounds from
     their folders and tells their scores again); ``folder``: an ``OutputFolder`` for ``out`` made by the caller,
-    who closes it."""
+    who closes it.
+
+    A folder that holds a tuning is refused unless ``resume`` or ``overwrite`` is given (``OutputError``, naming
+    both), as ``rcotorch tune`` refuses it without ``--resume`` or ``--overwrite``. A tuning stopped before any
+    candidate ran (an error, Ctrl-C) leaves the folder as it found it, so that the next one starts there afresh;
+    one stopped later is continued with ``resume``."""
+    if folder is not None:
+        return _run_tune(tuning, out, backend, device, ray_address, progress, overwrite, resume, stop, folder)
+    try:
+        return _run_tune(tuning, out, backend, device, ray_address, progress, overwrite, resume, stop, None)
+    except OutputError as e:                    # said in this function's arguments, not the command line's
+        raise type(e)(_in_arguments(str(e))) from e.__cause__
+
+
+def _in_arguments(message: str) -> str:
+    """An output folder's error as a caller of ``run_tune`` acts on it: its arguments, not the command's
+    options."""
+    for option, argument in (("use --resume to continue it, --overwrite to replace it, or choose another --out",
+                              "pass resume=True to continue it, overwrite=True to replace it, or choose another out"),
+                             ("--resume", "resume=True"), ("--overwrite", "overwrite=True"),
+                             ("another --out", "another out"), ("--out", "out")):
+        message = message.replace(option, argument)
+    return message
+
+
+def _run_tune(tuning: Tuning, out, backend, device, ray_address, progress, overwrite, resume, stop,
+              folder) -> TuneResult:
+    """``run_tune``, its output folder's messages in the words of the command line."""
     from .outputs import MANIFEST, OutputFolder, write_text
     tpe = tuning.method == "tpe"
     if tpe:
@@ -307,7 +364,8 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
             folder.add_child("runs")
             folder.register()
             rows = run_sweep(sweep, backend=backend, device=device, out=out / "runs", ray_address=ray_address,
-                             progress=progress, overwrite=overwrite, resume=resume, stop=stop)
+                             progress=progress, overwrite=overwrite,
+                             resume=resume and (out / "runs" / MANIFEST).is_file(), stop=stop)
         else:
             rows, history = [], []
             sizes = tuning.round_sizes()
@@ -334,12 +392,13 @@ def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "loca
                               f"scenario gives none for these settings (see `rcotorch show {name}`)")
         best = {**_plain(dict(tuning.fixed)), **candidates[0]["settings"]}
         write_text(out / "tune.csv", _csv(candidates, searched))
-        write_text(out / "best.toml", best_toml(name, best, candidates[0]))
+        write_text(out / "best.toml", best_toml(name, best, candidates[0], path=out / "best.toml",
+                                                script=_script_class(tuning.scenario), steps=tuning.steps))
         sensitivity = sensitivity_table(candidates, searched)
         write_text(out / "sensitivity.csv", _csv_rows(sensitivity))
         folder.register()                    # tune.csv, best.toml and sensitivity.csv are the tuning's files
-    except RcoError:
-        folder.discard()                     # refused before anything ran: the folder as it was found
+    except BaseException:
+        folder.discard()                     # stopped before anything ran: the folder as it was found
         raise
     finally:
         if own:
@@ -435,14 +494,45 @@ def sensitivity_table(candidates: Sequence[Mapping[str, Any]], searched: Sequenc
     return table
 
 
-def best_toml(scenario: str, settings: Mapping[str, Any], best: Mapping[str, Any]) -> str:
-    """The chosen settings as a ``--config`` file of ``rcotorch run``."""
-    lines = [f"# rcotorch tune {scenario}: the best candidate (rank 1 of the search), score "
-             f"{best['score']:.6g} (held-out RMS error, mean over {best['seeds']} seeds)",
-             f'scenario = "{scenario}"', "", "[settings]"]
+def best_toml(scenario: str, settings: Mapping[str, Any], best: Mapping[str, Any], path: str | Path = "best.toml",
+              script: str | None = None, steps: int | None = None) -> str:
+    """The chosen settings as a ``--config`` file of ``rcotorch run`` (at ``path``), its comment saying how to
+    run them (for ``steps``, the candidates' steps, where the search gave them): ``rcotorch run`` for a
+    registered scenario; for one declared in a script (``script``: the name of its class), from that script."""
+    lines = [f"# the best candidate of a tuning of scenario '{scenario}' (rank 1 of the search), score "
+             f"{best['score']:.6g} (held-out RMS error, mean over {best['seeds']} seeds)"]
+    where = shlex.quote(str(path)) + (f" --steps {steps}" if steps is not None else "")
+    if script is None:
+        lines.append(f"# run it: rcotorch run {scenario} --config {where}")
+    else:
+        lines += [f"# '{scenario}' is declared in a script, not registered, so `rcotorch run` does not know it; "
+                  "run these settings",
+                  "# from that script:",
+                  "#     import tomllib",
+                  "#     from rcotorch.run.runner import Run, result_table",
+                  f"#     settings = tomllib.load(open({str(path)!r}, 'rb'))['settings']",
+                  f"#     run = Run({script}(), {'' if steps is None else f'steps={steps}, '}overrides=settings)",
+                  "#     run.advance()",
+                  "#     print(result_table(run.finish()))",
+                  "# (or define SCENARIO = " + f"{script}() in a file of a folder listed in RCOTORCH_SCENARIOS; "
+                  f"then: rcotorch run {scenario} --config {where})"]
+    lines += [f'scenario = "{scenario}"', "", "[settings]"]
     for k, v in settings.items():
         lines.append(f"{k} = {_toml_value(v)}")
     return "\n".join(lines) + "\n"
+
+
+def _script_class(scenario: str | scenarios.Scenario) -> str | None:
+    """The class name of a scenario declared in a script (not registered under its name: ``rcotorch run`` does
+    not know it); None for a registered one."""
+    if isinstance(scenario, str):
+        return None
+    try:
+        if type(scenarios.get(scenario.name)) is type(scenario):
+            return None
+    except RcoError:
+        pass
+    return type(scenario).__name__
 
 
 def _toml_value(v) -> str:

@@ -667,14 +667,34 @@ class _ResidualSums:
         r = auto[:, 1:]                                                          # lags 1..L
         lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
         q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
-        from scipy.special import chdtrc  # the chi-squared survival function
-        p = torch.as_tensor(chdtrc(L, torch.nan_to_num(q, nan=math.inf).cpu().numpy()), dtype=torch.float64)
+        p = chi2_upper_tail(L, torch.nan_to_num(q, nan=math.inf).cpu())
         spread = torch.sqrt(s["yy"] - (s["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
         return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
                          bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
                          fit=(100 * (1 - torch.sqrt(s["zz"]) / spread)).cpu(),
                          fit_initial=(100 * (1 - torch.sqrt(s["zi"]) / spread)).cpu(),
                          series=dict(self.series))
+
+
+def chi2_upper_tail(dof: int, x: torch.Tensor | float) -> torch.Tensor:
+    """P(X > x) for X chi-squared with ``dof`` degrees of freedom: Q(dof / 2, x / 2), the regularized upper
+    incomplete gamma function, float64."""
+    x = torch.as_tensor(x, dtype=torch.float64)
+    return torch.special.gammaincc(torch.tensor(dof / 2, dtype=torch.float64), x / 2)
+
+
+def chi2_upper_quantile(dof: int, tail: float) -> float:
+    """The x with P(X > x) = ``tail`` for X chi-squared with ``dof`` degrees of freedom (``chi2_upper_tail``
+    inverted by bisection to the last bit)."""
+    lo, hi = 0.0, float(dof) + 10.0
+    while float(chi2_upper_tail(dof, hi)) > tail:
+        lo, hi = hi, 2 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        lo, hi = (mid, hi) if float(chi2_upper_tail(dof, mid)) > tail else (lo, mid)
+    return hi
 
 
 def _gain_time(lam: torch.Tensor, N: int) -> torch.Tensor:
@@ -780,8 +800,6 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     variance of the difference when the errors at k0 and N are taken as independent (X at k0 is X n_N / n_k0,
     n_k = sum_{j<k} lam^j the RLS memory), so larger than the covariance it ignores. With forgetting the
     estimate keeps moving by about its interval; the window's change then says nothing about convergence."""
-    from scipy.special import chdtri  # the chi-squared quantile of an upper tail
-
     B, n = pc.cov.shape[0], pc.cov.shape[1]
     eta = est.theta_free().detach().to(torch.float64).cpu()
     start = theta_start.reshape(B, -1).to(torch.float64).cpu().index_select(1, est.free_idx.cpu())
@@ -796,7 +814,7 @@ def change_explained(est, theta_start: torch.Tensor, k_start: int, pc: Parameter
     ok = torch.isfinite(V).flatten(1).all(1)
     Vs = torch.where(ok.reshape(-1, 1, 1), V, torch.eye(n, dtype=V.dtype))
     stat = (d.mT @ torch.linalg.pinv(Vs) @ d).reshape(B)
-    return ok & (stat <= float(chdtri(n, 1 - p)))
+    return ok & (stat <= chi2_upper_quantile(n, 1 - p))
 
 
 def residuals_matter(pc: ParameterCovariance, found: Intervals) -> tuple[torch.Tensor, torch.Tensor]:
