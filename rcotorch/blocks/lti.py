@@ -60,7 +60,7 @@ def zoh(A, B, dt: float, dtype=DEFAULT_DTYPE) -> tuple[torch.Tensor, torch.Tenso
     A = torch.as_tensor(A, dtype=dtype)
     B = torch.as_tensor(B, dtype=dtype)
     n, m = A.shape[-1], B.shape[-1]
-    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    batch = np.broadcast_shapes(tuple(A.shape[:-2]), tuple(B.shape[:-2]))   # (torch's imports sympy)
     M = torch.zeros(*batch, n + m, n + m, dtype=dtype)
     M[..., :n, :n] = A
     M[..., :n, n:] = B

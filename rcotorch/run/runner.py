@@ -210,8 +210,8 @@ class Run:
         validation: validate the refined model on held-out data at the end (``Scenario.validation``,
             ``rcotorch.validate``): ``validation_*`` metrics and the ``validation`` entry of the summary.
 
-    ``hparams_session`` (default True): the run's TensorBoard run is also its HParams session (a sweep sets it
-    False and writes one session per member instead).
+    ``hparams_session`` (default True): the run writes its HParams session, the sibling run ``verdict/`` of its
+    TensorBoard run (a sweep sets it False and writes one session per member instead).
     """
 
     def __init__(self, name: str, steps: int | None = None, batch: int = 1, seed: int | None = None,
@@ -333,7 +333,7 @@ class Run:
         self.graph.check_steps(until - self.k)
         self._start_monitor()
         if self.batch * (until - self.k) >= PREFETCH_MEMBER_STEPS:
-            prefetch(figures=self.figures_expected, verdict=self.intervals_on)
+            prefetch(figures=self.figures_expected)
         bar = None
         if progress or (progress is None and until - self.k >= 5000):
             from tqdm import tqdm
@@ -851,11 +851,11 @@ PREFETCH_MEMBER_STEPS = 1 << 24
 _PREFETCHED: set[str] = set()
 
 
-def prefetch(figures: bool, verdict: bool) -> None:
-    """Import what the end of a run needs (scipy's special functions for the verdict; matplotlib and the figures)
-    on a background thread, once per process: the engine releases Python while it steps, so the imports run
-    beside it instead of after it."""
-    wanted = [m for m, on in (("scipy.special", verdict), ("rcotorch.run.figures", figures))
+def prefetch(figures: bool) -> None:
+    """Import what the end of a run needs (matplotlib and the figures) on a background thread, once per process:
+    the engine and the verdict's kernels release Python while they work, so the imports run beside them instead of
+    after them."""
+    wanted = [m for m, on in (("rcotorch.run.figures", figures),)
               if on and m not in _PREFETCHED and m not in sys.modules]
     if not wanted:
         return

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numpy as np
 import torch
 
 SUBSTEPS = 1       # exponential-midpoint steps per sample for a feedback map that is not linear
@@ -73,7 +74,7 @@ def plan(graph) -> dict | str:
 def _zoh(A: torch.Tensor, B: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
     """exp([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, I]], batched."""
     n, m = A.shape[-1], B.shape[-1]
-    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    batch = np.broadcast_shapes(tuple(A.shape[:-2]), tuple(B.shape[:-2]))   # (torch's imports sympy)
     M = A.new_zeros(*batch, n + m, n + m)
     M[..., :n, :n] = A
     M[..., :n, n:] = B

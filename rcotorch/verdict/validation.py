@@ -276,11 +276,12 @@ def _stream(graph, steps: int, take) -> None:
         take(bufs["y"][:C].to(torch.float64), bufs["y_hat"][:C].to(torch.float64))
 
 
-def _simulate(graph, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-    g = copy.deepcopy(graph)
+def _simulate(g, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """y and y_hat of graph ``g`` (changed) run ``steps`` steps from the known model's state ``x0`` (None: as it
+    is), (steps, B, width) float64 each."""
     if x0 is not None:
         g.role("known").x.copy_(x0)
-    tr = g.run(steps, record={"y": graph.roles["measured"], "y_hat": graph.roles["prediction"]})
+    tr = g.run(steps, record={"y": g.roles["measured"], "y_hat": g.roles["prediction"]})
     return tr["y"].to(torch.float64), tr["y_hat"].to(torch.float64)
 
 
@@ -293,15 +294,21 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
     x0 = x.detach().clone().to(torch.float64)
     B, n = x0.shape
     fitted = torch.ones(B, dtype=torch.bool, device=x0.device)
+    work = copy.deepcopy(graph)                     # each simulation from the same state, in one copy
+    start = {k: v.clone() for k, v in work.state_dict().items()}
+
+    def simulate(x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        work.load_state_dict(start)
+        return _simulate(work, steps, x0)
     for _ in range(passes):
-        y, y_hat = _simulate(graph, steps, x0.to(x.dtype))
+        y, y_hat = simulate(x0.to(x.dtype))
         r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
         scale = 1e-6 * torch.clamp(x0.abs().amax(1, keepdim=True), min=1.0)
         S = torch.empty(B, r.shape[1], n, dtype=torch.float64, device=x0.device)
         for i in range(n):
             step = torch.zeros_like(x0)
             step[:, i:i + 1] = scale
-            _, y_i = _simulate(graph, steps, (x0 + step).to(x.dtype))
+            _, y_i = simulate((x0 + step).to(x.dtype))
             S[:, :, i] = ((y_i - y_hat).permute(1, 0, 2).reshape(B, -1)) / scale
         # A member whose outputs do not respond finitely to its state (a diverged or stiff model) keeps its
         # state; the others take their least-squares step (unobservable directions: 0).
