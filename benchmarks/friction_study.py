@@ -12,7 +12,7 @@ excitation (the fraction of samples the mass slides) and on nu, and tuning from 
    over p0, lam and nu scored on held-out validation only; the chosen settings run with a seed the search
    never used and checked against the truth; the search's members and wall time.
 
-    python benchmarks/friction_study.py                 # about 5 minutes on 2 shared cores
+    python benchmarks/friction_study.py                 # about 1 minute on 2 shared cores
     python benchmarks/friction_study.py --quick         # a smoke test
 
 Writes benchmarks/results/friction_study.json.

@@ -7,7 +7,7 @@ one and three times the default), every candidate run with two seeds and scored 
 then the best candidate run with a seed the search never used, and its requirements. Cost: members and wall
 time of the search.
 
-    python benchmarks/tune_study.py                       # about 10 minutes on 2 cores
+    python benchmarks/tune_study.py                       # about 3 minutes on 2 cores
     python benchmarks/tune_study.py --scenarios sdof-stiffness --samples 8
     python benchmarks/tune_study.py --scenarios sdof-dynamic-impedance --lam 0.98,0.995,0.999,1 \
         --out benchmarks/results/tune_study_impedance.json
