@@ -97,6 +97,30 @@ def _hparams_order(mux) -> list[str]:
     return [h.name for h in experiment.hparam_infos]
 
 
+def _hparams_table(logdir) -> dict[str, dict]:
+    """TensorBoard's HParams table of ``logdir``, computed by its own backend from the event files (as its
+    dashboard asks for it): session name -> {'hparams': {name: value}, 'metrics': {tag: value}}."""
+    from tensorboard import context
+    from tensorboard.backend.event_processing.data_provider import MultiplexerDataProvider
+    from tensorboard.plugins import base_plugin
+    from tensorboard.plugins.hparams import api_pb2, backend_context, list_session_groups
+
+    mux = _mux(logdir)
+    tb = base_plugin.TBContext(logdir=str(logdir), multiplexer=mux,
+                               data_provider=MultiplexerDataProvider(mux, str(logdir)))
+    request = api_pb2.ListSessionGroupsRequest(start_index=0, slice_size=1000, allowed_statuses=[
+        api_pb2.STATUS_UNKNOWN, api_pb2.STATUS_SUCCESS, api_pb2.STATUS_FAILURE, api_pb2.STATUS_RUNNING])
+    groups = list_session_groups.Handler(context.RequestContext(), backend_context.Context(tb), "", request).run()
+    out = {}
+    for g in groups.session_groups:
+        for session in g.sessions:
+            out[session.name] = {
+                "hparams": {k: v.WhichOneof("kind") and getattr(v, v.WhichOneof("kind")) for k, v in g.hparams.items()},
+                "metrics": {m.name.tag if not m.name.group else f"{m.name.group}.{m.name.tag}": m.value
+                            for m in session.metric_values}}
+    return out
+
+
 # --- engineering notation and the checksum ------------------------------------------------------------------
 def test_engineering_notation_puts_the_size_in_one_to_a_thousand():
     E, S = monitor.engineering, monitor.Scaled
@@ -129,21 +153,26 @@ def test_the_event_checksum_is_tensorboards_crc32c():
 
 
 # --- a single run ------------------------------------------------------------------------------------------
-def test_a_single_run_draws_estimate_and_truth_under_one_tag_in_simulated_seconds(tmp_path):
+def test_a_single_run_draws_estimate_truth_and_tolerance_band_under_one_tag(tmp_path):
     run, summary, mux = _run(tmp_path, steps=600, log_every=50)
     name = "sdof-stiffness"
-    assert sorted(mux.Runs()) == [name, f"{name}/truth"]                 # the truth is a sibling run
+    # the sibling runs: the band's edges, the truth and the HParams session
+    assert sorted(mux.Runs()) == [name] + [f"{name}/{role}" for role in ("lower", "truth", "upper", "verdict")]
     tags = _tags(mux, name)
     assert {"Estimates/dK [mN/m]", "Estimates/dK |error| [mN/m]", "Estimates/dC [mN s/m]",
-            "Estimates/dC |error| [mN s/m]", "Model error/z rms [m/s]", "theta/y0[0](k)", "theta/y0[1](k)",
-            "final/z_rms_final", "final/diverged", "final/requirements passed"} <= tags
-    assert not any(t.startswith(("members/", "quantiles/", "health/")) for t in tags)
-    assert _tags(mux, f"{name}/truth") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]"}
+            "Estimates/dC |error| [mN s/m]", "Model error/z rms [dB re 1 m/s]", "theta/y0[0](k)",
+            "theta/y0[1](k)"} <= tags
+    assert not any(t.startswith(("members/", "quantiles/", "health/", "final/", "metrics/")) for t in tags)
+    for role in ("lower", "truth", "upper"):
+        assert _tags(mux, f"{name}/{role}") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]"}
     # the first two groups in TensorBoard's order (capitals first) are the estimates and the model error
     assert sorted({t.split("/")[0] for t in tags})[:2] == ["Estimates", "Model error"]
     steps = _log_steps(50, 600)                                         # the initial model at step 0, then logs
     truth = _values(mux, f"{name}/truth", "Estimates/dK [mN/m]")
     assert [s for s, _ in truth] == steps and all(v == 500.0 for _, v in truth)
+    # the band is truth -+ the scenario's requirement on dK (|err| < 0.01 N/m = 10 mN/m), at every step
+    assert _values(mux, f"{name}/lower", "Estimates/dK [mN/m]") == [(s, 490.0) for s in steps]
+    assert _values(mux, f"{name}/upper", "Estimates/dK [mN/m]") == [(s, 510.0) for s in steps]
     est = _values(mux, name, "Estimates/dK [mN/m]")
     assert [s for s, _ in est] == steps and est[0][1] == 0.0             # theta starts at zero: dK = 0
     # the scaled value times its scale is the estimate; the error is |estimate - truth| in the same unit
@@ -153,27 +182,98 @@ def test_a_single_run_draws_estimate_and_truth_under_one_tag_in_simulated_second
     assert _last(mux, name, "Estimates/dC [mN s/m]") * 1e-3 == pytest.approx(summary["estimates"]["dC"], rel=1e-5)
     th = _last(mux, name, "theta/y0[1](k)")
     assert th == pytest.approx(float(run.graph.blocks["identified"].theta[0, 0, 1]))
-    # wall time = origin + k dt for the run and its truth: TensorBoard's Relative axis reads simulated seconds
+    # wall time = origin + k dt for the run and its siblings: TensorBoard's Relative axis reads simulated seconds
     origin = load_checkpoint(tmp_path / "runs" / name / "checkpoint.pt")["tb_origin"]
-    for run_name in (name, f"{name}/truth"):
+    for run_name in (name, f"{name}/truth", f"{name}/lower"):
         for e in _events(mux, run_name, "Estimates/dK [mN/m]"):
             assert e.wall_time - origin == pytest.approx(e.step * 0.01, abs=1e-5)
-    # the band over the logged steps (the same steps as the estimate: a margin chart needs them): about the estimate
-    # at each step, ending at the final interval, and wider early on (the RLS covariance shrinks as data arrive)
+    # the settings card says what the x axis is
+    text = mux.Tensors(name, "settings/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert "sample index" in text and "dt = 0.01 s" in text
+    # the band over time at the logged steps of the run's history, about the estimate (the margin chart's three
+    # tags, at the same steps), ending at the final interval, and wider early on (the RLS covariance shrinks)
+    logged = steps[1:]
+    centre = _values(mux, name, "intervals/dK [mN/m]")
     lower = _values(mux, name, "intervals/dK lower [mN/m]")
     upper = dict(_values(mux, name, "intervals/dK upper [mN/m]"))
-    assert [s for s, _ in lower] == steps
+    assert [s for s, _ in centre] == [s for s, _ in lower] == sorted(upper) == logged
+    assert dict(centre) == pytest.approx({s: v for s, v in est if s in upper}, rel=1e-6)
     assert lower[-1][1] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["lower"], rel=1e-6)
-    assert upper[steps[-1]] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["upper"], rel=1e-6)
+    assert upper[logged[-1]] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["upper"], rel=1e-6)
     values = dict(est)
-    assert all(v <= values[s] <= upper[s] for s, v in lower[1:])
-    assert upper[steps[1]] - lower[1][1] > 2 * (upper[steps[-1]] - lower[-1][1])
+    assert all(v <= values[s] <= upper[s] for s, v in lower)
+    assert upper[logged[0]] - lower[0][1] > 2 * (upper[logged[-1]] - lower[-1][1])
     assert "figures/estimates" in _tags(mux, name, "images")
-    hp = _sessions(mux)[name]
+    hp = _sessions(mux)[f"{name}/verdict"]
     assert hp["scenario"] == name and hp["p0"] == 1000.0 and hp["dK [N/m]"] == 0.5 and hp["Ts [s]"] == 0.01
     passed = all(c["pass"] for c in summary["requirements"].values())
-    assert hp[monitor.STATUS_HPARAM] == summary["health"]["status"]
+    assert hp[monitor.STATUS_HPARAM].split(":")[0].split(" (")[0] == summary["health"]["status"]
     assert hp[monitor.REQUIREMENTS_HPARAM] == ("pass" if passed else "FAIL")
+
+
+def test_each_role_keeps_its_place_in_the_run_list_and_so_its_colour(tmp_path):
+    """TensorBoard colours each run by its place in its run list, which is ordered by start time, then by name:
+    truth was the second colour beside one run and the fourth beside a batch (after q10 and q90). The estimate,
+    lower, truth and upper now take the same places in every run, one member or many, whichever order the list
+    is built in: by the exact start times (TensorBoard's Python loader) or by name (its default loader holds
+    start times coarsely, so that runs started together tie)."""
+    _run(tmp_path, "sdof-stiffness", steps=100, log_every=50)
+    _run(tmp_path, "twodof-stiffness", steps=100, batch=4, log_every=50)
+    mux = _mux(tmp_path / "runs")
+    start = {r: mux.GetAccumulator(r).FirstEventTimestamp() for r in mux.Runs()}
+    roles = ["", "/lower", "/truth", "/upper", "/verdict"]
+    for name in ("sdof-stiffness", "twodof-stiffness"):
+        own = [r for r in mux.Runs() if r.split("/")[0] == name]
+        expected = [name + role for role in roles]
+        assert sorted(own, key=lambda r: (start[r], r)) == expected
+        assert sorted(own) == expected
+    # the two runs are not interleaved: each run's roles follow one another in the whole list
+    listed = sorted(mux.Runs(), key=lambda r: (start[r], r))
+    assert [r.split("/")[0] for r in listed] == ["sdof-stiffness"] * 5 + ["twodof-stiffness"] * 5
+
+
+def test_a_change_detection_shows_beside_the_model_error_and_explains_the_status(tmp_path):
+    """A change's detection was hard to see: the share of alarmed members was a card in the collapsed group
+    "detection", and HParams read "pass" beside "not_converged" without saying why. The card is now in the
+    expanded "Model error" group (and in the Custom Scalars model error category), and the session's status
+    says why and when the detector alarmed, its first alarm also a metric."""
+    import rcotorch as rt
+
+    known = rt.LTI.continuous([[0, 1], [-0.6, -0.8]], [[0, 0], [1, 1]], [[0, 1], [1, 0], [0, 1]], np.zeros((3, 2)),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 2}, dt=0.01, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, lam=0.998)
+    det = rt.ChangeDetector(1, warmup=1000, window=500, holdoff=1000, threshold=30.0)
+    g = rt.refinement(known, ident, truth=rt.Gain(np.zeros((1, 2)), name="unknown"),
+                      excitation=rt.WhiteNoise(1, seed=3), nu=15, batch_size=1,
+                      noise=rt.WhiteNoise(1, std=0.005, seed=4), blocks=[det],
+                      connections=[("error.out", "detector.z")])
+    g.add_hook(rt.at_step(2000, lambda gr: gr.blocks["unknown"].K.copy_(torch.tensor([[-0.5, 0.0]]))))
+    out = tmp_path / "change"
+    result = rt.refine(g, 2600, {"dK": lambda gr: -gr.role("estimator").theta[:, 0, 0]},
+                       truth_history={"dK": [(0.0, 0.0), (20.0, 0.5)]}, scales={"dK": 1.0}, out=out,
+                       intervals=False, validation=False, figures=False, progress=False)
+    summary = result.summary
+    first = summary["changes"]["detector"]["first_alarm_s"]
+    assert 20.0 < first < 25.0
+    mux = _mux(out)
+    tags = _tags(mux, ".")
+    groups = sorted({t.split("/")[0] for t in tags})
+    tag = "Model error/detector alarmed members [%]"
+    assert tag in tags and tag.split("/")[0] in groups[:2]               # the two groups TensorBoard expands
+    alarmed = _values(mux, ".", tag)
+    assert alarmed[0][1] == 0.0 and alarmed[-1][1] == 100.0
+    charts = {c.title: c for category in _layout(mux, ".").category for c in category.chart}
+    assert _matching(charts["detector: alarmed members [%]"].multiline.tag[0], tags) == {tag}
+    # the truth run steps at the change, under the estimate's tag
+    truth = dict(_values(mux, "truth", "Estimates/dK [-]"))
+    assert truth[min(truth)] == 0.0 and truth[max(truth)] == 0.5
+    table = _hparams_table(out)
+    status = table["verdict"]["hparams"][monitor.STATUS_HPARAM]
+    assert status.startswith(summary["status"])
+    if summary["status"] != "converged":
+        assert summary["health"]["why"] in status
+    assert f"detector alarm at {first:g} s" in status
+    assert table["verdict"]["metrics"]["verdict/detector first alarm [s]"] == pytest.approx(first)
 
 
 def test_custom_scalars_patterns_are_anchored_and_each_draws_only_its_own_tags(tmp_path):
@@ -182,20 +282,23 @@ def test_custom_scalars_patterns_are_anchored_and_each_draws_only_its_own_tags(t
     mux = _mux(tmp_path / "runs")
     every = set().union(*(_tags(mux, r) for r in mux.Runs()))
     layout = _layout(mux, "sdof-stiffness")
-    assert [c.title for c in layout.category] == ["sdof-stiffness: estimates vs truth",
-                                                  "sdof-stiffness: model error z = y - y_hat"]
-    charts = {c.title: c for c in layout.category[0].chart}
+    assert [c.title for c in layout.category] == [
+        "sdof-stiffness: estimates", "sdof-stiffness: |estimate - truth|",
+        "sdof-stiffness: estimate within truth ± tolerance", "sdof-stiffness: estimate within its confidence band",
+        "sdof-stiffness: model error z = y - y_hat"]
+    charts = {c.title: c for category in layout.category for c in category.chart}
     assert list(charts["dK [mN/m]"].multiline.tag) == [r"^Estimates/dK\ \[mN/m\]$"]
     assert _matching(charts["dK [mN/m]"].multiline.tag[0], every) == {"Estimates/dK [mN/m]"}
-    assert _matching(charts["dK: |estimate - truth|"].multiline.tag[0], every) == {"Estimates/dK |error| [mN/m]"}
-    # which runs hold the one tag: the estimate and its truth, two series in two colours
-    assert {r for r in mux.Runs() if "Estimates/dK [mN/m]" in _tags(mux, r)} == {"sdof-stiffness",
-                                                                              "sdof-stiffness/truth"}
+    assert _matching(charts["dK: |estimate - truth| [mN/m]"].multiline.tag[0], every) == {
+        "Estimates/dK |error| [mN/m]"}
+    # which runs hold the one tag: the estimate, the band's edges and the truth, four series in four colours
+    assert {r for r in mux.Runs() if "Estimates/dK [mN/m]" in _tags(mux, r)} == {
+        f"sdof-stiffness{role}" for role in ("", "/lower", "/truth", "/upper")}
     margin = charts["dK: estimate within truth ± 10 mN/m"].margin.series[0]
-    assert (margin.value, margin.lower, margin.upper) == ("Estimates/dK [mN/m]", "bands/dK low [mN/m]",
+    assert (margin.value, margin.lower, margin.upper) == ("bands/dK [mN/m]", "bands/dK low [mN/m]",
                                                           "bands/dK high [mN/m]")
     assert _values(mux, "sdof-stiffness", "bands/dK low [mN/m]")[-1][1] == pytest.approx(490.0)
-    batch = {c.title: c for c in _layout(mux, "twodof-stiffness").category[0].chart}
+    batch = {c.title: c for category in _layout(mux, "twodof-stiffness").category for c in category.chart}
     pattern, members = batch["dk1 [mN/m]"].multiline.tag
     assert _matching(pattern, every) == {"Estimates/dk1 [mN/m]"}
     assert _matching(members, every) == {f"members/dk1 m{b} [mN/m]" for b in range(4)}
@@ -203,6 +306,33 @@ def test_custom_scalars_patterns_are_anchored_and_each_draws_only_its_own_tags(t
         for chart in category.chart:
             for p in chart.multiline.tag:
                 assert p.startswith("^") and p.endswith("$"), p
+
+
+def test_each_margin_chart_reads_one_run_and_the_charts_keep_the_estimates_order(tmp_path):
+    """Each margin chart warned "Missing Tags": its value was the estimate's tag, which the truth run holds
+    without the band's bounds. And the charts came jumbled: the dashboard draws a category's multiline charts
+    first, then its margin charts in the reverse of the layout's order. Now a margin chart's three tags are in
+    the run alone, a category holds charts of one kind, and margin charts are listed backwards."""
+    _, summary, mux = _run(tmp_path, "twodof-stiffness", steps=300, batch=4, log_every=50)
+    layout = _layout(mux, "twodof-stiffness")
+    keys = list(summary["estimates"])
+    assert len(keys) > 1
+    for category in layout.category:
+        kinds = {chart.WhichOneof("content") for chart in category.chart}
+        assert len(kinds) == 1, category.title
+        titles = [chart.title.split(":")[0].split(" ")[0] for chart in category.chart]
+        if kinds == {"margin"}:
+            assert titles == keys[::-1], category.title          # drawn in the order of the keys
+        elif category.title.endswith(("estimates", "|estimate - truth|")):
+            assert titles == keys
+        for chart in category.chart:
+            for series in chart.margin.series:
+                tags = {series.value, series.lower, series.upper}
+                held = {r: tags & _tags(mux, r) for r in mux.Runs()}
+                assert {r for r, h in held.items() if h} == {"twodof-stiffness"}, held
+                assert held["twodof-stiffness"] == tags
+                steps = [[s for s, _ in _values(mux, "twodof-stiffness", t)] for t in sorted(tags)]
+                assert steps[0] and steps[0] == steps[1] == steps[2]       # the chart pairs them by step
 
 
 def test_a_resumed_run_continues_the_same_time_axis(tmp_path):
@@ -223,6 +353,32 @@ def test_a_resumed_run_continues_the_same_time_axis(tmp_path):
 
 
 # --- HParams ---------------------------------------------------------------------------------------------------
+def test_hparams_has_the_metrics_of_a_run_opened_on_its_own_folder(tmp_path):
+    """TensorBoard opened on one run's folder names that run "." and finds no metrics of a session there (it
+    looks them up in "./."): every metric column was empty. The session is the run's ``verdict/`` folder, a run
+    of its own, whose metrics it finds whether the logdir is the run's folder or the folder above it."""
+    _, summary, _ = _run(tmp_path, steps=300, log_every=50)
+    folder = tmp_path / "runs" / "sdof-stiffness"
+    for logdir, session in ((folder, "verdict"), (folder.parent, "sdof-stiffness/verdict")):
+        table = _hparams_table(logdir)
+        assert list(table) == [session]
+        hp, metrics = table[session]["hparams"], table[session]["metrics"]
+        assert hp[monitor.STATUS_HPARAM].startswith(summary["health"]["status"])
+        assert hp[monitor.REQUIREMENTS_HPARAM] in ("pass", "FAIL") and hp["scenario"] == "sdof-stiffness"
+        assert metrics["final/dK [mN/m]"] * 1e-3 == pytest.approx(summary["estimates"]["dK"], rel=1e-6)
+        assert metrics["verdict/dK truth [mN/m]"] == 500.0
+        assert metrics["final/dK |error| [mN/m]"] * 1e-3 == pytest.approx(abs(summary["estimates"]["dK"] - 0.5),
+                                                                         rel=1e-5, abs=1e-9)
+        assert metrics["verdict/dK lower [mN/m]"] * 1e-3 == pytest.approx(summary["intervals"]["dK"]["lower"],
+                                                                         rel=1e-6)
+        assert metrics["metrics/z_rms_final"] == pytest.approx(summary["metrics"]["z_rms_final"], rel=1e-6)
+        passed = all(c["pass"] for c in summary["requirements"].values())
+        assert metrics["verdict/requirements passed"] == float(passed) and metrics["verdict/diverged"] == 0
+        # the metric columns (sorted by tag; the first five shown) open on the estimates and their errors
+        assert sorted(metrics)[:4] == ["final/dC [mN s/m]", "final/dC |error| [mN s/m]", "final/dK [mN/m]",
+                                       "final/dK |error| [mN/m]"]
+
+
 def test_requirements_and_status_lead_the_hparams_columns_and_settings_carry_units(tmp_path):
     """TensorBoard shows the first five hyperparameters of its list until others are ticked. The requirements
     and the status lead it: in a run whose settings have capital names (rlc-circuit: C, L, R, ... sort before
@@ -256,6 +412,14 @@ def test_status_and_requirements_texts():
     assert monitor.session_status({"batch": 2, "status": ["converged", "converged"]}) == "STATUS_SUCCESS"
     assert monitor.session_status({"batch": 2, "status": ["converged", "diverged"]}) == "STATUS_FAILURE"
     assert monitor.session_status({"batch": 1, "status": "not_converged"}) == "STATUS_UNKNOWN"
+    # one member's status says why, and when a change detector alarmed (HParams read "pass" beside
+    # "not_converged" with no explanation for a run that tracked a change)
+    changed = {"batch": 1, "status": "not_converged", "health": {"why": "theta_change above 0.02"},
+               "changes": {"detector": {"first_alarm_s": 60.02, "first_alarm_step": 6002.0}}}
+    assert monitor.status_text(changed) == "not_converged (theta_change above 0.02; detector alarm at 60.02 s)"
+    assert monitor.status_text({"batch": 1, "status": "biased", "health": {"why": "biased: dC"}}) == "biased: dC"
+    quiet = {"batch": 1, "status": "converged", "changes": {"detector": {"first_alarm_s": float("nan")}}}
+    assert monitor.status_text(quiet) == "converged"
 
 
 def test_setting_text_summarizes_long_per_member_lists():
@@ -266,21 +430,30 @@ def test_setting_text_summarizes_long_per_member_lists():
 
 # --- batches -------------------------------------------------------------------------------------------------
 def test_a_batch_draws_mean_band_and_truth_under_one_tag(tmp_path):
-    _, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
+    run, summary, mux = _run(tmp_path, steps=300, batch=8, log_every=30)
     name = "sdof-stiffness"
-    assert sorted(mux.Runs()) == [name, f"{name}/q10", f"{name}/q90", f"{name}/truth"]
-    for sibling in ("q10", "q90"):
+    assert sorted(mux.Runs()) == [name] + [f"{name}/{role}" for role in ("lower", "truth", "upper", "verdict")]
+    for sibling in ("lower", "upper"):
         assert _tags(mux, f"{name}/{sibling}") == {"Estimates/dK [mN/m]", "Estimates/dC [mN s/m]",
-                                                   "Model error/z rms [m/s]"}
+                                                   "Model error/z rms [dB re 1 m/s]"}
     tags = _tags(mux, name)
     members = sorted(t for t in tags if t.startswith("members/"))
     assert members == sorted([f"members/dK m{b} [mN/m]" for b in range(8)] + [f"members/dC m{b} [mN s/m]"
                                                                                for b in range(8)]
-                             + [f"members/z rms m{b} [m/s]" for b in range(8)])   # the members the PNG draws
+                             + [f"members/z rms m{b} [dB re 1 m/s]" for b in range(8)])   # those the PNG draws
+    # the model error in dB: 20 log10 of the rms over the batch, of each member's, and of their quantiles
+    z = np.array([float(v) for v in run.history["z_rms"][-1]])
+    assert _last(mux, name, "Model error/z rms [dB re 1 m/s]") == pytest.approx(
+        20 * np.log10(np.sqrt(np.mean(z ** 2))), abs=1e-4)
+    assert _last(mux, name, "members/z rms m3 [dB re 1 m/s]") == pytest.approx(20 * np.log10(z[3]), abs=1e-4)
+    assert _last(mux, f"{name}/upper", "Model error/z rms [dB re 1 m/s]") == pytest.approx(
+        20 * np.log10(np.quantile(z, 0.9)), abs=1e-4)
     dK = np.array(summary["estimates"]["dK"])
     assert _last(mux, name, "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(dK.mean(), rel=1e-6)
-    assert _last(mux, f"{name}/q10", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.1), rel=1e-6)
-    assert _last(mux, f"{name}/q90", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.9), rel=1e-6)
+    assert _last(mux, f"{name}/lower", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.1),
+                                                                                      rel=1e-6)
+    assert _last(mux, f"{name}/upper", "Estimates/dK [mN/m]") * 1e-3 == pytest.approx(np.quantile(dK, 0.9),
+                                                                                      rel=1e-6)
     assert _last(mux, name, "members/dK m2 [mN/m]") * 1e-3 == pytest.approx(dK[2], rel=1e-6)
     assert _last(mux, name, "Estimates/dK |error| [mN/m]") * 1e-3 == pytest.approx(np.abs(dK - 0.5).mean(),
                                                                                     rel=1e-5, abs=1e-9)
@@ -289,7 +462,7 @@ def test_a_batch_draws_mean_band_and_truth_under_one_tag(tmp_path):
         if n or status not in ("undetermined", "biased"):
             assert _last(mux, name, f"health/{status}") == n
     per = [all(m) for m in zip(*(c["member_pass"] for c in summary["requirements"].values()))]
-    hp = _sessions(mux)[name]
+    hp = _sessions(mux)[f"{name}/verdict"]
     assert hp[monitor.STATUS_HPARAM] == ", ".join(f"{s} {n}" for s, n in sorted(counts.items()) if n)
     assert hp[monitor.REQUIREMENTS_HPARAM] == f"pass {sum(per)} of {len(per)}"
 
@@ -297,7 +470,8 @@ def test_a_batch_draws_mean_band_and_truth_under_one_tag(tmp_path):
 def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
     run, summary, mux = _run(tmp_path, steps=100, batch=20, log_every=10, trace=[4, 11])
     tags = _tags(mux, "sdof-stiffness")
-    assert {t for t in tags if t.startswith("members/z rms")} == {"members/z rms m4 [m/s]", "members/z rms m11 [m/s]"}
+    assert {t for t in tags if t.startswith("members/z rms")} == {"members/z rms m4 [dB re 1 m/s]",
+                                                                   "members/z rms m11 [dB re 1 m/s]"}
     assert _last(mux, "sdof-stiffness", "members/dK m11 [mN/m]") * 1e-3 == pytest.approx(summary["estimates"]["dK"][11],
                                                                                           rel=1e-6)
     assert run.history_members == [4, 11]                           # the figures draw the traced members
@@ -305,10 +479,29 @@ def test_large_batches_trace_the_chosen_members_and_histograms(tmp_path):
     assert len(spread) == 2                          # every tenth log: 13 logs (steps 1, 2, 5, then every 10)
     first = spread[0]
     buckets = tensor_util.make_ndarray(first.tensor_proto)
-    assert buckets[:, 2].sum() == 20 and "spread/z rms [m/s]" in _tags(mux, "sdof-stiffness", "histograms")
+    assert buckets[:, 2].sum() == 20 and "spread/z rms [dB re 1 m/s]" in _tags(mux, "sdof-stiffness", "histograms")
     for b in (4, 11):                                 # the histogram spans the members' values, in the same unit
         value = dict(_values(mux, "sdof-stiffness", f"members/dK m{b} [mN/m]"))[first.step]
         assert buckets[0, 0] <= value <= buckets[-1, 1]
+
+
+def test_a_small_model_error_does_not_read_zero(tmp_path):
+    """z rms of 7e-7 m/s, logged in m/s, read "0" in TensorBoard's data tables (four decimals). It is logged in
+    dB re 1 m/s: -123.1, for the run, its members and its quantiles."""
+    run = Run("sdof-stiffness", steps=100, batch=2, out=tmp_path / "r", log_every=50)
+    run.advance(until=50, progress=False)
+    est = {k: v.detach().to(torch.float64).cpu() for k, v in run.scenario.estimates(run.graph, run.settings).items()}
+    z = torch.tensor([7e-7, 7e-7], dtype=torch.float64)
+    run.monitor.log(60, z, est)
+    run.monitor.flush()
+    mux = _mux(tmp_path)
+    assert round(7e-7, 4) == 0.0                                     # as the tables showed it
+    for name, tag in (("r", "Model error/z rms [dB re 1 m/s]"), ("r", "members/z rms m1 [dB re 1 m/s]"),
+                      ("r/upper", "Model error/z rms [dB re 1 m/s]")):
+        value = dict(_values(mux, name, tag))[60]
+        assert value == pytest.approx(20 * np.log10(7e-7), abs=1e-3) and round(value, 4) != 0.0
+    assert monitor.db(0.0) == monitor.DB_FLOOR and np.isnan(monitor.db(float("nan")))
+    run.close()
 
 
 def test_a_truth_per_member_puts_the_mean_error_beside_the_estimate(tmp_path):
@@ -328,29 +521,43 @@ SWEEP = dict(scenario="sdof-stiffness", steps=200, seeds=2, grid={"dK": [0.3, 0.
 
 
 def test_a_sweep_writes_one_session_per_member(tmp_path):
+    """A sweep's Scalars and Custom Scalars tabs opened blank: TensorBoard ticks no run there once a logdir holds
+    more than 40, and a sweep of 36 members made 41 (its members, its shard and the shard's three siblings, and
+    its own folder, for the figures). And each member's final values were logged at step 0 under the estimates'
+    own tags: a dot at the start of each estimate's card and a row per member in its table. The figures are now
+    in the first shard's run, and the members' values under tags of their own, at the shard's last step."""
     rows = sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "sw", progress=False)
     mux = _mux(tmp_path / "sw")
     members = [f"members/member_{m:06d}" for m in range(6)]
-    shards = [f"shard_{s:04d}{sub}" for s in range(2) for sub in ("", "/q10", "/q90", "/truth")]
-    # the sweep's own folder is a run too: its figures (estimates and errors against the swept settings)
-    assert sorted(mux.Runs()) == sorted(members + shards + ["."])
-    assert _tags(mux, ".", "images") == {"figures/sweep_dK"}
+    shards = [f"shard_{s:04d}{sub}" for s in range(2) for sub in ("", "/lower", "/truth", "/upper")]
+    # one run per member and four per shard: a sweep of up to 36 members in one shard holds at most 40
+    assert sorted(mux.Runs()) == sorted(members + shards)
+    assert _tags(mux, "shard_0000", "images") == {"figures/sweep_dK"}
+    shard_tags = set().union(*(_tags(mux, r) for r in shards))
     sessions = _sessions(mux)
     assert sorted(sessions) == members                              # the shards are not rows
+    whys = {}                                                       # each member's why, from its shard's summary
+    for shard in range(2):
+        health = json.loads((tmp_path / "sw" / f"shard_{shard:04d}" / "summary.json").read_text())["health"]
+        whys.update(zip(sorted(r["member"] for r in rows if r["shard"] == shard), health["why"]))
     for r in rows:
         run = f"members/member_{r['member']:06d}"
         assert sessions[run]["dK [N/m]"] == r["dK"] and sessions[run]["seed"] == r["seed"]
         passed = all(v for k, v in r.items() if k.startswith("pass_"))
-        assert r["status"] in ("converged", "undetermined", "not_converged")   # never diverged
-        assert sessions[run][monitor.STATUS_HPARAM] == r["status"]
+        assert r["status"] in ("converged", "undetermined", "not_converged", "biased")   # never diverged
+        why = whys[r["member"]]
+        assert sessions[run][monitor.STATUS_HPARAM] == (
+            r["status"] if not why else why if why.startswith(r["status"]) else f"{r['status']} ({why})")
         assert sessions[run][monitor.REQUIREMENTS_HPARAM] == ("pass" if passed else "FAIL")
         tags = _tags(mux, run)
-        (est,) = [t for t in tags if t.startswith("Estimates/dK [")]     # dK of sdof-stiffness in thousandths
+        assert not tags & shard_tags and all(t.startswith(("final/", "metrics/", "verdict/")) for t in tags)
+        assert {s for t in tags for s, _ in _values(mux, run, t)} == {SWEEP["steps"]}
+        (est,) = [t for t in tags if t.startswith("final/dK [")]     # dK of sdof-stiffness in thousandths
         assert _last(mux, run, est) * 1e-3 == pytest.approx(r["est_dK"], rel=1e-6)
-        (err,) = [t for t in tags if t.startswith("Estimates/dK |error| [")]
+        (err,) = [t for t in tags if t.startswith("final/dK |error| [")]
         assert _last(mux, run, err) * 1e-3 == pytest.approx(abs(r["err_dK"]), rel=1e-5, abs=1e-9)
-        assert _last(mux, run, "final/z_rms_final") == pytest.approx(r["z_rms_final"])
-        assert _last(mux, run, "final/diverged") == 0.0 and "final/Ts" not in tags
+        assert _last(mux, run, "metrics/z_rms_final") == pytest.approx(r["z_rms_final"])
+        assert _last(mux, run, "verdict/diverged") == 0.0 and "metrics/Ts" not in tags
 
 
 def test_a_member_session_given_its_scenario_has_the_columns_of_a_run(tmp_path):
@@ -358,33 +565,33 @@ def test_a_member_session_given_its_scenario_has_the_columns_of_a_run(tmp_path):
     member = {"batch": 1, "estimates": summary["estimates"], "truth": summary["truth"], "metrics": {},
               "intervals": summary["intervals"], "status": summary["status"]}
     values = monitor.final_values(member, scenario="sdof-stiffness")
-    logged = _tags(mux, "sdof-stiffness")
-    assert {"Estimates/dK [mN/m]", "Estimates/dK |error| [mN/m]", "intervals/dK lower [mN/m]"} <= set(values)
-    assert {k for k in values if not k.startswith("final/")} <= logged
-    assert values["Estimates/dK [mN/m]"] == pytest.approx(_last(mux, "sdof-stiffness", "Estimates/dK [mN/m]"))
-    # a run's own final values leave out what its logs hold
-    assert all(k.startswith("final/") for k in monitor.final_values(summary, logged=True))
+    session = _tags(mux, "sdof-stiffness/verdict")
+    assert {"final/dK [mN/m]", "final/dK |error| [mN/m]", "verdict/dK lower [mN/m]"} <= set(values) <= session
+    for tag, value in values.items():
+        assert value == pytest.approx(_last(mux, "sdof-stiffness/verdict", tag), rel=1e-6), tag
+    assert values["final/dK [mN/m]"] == pytest.approx(_last(mux, "sdof-stiffness", "Estimates/dK [mN/m]"))
 
 
 def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkeypatch):
     monkeypatch.setattr(sweeps, "HPARAMS_MEMBERS_MAX", 5)
     rows = sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "sw", progress=False)
     mux = _mux(tmp_path / "sw")
-    assert sorted(r for r in mux.Runs() if "/" not in r) == [".", "shard_0000", "shard_0001"]
+    assert sorted(r for r in mux.Runs() if "/" not in r) == ["shard_0000", "shard_0001"]
     sessions = _sessions(mux)
+    assert sorted(sessions) == ["shard_0000/verdict", "shard_0001/verdict"]
     last = [r["status"] for r in rows if r["shard"] == 1]
-    assert sessions["shard_0000"]["members"] == "0..3" and len(last) == 2
+    assert sessions["shard_0000/verdict"]["members"] == "0..3" and len(last) == 2
     passed = sum(all(v for k, v in r.items() if k.startswith("pass_")) for r in rows if r["shard"] == 1)
-    assert sessions["shard_0001"][monitor.STATUS_HPARAM] == \
+    assert sessions["shard_0001/verdict"][monitor.STATUS_HPARAM] == \
         ", ".join(f"{s} {last.count(s)}" for s in sorted(set(last)))
-    assert sessions["shard_0001"][monitor.REQUIREMENTS_HPARAM] == f"pass {passed} of 2"
-    assert sessions["shard_0000"]["Ts [s]"] == 0.01 and sessions["shard_0000"]["nu"] == 10
-    assert sessions["shard_0000"]["dK [N/m]"] == "[0.3, 0.3, 0.5, 0.5]"      # per member, short: as it is
-    assert "final/z_rms_final" in _tags(mux, "shard_0000")
+    assert sessions["shard_0001/verdict"][monitor.REQUIREMENTS_HPARAM] == f"pass {passed} of 2"
+    assert sessions["shard_0000/verdict"]["Ts [s]"] == 0.01 and sessions["shard_0000/verdict"]["nu"] == 10
+    assert sessions["shard_0000/verdict"]["dK [N/m]"] == "[0.3, 0.3, 0.5, 0.5]"   # per member, short: as it is
+    assert "metrics/z_rms_final" in _tags(mux, "shard_0000/verdict")
     note = mux.Tensors("shard_0000", "sweep/text_summary")[0].tensor_proto.string_val[0].decode()
     assert "6 members" in note and "sweep.csv" in note and "500 runs" in note
     # the shards of a sweep share one Custom Scalars category, named after the sweep
-    assert _layout(mux, "shard_0001").category[0].title == "sw (shards): estimates vs truth"
+    assert _layout(mux, "shard_0001").category[0].title == "sw (shards): estimates"
 
 
 def test_sweep_figures_are_written_as_png_and_tensorboard_images(tmp_path):
@@ -414,21 +621,22 @@ def _post(url: str, body: dict) -> dict:
 
 @pytest.mark.slow
 def test_tensorboard_serves_the_runs_their_siblings_and_every_member_in_hparams(tmp_path):
-    """A real TensorBoard on 127.0.0.1 over a mixed folder: a single run, a batch run and a sweep of 6 members.
-    Its run list holds each run and its sibling runs; its HParams table holds the two runs and the six members,
-    with the settings of both scenarios (the union) and the estimates, truths and errors as metrics; the
-    scalars of a run read simulated seconds as their time since the first."""
+    """A real TensorBoard on 127.0.0.1 (its default loader) over a mixed folder: a single run, a batch run and a
+    sweep of 6 members. Its run list holds each run followed by its sibling runs in the order of their roles;
+    its HParams table holds the two runs and the six members, with the settings of both scenarios (the union)
+    and the estimates, truths and errors as metrics; the scalars of a run read simulated seconds as their time
+    since the first."""
     _run(tmp_path, steps=200, log_every=50)
     _run(tmp_path, "sdof-dynamic-impedance", steps=200, batch=2, log_every=50)
     sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "runs" / "sweep", progress=False)
     port = _free_port()
     server = subprocess.Popen([sys.executable, "-m", "tensorboard.main", "--logdir", str(tmp_path / "runs"),
-                               "--host", "127.0.0.1", "--port", str(port), "--load_fast", "false"],
+                               "--host", "127.0.0.1", "--port", str(port)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         base = f"http://127.0.0.1:{port}"
-        expected = sorted(["sdof-stiffness", "sdof-dynamic-impedance"] + [f"sweep/members/member_{m:06d}"
-                                                                          for m in range(6)])
+        expected = sorted(["sdof-stiffness/verdict", "sdof-dynamic-impedance/verdict"] +
+                          [f"sweep/members/member_{m:06d}" for m in range(6)])
         sessions: list = []
         for _ in range(240):                  # until TensorBoard has loaded every run (it loads in the background)
             time.sleep(0.5)
@@ -444,17 +652,24 @@ def test_tensorboard_serves_the_runs_their_siblings_and_every_member_in_hparams(
         assert sessions == expected
         with urllib.request.urlopen(f"{base}/data/runs", timeout=5) as r:
             runs = json.loads(r.read())
-        siblings = ["sdof-stiffness/truth", "sdof-dynamic-impedance/truth", "sdof-dynamic-impedance/q10",
-                    "sdof-dynamic-impedance/q90"] + [f"sweep/shard_000{s}/{sub}" for s in range(2)
-                                                     for sub in ("q10", "q90", "truth")]
-        assert sorted(runs) == sorted(expected + ["sweep", "sweep/shard_0000", "sweep/shard_0001"] + siblings)
+        roles = ("", "/lower", "/truth", "/upper")
+        every = [f"sweep/members/member_{m:06d}" for m in range(6)]
+        for run in ("sdof-stiffness", "sdof-dynamic-impedance", "sweep/shard_0000", "sweep/shard_0001"):
+            own = [r for r in runs if r == run or r.startswith(run + "/")]
+            listed = [run + role for role in roles] + ([f"{run}/verdict"] if "shard" not in run else [])
+            assert own == listed                                 # each role at its place: its colour
+            every += listed
+        assert sorted(runs) == sorted(every)
         experiment = _post(f"{base}/data/plugin/hparams/experiment", {"experimentName": ""})
         hparams = [h["name"] for h in experiment["hparamInfos"]]
         assert {"scenario", "p0", "dK [N/m]", "gain [N/m]", "seed"} <= set(hparams), ", ".join(hparams)
         assert hparams[:2] == [monitor.REQUIREMENTS_HPARAM, monitor.STATUS_HPARAM]   # shown without ticking
         metrics = {(m["name"]["group"], m["name"]["tag"]) for m in experiment["metricInfos"]}
-        assert {("", "Estimates/dK [mN/m]"), ("truth", "Estimates/dK [mN/m]"), ("", "Estimates/dK |error| [mN/m]"),
-                ("", "Estimates/dc_gain [N s/m]"), ("", "final/freq_rel_err_max")} <= metrics
+        assert {("", "final/dK [mN/m]"), ("", "verdict/dK truth [mN/m]"), ("", "final/dK |error| [mN/m]"),
+                ("", "final/dc_gain [N s/m]"), ("", "metrics/freq_rel_err_max")} <= metrics
+        values = {s["name"]: {(m["name"]["group"], m["name"]["tag"]) for m in s["metricValues"]}
+                  for g in groups["sessionGroups"] for s in g["sessions"]}
+        assert all(("", "final/dK [mN/m]") in values[s] for s in expected if "impedance" not in s)
         query = urllib.parse.urlencode({"run": "sdof-stiffness", "tag": "Estimates/dK [mN/m]"})
         with urllib.request.urlopen(f"{base}/data/plugin/scalars/scalars?{query}", timeout=5) as r:
             points = json.loads(r.read())                            # [wall time, step, value]

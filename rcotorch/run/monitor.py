@@ -1,42 +1,49 @@
-"""TensorBoard monitoring of a run: its own run and sibling runs in TensorBoard's run list (the truth and, for a
-batch, the 10% and 90% quantiles), a few chosen member traces, histograms, figures, a Custom Scalars layout and
-an HParams session.
+"""TensorBoard monitoring of a run: its own run and sibling runs in TensorBoard's run list (the band's edges, the
+truth, the HParams session), a few chosen member traces, histograms, figures and a Custom Scalars layout.
+
+Runs: the run's folder is its run (named "." when TensorBoard is opened on that folder); its siblings are the
+subfolders ``lower/``, ``truth/`` and ``upper/``, which draw their role under the estimate's own tag, and
+``verdict/``, its HParams session. TensorBoard colours each run by its place in its run list; the names and
+start times keep these in this order (``ROLES``), so each role has the same colour in every run.
 
 Tags, grouped so that TensorBoard's Time Series tab opens on what matters (it sorts groups by name, capitals
 first, and expands the first two):
 
-* ``Estimates/<key> [<unit>]``: the estimate (a batch: its mean) in the run's folder, the truth under the same
-  tag in the sibling run ``truth/`` and the batch's 10% and 90% quantiles in ``q10/`` and ``q90/``, so that one
-  chart draws estimate, truth and band in their own colours; ``Estimates/<key> |error| [<unit>]`` beside it
-  (|estimate - truth|, batch mean);
-* ``Model error/z rms [<unit of y>]`` (rms of z over the batch and the log interval; its quantiles in ``q10/``
-  and ``q90/``);
+* ``Estimates/<key> [<unit>]``: the estimate (a batch: its mean) in the run, and under the same tag the band's
+  edges in ``lower/`` and ``upper/`` (a batch: the 10% and 90% quantiles across the members; one member: truth
+  -+ the requirement's tolerance, else its confidence band over time, written at the end) and the truth in
+  ``truth/``, so that one chart draws estimate, band and truth in their own colours; ``Estimates/<key> |error|
+  [<unit>]`` beside it (|estimate - truth|, batch mean);
+* ``Model error/z rms [dB re 1 <unit of y>]`` (20 log10 of the rms of z over the batch and the log interval;
+  its quantiles in ``lower/`` and ``upper/``) and ``Model error/<detector> alarmed members [%]``;
 * ``members/<key> m<b> [<unit>]`` and ``members/z rms m<b>`` (the traced members of a batch: the ones the
-  figures draw), ``bands/<key> low|high [<unit>]`` (truth ± the requirement's tolerance), ``intervals/<key>
-  lower|upper [<unit>]`` (the final confidence interval, written at every logged step at the end),
-  ``theta/<entry>`` (batch mean), ``health/diverged`` and at the end ``health/<status>`` (members, batches),
-  ``final/`` (the scenario's metrics, diverged members, requirements passed), histograms ``spread/<key>
-  [<unit>]`` (batches from 16 members), images ``figures/<name>``, the settings as text.
+  figures draw), ``bands/<key> [<unit>]`` with ``bands/<key> low|high`` (the estimate and truth -+ tolerance,
+  for a margin chart), ``intervals/<key> [<unit>]`` with ``intervals/<key> lower|upper`` (the confidence band
+  over time about the history members' mean estimate, written at the end), ``theta/<entry>`` (batch mean),
+  ``health/diverged`` and at the end ``health/<status>`` (members, batches), histograms ``spread/<key>
+  [<unit>]`` (batches from 16 members), images ``figures/<name>``, the settings as text;
+* in ``verdict/``: ``final/``, ``metrics/`` and ``verdict/`` (``final_values``), written at the end.
 
 Estimates are shown in engineering notation: ``<unit>`` carries the SI prefix that puts the scenario's size of
 the estimate (``Scenario.scales``, else its default truth, else this run's truth) in [1, 1000), e.g.
 ``Estimates/C [uF]`` for 23.5e-6 F; the logged value is the estimate divided by ``Scaled.scale``. A unit that
 takes no prefix gets a power of ten instead (``[1e-3 1/s^2]``, ``[-]`` without unit or scaling).
 
-The x axis: the step is the sample index. Where the graph has a sample time dt, each scalar event's wall time is
-the run's origin plus the simulated time, ``origin + k dt`` (the origin is kept in the checkpoint, so a resumed
-run continues the same axis), and a fresh run logs the initial model's estimates at step 0: TensorBoard's
-"Relative" x axis then reads simulated seconds.
+The x axis: the step is the sample index (the settings card gives dt). Where the graph has a sample time dt,
+each scalar event's wall time is the run's origin plus the simulated time, ``origin + k dt`` (the origin is kept
+in the checkpoint, so a resumed run continues the same axis), and a fresh run logs the initial model's
+estimates at step 0: TensorBoard's "Relative" x axis then reads simulated time.
 
-Custom Scalars: per run (or per sweep) a category of charts: each estimate with truth, band and traced members
-(patterns anchored, so that a chart draws only its own tags), its |error|, margin charts of the estimate inside
-truth ± tolerance and inside its final confidence interval; the model error likewise. HParams: the run itself
-is the session (its settings, named with their units, its status, whether it passes the requirements, and
-final values). TensorBoard's HParams table shows five hyperparameter columns until others are ticked: the first
-five of its list, which holds those that differ between sessions first, each part in name order (capitals
-before lower case). The requirements and the status are named ``*requirements`` and ``*status``
-(``REQUIREMENTS_HPARAM``, ``STATUS_HPARAM``) so that they lead both parts; the metrics sort by tag, so the
-table's metric columns open on each estimate, its truth and its error.
+Custom Scalars: per run (or per sweep) categories of charts of one kind (``Monitor.layout``): each estimate with
+its siblings and traced members (patterns anchored, so that a chart draws only its own tags), its |error|,
+margin charts of the estimate inside truth ± tolerance and inside its confidence band, the model error with
+the detectors' alarms. HParams: the session is ``verdict/`` (``write_session``: the settings, named with their
+units, the status, whether the members pass the requirements; the final values as its metrics). TensorBoard's
+HParams table shows five hyperparameter columns until others are ticked: the first five of its list, which
+holds those that differ between sessions first, each part in name order (capitals before lower case). The
+requirements and the status are named ``*requirements`` and ``*status`` (``REQUIREMENTS_HPARAM``,
+``STATUS_HPARAM``) so that they lead both parts; the metrics sort by tag, so the table's metric columns open
+on each estimate, its truth and its error.
 """
 
 from __future__ import annotations
@@ -53,14 +60,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..estimator.tracking import change_report
+from ..estimator.tracking import ChangeDetector, change_report
 from .scenario import truth_at
 
 TRACED_DEFAULT = 8     # members traced individually when the run does not choose them (the figures draw them)
 HISTOGRAM_MIN = 16     # histograms across the batch from this batch size
-BAND = {"q10": 0.1, "q90": 0.9}     # sibling runs of a batch: the quantiles that bound the band
-TRUTH = "truth"        # sibling run of the truth
+# The sibling runs (subfolders of the run's folder), each drawing one role under the estimate's own tag: the band's
+# lower edge, the truth and the band's upper edge; and the run's HParams session with its final values.
+LOW, TRUTH, HIGH, SESSION = "lower", "truth", "upper", "verdict"
+BAND = {LOW: 0.1, HIGH: 0.9}     # in a batch the band's edges are these quantiles across the members
+# TensorBoard lists runs by start time (the wall time of their first event), then by name, and colours each by its
+# place in that list. Its default loader holds start times coarsely (runs started even 1000 s apart are listed by
+# name), so a run and its siblings, started together, are listed by name: the names above sort in this order, and
+# each writer starts at the run's origin plus its place here (milliseconds apart, for the loader that keeps start
+# times exactly). So the estimate, lower, truth and upper take the same places, and colours, in every run.
+ROLES = ("", LOW, TRUTH, HIGH, SESSION)
 ESTIMATES, MODEL_ERROR = "Estimates", "Model error"
+DB_FLOOR = -400.0      # the model error in dB where it is exactly zero
 STATUS_HPARAM = "*status"   # '*' sorts before letters and digits: among the first columns of the HParams table
 REQUIREMENTS_HPARAM = "*requirements"    # whether the requirements pass, beside the status
 SI_PREFIXES = {-24: "y", -21: "z", -18: "a", -15: "f", -12: "p", -9: "n", -6: "u", -3: "m", 3: "k", 6: "M",
@@ -143,8 +159,10 @@ class _KeyTags:
     estimate: str
     error: str
     members: dict[int, str]
+    band: str           # the estimate again, beside low and high (a Custom Scalars margin chart reads one run)
     low: str
     high: str
+    centre: str         # the centre of the confidence band over time, beside lower and upper (likewise)
     lower: str
     upper: str
     tolerance: float | None
@@ -167,10 +185,14 @@ class Monitor:
         self.scales = estimate_scales(run.scenario, keys, run.truth)
         self._tags: dict[str, _KeyTags] = {}
         y_unit = run.scenario.unit("y", run.settings)
-        self.z_tag = f"{MODEL_ERROR}/z rms [{y_unit or '-'}]"
-        self.z_members = {b: f"members/z rms m{b} [{y_unit or '-'}]" for b in self.traced}
+        # The model error in dB (20 log10 of its rms in the unit of y): it falls by decades during a run, and
+        # TensorBoard's data tables show four decimals, which would read 0 for the small values at the end.
+        self.z_unit = f"[dB re 1 {y_unit}]" if y_unit else "[dB]"
+        self.z_tag = f"{MODEL_ERROR}/z rms {self.z_unit}"
+        self.z_members = {b: f"members/z rms m{b} {self.z_unit}" for b in self.traced}
         self.ident = run.graph.role("estimator")
         self.theta_tags = [f"theta/{name}" for name in self.ident.theta_names]
+        self.detectors = [name for name, blk in run.graph.blocks.items() if isinstance(blk, ChangeDetector)]
         self.dt = run.graph.known_sample_time()
         if getattr(run, "tb_origin", None) is None:
             run.tb_origin = time.time() - run.k * (self.dt or 0.0)
@@ -178,18 +200,34 @@ class Monitor:
         out.mkdir(parents=True, exist_ok=True)
         # A resumed run continues from its checkpoint at step k, saved after the log at k: TensorBoard drops what
         # the earlier writers wrote after it (a run stopped between its checkpoint and its end).
-        purge = run.k + 1 if run.k > 0 else None
-        self.writer = EventFile(out, purge)
-        names = ([TRUTH] if self.shared_truth else []) + (list(BAND) if self.batch > 1 else [])
-        self.siblings = {name: EventFile(out / name, purge) for name in names}
+        self.purge = run.k + 1 if run.k > 0 else None
+        self.writer = EventFile(out, self.purge, start=self.start(""))
+        self.siblings: dict[str, EventFile] = {}    # made by their first event (``sibling``)
         self.n_logs = 0
         self.logged: list[int] = []     # the steps logged by this writer
         if run.k == 0:
             settings = "\n".join(f"| {k} | {setting_text(v)} |" for k, v in run.settings.items())
-            self.writer.add_text("settings", f"| setting | value |\n|---|---|\n{settings}", 0, walltime=self.origin)
+            axis = "\n\nThe x axis: the step is the sample index k"
+            axis += (f"; the simulated time is k dt, dt = {self.dt:g} s (step 1000 = {1000 * self.dt:g} s)."
+                     if self.dt else ".")
+            self.writer.add_text("settings", f"| setting | value |\n|---|---|\n{settings}{axis}", 0,
+                                 walltime=self.origin)
             self.writer.add_custom_scalars(self.layout(keys))
             if self.initial:
                 self._log_estimates(0, self.initial)
+
+    def start(self, role: str) -> float:
+        """The wall time of the first event of the writer of ``role`` (``ROLES``; "" the run itself), which orders
+        the run and its siblings in TensorBoard's run list."""
+        return self.origin + 1e-3 * ROLES.index(role)
+
+    def sibling(self, role: str) -> EventFile:
+        """The writer of the sibling run ``role`` (made at its first use: a run without a truth has no truth
+        run)."""
+        found = self.siblings.get(role)
+        if found is None:
+            found = self.siblings[role] = EventFile(self.out / role, self.purge, start=self.start(role))
+        return found
 
     # --- tags ------------------------------------------------------------------------------------------------
     def tags(self, key: str) -> _KeyTags:
@@ -200,9 +238,9 @@ class Monitor:
             self.scales[key] = scaled
             u = scaled.label
             found = _KeyTags(scaled, f"{ESTIMATES}/{key} {u}", f"{ESTIMATES}/{key} |error| {u}",
-                             {b: f"members/{key} m{b} {u}" for b in self.traced}, f"bands/{key} low {u}",
-                             f"bands/{key} high {u}", f"intervals/{key} lower {u}", f"intervals/{key} upper {u}",
-                             self.tolerance(key))
+                             {b: f"members/{key} m{b} {u}" for b in self.traced}, f"bands/{key} {u}",
+                             f"bands/{key} low {u}", f"bands/{key} high {u}", f"intervals/{key} {u}",
+                             f"intervals/{key} lower {u}", f"intervals/{key} upper {u}", self.tolerance(key))
             self._tags[key] = found
         return found
 
@@ -214,31 +252,50 @@ class Monitor:
         return self.out.name
 
     def layout(self, keys: list[str]) -> dict:
-        """The Custom Scalars layout: one category for the estimates, one for the model error, titled with the
-        run's name (``label``). Each pattern is anchored and matches one tag, or the traced members' tags."""
-        charts: dict[str, list] = {}
+        """The Custom Scalars layout, its categories titled with the run's name (``label``): the estimates (each
+        drawn in the run and its siblings, with the traced members), their |error|, the margin charts of the
+        estimate inside truth ± tolerance and inside its confidence band over time, and the model error with the
+        change detectors' alarms. A category holds charts of one kind, in the order of ``keys``. Each pattern is
+        anchored and matches one tag, or the traced members' tags; each margin chart's three tags are in the run
+        only (its siblings hold none of them)."""
         what = "estimate" if self.batch == 1 else "mean"
+        estimates: dict[str, list] = {}
+        errors: dict[str, list] = {}
+        tolerances: dict[str, list] = {}
+        bands: dict[str, list] = {}
         for key in keys:
             t = self.tags(key)
             series = [_regex(t.estimate)]
             if self.traced:
                 series.append(f"^members/{re.escape(key)} m[0-9]+ {re.escape(t.scaled.label)}$")
-            charts[f"{key} {t.scaled.label}"] = ["Multiline", series]
+            estimates[f"{key} {t.scaled.label}"] = ["Multiline", series]
             if key in self.truth:
-                charts[f"{key}: {'' if self.batch == 1 else 'mean '}|estimate - truth|"] = [
+                errors[f"{key}: {'' if self.batch == 1 else 'mean '}|estimate - truth| {t.scaled.label}"] = [
                     "Multiline", [_regex(t.error)]]
-            if getattr(self.run, "intervals_on", False):
-                charts[f"{key}: {what} within its {self.run.level:.0%} band (the final interval at the end)"] = [
-                    "Margin", [t.estimate, t.lower, t.upper]]
             tol = t.tolerance
             if tol:
-                charts[f"{key}: {what} within truth ± {tol / t.scaled.scale:.3g} {t.scaled.unit}".rstrip()] = [
-                    "Margin", [t.estimate, t.low, t.high]]
-        z = [_regex(self.z_tag)] + ([f"^members/z rms m[0-9]+ {re.escape(self.z_tag.rsplit(' ', 1)[1])}$"]
-                                    if self.traced else [])
+                tolerances[f"{key}: {what} within truth ± {tol / t.scaled.scale:.3g} {t.scaled.unit}".rstrip()] = [
+                    "Margin", [t.band, t.low, t.high]]
+            if getattr(self.run, "intervals_on", False):
+                centre = "estimate" if self.batch == 1 else "traced members' mean"
+                bands[f"{key}: {centre} within its {self.run.level:.0%} band over time {t.scaled.label}"] = [
+                    "Margin", [t.centre, t.lower, t.upper]]
+        z = [_regex(self.z_tag)] + ([f"^members/z rms m[0-9]+ {re.escape(self.z_unit)}$"] if self.traced else [])
+        model_error = {f"z rms {self.z_unit}": ["Multiline", z]}
+        for name in self.detectors:
+            model_error[f"{name}: alarmed members [%]"] = ["Multiline", [_regex(self.detection_tag(name))]]
         label = self.label()
-        return {f"{label}: estimates vs truth": charts,
-                f"{label}: model error z = y - y_hat": {self.z_tag.split("/", 1)[1]: ["Multiline", z]}}
+        # The Custom Scalars dashboard lays a category's margin charts out in the reverse of the layout's order:
+        # they are listed backwards, so that it shows them in the order of ``keys``.
+        categories = {f"{label}: estimates": estimates, f"{label}: |estimate - truth|": errors,
+                      f"{label}: {what} within truth ± tolerance": dict(reversed(tolerances.items())),
+                      f"{label}: {what} within its confidence band": dict(reversed(bands.items())),
+                      f"{label}: model error z = y - y_hat": model_error}
+        return {title: charts for title, charts in categories.items() if charts}
+
+    def detection_tag(self, name: str) -> str:
+        """The tag of change detector ``name``'s share of alarmed members, beside the model error it watches."""
+        return f"{MODEL_ERROR}/{name} alarmed members [%]"
 
     def tolerance(self, key: str) -> float | None:
         """Half-width of the band around a shared truth: the scenario's requirement on the estimate where it has
@@ -261,10 +318,10 @@ class Monitor:
         """Log the batch at ``step``: z rms (B,) over the last interval and the estimates, each (B,) (CPU)."""
         z = z_rms.numpy()
         z_ok = z if self.batch == 1 else z[np.isfinite(z)]
-        main = [(self.z_tag, float(np.sqrt((z_ok ** 2).mean())) if z_ok.size else math.nan)]
-        band = {name: [] for name in BAND} if self.batch > 1 else None
-        if band is not None:
-            self._spread(z_ok, z, self.z_members, 1.0, self.z_tag, main, band)
+        main = [(self.z_tag, float(db(np.sqrt((z_ok ** 2).mean()))) if z_ok.size else math.nan)]
+        band = {name: [] for name in BAND}
+        if self.batch > 1:
+            self._spread(z_ok, z, self.z_members, db, self.z_tag, main, band)
         ident = self.ident
         theta = ident.theta_free().detach().to(torch.float64).cpu().numpy()
         main += zip(self.theta_tags, (theta[0] if self.batch == 1 else _column_means(theta)).tolist())
@@ -272,7 +329,7 @@ class Monitor:
             main.append(("health/diverged", float((~ident.alive).sum())))
         for name, found in change_report(self.run.graph).items():
             alarmed = found["first_alarm_step"] >= 0
-            main.append((f"detection/{name} alarmed members [%]", 100.0 * float(alarmed.double().mean())))
+            main.append((self.detection_tag(name), 100.0 * float(alarmed.double().mean())))
         self._log_estimates(step, estimates, main, band)
         self.logged.append(step)
         if self.batch >= HISTOGRAM_MIN and self.n_logs % 10 == 0:
@@ -282,10 +339,10 @@ class Monitor:
     def _log_estimates(self, step: int, estimates: Mapping[str, torch.Tensor], main: list | None = None,
                        band: dict | None = None) -> None:
         """Write one event per writer at ``step``: ``main`` (tag, value) pairs and the estimates' values in the
-        run, their truths in ``truth/``, their quantiles in ``q10/``, ``q90/``."""
+        run; under each estimate's tag its truth in ``truth/`` and the band's edges in ``lower/`` and ``upper/`` (a
+        batch: the 10% and 90% quantiles across the members; one member: truth -+ tolerance)."""
         main = [] if main is None else main
-        if band is None and self.batch > 1:
-            band = {name: [] for name in BAND}
+        band = {name: [] for name in BAND} if band is None else band
         truth_run = []
         now = step * self.dt if self.dt else float(step)
         for key, v in estimates.items():
@@ -293,7 +350,8 @@ class Monitor:
             scale = t.scaled.scale
             a = v.numpy()
             ok = a if self.batch == 1 else a[np.isfinite(a)]
-            main.append((t.estimate, float(ok.mean()) / scale if ok.size else math.nan))
+            mean = float(ok.mean()) / scale if ok.size else math.nan
+            main.append((t.estimate, mean))
             truth, shared = self.truth.get(key), self.shared_truth.get(key)
             if key in self.history:                   # a truth that changes: its value at this step
                 shared = truth_at(self.history[key], now)
@@ -306,68 +364,92 @@ class Monitor:
                 truth_run.append((t.estimate, shared / scale))
                 tol = t.tolerance
                 if tol:
-                    main += [(t.low, (shared - tol) / scale), (t.high, (shared + tol) / scale)]
-            if band is not None:
-                self._spread(ok, a, t.members, scale, t.estimate, main, band)
+                    low, high = (shared - tol) / scale, (shared + tol) / scale
+                    main += [(t.band, mean), (t.low, low), (t.high, high)]
+                    if self.batch == 1:
+                        band[LOW].append((t.estimate, low))
+                        band[HIGH].append((t.estimate, high))
+            if self.batch > 1:
+                self._spread(ok, a, t.members, lambda x, scale=scale: x / scale, t.estimate, main, band)
         wall = self.wall(step)
         self.writer.scalars(step, wall, main)
-        if truth_run:
-            self.siblings[TRUTH].scalars(step, wall, truth_run)
-        for name, values in (band or {}).items():
-            self.siblings[name].scalars(step, wall, values)
+        for role, values in ((LOW, band[LOW]), (TRUTH, truth_run), (HIGH, band[HIGH])):
+            if values:
+                self.sibling(role).scalars(step, wall, values)
 
-    def _spread(self, ok: np.ndarray, values: np.ndarray, members: Mapping[int, str], scale: float, tag: str,
+    def _spread(self, ok: np.ndarray, values: np.ndarray, members: Mapping[int, str], shown, tag: str,
                 main: list, band: dict) -> None:
         """The traced members' values (into ``main``) and the band's quantiles over the finite values ``ok``
-        (into ``band``, under ``tag``)."""
-        main += [(name, float(values[b]) / scale) for b, name in members.items()]
+        (into ``band``, under ``tag``), each as ``shown`` (a function of the value) shows it."""
+        main += [(name, float(shown(float(values[b])))) for b, name in members.items()]
         if ok.size:
             for name, q in zip(BAND, quantiles(ok, BAND.values())):
-                band[name].append((tag, q / scale))
+                band[name].append((tag, float(shown(q))))
 
     def _histograms(self, step: int, values: Mapping[str, np.ndarray]) -> None:
         from torch.utils.tensorboard.summary import histogram
         for key, v in values.items():
             v = v[np.isfinite(v)]
             if v.size:
-                scaled = Scaled(1.0, self.z_tag.rsplit(" [", 1)[1][:-1]) if key == "z rms" else self.tags(key).scaled
+                if key == "z rms":
+                    tag, shown = f"spread/z rms {self.z_unit}", db(v)
+                else:
+                    scaled = self.tags(key).scaled
+                    tag, shown = f"spread/{key} {scaled.label}", v / scaled.scale
                 bins = self.writer.default_bins
                 # a value beyond the outermost bins (a member far off, say z = 1e136) is counted in the last bin
-                shown = np.clip(v / scaled.scale, bins[0], bins[-1])
-                summary = histogram(f"spread/{key} {scaled.label}", shown, bins)
+                summary = histogram(tag, np.clip(shown, bins[0], bins[-1]), bins)
                 self.writer.add_summary(summary, step, self.wall(step))
 
     def final_intervals(self, found, steps: list[int], band=None) -> None:
-        """The confidence band as ``intervals/<key> lower|upper`` at each of ``steps`` (the logged steps), so that
-        the Custom Scalars chart draws the estimate's path inside it. ``found``: the final intervals
-        (``rcotorch.verdict.intervals.Intervals``, or None; batch means of their bounds). ``band``: the band over
-        time of the history's members (``Run.band_over_time``: (steps, {key: (T, members) half-widths})), drawn
-        about their mean estimate at each of its steps, where it is finite; the final bounds elsewhere."""
-        if found is None:
+        """The confidence band over time, written at the end at each of ``steps`` that the run's history holds:
+        ``intervals/<key> lower|upper`` about ``intervals/<key>``, the history members' mean estimate at that step
+        (one member: the estimate), for the Custom Scalars margin chart; in a run of one member, where the
+        estimate has no tolerance band (no truth), also its edges under the estimate's tag in ``lower/`` and
+        ``upper/``. ``found``: the final intervals (``rcotorch.verdict.intervals.Intervals``, or None; batch means
+        of their bounds). ``band``: the band over time of the history's members (``Run.band_over_time``: (steps,
+        {key: (T, members) half-widths})), where it is finite; the final bounds elsewhere."""
+        history = self.run.history
+        if found is None or not history["step"]:
             return
-        steps = sorted({0, *steps, *self.logged})    # every step the estimates have: the margin chart needs them
-        bounds = []
+        at = {s: i for i, s in enumerate(history["step"])}
+        steps = [s for s in sorted(set(steps)) if s in at]
+        band_at, widths = ({s: i for i, s in enumerate(band[0])}, band[1]) if band is not None else ({}, {})
+        main: dict[int, list] = {s: [] for s in steps}
+        edges: dict[int, dict[str, list]] = {s: {LOW: [], HIGH: []} for s in steps}
         for key in found.estimate:
             lo, hi = _finite(found.lower(key).cpu().numpy()), _finite(found.upper(key).cpu().numpy())
-            if lo.size and hi.size:
-                t = self.tags(key)
-                bounds += [(t.lower, float(lo.mean()) / t.scaled.scale), (t.upper, float(hi.mean()) / t.scaled.scale)]
-        over_time: dict[int, dict[str, float]] = {}
-        if band is not None:
-            band_steps, widths = band
-            for key, hw in widths.items():
-                t = self.tags(key)
-                values = torch.stack(self.run.history[key]).to(torch.float64)[:, :hw.shape[1]]
-                for i, step in enumerate(band_steps):
-                    ok = torch.isfinite(hw[i]) & torch.isfinite(values[i])
-                    if bool(ok.any()):
-                        mid, half = float(values[i][ok].mean()), float(hw[i][ok].mean())
-                        over_time.setdefault(step, {})[t.lower] = (mid - half) / t.scaled.scale
-                        over_time[step][t.upper] = (mid + half) / t.scaled.scale
-        if bounds:
+            if not (lo.size and hi.size) or not history.get(key):
+                continue
+            t = self.tags(key)
+            scale = t.scaled.scale
+            values = torch.stack(history[key]).to(torch.float64)          # (T, history members)
+            hw = widths.get(key)
+            own = self.batch == 1 and not t.tolerance
             for step in steps:
-                values = dict(bounds) | over_time.get(step, {})
-                self.writer.scalars(step, self.wall(step), list(values.items()))
+                v = values[at[step]]
+                ok = torch.isfinite(v)
+                if not bool(ok.any()):
+                    continue
+                mid = float(v[ok].mean())
+                lower, upper = float(lo.mean()), float(hi.mean())
+                if hw is not None and step in band_at:
+                    w = hw[band_at[step]]
+                    inside = ok[:w.shape[0]] & torch.isfinite(w)
+                    if bool(inside.any()):
+                        mid = float(v[:w.shape[0]][inside].mean())
+                        half = float(w[inside].mean())
+                        lower, upper = mid - half, mid + half
+                main[step] += [(t.centre, mid / scale), (t.lower, lower / scale), (t.upper, upper / scale)]
+                if own:
+                    edges[step][LOW].append((t.estimate, lower / scale))
+                    edges[step][HIGH].append((t.estimate, upper / scale))
+        for step in steps:
+            if main[step]:
+                self.writer.scalars(step, self.wall(step), main[step])
+            for role, values in edges[step].items():
+                if values:
+                    self.sibling(role).scalars(step, self.wall(step), values)
 
     def figures(self, pngs: dict[str, bytes], out: Path) -> None:
         """Save the figures (PNG bytes, ``rcotorch.run.figures.png``) in ``out`` and as images under ``figures/``
@@ -382,21 +464,22 @@ class Monitor:
             w.flush()
 
     def close(self, summary: dict) -> None:
-        """The batch's final health counts, the final values (``final/``) and the run's HParams session: its
-        settings and status; then the writers are closed."""
+        """The batch's final health counts in the run; the run's HParams session in the sibling run ``verdict/``
+        (``write_session``: its settings, status and requirements; ``final_values`` as its metrics); then the
+        writers are closed. TensorBoard's HParams looks a session's metrics up in its own run and the runs below
+        it, and finds none for a session at the top of its logdir (a run opened on its own folder, named "."):
+        so the session is a run of its own, below the run's folder."""
         k, wall = self.run.k, self.wall(self.run.k)
-        values = []
         if self.batch > 1:
-            values += [(f"health/{status}", float(count)) for status, count in summary["health"]["counts"].items()
-                       if count or status not in ("undetermined", "biased")]
+            counts = [(f"health/{status}", float(count)) for status, count in summary["health"]["counts"].items()
+                      if count or status not in ("undetermined", "biased")]
+            self.writer.scalars(k, wall, counts)
         if getattr(self.run, "hparams_session", True):      # a sweep writes its own sessions (rcotorch.run.sweep)
-            values += final_values(summary, logged=True).items()
-        if values:
-            self.writer.scalars(k, wall, values)
-        if getattr(self.run, "hparams_session", True):
             hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
             hparams.update(scenario=summary["scenario"], batch=summary["batch"])
-            write_session(self.writer, hparams, summary, scenario=self.run.scenario)
+            session = self.sibling(SESSION)
+            write_session(session, hparams, summary, scenario=self.run.scenario)
+            session.scalars(k, wall, list(final_values(summary, scenario=self.run.scenario).items()))
         for w in (self.writer, *self.siblings.values()):
             w.close()
 
@@ -426,12 +509,14 @@ class EventFile:
     Args:
         folder: the run's folder (made if missing).
         purge_step: where a resumed run continues: TensorBoard drops this run's earlier events from that step.
+        start: the wall time of the file's first event (default now), which TensorBoard takes as the run's start
+            time and lists its runs by (``Monitor.start``).
     """
 
     FLUSH_S = 5.0
     _count = 0
 
-    def __init__(self, folder: Path, purge_step: int | None = None):
+    def __init__(self, folder: Path, purge_step: int | None = None, start: float | None = None):
         import os
         import socket
 
@@ -442,7 +527,7 @@ class EventFile:
                               f"{EventFile._count:04d}")
         self._file = open(self.path, "wb")      # open until close
         self._flushed = time.monotonic()
-        self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
+        self._write(Event(wall_time=time.time() if start is None else start, file_version="brain.Event:2"))
         if purge_step is not None:
             self._write(Event(wall_time=time.time(), step=purge_step, session_log=SessionLog(status=SessionLog.START)))
         self.flush()
@@ -533,6 +618,14 @@ def _finite(v: np.ndarray) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
+def db(rms):
+    """20 log10 of an rms (a number or an array): ``DB_FLOOR`` where it is zero, NaN where it is NaN."""
+    x = np.asarray(rms, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(x > 0, 20.0 * np.log10(np.where(x > 0, x, 1.0)), np.where(x == 0, DB_FLOOR, math.nan))
+    return out if out.ndim else float(out)
+
+
 def write_images(writer: EventFile, pngs: Mapping[str, bytes], step: int, wall: float | None = None) -> None:
     """PNG bytes as images ``figures/<name>`` (TensorBoard gets the PNG file's bytes)."""
     import io
@@ -547,12 +640,14 @@ def write_images(writer: EventFile, pngs: Mapping[str, bytes], step: int, wall: 
                                        wall)
 
 
-def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: list[str], scenario=None) -> list[Path]:
+def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: list[str], scenario=None,
+                        run: str | Path | None = None) -> list[Path]:
     """The figures of a finished sweep (``rcotorch.run.figures.sweep_figures``: each estimate and its |error| against
     each swept setting) as PNG files ``out/sweep_<setting>.png`` and as images ``figures/sweep_<setting>`` of
-    the TensorBoard run in ``out`` (the sweep's folder). Returns the files written."""
+    the TensorBoard run in ``run`` (a sweep: its first shard's folder, so that the sweep's folder is no run of
+    its own and the sweep adds no run to TensorBoard's list; default ``out``). Returns the files written."""
     from .figures import pngs, sweep_figures
-    from .outputs import atomic_write
+    from .outputs import MANIFEST, atomic_write, list_in_manifest
     out = Path(out)
     drawn = pngs(sweep_figures(rows, swept, scenario))
     paths = []
@@ -560,48 +655,58 @@ def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: l
         atomic_write(out / f"{name}.png", lambda f, data=data: f.write(data))
         paths.append(out / f"{name}.png")
     if drawn:
-        with EventFile(out) as w:
+        with EventFile(Path(run) if run is not None else out) as w:
             write_images(w, drawn, 0)
+        if run is not None and (Path(run) / MANIFEST).exists():      # a finished shard lists what it holds
+            list_in_manifest(run, [w.path])
     return paths
 
 
-def final_values(summary: Mapping[str, Any], logged: bool = False, scenario=None) -> dict[str, float]:
-    """The numbers of an HParams row, batch means where there are several members: ``final/<key>`` for each
-    metric, ``final/diverged`` and ``final/requirements passed`` (members). Unless the run ``logged`` its
-    estimates (a sweep's member), also what a run's last log holds: ``Estimates/<key> [<unit>]`` and
-    ``Estimates/<key> |error| [<unit>]`` (scaled as the run's, ``estimate_scales``; ``scenario``: the scenario
-    object, else the one named in the summary) and ``intervals/<key> lower|upper [<unit>]``; so that runs and
-    sweep members share the HParams columns."""
+def final_values(summary: Mapping[str, Any], scenario=None) -> dict[str, float]:
+    """The metrics of an HParams session, batch means where there are several members: each estimate and its
+    |estimate - truth| (``final/<key> [<unit>]``, ``final/<key> |error| [<unit>]``; scaled as the run's tags,
+    ``estimate_scales``; ``scenario``: the scenario object, else the one named in the summary); the scenario's
+    metrics (``metrics/<metric>``); each estimate's truth, interval and the mean bias of the members biased in it
+    (``verdict/<key> truth|lower|upper|bias [<unit>]``), the members diverged, biased and passing the
+    requirements (``verdict/diverged``, ``verdict/biased``, ``verdict/requirements passed``) and the first alarm
+    of each change detector (``verdict/<detector> first alarm [s]``, the mean over the members that alarmed).
+    HParams sorts its metric columns by tag and shows the first five until others are ticked: these open on
+    the estimates and their errors. Runs and sweep members write the same tags, so they share the columns; and
+    none of them is a tag of the charts along the run."""
     out: dict[str, float] = {}
     batch = int(summary.get("batch", 1))
 
     def per_member(v) -> np.ndarray:     # one value per member, NaN for None
         return np.array(v if isinstance(v, list) else [v] * batch, dtype=np.float64)
 
-    if not logged:
-        scales = _summary_scales(summary, scenario)
-        intervals = summary.get("intervals") or {}
-        for key, v in summary["estimates"].items():
-            scaled = scales[key]
-            est = per_member(v)
-            out[f"{ESTIMATES}/{key} {scaled.label}"] = _mean(est, scaled.scale)
-            truth = summary.get("truth", {}).get(key)
-            if truth is not None:
-                out[f"{ESTIMATES}/{key} |error| {scaled.label}"] = _mean(np.abs(est - per_member(truth)), scaled.scale)
-            if key in intervals:
-                out[f"intervals/{key} lower {scaled.label}"] = _mean(per_member(intervals[key]["lower"]), scaled.scale)
-                out[f"intervals/{key} upper {scaled.label}"] = _mean(per_member(intervals[key]["upper"]), scaled.scale)
-    for key, v in summary["metrics"].items():
-        out[f"final/{key}"] = _mean(per_member(v))
-    for key, iv in (summary.get("intervals") or {}).items():
+    scales = _summary_scales(summary, scenario)
+    intervals = summary.get("intervals") or {}
+    for key, v in summary["estimates"].items():
+        scaled = scales[key]
+        u, est = scaled.label, per_member(v)
+        out[f"final/{key} {u}"] = _mean(est, scaled.scale)
+        truth = summary.get("truth", {}).get(key)
+        if truth is not None:
+            out[f"final/{key} |error| {u}"] = _mean(np.abs(est - per_member(truth)), scaled.scale)
+            out[f"verdict/{key} truth {u}"] = _mean(per_member(truth), scaled.scale)
+        iv = intervals.get(key) or {}
+        if "lower" in iv and "upper" in iv:
+            out[f"verdict/{key} lower {u}"] = _mean(per_member(iv["lower"]), scaled.scale)
+            out[f"verdict/{key} upper {u}"] = _mean(per_member(iv["upper"]), scaled.scale)
         if iv.get("bias") is not None:                   # the mean bias of the members whose estimate is biased
             bias = np.ravel(np.array(iv["bias"], dtype=object))
-            out[f"final/{key} bias"] = _mean(per_member([np.nan if b is None else float(b) for b in bias]))
-    out["final/diverged"] = float(member_status(summary).count("diverged"))
-    out["final/biased"] = float(member_status(summary).count("biased"))
+            out[f"verdict/{key} bias {u}"] = _mean(per_member([np.nan if b is None else float(b) for b in bias]),
+                                                   scaled.scale)
+    for key, v in summary["metrics"].items():
+        out[f"metrics/{key}"] = _mean(per_member(v))
+    for name, found in (summary.get("changes") or {}).items():
+        if "first_alarm_s" in found:
+            out[f"verdict/{name} first alarm [s]"] = _mean(per_member(found["first_alarm_s"]))
+    out["verdict/diverged"] = float(member_status(summary).count("diverged"))
+    out["verdict/biased"] = float(member_status(summary).count("biased"))
     passed = requirements_passed(summary)
     if passed is not None:
-        out["final/requirements passed"] = float(sum(passed))
+        out["verdict/requirements passed"] = float(sum(passed))
     return {k: v for k, v in out.items() if v is not None}
 
 
@@ -670,9 +775,26 @@ def requirements_passed(summary: Mapping[str, Any]) -> list[bool] | None:
 
 
 def status_text(summary: Mapping[str, Any]) -> str:
-    """One member's status, or the count of each status in a batch ('converged 6, diverged 2')."""
+    """One member's status with why it is not converged, undetermined or biased (``summary['health']['why']``)
+    and when each change detector first alarmed ('not_converged (theta_change above 0.02; detector alarm at
+    60.02 s)', 'biased: dC'), or the count of each status in a batch ('converged 6, diverged 2')."""
     status = member_status(summary)
-    return status[0] if len(status) == 1 else ", ".join(f"{s} {n}" for s, n in sorted(Counter(status).items()))
+    if len(status) > 1:
+        return ", ".join(f"{s} {n}" for s, n in sorted(Counter(status).items()))
+    text, notes = status[0], []
+    why = (summary.get("health") or {}).get("why")
+    why = why[0] if isinstance(why, list) and why else why
+    if isinstance(why, str) and why and why != text:
+        if why.startswith(text):                       # 'biased: dC'
+            text = why
+        else:
+            notes.append(why)
+    for name, found in (summary.get("changes") or {}).items():
+        first = found.get("first_alarm_s")
+        first = first[0] if isinstance(first, list) and first else first
+        if isinstance(first, (int, float)) and math.isfinite(first):
+            notes.append(f"{name} alarm at {first:g} s")
+    return f"{text} ({'; '.join(notes)})" if notes else text
 
 
 def requirements_text(summary: Mapping[str, Any]) -> str:

@@ -184,6 +184,17 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 # --- output folders ----------------------------------------------------------------------------------------
+def list_in_manifest(folder: str | Path, files: list[Path]) -> None:
+    """Add ``files``, written into the finished output folder ``folder`` by what encloses it (a sweep's figures,
+    written into its first shard's run), to that folder's manifest, atomically: so that it still lists everything
+    in it that rcotorch wrote."""
+    folder = Path(folder)
+    path = folder / MANIFEST
+    data = json.loads(path.read_text())
+    data["files"] = sorted(set(data["files"]) | {str(Path(f).relative_to(folder)) for f in files})
+    write_text(path, json.dumps(data, indent=1) + "\n")
+
+
 def _holds_results(names: list[str]) -> list[str]:
     return sorted(n for n in names if any(fnmatch.fnmatch(n, p) for p in RESULT_NAMES))
 

@@ -442,7 +442,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         write_table(rows, out)
         write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
         from .monitor import write_sweep_figures
-        write_sweep_figures(out, rows, list(sweep.grid) + list(sweep.random) or ["seed"], sc)
+        write_sweep_figures(out, rows, list(sweep.grid) + list(sweep.random) or ["seed"], sc, run=shard_out[0])
         folder.register()
     except RcoError:
         folder.discard()
@@ -561,27 +561,42 @@ HPARAMS_MEMBERS_MAX = 400   # one HParams session (a TensorBoard run) per member
 
 def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dirs: list[Path]) -> None:
     """HParams sessions of a sweep: one per member (``out/members/member_NNNNNN``) with its swept settings, seed,
-    status and final values (``final/``: estimates, absolute errors, metrics), while the sweep has at most
-    ``HPARAMS_MEMBERS_MAX`` members.
+    status and final values (``rcotorch.run.monitor.final_values``, at its shard's last step), while the sweep
+    has at most ``HPARAMS_MEMBERS_MAX`` members.
 
     Every session is a run in TensorBoard's run list, and TensorBoard leaves every run unselected (empty
-    charts) once a logdir holds more than 500 runs; so a larger sweep makes each shard's run its session
-    (settings, ranges of the per-member ones, counts of each status, batch means) and says so in a text card
-    (``sweep``): the per-member table is ``sweep.csv``.
+    charts) once a logdir holds more than 500 runs; so a larger sweep makes each shard's session (in the shard's
+    ``hparams/``: settings, ranges of the per-member ones, counts of each status, batch means) and says so in a
+    text card (``sweep``): the per-member table is ``sweep.csv``.
     """
-    from .monitor import EventFile, final_values, setting_text, write_session
+    import time
+
+    from .monitor import SESSION, EventFile, final_values, setting_text, write_session
     sc = sweep.scenario
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
         settings = set(sc.settings)
+        last: dict[int, int] = {}           # each shard's last step, where its members' final values are
+        why: dict[int, Any] = {}            # why each member is not converged, undetermined or biased
+        for index, folder in enumerate(shard_dirs):
+            try:
+                shard = json.loads((folder / "summary.json").read_text())
+                last[index] = int(shard["steps"])
+            except (OSError, ValueError, KeyError, TypeError):
+                last[index] = 0
+                continue
+            whys = (shard.get("health") or {}).get("why")
+            part = sorted(r["member"] for r in rows if r["shard"] == index)   # the shard's members, in its order
+            if isinstance(whys, list) and len(whys) == len(part):
+                why.update(zip(part, whys))
         for r in rows:
             summary = _member_summary(r, settings)
+            summary["health"] = {"why": why.get(r["member"])}
             hp = {k: r[k] for k in swept if isinstance(r.get(k), (int, float, str, bool))}
             hp.update(scenario=sweep.scenario_name, shard=r["shard"], member=r["member"])
             with EventFile(out / "members" / f"member_{r['member']:06d}") as w:
                 write_session(w, hp, summary, scenario=sc)
-                for tag, value in final_values(summary, scenario=sc).items():
-                    w.add_scalar(tag, value, 0)
+                w.scalars(last.get(r["shard"], 0), time.time(), list(final_values(summary, scenario=sc).items()))
         return
     note = (f"This sweep has {len(rows)} members. TensorBoard leaves every run unselected once a logdir holds "
             f"more than 500 runs, and each HParams row is a run, so HParams shows one row per shard (sweeps up to "
@@ -596,10 +611,10 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         hp = {k: v if isinstance(v, (int, float, str, bool)) else setting_text(v)
               for k, v in summary["settings"].items()}
         hp.update(scenario=sweep.scenario_name, members=f"{part[0]['member']}..{part[-1]['member']}")
-        with EventFile(folder) as w:
+        with EventFile(folder / SESSION) as w:
             write_session(w, hp, summary, scenario=sc)
-            for tag, value in final_values(summary, logged=True).items():
-                w.add_scalar(tag, value, summary["steps"])
+            w.scalars(summary["steps"], time.time(), list(final_values(summary, scenario=sc).items()))
+        with EventFile(folder) as w:
             w.add_text("sweep", note, 0)
 
 
@@ -610,10 +625,10 @@ def _member_summary(row: Mapping[str, Any], settings: set[str]) -> dict[str, Any
     truth = {k[6:]: v for k, v in row.items() if k.startswith("truth_")}
     skip = settings | {"member", "shard", "diverged", "diverged_at", "status"}
     metrics = {k: v for k, v in row.items() if k not in skip and not k.startswith(("est_", "truth_", "err_", "lower_",
-                                                                                   "upper_"))
+                                                                                   "upper_", "bias_"))
                and isinstance(v, (int, float)) and not isinstance(v, bool)}
-    intervals = {k[6:]: {"lower": v, "upper": row.get(f"upper_{k[6:]}")} for k, v in row.items()
-                 if k.startswith("lower_")}
+    intervals = {k[6:]: {"lower": v, "upper": row.get(f"upper_{k[6:]}"), "bias": row.get(f"bias_{k[6:]}")}
+                 for k, v in row.items() if k.startswith("lower_")}
     requirements = {k[5:]: {"pass": bool(v)} for k, v in row.items() if k.startswith("pass_")}
     return {"batch": 1, "estimates": est, "truth": truth, "metrics": metrics, "status": row.get("status"),
             "intervals": intervals, "requirements": requirements,
