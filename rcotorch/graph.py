@@ -158,6 +158,9 @@ class Graph(nn.Module):
         self.reset(batch_size)
         self._last: dict[Signal, torch.Tensor] = {}
         self._last_native: tuple | None = None      # (signals, order) a native call left, copied when read
+        # the native engine's program of this graph, kept while it stands for the graph (rcotorch.engine.lowering:
+        # program, refilled, invalidate)
+        self._program_cache = lowering.ProgramCache()
         self.hooks: list[Callable[[Graph], object]] = []
         self.ran_engine: str | None = None     # the engine of the last ``advance``
         self.engine_reason: str | None = None  # why it was not the native engine (None when it was)

@@ -78,3 +78,15 @@ def test_a_record_with_a_missing_or_unknown_field_is_refused_naming_the_block_an
     with pytest.raises(ConfigError, match="block 'diff'") as err:
         lowering.program(_graph(emit))
     assert says in str(err.value)
+
+
+
+def test_the_binding_modes_are_the_bits_engine_h_declares():
+    from rcotorch.engine import _engine
+    mode = kernels.BindMode
+    load, store, first_lane = _engine.BIND_LOAD, _engine.BIND_STORE, _engine.BIND_FIRST_LANE
+    assert (mode.LOAD, mode.STORE, mode.LOAD_AND_STORE, mode.LOAD_FIRST_LANE) == \
+        (load, store, load | store, load | first_lane)
+    binds = lowering.program(_graph(_named)).binds
+    assert {bd.mode for bd in binds if bd.what.startswith("signal")} == {mode.STORE}        # written back only
+    assert {bd.mode for bd in binds if bd.what.endswith("parameter")} == {mode.LOAD}        # read only

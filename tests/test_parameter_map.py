@@ -67,7 +67,7 @@ def test_the_estimator_holds_its_map_which_moves_with_it_and_is_not_saved():
     est = rt.RCOEstimator({"y0": 2}, nc=2, p0=100.0, tie=[[0, 1, 0, 1, 2, 3]])
     pm = est.parameter_map
     assert est.n_theta == pm.n_params == 4 and est.theta_names == pm.names
-    assert est.param_of is pm.param_of_entry and est.rep is pm.entry_of_param and est.free_idx is pm.entry_of_param
+    assert est.param_of is pm.param_of_entry and est.free_idx is pm.entry_of_param
     assert not est.all_free
     assert not any(key.startswith("parameter_map") for key in est.state_dict())
     est.to(torch.float32)

@@ -237,7 +237,7 @@ def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
     before = [k for k in est if 1000 < k < 2000]
     # it tracked 0 before the change, within a few hundredths (lam = 0.998 remembers about 500 steps)
     assert before and all(err[k] < 0.1 for k in before)
-    alarmed = values(".", "detection/detector alarmed members [%]")
+    alarmed = values(".", "Model error/detector alarmed members [%]")
     assert all(v == 0.0 for k, v in alarmed.items() if k <= 2000) and alarmed[max(alarmed)] == 100.0
 
     from rcotorch.run.figures import run_figures
@@ -248,6 +248,11 @@ def test_a_changing_truth_is_drawn_as_it_was_and_the_alarm_is_marked(tmp_path):
     assert list(ys) == [0.0, 0.5, 0.5] and xs[1] == pytest.approx(20.0)
     assert lines["change"].get_xdata()[0] == pytest.approx(20.0)
     assert lines["detector: first alarm"].get_xdata()[0] == pytest.approx(first[0] * 0.01)
+    # the alarm is drawn over the change's line and the truth, and marked at the top of the panel
+    alarm = lines["detector: first alarm"]
+    assert alarm.get_zorder() > max(lines["change"].get_zorder(), lines["truth"].get_zorder())
+    marks = [line for line in ax.get_lines() if line.get_marker() == "v"]
+    assert marks and marks[0].get_xdata()[0] == pytest.approx(first[0] * 0.01) and marks[0].get_ydata()[0] == 1.0
 
 
 def test_a_run_that_ends_before_a_change_is_judged_against_the_truth_before_it(tmp_path):
@@ -583,9 +588,13 @@ def test_the_markov_kernel_writes_each_layout_and_only_the_loops_it_shows_stable
     beta = torch.full((10, nu, p, m), 7.0, dtype=torch.float64)
     ring = torch.full((10, pm, 2 * W), 7.0, dtype=torch.float64)
     ring[..., nu:W] = ring[..., W + nu:] = 0.0
-    targets = [(beta, 0, nu * pm, pm, 1, 1, 0), (ring, nu - 1, pm * 2 * W, -1, 2 * W, 2, W)]
+    targets = [kernels.MarkovTarget(beta, offset=0, row_stride=nu * pm, step_stride=pm, entry_stride=1),
+               kernels.MarkovTarget(ring, offset=nu - 1, row_stride=pm * 2 * W, step_stride=-1, entry_stride=2 * W,
+                                    copies=2, copy_stride=W)]
+    versions = beta._version, ring._version
     written = kernels.lti_markov(As, Bs, Cs, Ds, d, nu, targets, rows=rows, stable=True)
     np.testing.assert_array_equal(written.numpy(), [True, True, False, True, False, True, True])
+    assert beta._version > versions[0] and ring._version > versions[1]          # written, as PyTorch would say
     for b in range(Bm):
         row = int(rows[b])
         if written[b]:
@@ -605,6 +614,8 @@ def test_the_markov_kernel_writes_each_layout_and_only_the_loops_it_shows_stable
     assert torch.equal(alone, beta[rows])
     with pytest.raises(ValueError, match="written at"):
         kernels.lti_markov(As, Bs, Cs, Ds, d, nu, targets, rows=rows + 1)
+    with pytest.raises(TypeError, match="MarkovTarget"):
+        kernels.lti_markov(As, Bs, Cs, Ds, d, nu, [tuple(targets[0])], rows=rows)
 
 
 @needs_native
@@ -631,6 +642,7 @@ def test_the_native_renewal_writes_stable_loops_in_place_and_keeps_the_others(sh
         monkeypatch.setattr(kernels, "lti_markov", lambda *a, stable=False, **k: torch.zeros(
             a[0].shape[0], dtype=torch.bool) if stable else plain(*a, **k))
     kept, closed = est.beta[0].clone(), est.theta_closed[0].clone()
+    est._beta_padded()                                     # what the PyTorch engine derives from beta, kept
     est.theta[:, 0, 0] = torch.tensor([-0.8, 0.25, 0.3], dtype=torch.float64)
     assert hook(g)
     assert lowering.program(g) is prog
@@ -642,6 +654,8 @@ def test_the_native_renewal_writes_stable_loops_in_place_and_keeps_the_others(sh
     np.testing.assert_array_equal(est.theta_closed[1:, 0, 0].numpy(), [0.25, 0.3])
     ring = est._lowered_ring()
     np.testing.assert_array_equal(ring.numpy(), est._laid_out(est.beta, 2).numpy())
+    # what the PyTorch engine derived from beta follows the kernel's write (beta's version moved with it)
+    assert torch.equal(est._beta_padded(), est._laid_out(est.beta, 1))
 
 
 def test_a_checkpoint_with_the_transposed_markov_parameters_of_earlier_versions_loads():

@@ -23,10 +23,12 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import ctypes
+import enum
 import os
 import sys
 import threading
 import warnings
+from typing import NamedTuple
 
 import torch
 
@@ -56,12 +58,30 @@ TABLES: dict[str, list[tuple[str, str, str]]] = {
     for layout in LAYOUT}
 FACTOR = _names("FACTORS")                     # kinds of feature factors (RCO_FACTORS)
 BIND_FIELD = _names("BIND_FIELDS")             # fields of a binding record (RCO_BIND_FIELDS)
-KIND = _names("KINDS")                         # element kinds of a binding (RCO_KINDS)
+KIND = _names("KINDS")                         # element kinds of a binding (RCO_KINDS; its MODE: BindMode)
 OBS_FIELD = _names("OBS_FIELDS")               # fields of an observer record (RCO_OBS_FIELDS)
 OBSERVER = _names("OBSERVERS")                 # kinds of observers (RCO_OBSERVERS)
 HEADER = getattr(_engine, "HEADER", 2)         # ints before an instruction's arguments (op, length)
 NOISE_SLOTS = getattr(_engine, "NOISE_SLOTS", 1)  # slots of a noise channel's buffer (steps drawn ahead, in pairs)
 LANE_WIDTHS: tuple[int, ...] = getattr(_engine, "LANE_WIDTHS", (1,))
+
+
+class BindMode(enum.IntEnum):
+    """The MODE field of a binding record (RCO_BIND_FIELDS): which way its tensor moves between PyTorch and the
+    slots. The C code tests its bits (engine.h's RCO_BIND_MODE_BITS, exported as ``_engine.BIND_LOAD`` 1,
+    ``BIND_STORE`` 2 and ``BIND_FIRST_LANE`` 4; lanes.h's ``load`` before the steps and ``store`` after them);
+    these are the combinations lowering writes."""
+
+    #: A parameter: copied into its slots before the steps, never back.
+    LOAD = 1
+    #: A signal: copied out of its slots after the steps (the graph's last outputs), never in.
+    STORE = 2
+    #: A state buffer: copied in before the steps and back after them.
+    LOAD_AND_STORE = 3
+    #: A parameter the operations read in the first lane only (their SHARED field): where the members share it
+    #: (MSTRIDE 0), copied into that lane alone; else as LOAD.
+    LOAD_FIRST_LANE = 5
+
 
 _ALLOWED = contextvars.ContextVar("rcotorch_kernels_allowed", default=True)
 _WARNED = threading.Event()
@@ -272,21 +292,47 @@ def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     return out
 
 
+class MarkovTarget(NamedTuple):
+    """Where ``lti_markov`` writes the Markov parameters in place: value t (t = 0..nu-1) of entry e = r m + k
+    (output r, input k) of the member in row ``rows[b]`` goes to the flat elements
+    ``offset + rows[b] row_stride + t step_stride + e entry_stride + c copy_stride`` of ``tensor``, for
+    c < ``copies`` (engine.c: ``markov_target_t``, at most ``MARKOV_TARGETS`` of them a call).
+    ``RCOEstimator._refill_from_system`` writes two: beta itself and the copy of it that the estimator's lowered
+    program reads (``rcotorch.estimator.rco.NativeCopy``)."""
+
+    #: A contiguous float64 CPU tensor.
+    tensor: torch.Tensor
+    #: Its flat element of value 0, entry 0 of row 0.
+    offset: int
+    #: Elements from one row (member) to the next.
+    row_stride: int
+    #: Elements from one value t to the next (negative: written in reverse time).
+    step_stride: int
+    #: Elements from one entry e to the next.
+    entry_stride: int
+    #: How many times over each value is written.
+    copies: int = 1
+    #: Elements from one copy to the next.
+    copy_stride: int = 0
+
+
 def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tensor, d: int, nu: int,
-               targets: list[tuple[torch.Tensor, int, int, int, int, int, int]] | None = None,
-               rows: torch.Tensor | None = None, stable: bool = False) -> torch.Tensor | None:
+               targets: list[MarkovTarget] | None = None, rows: torch.Tensor | None = None,
+               stable: bool = False) -> torch.Tensor | None:
     """beta_t = -H_(d+t), t = 0..nu-1 (H_0 = D, H_i = C A^(i-1) B) of one system per member, A (Bm, N, N), B (Bm,
     N, m), C (Bm, p, N), D (Bm, p, m); None where the kernel does not apply (not allowed here, not the CPU or
     float64): then the caller runs PyTorch.
 
-    Without ``targets``, returns them as (Bm, nu, p, m). With ``targets``, writes them in place: each target is
-    (tensor, offset, srow, st, se, copies, coff), value t of entry e = r m + k of member b going to the tensor's
-    flat element offset + rows[b] srow + t st + e se + c coff for c < copies (rows: (Bm,) int64, by default
-    0..Bm-1); returns the (Bm,) bool tensor of the members written: with ``stable``, those whose A has a power
-    A^(2^s), s <= 16, of infinity norm below 1 (spectral radius below 1; the others are left to the caller),
-    else all. ``stable`` applies to ``targets`` only.
+    Without ``targets``, returns them as (Bm, nu, p, m). With ``targets`` (``MarkovTarget``), writes them in
+    place into the target rows ``rows`` ((Bm,) int64, by default 0..Bm-1) and advances the targets' versions
+    (``bump``), as a PyTorch write would; returns the (Bm,) bool tensor of the members written: with ``stable``,
+    those whose A has a power A^(2^s), s <= 16, of infinity norm below 1 (spectral radius below 1; the others are
+    left to the caller), else all. ``stable`` applies to ``targets`` only.
     """
-    tensors = (A, B, C, D) + tuple(t[0] for t in targets or ())
+    for tg in targets or ():
+        if not isinstance(tg, MarkovTarget):
+            raise TypeError(f"lti_markov: a target must be a MarkovTarget, got {type(tg).__name__}")
+    tensors = (A, B, C, D) + tuple(tg.tensor for tg in targets or ())
     if not allowed() or any(t.device.type != "cpu" or t.dtype != torch.float64 for t in tensors):
         return None
     Bm, N, m, p = A.shape[0], A.shape[-1], B.shape[-1], C.shape[1]
@@ -294,24 +340,31 @@ def lti_markov(A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tenso
     out = None
     if targets is None:
         out = torch.empty(Bm, nu, p, m, dtype=torch.float64)
-        targets = [(out, 0, nu * p * m, p * m, 1, 1, 0)]
+        targets = [MarkovTarget(out, offset=0, row_stride=nu * p * m, step_stride=p * m, entry_stride=1)]
     row_t = torch.arange(Bm) if rows is None else rows.to(device="cpu", dtype=torch.int64).contiguous()
     flat = []
-    for t, offset, srow, st, se, copies, coff in targets:
-        if not t.is_contiguous():
+    for tg in targets:
+        if not tg.tensor.is_contiguous():
             raise ValueError("lti_markov: a target must be contiguous")
         # the corners of what is written must lie inside the tensor
-        span = [offset + r * srow + tt * st + e * se + c * coff for r in (int(row_t.min()), int(row_t.max()))
-                for tt in (0, nu - 1) for e in (0, p * m - 1) for c in (0, copies - 1)] if Bm else [0]
-        if min(span) < 0 or max(span) >= t.numel():
-            raise ValueError(f"lti_markov: a target of {t.numel()} elements is written at {min(span)}..{max(span)}")
-        flat += [t.data_ptr() + 8 * offset, srow, st, se, copies, coff]
+        span = [tg.offset + r * tg.row_stride + tt * tg.step_stride + e * tg.entry_stride + c * tg.copy_stride
+                for r in (int(row_t.min()), int(row_t.max())) for tt in (0, nu - 1) for e in (0, p * m - 1)
+                for c in (0, tg.copies - 1)] if Bm else [0]
+        if min(span) < 0 or max(span) >= tg.tensor.numel():
+            raise ValueError(f"lti_markov: a target of {tg.tensor.numel()} elements is written at "
+                             f"{min(span)}..{max(span)}")
+        # as engine.c's markov_target_t reads it: the address of element offset, then the strides and copies
+        flat += [tg.tensor.data_ptr() + 8 * tg.offset, tg.row_stride, tg.step_stride, tg.entry_stride, tg.copies,
+                 tg.copy_stride]
     spec = torch.tensor(flat, dtype=torch.int64)
     ok = torch.ones(Bm, dtype=torch.bool)
     _engine.lti_markov(Bm, N, m, p, d, nu, A.data_ptr(), B.data_ptr(), C.data_ptr(), D.data_ptr(),
                        0 if rows is None else row_t.data_ptr(), ok.data_ptr() if stable and out is None else 0,
                        spec.data_ptr(), len(targets), lanes(Bm), threads())
-    return out if out is not None else ok
+    if out is not None:
+        return out
+    bump(*(tg.tensor for tg in targets))
+    return ok
 
 
 def markov_fd(step: int, h: int, x: torch.Tensor, u: torch.Tensor, col: int, width: int, n_out: int, rows: slice,

@@ -9,10 +9,11 @@ Each block describes itself: ``Block.lower(b)`` receives a ``Builder`` and asks 
 state, parameters and ports and emits its instructions (``LTI``, ``Gain``, ``Sum``, ``WhiteNoise``,
 ``Recorded``, ``RCOEstimator``; see each). A block without a native form, or a subclass that changes what
 its parent computes without lowering itself, keeps the graph on the PyTorch engine, and the reason is
-reported (``Graph.engine_reason``). The program is kept (``rcotorch.engine.memo``) until the graph's structure, its
-batch size or a block's parameters change; each call binds the blocks' current state tensors, runs, and
-writes the state back, so checkpoints, ``Graph.step`` and the analysis work as before and the two engines
-can take turns in one run. Signals can be recorded every step inside the engine (``advance(record=...)``).
+reported (``Graph.engine_reason``). The program is kept (``ProgramCache``, keyed as ``rcotorch.engine.memo``
+keys) until the graph's structure, its batch size or a block's parameters change; each call binds the blocks'
+current state tensors (binding records, ``kernels.BindMode``), runs, and writes the state back, so
+checkpoints, ``Graph.step`` and the analysis work as before and the two engines can take turns in one run.
+Signals can be recorded every step inside the engine (``advance(record=...)``).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch
 
 from ..errors import ConfigError
 from . import kernels, memo
+from .kernels import BindMode
 
 Signal = tuple[str, str]
 _KIND_OF = {torch.float64: "F64", torch.bool: "BOOL", torch.int64: "I64"}
@@ -34,11 +36,12 @@ class NotLowerable(Exception):
 
 
 class _Bind:
-    """A tensor copied into consecutive slots before the steps and/or back after them."""
+    """A tensor copied into consecutive slots before the steps and/or back after them (``mode``), fetched by
+    ``get`` at every call: one binding record of the engine (RCO_BIND_FIELDS)."""
 
     __slots__ = ("get", "mode", "rows", "slot", "count", "what")
 
-    def __init__(self, get: Callable[[], torch.Tensor], mode: int, rows: int | None, slot: int, count: int,
+    def __init__(self, get: Callable[[], torch.Tensor], mode: BindMode, rows: int | None, slot: int, count: int,
                  what: str):
         self.get, self.mode, self.rows, self.slot, self.count, self.what = get, mode, rows, slot, count, what
 
@@ -83,7 +86,7 @@ class Builder:
         self.keep: list[torch.Tensor] = []            # derived parameters, held while the program lives
         self.signals = {(n, p): torch.zeros(batch, w, dtype=torch.float64)
                         for n, blk in graph.blocks.items() for p, w in blk.outputs.items()}
-        self.sig_slot = {sig: self._bind(lambda t=t: t, 2, None, t.shape[1], f"signal {sig}")
+        self.sig_slot = {sig: self._bind(lambda t=t: t, BindMode.STORE, None, t.shape[1], f"signal {sig}")
                          for sig, t in self.signals.items()}
 
     # --- for blocks ---------------------------------------------------------------------------------------
@@ -109,7 +112,7 @@ class Builder:
             self.refuse(f"state '{name}' has shape {tuple(t.shape)}, not reset for batch {self.batch}")
         self._written(name)
         count = rows * t[0, 0].numel() if rows is not None else t[0].numel()
-        return self._bind(lambda blk=blk, name=name: _state_tensor(blk, name), 3, rows, count,
+        return self._bind(lambda blk=blk, name=name: _state_tensor(blk, name), BindMode.LOAD_AND_STORE, rows, count,
                           f"block '{blk.name}' state '{name}'")
 
     def param(self, t: torch.Tensor, first_lane: bool = False) -> int:
@@ -122,7 +125,7 @@ class Builder:
             self.refuse(f"a parameter of dtype {t.dtype} (the native engine is float64)")
         t = t.contiguous()
         self.keep.append(t)
-        return self._bind(lambda t=t: t, 5 if first_lane else 1, None, t[0].numel(),
+        return self._bind(lambda t=t: t, BindMode.LOAD_FIRST_LANE if first_lane else BindMode.LOAD, None, t[0].numel(),
                           f"block '{self.block.name}' parameter")
 
     def shared(self, *tensors: torch.Tensor) -> int:
@@ -241,7 +244,7 @@ class Builder:
         prefix = "" if self._inner is None else self._inner[3]
         self.state_names.setdefault(self._top.name, set()).add(prefix + name)
 
-    def _bind(self, get, mode: int, rows: int | None, count: int, what: str) -> int:
+    def _bind(self, get, mode: BindMode, rows: int | None, count: int, what: str) -> int:
         slot = self.alloc(count)
         self.binds.append(_Bind(get, mode, rows, slot, count, what))
         return slot
@@ -363,9 +366,9 @@ class Program:
                 shared = t.shape[0] == 1 and self.batch > 1
                 layout = dict(MSTRIDE=0 if shared else per, INNER=max(per, 1), OSTRIDE=0)
             rec = dict(PTR=t.data_ptr(), KIND=kernels.KIND[_KIND_OF[t.dtype]], COUNT=bd.count, SLOT=bd.slot,
-                       MODE=bd.mode, **layout)
+                       MODE=int(bd.mode), **layout)
             rows += [rec[k] for k in fields]
-            if bd.mode & 2:
+            if bd.mode & BindMode.STORE:
                 written.append(t)
         table = torch.tensor(rows, dtype=torch.int64)
         self._last = (tensors, table, written)
@@ -401,7 +404,7 @@ def _param_places(graph, state_names: Mapping[str, set[str]]) -> list[tuple[dict
 
 
 def _unchanged(places: list[tuple[dict, tuple[str, ...], int]], key: tuple) -> bool:
-    """Whether the buffers at ``places`` are still the tensors of ``key`` (``memo._key``), unmodified, and no
+    """Whether the buffers at ``places`` are still the tensors of ``key`` (``memo.key``), unmodified, and no
     buffer was added or removed there."""
     i = 0
     for buffers, keys, count in places:
@@ -432,41 +435,82 @@ def _lower(graph) -> Program:
     return Program(graph, b)
 
 
+class ProgramCache:
+    """The lowered program of one graph, or why it has none, with what it stays valid for: lowering's one cache,
+    held by the graph (``Graph._program_cache``, declared there) and reached through ``program``, ``refilled``
+    and ``invalidate``.
+
+    An entry stands for the graph's structure (``_structure``: batch size, evaluation order, connections, the
+    blocks and hooks themselves) and for every parameter the program was made with: each buffer of the blocks
+    that the engine neither writes nor leaves unread (``Builder.state``, ``Builder.unread``), by identity and
+    PyTorch's version counter (``memo.key``). A buffer replaced (``set_markov`` with another shape,
+    ``Module.to``) or modified in place (``est.lam.fill_(0.99)``), a buffer added or removed, or a change of
+    structure (``Graph.reset`` to another batch size, another hook) lowers the graph again at the next ``get``.
+    ``refilled`` keeps the entry through a change that the program itself already reads (the estimator's
+    ``NativeCopy``, refilled in place). A refusal is kept likewise, as its reason. A copy of the graph
+    (``copy.deepcopy``) starts empty: its blocks are other objects, for which no entry is valid.
+    """
+
+    __slots__ = ("structure", "key", "outcome", "places")
+
+    def __init__(self) -> None:
+        self.invalidate()
+
+    def get(self, graph) -> Program:
+        """The graph's program, made again where the entry no longer stands for the graph; raises
+        ``NotLowerable`` (why it has none), a new one each time while nothing changed."""
+        if self.outcome is not None and self.structure == _structure(graph) and _unchanged(self.places, self.key):
+            if isinstance(self.outcome, NotLowerable):
+                raise NotLowerable(*self.outcome.args)
+            return self.outcome
+        try:
+            prog = _lower(graph)
+        except NotLowerable as e:
+            self._keep(graph, NotLowerable(*e.args), {})
+            raise
+        self._keep(graph, prog, prog.state_names)
+        return prog
+
+    def invalidate(self) -> None:
+        """Drop the entry: the next ``get`` lowers the graph again."""
+        self.structure = self.key = self.outcome = self.places = None
+
+    def refilled(self, *tensors: torch.Tensor) -> None:
+        """Keep the entry valid after ``tensors``, parameters it was made with, were changed in place together
+        with what the program itself reads of them (an estimator's beta and its ``NativeCopy``): their present
+        versions become the ones the entry stands for. Tensors it was not made with are ignored."""
+        if self.key is None:
+            return
+        ids = {id(t) for t in tensors}
+        self.key = tuple((t, t._version) if t is not None and id(t) in ids else (t, v) for t, v in self.key)
+
+    def _keep(self, graph, outcome: Program | NotLowerable, state_names: Mapping[str, set[str]]) -> None:
+        """Keep ``outcome`` (the program, or a refusal without its traceback) with what it stays valid for."""
+        places = _param_places(graph, state_names)
+        params = [buffers[k] for buffers, keys, _ in places for k in keys]
+        self.structure, self.key, self.outcome, self.places = _structure(graph), memo.key(params), outcome, places
+
+    def __deepcopy__(self, memo_) -> ProgramCache:
+        return ProgramCache()
+
+
 def program(graph) -> Program:
-    """The graph's program, kept until its structure or a parameter changes (a buffer modified in place or
-    replaced by another tensor); raises ``NotLowerable`` (why it has none). A refusal is kept likewise, as its
-    reason, and raised again as a new ``NotLowerable`` while nothing changed."""
-    entry = graph.__dict__.get("_lowered")
-    if entry is not None and entry[0] == _structure(graph) and _unchanged(entry[3], entry[1]):
-        if isinstance(entry[2], NotLowerable):
-            raise NotLowerable(*entry[2].args)
-        return entry[2]
-    try:
-        prog = _lower(graph)
-    except NotLowerable as e:
-        _keep(graph, NotLowerable(*e.args), {})
-        raise
-    _keep(graph, prog, prog.state_names)
-    return prog
-
-
-def _keep(graph, outcome: Program | NotLowerable, state_names: Mapping[str, set[str]]) -> None:
-    """Keep ``outcome`` (the program, or a refusal without its traceback) with what it stays valid for."""
-    places = _param_places(graph, state_names)
-    params = [buffers[k] for buffers, keys, _ in places for k in keys]
-    graph.__dict__["_lowered"] = (_structure(graph), memo._key(params), outcome, places)
+    """The graph's program, kept (``ProgramCache``) until its structure or a parameter changes (a buffer modified
+    in place or replaced by another tensor); raises ``NotLowerable`` (why it has none). A refusal is kept
+    likewise, as its reason, and raised again as a new ``NotLowerable`` while nothing changed."""
+    return graph._program_cache.get(graph)
 
 
 def refilled(graph, *tensors: torch.Tensor) -> None:
     """Keep the graph's program valid after ``tensors``, parameters it was made with, were changed in place
     together with what the program itself reads of them (an estimator's Markov parameters and the engine's copy,
-    ``RCOEstimator.set_markov(..., members=)``): their new versions become the ones the program stands for."""
-    entry = graph.__dict__.get("_lowered")
-    if entry is None:
-        return
-    ids = {id(t) for t in tensors}
-    key = tuple((t, t._version) if t is not None and id(t) in ids else (t, v) for t, v in entry[1])
-    graph.__dict__["_lowered"] = (entry[0], key, entry[2], entry[3])
+    ``RCOEstimator.set_markov(..., members=)``, or the tracking hook's refill): ``ProgramCache.refilled``."""
+    graph._program_cache.refilled(*tensors)
+
+
+def invalidate(graph) -> None:
+    """Drop the graph's program (``ProgramCache.invalidate``): the next call lowers the graph again."""
+    graph._program_cache.invalidate()
 
 
 def unsupported(graph) -> str | None:

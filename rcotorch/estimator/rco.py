@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -68,6 +68,18 @@ _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_
 # ``regressors_over`` filters phi by this many Markov parameters or more as one depthwise convolution over time
 # (one product and sum per parameter below it)
 CONVOLVE_NU = 32
+
+
+class NativeCopy(NamedTuple):
+    """The estimator's copy of beta that its lowered native program reads (``RCOEstimator._native_beta``), held in
+    ``RCOEstimator._native_copy`` so that new Markov parameters reach a program already made: ``set_markov`` and
+    ``_refill_from_system`` write them into ``ring`` in place, and the graph's program cache is told
+    (``rcotorch.engine.lowering.refilled``) or made to lower again (``kernels.bump`` of ``beta``)."""
+
+    #: (Bp, n_z * n_u, 2W): beta reversed in time with first_delay zeros after it, twice over (``_laid_out``).
+    ring: torch.Tensor
+    #: The buffer beta that ``ring`` was laid out from: it stands for that tensor only.
+    beta: torch.Tensor
 
 
 def _markov_convolution(phi: torch.Tensor, beta: torch.Tensor, B: int) -> torch.Tensor:
@@ -242,6 +254,8 @@ class RCOEstimator(Block):
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
         self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
         self.window = 0  # first_delay + nu once Markov parameters are set
+        # the copy of beta that a lowered native program reads, once the estimator was lowered (``NativeCopy``)
+        self._native_copy: NativeCopy | None = None
         if markov is not None:
             self.set_markov(markov, first_delay)
         # Per-member state (created by reset).
@@ -319,13 +333,9 @@ class RCOEstimator(Block):
         return self.parameter_map.param_of_entry
 
     @property
-    def rep(self) -> torch.Tensor:
-        """The first entry of Theta holding each parameter, (n_theta,) (``parameter_map.entry_of_param``)."""
-        return self.parameter_map.entry_of_param
-
-    @property
     def free_idx(self) -> torch.Tensor:
-        """The entry of Theta that each parameter is read from, (n_theta,) (``parameter_map.entry_of_param``)."""
+        """The entry of Theta (flattened) that each parameter is read from, the first entry holding it, (n_theta,)
+        (``parameter_map.entry_of_param``; the native engine's table REP): eta = Theta[free_idx]."""
         return self.parameter_map.entry_of_param
 
     @property
@@ -577,23 +587,23 @@ class RCOEstimator(Block):
         self.window = first_delay + beta.shape[1]
         if dt is not None:
             self.markov_dt = dt
-        lowered = self.__dict__.get("_native_beta_ring")     # (what a lowered program reads, what it was made of)
-        if lowered is not None:
+        native = self._native_copy
+        if native is not None:
             ring = self._laid_out(self.beta, 2)
-            if same and ring.shape == lowered[0].shape and ring.device == lowered[0].device:
-                lowered[0].copy_(ring)
+            if same and ring.shape == native.ring.shape and ring.device == native.ring.device:
+                native.ring.copy_(ring)
             else:                           # other sizes: the program, which holds the old beta, is made again
-                kernels.bump(*lowered[1])
+                kernels.bump(native.beta)
         return False
 
     def _lowered_ring(self) -> torch.Tensor | None:
-        """The lowered program's copy of beta (``_native_beta``) where it is made of the present beta, one set per
-        member, else None."""
-        lowered = self.__dict__.get("_native_beta_ring")
-        if lowered is None or lowered[1][0] is not self.beta or lowered[0].shape[0] != self.beta.shape[0] or \
+        """The lowered program's copy of beta (``_native_copy.ring``) where it is made of the present beta, one set
+        per member, else None."""
+        native = self._native_copy
+        if native is None or native.beta is not self.beta or native.ring.shape[0] != self.beta.shape[0] or \
                 self.beta.shape[0] != self.theta.shape[0]:
             return None
-        return lowered[0]
+        return native.ring
 
     def _refill_members(self, idx: torch.Tensor, beta: torch.Tensor) -> bool:
         """Write the Markov parameters of the members ``idx`` into beta and, where a lowered program
@@ -618,8 +628,9 @@ class RCOEstimator(Block):
             return None
         nu, pm, d = self.nu, self.n_z * self.n_u, self.first_delay
         width = ring.shape[-1]                              # copies of W = d + nu: nu reversed, then d zeros
-        targets = [(self.beta, 0, nu * pm, pm, 1, 1, 0),
-                   (ring, nu - 1, pm * width, -1, width, width // (d + nu), d + nu)]
+        targets = [kernels.MarkovTarget(self.beta, offset=0, row_stride=nu * pm, step_stride=pm, entry_stride=1),
+                   kernels.MarkovTarget(ring, offset=nu - 1, row_stride=pm * width, step_stride=-1, entry_stride=width,
+                                        copies=width // (d + nu), copy_stride=d + nu)]
         return kernels.lti_markov(A, B, C, D, d, nu, targets, rows=idx, stable=stable)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -1108,16 +1119,16 @@ class RCOEstimator(Block):
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         fields["IDENT"] = int(self.param_of.tolist() == list(range(self.n_u * self.n_phi)))  # entry i is parameter i
         fields.update(phi_src=[flat[j] for j in self._gather.tolist()], param_of=self.param_of.tolist(),
-                      rep=self.rep.tolist())
+                      rep=self.free_idx.tolist())
         b.emit("RCO_OUT", port="u", **fields)
         b.emit("RCO_UPD", **fields)
 
     def _native_beta(self) -> torch.Tensor:
-        """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, which
-        ``set_markov`` refills while its shape stays, so that the lowered program runs on with the new
-        parameters (a Markov refresh between two calls of the engine)."""
+        """beta as the native engine reads it, ``_beta_padded`` twice over (Bp, n_z * n_u, 2W): one tensor, kept
+        as ``_native_copy`` (``NativeCopy``), which ``set_markov`` refills while its shape stays, so that the
+        lowered program runs on with the new parameters (a Markov refresh between two calls of the engine)."""
         ring = self._laid_out(self.beta, 2)
-        self.__dict__["_native_beta_ring"] = (ring, (self.beta,))
+        self._native_copy = NativeCopy(ring, self.beta)
         return ring
 
     def _lower_regressors(self, b) -> int:

@@ -392,6 +392,7 @@ class ResetOnChange:
             return False
         est.theta_closed.index_copy_(0, idx, est.theta[idx])
         if in_place:
+            # beta and the program's copy of it (NativeCopy) were written together: the program stays valid
             lowering.refilled(self.graph, est.beta, est.theta_closed)   # theta_closed: not read by it
         return True
 

@@ -235,8 +235,9 @@ typedef struct {
     int lam_one;
 } rls_t;
 
-/* Where lti_markov writes: value t of entry e (= r m + k) of the member in row `row` goes to base[row srow + t st +
- * e se + c coff] for each copy c < copies (st may be negative: a layout reversed in time). */
+/* Where lti_markov writes (rcotorch.engine.kernels.MarkovTarget): value t of entry e (= r m + k) of the member in
+ * row `row` goes to base[row srow + t st + e se + c coff] for each copy c < copies (st may be negative: a layout
+ * reversed in time). */
 typedef struct {
     double *base;
     int64_t srow, st, se, copies, coff;
@@ -898,6 +899,9 @@ static int add_layouts(PyObject *m) {
     return PyModule_AddObject(m, "TABLES", t);
 }
 
+/* The bits of a binding's MODE, each a constant of the module (BIND_LOAD, ...). */
+#define X_BIND_BIT_ADD(name, bit) PyModule_AddIntConstant(m, #name, name) ||
+
 PyMODINIT_FUNC PyInit__engine(void) {
     select_isa();
     PyObject *m = PyModule_Create(&MODULE);
@@ -915,7 +919,7 @@ PyMODINIT_FUNC PyInit__engine(void) {
         add_names(m, "OBSERVERS", OBSERVER_NAMES, OBS_N) || PyModule_AddObject(m, "LANE_WIDTHS", lanes) ||
         PyModule_AddIntConstant(m, "HEADER", HDR) || PyModule_AddIntConstant(m, "OPENMP", openmp) ||
         PyModule_AddIntConstant(m, "NOISE_AHEAD", NOISE_AHEAD) ||
-        PyModule_AddIntConstant(m, "NOISE_SLOTS", NOISE_SLOTS) ||
+        PyModule_AddIntConstant(m, "NOISE_SLOTS", NOISE_SLOTS) || RCO_BIND_MODE_BITS(X_BIND_BIT_ADD)
         PyModule_AddStringConstant(m, "ISA", ISA_NAME)) {
         Py_DECREF(m);
         return NULL;

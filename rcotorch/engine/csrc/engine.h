@@ -93,10 +93,14 @@ enum { FP_GAIN = 0, FP_OFFSET = 1 };
     X(ESTIMATOR, PARAM_OF, NENT, ESTIMATOR_ENTRY)                                                            \
     X(ESTIMATOR, REP, NTHETA, ESTIMATOR_PARAM)
 
-/* A tensor copied into slots before the steps (mode 1), back after them (mode 2), or both (3); with mode 4 and
- * MSTRIDE 0 (shared by the members), into the first lane alone (the operations read only that lane of it).
- * Element c of member b lives at ptr + (b * MSTRIDE + (c / INNER) * OSTRIDE + c % INNER) elements. */
+/* A tensor bound to COUNT slots from SLOT. Element c of member b lives at ptr + (b * MSTRIDE + (c / INNER) *
+ * OSTRIDE + c % INNER) elements. MODE, bits of BIND_MODE_BITS: copied into the slots before the steps
+ * (BIND_LOAD), back after them (BIND_STORE), or both; with BIND_FIRST_LANE and MSTRIDE 0 (shared by the
+ * members), loaded into the first lane alone (the operations read only that lane of it). Lowering writes four
+ * combinations (rcotorch.engine.kernels.BindMode): LOAD 1 (a parameter), STORE 2 (a signal), LOAD_AND_STORE 3
+ * (a state buffer) and LOAD_FIRST_LANE 5 (a parameter read in the first lane where shared). */
 #define RCO_BIND_FIELDS(X) X(PTR) X(KIND) X(MSTRIDE) X(INNER) X(OSTRIDE) X(COUNT) X(SLOT) X(MODE)
+#define RCO_BIND_MODE_BITS(X) X(BIND_LOAD, 1) X(BIND_STORE, 2) X(BIND_FIRST_LANE, 4)
 #define RCO_KINDS(X) X(F64) X(BOOL) X(I64)
 
 /* Observers, run after every step: SUMSQ adds sum_c x_c^2 to acc[b]; RECORD writes x into a time-major
@@ -143,6 +147,8 @@ enum { RCO_CALL_FIELDS(X_CALL) CALL_N };
 enum { RCO_ESTIMATOR_FIELDS(X_E) E_N };
 #define X_BF(name) BF_##name,
 enum { RCO_BIND_FIELDS(X_BF) BF_N };
+#define X_BIND_BIT(name, bit) name = bit,
+enum { RCO_BIND_MODE_BITS(X_BIND_BIT) };
 #define X_KIND(name) KIND_##name,
 enum { RCO_KINDS(X_KIND) KIND_N };
 #define X_OF(name) OF_##name,

@@ -879,9 +879,10 @@ static inline void FN(rco_upd)(const int64_t *restrict e, double *restrict S, co
 static inline void FN(load)(const int64_t *bd, int64_t nbind, double *S, int64_t b0, int64_t nb) {
     for (int64_t q = 0; q < nbind; q++) {
         const int64_t *x = bd + q * BF_N;
-        if (!(x[BF_MODE] & 1)) continue;
+        if (!(x[BF_MODE] & BIND_LOAD)) continue;
         const int64_t inner = x[BF_INNER], count = x[BF_COUNT], kind = x[BF_KIND];
-        if ((x[BF_MODE] & 4) && x[BF_MSTRIDE] == 0 && kind == KIND_F64) { /* shared, read in the first lane */
+        /* shared, and read in the first lane only: loaded into that lane */
+        if ((x[BF_MODE] & BIND_FIRST_LANE) && x[BF_MSTRIDE] == 0 && kind == KIND_F64) {
             const double *p = (const double *)(intptr_t)x[BF_PTR];
             double *d = SL(x[BF_SLOT]);
             for (int64_t c = 0; c < count; c++) d[c * VL] = p[c];
@@ -910,7 +911,7 @@ static inline void FN(load)(const int64_t *bd, int64_t nbind, double *S, int64_t
 static inline void FN(store)(const int64_t *bd, int64_t nbind, const double *S, int64_t b0, int64_t nb) {
     for (int64_t q = 0; q < nbind; q++) {
         const int64_t *x = bd + q * BF_N;
-        if (!(x[BF_MODE] & 2)) continue;
+        if (!(x[BF_MODE] & BIND_STORE)) continue;
         const int64_t inner = x[BF_INNER], count = x[BF_COUNT], kind = x[BF_KIND], ms = x[BF_MSTRIDE];
         const double *d = SL(x[BF_SLOT]);
         for (int64_t c = 0, o = b0 * ms; c < count; o += x[BF_OSTRIDE]) {
