@@ -37,8 +37,10 @@ MAX_LINES = 8
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
 INITIAL_STYLE = dict(color="tab:gray", ls=":", lw=1.3, zorder=1.5)     # below the estimates
-CHANGE_STYLE = dict(color="tab:brown", ls="-.", lw=1.2, zorder=5)       # a change of the truth
-DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.2, zorder=5)       # a change detector's first alarm
+CHANGE_STYLE = dict(color="tab:brown", ls="-.", lw=1.2, zorder=4)       # a change of the truth
+# a change detector's first alarm: above the change's line (they are often close) and the truth, marked by a
+# triangle at the top of the panel so that an alarm just after the change still shows
+DETECTION_STYLE = dict(color="tab:red", ls=":", lw=1.6, zorder=7)
 LATE_MOVE = 0.2        # the estimates settled early: they move less than this share of their range in the 2nd half
 EARLY = 0.02           # on a linear time axis, the first share of the run whose values may fall outside the y-axis
 FOCUS = 3.0            # ... where the paths' whole range is more than this many times their range after it
@@ -416,6 +418,8 @@ def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
                 x = first[b] * (dt or 1.0)
                 if t[0] <= x <= t[-1]:
                     ax.axvline(x, **DETECTION_STYLE, label=None if labelled else f"{name}: first alarm")
+                    ax.plot([x], [1.0], marker="v", ms=7, color=DETECTION_STYLE["color"], clip_on=False,
+                            transform=ax.get_xaxis_transform(), zorder=8)
                     labelled = True
 
 
