@@ -529,33 +529,10 @@ _JOINS = ("concatenate", "hstack", "vstack", "column_stack", "stack")
 
 
 @functools.cache
-def _numpy_stand_in() -> types.ModuleType:
-    """What a compiled function sees as ``np``: NumPy itself, except that its joins (``_JOINS``) also take a
-    list of arrays, as NumPy does and numba's own do not (they take a tuple): ``np.concatenate([a, b], axis=1)``,
-    the way a feature function or a batch-form map is usually written, compiles. The list's arrays are 1-d or
-    2-d (``stack``: 1-d); a tuple goes to numba's own. Its reductions (``_REDUCTIONS``) take an axis and
-    keepdims (``_reduction``)."""
+def _joins():
+    """The compiled joins of ``_numpy_stand_in``: ``join1`` (1-d arrays end to end), ``join2`` (2-d arrays along
+    axis 0 or 1) and ``rows`` (1-d arrays of one length as the rows of a 2-d array), each taking a list."""
     numba = _numba()
-    from numba import types as nt
-    from numba.extending import overload
-
-    mod = types.ModuleType("numpy")
-    mod.__dict__.update({k: v for k, v in vars(np).items() if not k.startswith("__")})
-
-    def concatenate(arrays, axis=0):
-        pass
-
-    def hstack(arrays):
-        pass
-
-    def vstack(arrays):
-        pass
-
-    def column_stack(arrays):
-        pass
-
-    def stack(arrays, axis=0):
-        pass
 
     def join2(arrays, ax):                # 2-d arrays along axis ax (0 or 1)
         n = 0
@@ -591,7 +568,38 @@ def _numpy_stand_in() -> types.ModuleType:
             out[i, :] = a
         return out
 
-    join1, join2, rows = (numba.njit(f) for f in (join1, join2, rows))
+    return tuple(numba.njit(f) for f in (join1, join2, rows))
+
+
+@functools.cache
+def _numpy_stand_in() -> types.ModuleType:
+    """What a compiled function sees as ``np``: NumPy itself, except that its joins (``_JOINS``) also take a
+    list of arrays, as NumPy does and numba's own do not (they take a tuple): ``np.concatenate([a, b], axis=1)``,
+    the way a feature function or a batch-form map is usually written, compiles. The list's arrays are 1-d or
+    2-d (``stack``: 1-d); a tuple goes to numba's own. Its reductions (``_REDUCTIONS``) take an axis and
+    keepdims (``_reduction``)."""
+    from numba import types as nt
+    from numba.extending import overload
+
+    mod = types.ModuleType("numpy")
+    mod.__dict__.update({k: v for k, v in vars(np).items() if not k.startswith("__")})
+
+    def concatenate(arrays, axis=0):
+        pass
+
+    def hstack(arrays):
+        pass
+
+    def vstack(arrays):
+        pass
+
+    def column_stack(arrays):
+        pass
+
+    def stack(arrays, axis=0):
+        pass
+
+    join1, join2, rows = _joins()
 
     def listed(arrays, ndim=None):
         return isinstance(arrays, nt.List) and isinstance(arrays.dtype, nt.Array) and \
