@@ -555,13 +555,6 @@ class _ScoreSums:
         return torch.where(members.reshape(-1, 1, 1), lagged, self.gram)
 
 
-def _tsum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """sum over steps t and rows z of a[:, t, z, i] b[:, t, z, j]: a (B, C, n_z, n), b (B, C, n_z, m) -> (B, n, m),
-    one batched product."""
-    B = a.shape[0]
-    return a.reshape(B, -1, a.shape[-1]).mT @ b.reshape(B, -1, b.shape[-1])
-
-
 def _tsum_rows(psi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """The scores of each step, s(t) = Psi(t) v(t): psi (B, C, n_z, n), v (B, C, n_z) -> (C, B, n)."""
     return (psi * v.unsqueeze(-1)).sum(2).transpose(0, 1)
