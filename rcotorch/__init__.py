@@ -7,8 +7,6 @@ The public names are imported on first use (``rcotorch.Graph`` imports ``rcotorc
 from __future__ import annotations
 
 import importlib
-import sys
-import types
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
@@ -26,7 +24,7 @@ _DEFINED_IN = {
     "MarkovRefresh": "blocks.nonlinear", "Nonlinear": "blocks.nonlinear",
     "RefinementResult": "run.refine", "refine": "run.refine",
     "Requirement": "run.scenario", "Scenario": "run.scenario",
-    "derive_markov": "refinement", "refinement": "refinement",
+    "derive_markov": "wiring", "refinement": "wiring",
     "rls_update": "engine.rls",
     "Recorded": "blocks.sources", "WhiteNoise": "blocks.sources",
     "ChangeDetector": "estimator.tracking", "ResetOnChange": "estimator.tracking", "at_step": "estimator.tracking",
@@ -69,19 +67,6 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
-class _Package(types.ModuleType):
-    """The package's module type. Python binds a submodule, once imported, as an attribute of its package; the
-    functions ``refine`` and ``refinement`` share their names with the submodules that define them, and keep
-    those names: binding such a submodule binds its function instead."""
-
-    def __setattr__(self, name: str, value) -> None:
-        if isinstance(value, types.ModuleType) and _DEFINED_IN.get(name) == name:
-            value = getattr(value, name)
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
-
 if TYPE_CHECKING:
     from . import models
     from .blocks import features
@@ -97,6 +82,6 @@ if TYPE_CHECKING:
     from .estimator.rco import RCOEstimator
     from .estimator.tracking import ChangeDetector, ResetOnChange, at_step, closed_loop_markov
     from .graph import Graph
-    from .refinement import derive_markov, refinement
     from .run.refine import RefinementResult, refine
     from .verdict.validation import Validation, validate
+    from .wiring import derive_markov, refinement

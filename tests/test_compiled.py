@@ -13,7 +13,7 @@ import torch
 import rcotorch as rt
 from rcotorch.engine import compiled
 from rcotorch.engine.lowering import NotLowerable
-from rcotorch.refinement import refinement
+from rcotorch.wiring import refinement
 
 pytest.importorskip("numba")
 

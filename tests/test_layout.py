@@ -12,7 +12,7 @@ ROOT = Path(rcotorch.__file__).resolve().parent
 # The packages and top-level modules, by level: each imports only from levels below its own (the package's
 # __init__, which re-exports the public names lazily, is the facade above them all).
 LAYERS = {"errors": 0, "system": 0, "engine": 1, "data": 1, "blocks": 2, "verdict": 2, "estimator": 3, "graph": 3,
-          "models": 3, "refinement": 4, "run": 5, "__main__": 6,
+          "models": 3, "wiring": 4, "run": 5, "__main__": 6,
           "scenario": 6}   # scenario: the import path of earlier releases, an alias of run.scenario
 CORE_BELOW_MODELS = {"blocks.base", "blocks.lti", "blocks.nonlinear", "blocks.sources", "blocks.features",
                      "estimator.rco", "estimator.parameter_map", "estimator.transfer", "graph", "engine.kernels",

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import rcotorch as rt
-from rcotorch.refinement import holdoff_samples
+from rcotorch.wiring import holdoff_samples
 
 BETA = 0.7
 

@@ -68,13 +68,14 @@ def test_every_public_name_resolves_to_its_definition():
         rt.Grahp  # noqa: B018
 
 
-def test_refine_and_refinement_stay_functions_when_their_modules_are_imported():
-    """``rcotorch.run.refine`` and ``rcotorch.refinement`` are functions named like the modules that define them."""
-    code = ("import rcotorch.run.refine, rcotorch.refinement, rcotorch as rt, inspect; "
+def test_refine_and_refinement_are_functions_beside_the_modules_that_define_them():
+    """``rt.refine`` and ``rt.refinement`` are functions; their modules (``rcotorch.run.refine``,
+    ``rcotorch.wiring``) have other names, so importing them changes nothing, and the package is a plain module."""
+    code = ("import rcotorch.run.refine, rcotorch.wiring, rcotorch as rt, inspect, types; "
             "print(inspect.isfunction(rt.refine), inspect.isfunction(rt.refinement), "
-            "rt.refine.__module__, rt.refinement.__module__)")
+            "rt.refine.__module__, rt.refinement.__module__, type(rt) is types.ModuleType)")
     _, out = _imported(code=code)
-    assert out.split() == ["True", "True", "rcotorch.run.refine", "rcotorch.refinement"]
+    assert out.split() == ["True", "True", "rcotorch.run.refine", "rcotorch.wiring", "True"]
 
 
 def test_a_user_scenario_that_imports_torch_at_the_top_lists_and_shows(tmp_path):
