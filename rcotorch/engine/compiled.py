@@ -32,7 +32,6 @@ import contextlib
 import dis
 import functools
 import hashlib
-import importlib.util
 import os
 import re
 import stat
@@ -49,6 +48,7 @@ import numpy as np
 import torch
 
 from ..errors import DimensionError
+from . import codegen
 from .lowering import NotLowerable
 
 PROBES = 64                 # test inputs the compiled function must reproduce
@@ -270,15 +270,19 @@ def compile_map(fn, n_in: int, n_out: int, form: str = "batch") -> Compiled:
         if found is not None:
             return found
         if form == "components":
-            args = ", ".join(f"a{i}" for i in range(n_in))
-            source = f"def call({args}):\n    return f(({args},))\n"
-            reference: dict = {"f": fn}
-            exec(compile(source, f"<rcotorch call of {describe(fn)}>", "exec"), reference)
             return _keep(key, fn, fp, lambda: _compile_member(
-                lambda module: _numba().njit(module.call), _batch_reference(reference["call"], n_out), n_in, n_out,
-                source, fn, None if fp is None else f"components map {n_in} {n_out} {fp}"))
+                lambda module: _numba().njit(_spread(module.f)), _batch_reference(_spread(fn), n_out), n_in, n_out,
+                "", fn, None if fp is None else f"components map {n_in} {n_out} {fp}"))
         return _keep(key, fn, fp, lambda: _compile(lambda module: _jit(fn), fn, n_in, n_out, "", {},
                                                    None if fp is None else f"map {n_in} {n_out} {fp}"))
+
+
+def _spread(f):
+    """``f``, a function of one tuple (a components-form map), as a function of the tuple's entries: as the
+    member-by-member wrapper calls it, one float per component."""
+    def call(*xs):
+        return f(xs)
+    return call
 
 
 def _batch_reference(member, n_out: int):
@@ -293,9 +297,9 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
                  form: str = "batch") -> Compiled:
     """The discrete map of a ``Nonlinear`` block compiled, x(k+1) from [x(k), inputs(k)] stacked in one
     (B, n + m) array: ``f`` itself (discrete), or ``substeps`` RK4 steps of dt / substeps with the inputs held,
-    as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals, so numba
-    builds the inputs' dict as the PyTorch engine passes it. Raises ``NotLowerable`` (why it cannot be
-    compiled)."""
+    as ``Nonlinear.step_map`` computes it. Written as Python source with the port names as literals
+    (``codegen.step_source``), so numba builds the inputs' dict as the PyTorch engine passes it. Raises
+    ``NotLowerable`` (why it cannot be compiled)."""
     if form == "components":
         return _compile_member_step(f, n, inputs, dt, continuous, substeps)
     key = ("step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
@@ -303,51 +307,29 @@ def compile_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
         found, fp = _lookup(key, f)
         if found is not None:
             return found
-        ins, _ = _ports_literal("xu", inputs, n)
-        if continuous:
-            h = float(dt) / int(substeps)
-            body = (f"    x = xu[:, :{n}]\n    ins = {ins}\n    for _ in range({int(substeps)}):\n"
-                    f"        k1 = f(x, ins)\n        k2 = f(x + {0.5 * h!r} * k1, ins)\n"
-                    f"        k3 = f(x + {0.5 * h!r} * k2, ins)\n        k4 = f(x + {h!r} * k3, ins)\n"
-                    f"        x = x + {h / 6.0!r} * (k1 + 2.0 * k2 + 2.0 * k3 + k4)\n    return x\n")
-        else:
-            body = f"    return f(xu[:, :{n}], {ins})\n"
-        source = "def step(xu):\n" + body
-        reference: dict = {"f": f}                 # the same source calling f itself: what is checked against
-        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
-        return _keep(key, f, fp, lambda: _compile(lambda module: _numba().njit(module.step), reference["step"],
+        source = codegen.step_source(n, inputs, dt, continuous, substeps)
+        # the same source calling f itself: what the compiled code is checked against
+        reference = codegen.define(source, "step", {"f": f}, f"step of {describe(f)}")
+        return _keep(key, f, fp, lambda: _compile(lambda module: _numba().njit(module.step), reference,
                                                   n + sum(inputs.values()), n, source, {"f": _jit(f)},
                                                   None if fp is None else f"step {fp}"))
-
-
-def _ports_literal(array: str, ports: dict[str, int], start: int) -> tuple[str, int]:
-    """Source of the dict of ports that a batch-form function takes, each the columns of ``array`` from
-    ``start`` on, in order; and the column after the last. An entry of another type makes numba keep the dict a
-    compile-time literal (no dict made per call)."""
-    cols = []
-    for port, width in ports.items():
-        cols.append(f"{port!r}: {array}[:, {start}:{start + width}]")
-        start += width
-    return "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}", start
 
 
 def compile_features(fn, ports: dict[str, int], width: int) -> Compiled:
     """An estimator's feature function compiled: ``fn`` takes the dict of its ports, each (B, w), and returns
     the (B, width) feature signals; compiled, it takes the ports stacked in one (B, sum w) array, in the order of
     ``ports``, and is called once per chunk of members. Written as Python source with the port names as
-    literals, as ``compile_step`` does, so numba builds the dict as the PyTorch engine passes it. Raises
-    ``NotLowerable`` (why it cannot be compiled)."""
+    literals (``codegen.features_source``), as ``compile_step`` does, so numba builds the dict as the PyTorch
+    engine passes it. Raises ``NotLowerable`` (why it cannot be compiled)."""
     key = ("features", id(fn), tuple(ports.items()), int(width))
     with _lock:
         found, fp = _lookup(key, fn)
         if found is not None:
             return found
-        ins, start = _ports_literal("s", ports, 0)
-        source = f"def features(s):\n    return f({ins})\n"
-        reference: dict = {"f": fn}
-        exec(compile(source, f"<rcotorch features of {describe(fn)}>", "exec"), reference)
+        source, start = codegen.features_source(ports)
+        reference = codegen.define(source, "features", {"f": fn}, f"features of {describe(fn)}")
         return _keep(key, fn, fp, lambda: _compile(lambda module: _numba().njit(module.features),
-                                                   reference["features"], start, width, source, {"f": _jit(fn)},
+                                                   reference, start, width, source, {"f": _jit(fn)},
                                                    None if fp is None else f"features {ports} {width} {fp}",
                                                    ("array",)))
 
@@ -355,41 +337,18 @@ def compile_features(fn, ports: dict[str, int], width: int) -> Compiled:
 def _compile_member_step(f, n: int, inputs: dict[str, int], dt: float, continuous: bool,
                          substeps: int) -> Compiled:
     """``compile_step`` for a components-form ``f``: one member at a time, the state and the inputs as tuples
-    of floats, the RK4 stages written out component by component, so that no array is made in a step."""
+    of floats, the RK4 stages written out component by component (``codegen.member_step_source``), so that no
+    array is made in a step."""
     key = ("member step", id(f), n, tuple(inputs.items()), float(dt), bool(continuous), int(substeps))
     with _lock:
         found, fp = _lookup(key, f)
         if found is not None:
             return found
         m = sum(inputs.values())
-        xs = [f"x{i}" for i in range(n)]
-        cols, start = [], 0
-        for port, width in inputs.items():
-            cols.append(f"{port!r}: ({''.join(f'u{start + j}, ' for j in range(width))})")
-            start += width
-        ins = "{" + ", ".join(cols + ["'_rcotorch_literal': 0"]) + "}"
-        args = ", ".join(xs + [f"u{j}" for j in range(m)])
-        state = lambda xv: "(" + "".join(f"{v}, " for v in xv) + ")"          # noqa: E731
-        lines = [f"def step({args}):", f"    ins = {ins}"]
-        if continuous:
-            h = float(dt) / int(substeps)
-            stage = lambda k, c: [f"{x} + {c!r} * item({k}, {i})" for i, x in enumerate(xs)]  # noqa: E731
-            lines += [f"    for _ in range({int(substeps)}):",
-                      f"        k1 = f({state(xs)}, ins)",
-                      f"        k2 = f({state(stage('k1', 0.5 * h))}, ins)",
-                      f"        k3 = f({state(stage('k2', 0.5 * h))}, ins)",
-                      f"        k4 = f({state(stage('k3', h))}, ins)"]
-            lines += [f"        {x} = {x} + {h / 6.0!r} * (item(k1, {i}) + 2.0 * item(k2, {i}) + 2.0 * item(k3, {i})"
-                      f" + item(k4, {i}))" for i, x in enumerate(xs)]
-            lines.append(f"    return {state(xs)}")
-        else:
-            lines.append(f"    r = f({state(xs)}, ins)")
-            lines.append(f"    return ({''.join(f'item(r, {i}), ' for i in range(n))})")
-        source = "\n".join(lines) + "\n"
-        reference: dict = {"f": f, "item": _item}
-        exec(compile(source, f"<rcotorch step of {describe(f)}>", "exec"), reference)
+        source = codegen.member_step_source(n, inputs, dt, continuous, substeps)
+        reference = codegen.define(source, "step", {"f": f, "item": _item}, f"step of {describe(f)}")
         return _keep(key, f, fp, lambda: _compile_member(lambda module: _numba().njit(module.step),
-                                                         _batch_reference(reference["step"], n), n + m, n, source, f,
+                                                         _batch_reference(reference, n), n + m, n, source, f,
                                                          None if fp is None else f"member step {fp}"))
 
 
@@ -438,9 +397,10 @@ def _jit(f):
 
 def _compile_member(entry, reference, n_in: int, n_out: int, source: str, f, key: str | None) -> Compiled:
     """``_compile`` of the member-by-member wrapper of a components-form ``f``, bound as ``f`` (and ``item``) in
-    ``source``: first ``f`` with the lists it returns built as tuples (``_returning_tuples``; its disk cache key
-    says so), then, when that fails to compile or to reproduce ``f`` (a function that also returns a list made
-    elsewhere, say), ``f`` as it is, whose ``NotLowerable`` is the one raised."""
+    the module of ``source`` that ``entry`` reads: first ``f`` with the lists it returns built as tuples
+    (``_returning_tuples``; its disk cache key says so), then, when that fails to compile or to reproduce ``f`` (a
+    function that also returns a list made elsewhere, say), ``f`` as it is, whose ``NotLowerable`` is the one
+    raised."""
     as_tuples = _returning_tuples(f)
     if as_tuples is not f:
         with contextlib.suppress(NotLowerable):
@@ -519,7 +479,7 @@ def _torch_stand_in() -> types.ModuleType:
     for name, f in extra.items():
         setattr(mod, name, numba.njit(f))
     for name, op in _TORCH_REDUCTIONS.items():
-        setattr(mod, name, _reduction(op, "input", "dim", "keepdim"))
+        setattr(mod, name, _reduction(op, "torch"))
     for name in ("pi", "e", "inf", "nan"):
         setattr(mod, name, float(getattr(torch, name)))
     return mod
@@ -641,7 +601,7 @@ def _numpy_stand_in() -> types.ModuleType:
     for name, f in zip(_JOINS, (concatenate, hstack, vstack, column_stack, stack)):
         setattr(mod, name, f)
     for name, op in _REDUCTIONS.items():
-        setattr(mod, name, _reduction(op, "a", "axis", "keepdims"))
+        setattr(mod, name, _reduction(op, "numpy"))
     return mod
 
 
@@ -685,19 +645,57 @@ def _reduce():
     return reduce
 
 
+def _stub(names: str):
+    """A new function that does nothing, with NumPy's reduction arguments (``a``, ``axis``, ``keepdims``) or
+    torch's (``input``, ``dim``, ``keepdim``): each reduction's own, for its own numba overload."""
+    if names == "torch":
+        def stub(input, dim=None, keepdim=False):              # noqa: A002  (torch's own argument names)
+            pass
+    else:
+        def stub(a, axis=None, keepdims=False):
+            pass
+    return stub
+
+
+def _overload_of(typer, names: str):
+    """The numba overload of a reduction stub: the implementation that ``typer`` gives for the argument types
+    (None: numba's own), compiled, taking its arguments by the stub's names (``_stub``)."""
+    njit = _numba().njit
+
+    if names == "torch":
+        def torch_overload(input, dim=None, keepdim=False):      # noqa: A002
+            f = typer(input, dim, keepdim)
+            if f is None:
+                return None
+            f = njit(f)
+
+            def impl(input, dim=None, keepdim=False):            # noqa: A002
+                return f(input, dim, keepdim)
+            return impl
+        return torch_overload
+
+    def numpy_overload(a, axis=None, keepdims=False):
+        f = typer(a, axis, keepdims)
+        if f is None:
+            return None
+        f = njit(f)
+
+        def impl(a, axis=None, keepdims=False):
+            return f(a, axis, keepdims)
+        return impl
+    return numpy_overload
+
+
 @functools.cache
-def _reduction(op: int, a: str, axis: str, keep: str):
-    """A reduction stub for compiled code, taking its arguments by the names NumPy's (``a``, ``axis``,
-    ``keepdims``) or torch's (``input``, ``dim``, ``keepdim``) functions give them, with its numba overload: an
-    axis and keepdims on float arrays of 1 or 2 dimensions (``_reduce``); otherwise numba's own."""
+def _reduction(op: int, names: str):
+    """A reduction stub for compiled code, taking its arguments by the names NumPy's (``names='numpy'``: ``a``,
+    ``axis``, ``keepdims``) or torch's (``'torch'``: ``input``, ``dim``, ``keepdim``) functions give them, with
+    its numba overload: an axis and keepdims on float arrays of 1 or 2 dimensions (``_reduce``); otherwise
+    numba's own."""
     from numba import types as nt
     from numba.extending import overload
 
-    names = {"a": a, "axis": axis, "keep": keep}
-    stub_source = "def stub({a}, {axis}=None, {keep}=False):\n    pass\n".format(**names)
-    space: dict = {}
-    exec(stub_source, space)
-    stub = space["stub"]
+    stub = _stub(names)
     plain = [np.sum, np.mean, np.max, np.min, np.prod][op]
     reduce = _reduce()
 
@@ -735,14 +733,7 @@ def _reduction(op: int, a: str, axis: str, keep: str):
             return r.reshape((1, r.shape[0])) if k == 0 else r.reshape((r.shape[0], 1))
         return keep2
 
-    impl_source = ("def make(typer):\n    def overload_({a}, {axis}=None, {keep}=False):\n"
-                   "        f = typer({a}, {axis}, {keep})\n        if f is None:\n            return None\n"
-                   "        f = njit(f)\n"
-                   "        def impl({a}, {axis}=None, {keep}=False):\n            return f({a}, {axis}, {keep})\n"
-                   "        return impl\n    return overload_\n").format(**names)
-    space = {"njit": _numba().njit}
-    exec(impl_source, space)
-    overload(stub, prefer_literal=True)(space["make"](typer))
+    overload(stub, prefer_literal=True)(_overload_of(typer, names))
     return stub
 
 
@@ -799,33 +790,6 @@ def _with_helpers_jitted(fn, depth: int = 4):
     return out
 
 
-# The C wrappers: x and y hold the chunk's lanes slot by slot, (n_in, vl) and (n_out, vl), row-major; ``jfn`` is
-# the function (or step) compiled by numba, bound in the module before the wrappers are compiled.
-_WRAPPERS = """
-SIG = types.void(types.CPointer(types.float64), types.CPointer(types.float64), types.int64)
-
-
-def scalar(x, y, vl):
-    for lane in range(vl):
-        y[lane] = jfn(x[lane])
-
-
-def array(x, y, vl):
-    r = jfn(numba.carray(x, (N_IN, vl)).T)
-    out = numba.carray(y, (N_OUT, vl))
-    for j in range(N_OUT):
-        for lane in range(vl):
-            out[j, lane] = r[lane, j]
-"""
-
-
-def _member_wrapper(n_in: int, n_out: int) -> str:
-    """The C wrapper of a components-form function: member by member, its inputs as separate floats."""
-    args = ", ".join(f"x[{i} * vl + lane]" for i in range(n_in))
-    body = "".join(f"        y[{j} * vl + lane] = item(r, {j})\n" for j in range(n_out))
-    return f"\n\ndef member(x, y, vl):\n    for lane in range(vl):\n        r = jfn({args})\n{body}"
-
-
 def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, key: str | None,
              forms: tuple[str, ...] | None = None) -> Compiled:
     """Compile the wrappers of a module holding ``source`` with ``bind`` as globals and ``jfn = entry(module)``;
@@ -839,8 +803,8 @@ def _compile(entry, reference, n_in: int, n_out: int, source: str, bind: dict, k
         raise NotLowerable("numba is not installed (pip install numba)") from None
     reasons: list[str] = []
     for cached in ((True, False) if key is not None and cache_folder() is not None else (False,)):
-        module = _module(source + (_member_wrapper(n_in, n_out) if forms == ("member",) else ""), n_in, n_out,
-                         key if cached else None)
+        module = codegen.module(source, n_in, n_out, forms == ("member",), key if cached else None,
+                                cache_folder() if cached else None)
         try:
             module.__dict__.update(bind)
             module.jfn = entry(module)
@@ -879,31 +843,6 @@ def cache_folder() -> Path | None:
     if st.st_uid != os.getuid() or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
         return None
     return folder
-
-
-def _module(source: str, n_in: int, n_out: int, key: str | None) -> types.ModuleType:
-    """A module of ``source`` and the wrappers: a file in the cache folder named by a hash of ``key`` and its
-    text when ``key`` is given (numba keeps what it compiles from it beside it), else in memory only."""
-    text = f"import numba\nfrom numba import types\n\nN_IN, N_OUT = {n_in}, {n_out}\n\n\n{source}{_WRAPPERS}"
-    if key is None:
-        module = types.ModuleType("rcotorch_compiled")
-        exec(compile(text, "<rcotorch compiled>", "exec"), module.__dict__)
-        return module
-    import numba
-    digest = hashlib.sha256("\n".join([key, text, numba.__version__, np.__version__, sys.version]).encode())
-    name = f"rcotorch_compiled_{digest.hexdigest()[:32]}"
-    if name in sys.modules:
-        return sys.modules[name]
-    path = cache_folder() / f"{name}.py"
-    if not path.exists() or path.read_text() != text:
-        tmp = path.with_name(f".{name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module              # numba finds the module by name when it loads its cached code
-    spec.loader.exec_module(module)
-    return module
 
 
 def _fingerprint(fn, depth: int = 4) -> str | None:

@@ -45,6 +45,7 @@ from ..blocks.base import DEFAULT_DTYPE
 from ..blocks.lti import LTI
 from ..blocks.nonlinear import Nonlinear
 from ..engine import kernels, lowering
+from ..engine.codegen import tuple_map
 from ..errors import ConfigError
 
 # The detector's state, per member.
@@ -53,6 +54,22 @@ N_STATE = 8
 # After the reference sums: the settings (start and end of the reference window, the phase after an alarm,
 # drift, threshold, 1 / window).
 N_SETTINGS = 6
+
+
+def _power(x, z, inv_window):
+    """s = (1 / n_z) sum_i z_i^2 / sigma_i^2, sigma_i^2 the reference sum of z_i^2 over the window (times
+    ``inv_window``, 1 / window), or 1 until the reference window has data."""
+    n_z = len(z)
+    s = x[PHASE] * 0.0
+    for i in range(n_z):
+        r = x[N_STATE + i]
+        s = s + z[i] * z[i] / (r * inv_window + (r <= 0.0) * 1.0) * (1.0 / n_z)
+    return s
+
+
+def _reference_sum(i, x, z, in_ref, keep):
+    """Channel i's reference sum after the step: z_i^2 added inside the reference window, 0 after an alarm."""
+    return (x[N_STATE + i] + in_ref * z[i] * z[i]) * keep
 
 
 @functools.cache
@@ -64,40 +81,30 @@ def _cusum(n_z: int) -> Callable:
     serves every setting. The phase counts the steps since the start (from 0) or since the last alarm (from
     warmup - holdoff, so that the reference window starts holdoff steps after it).
 
-    The sums over the channels are written out for this n_z and the new state is returned as one tuple: a list
-    built in compiled code would be allocated on the heap for every member and step."""
+    The new state is returned as one tuple, the reference sums made by ``tuple_map`` for this n_z: a list or
+    an array built in compiled code would be allocated on the heap for every member and step."""
+    sums = tuple_map(_reference_sum, n_z)
     p = N_STATE + n_z
-    ref = [f"x[{N_STATE + i}]" for i in range(n_z)]
-    lines = [
-        "def step(x, ins):",
-        "    z = ins['z']",
-        f"    phase, t = x[{PHASE}], x[{TIME}] + 1.0",
-        f"    start, armed_at, restart = x[{p}], x[{p + 1}], x[{p + 2}]",
-        f"    drift, threshold, inv_window = x[{p + 3}], x[{p + 4}], x[{p + 5}]",
-        "    in_ref = (phase >= start) * (phase < armed_at) * 1.0",
-        "    armed = (phase >= armed_at) * 1.0",
-        "    s = phase * 0.0",
-    ]
-    # sigma_i^2 is 1 until the reference window has data
-    lines += [f"    s = s + z[{i}] * z[{i}] / ({r} * inv_window + ({r} <= 0.0) * 1.0) * {1.0 / n_z!r}"
-              for i, r in enumerate(ref)]
-    lines += [
-        f"    g = x[{G}] + s - 1.0 - drift",
-        "    g = armed * g * (g > 0.0)",                                 # max(0, g) once armed, else 0
-        "    alarm = (g > threshold) * 1.0",
-        "    keep = 1.0 - alarm",
-        f"    first = x[{FIRST}]",
+
+    def step(x, ins):
+        z = ins["z"]
+        phase, t = x[PHASE], x[TIME] + 1.0
+        start, armed_at, restart = x[p], x[p + 1], x[p + 2]
+        drift, threshold, inv_window = x[p + 3], x[p + 4], x[p + 5]
+        in_ref = (phase >= start) * (phase < armed_at) * 1.0
+        armed = (phase >= armed_at) * 1.0
+        s = _power(x, z, inv_window)
+        g = x[G] + s - 1.0 - drift
+        g = armed * g * (g > 0.0)                       # max(0, g) once armed, else 0
+        alarm = (g > threshold) * 1.0
+        keep = 1.0 - alarm
+        first = x[FIRST]
         # the new state in its order: PHASE, TIME, POWER, G, FIRST, LAST, COUNT, PENDING, the sums, the settings
-        "    return ((phase + 1.0) * keep + restart * alarm, t, s, g * keep,",
-        f"            first + (first < 0.0) * alarm * (t - first), x[{LAST}] + alarm * (t - x[{LAST}]),",
-        f"            x[{COUNT}] + alarm, x[{PENDING}] + alarm,",
-    ]
-    lines += [f"            ({r} + in_ref * z[{i}] * z[{i}]) * keep," for i, r in enumerate(ref)]
-    lines.append("            " + " ".join(f"x[{p + j}]," for j in range(N_SETTINGS)) + ")")
-    namespace: dict = {"__name__": __name__}
-    exec(compile("\n".join(lines) + "\n", f"<rcotorch CUSUM of {n_z} channels>", "exec"), namespace)
-    step = namespace["step"]
-    step.__qualname__ = f"_cusum.step_{n_z}"
+        return ((phase + 1.0) * keep + restart * alarm, t, s, g * keep,
+                first + (first < 0.0) * alarm * (t - first), x[LAST] + alarm * (t - x[LAST]),
+                x[COUNT] + alarm, x[PENDING] + alarm) + sums(x, z, in_ref, keep) + \
+            (x[p], x[p + 1], x[p + 2], x[p + 3], x[p + 4], x[p + 5])
+
     return step
 
 
