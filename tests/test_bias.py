@@ -12,7 +12,8 @@ import torch
 from coverage_cases import coverage
 
 import rcotorch as rt
-from rcotorch.run.runner import Run, health_line
+from rcotorch.run.report import health_line
+from rcotorch.run.runner import Run
 from rcotorch.verdict import intervals as ci
 from rcotorch.verdict.health import STATUSES, Health
 

@@ -153,7 +153,7 @@ def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(tmp_
 # --- a full disk --------------------------------------------------------------------------------------------
 def test_a_full_disk_under_the_event_writer_exits_2_with_one_line(tmp_path, monkeypatch, capsys):
     """The TensorBoard event file meets the full disk first: one line on stderr, the traceback in the log."""
-    from rcotorch.run.monitor import EventFile
+    from rcotorch.run.event_file import EventFile
     out = tmp_path / "run"
     write = EventFile._write
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import at_step
 
+import rcotorch.run.limits
 import rcotorch.run.runner
 from rcotorch.errors import ConfigError, OutputError
 from rcotorch.run.cli import main
@@ -188,7 +189,7 @@ GIB = 2 ** 30
 
 
 def test_a_run_that_needs_more_memory_than_is_available_is_refused_before_it_starts(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(rcotorch.run.runner, "available_memory", lambda: (2 * GIB, "MemAvailable in /proc/meminfo"))
+    monkeypatch.setattr(rcotorch.run.limits, "available_memory", lambda: (2 * GIB, "MemAvailable in /proc/meminfo"))
     built = []
     monkeypatch.setattr(type(rcotorch.run.scenario.get("sdof-stiffness")), "build",
                         lambda *a: built.append(a) or pytest.fail("built"))
@@ -209,13 +210,13 @@ def test_the_available_memory_is_the_least_of_meminfo_the_cgroup_and_the_address
     cgroup = tmp_path / "cgroup"
     cgroup.mkdir()
     (cgroup / "memory.max").write_text("max\n")
-    assert rcotorch.run.runner.available_memory(meminfo, [cgroup], None) == (8 * GIB, f"MemAvailable in {meminfo}")
+    assert rcotorch.run.limits.available_memory(meminfo, [cgroup], None) == (8 * GIB, f"MemAvailable in {meminfo}")
     (cgroup / "memory.max").write_text(f"{3 * GIB}\n")
     (cgroup / "memory.current").write_text(f"{GIB}\n")
-    found = rcotorch.run.runner.available_memory(meminfo, [cgroup], None)
+    found = rcotorch.run.limits.available_memory(meminfo, [cgroup], None)
     assert found == (2 * GIB, f"the limit {cgroup / 'memory.max'} less what the cgroup uses")
-    assert rcotorch.run.runner.available_memory(meminfo, [cgroup], GIB // 2)[0] == GIB // 2
-    assert rcotorch.run.runner.available_memory(tmp_path / "none", [], None) is None
+    assert rcotorch.run.limits.available_memory(meminfo, [cgroup], GIB // 2)[0] == GIB // 2
+    assert rcotorch.run.limits.available_memory(tmp_path / "none", [], None) is None
 
 
 @pytest.mark.parametrize("raised", [MemoryError(), RuntimeError("std::bad_alloc")])

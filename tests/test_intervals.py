@@ -9,7 +9,8 @@ import scipy.stats
 import torch
 
 import rcotorch as rt
-from rcotorch.run.runner import Run, health_line
+from rcotorch.run.report import health_line
+from rcotorch.run.runner import Run
 from rcotorch.run.scenario import Requirement
 
 
@@ -181,7 +182,7 @@ def test_a_graph_run_resumed_inside_its_window_gives_the_same_intervals_and_chec
 def test_residuals_that_are_not_white_are_said_beside_the_verdict(tmp_path):
     """A continuous truth without noise leaves z = the discretization's mismatch, a colored signal: the
     whiteness test fails and the verdict line says so; a discrete truth with white noise passes."""
-    from rcotorch.run.runner import result_table
+    from rcotorch.run.report import result_table
 
     colored = Run("sdof-stiffness", steps=20000, out=tmp_path / "c")
     colored.advance(progress=False)
@@ -293,7 +294,7 @@ def test_the_replay_settles_for_the_frozen_loops_slowest_mode_and_the_intervals_
     the loop closed at each member's estimate, ZOH-discretized by scipy) and runs on past the run's end."""
     import scipy.signal
 
-    from rcotorch.run.runner import loop_settle
+    from rcotorch.run.end_checks import loop_settle
     g, G = _room(8)
     res = rt.refine(g, 1800, {"dG": lambda gr: -gr.role("estimator").theta[:, 0, 0]},
                     truth_history={"dG": [(0.0, 0.0), (36000.0, 20.0)]}, out=tmp_path / "room", progress=False,

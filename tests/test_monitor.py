@@ -21,7 +21,7 @@ from tensorboard.plugins.custom_scalar import layout_pb2
 from tensorboard.plugins.hparams import metadata as hp_metadata
 from tensorboard.util import tensor_util
 
-from rcotorch.run import monitor
+from rcotorch.run import event_file, monitor
 from rcotorch.run import sweep as sweeps
 from rcotorch.run.outputs import load_checkpoint
 from rcotorch.run.runner import Run
@@ -145,11 +145,11 @@ def test_each_estimate_is_sized_by_its_scenario_so_every_run_writes_the_same_tag
 
 
 def test_the_event_checksum_is_tensorboards_crc32c():
-    assert monitor.crc32c(b"123456789") == 0xE3069283                 # the CRC-32C check value
+    assert event_file.crc32c(b"123456789") == 0xE3069283                 # the CRC-32C check value
     rng = np.random.default_rng(0)
     for n in [*range(0, 40), 300, 1023, 1024, 1025, 1040, 2049, 100_000]:
         data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
-        assert monitor.masked_crc32c(data) == tensorboards_crc(data), n
+        assert event_file.masked_crc32c(data) == tensorboards_crc(data), n
 
 
 # --- a single run ------------------------------------------------------------------------------------------

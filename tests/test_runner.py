@@ -161,7 +161,7 @@ def test_a_checkpoint_of_another_format_is_refused_with_exit_2(tmp_path, capsys)
 def test_a_refined_model_that_fits_worse_than_the_initial_one_is_warned_about():
     """fit_warnings: a member whose refined fit is more than FIT_WORSE points below the initial model's, on the
     last window or on held-out data, is named with both fits; one within the margin or better is not."""
-    from rcotorch.run.runner import FIT_WORSE, fit_warnings
+    from rcotorch.run.end_checks import FIT_WORSE, fit_warnings
     met = {"fit_percent": torch.tensor([90.0, 50.0, 76.0]), "fit_percent_initial": torch.tensor([80.0, 70.0, 80.0])}
     assert 80.0 - 76.0 < FIT_WORSE
     (w,) = fit_warnings(met)
@@ -248,7 +248,7 @@ def test_no_p0_warning_for_members_that_forget(tmp_path):
 def test_a_batchs_estimates_are_summarized_over_the_members_that_did_not_diverge():
     """A diverged member's parameters are frozen where it failed (here 1e300): the printed range and median
     half-width leave it out and say so; the metrics are printed as they are."""
-    from rcotorch.run.runner import result_table
+    from rcotorch.run.report import result_table
     summary = {"batch": 3, "estimates": {"k": [1.0, 1e300, 2.0]}, "truth": {"k": 1.5},
                "metrics": {"z_rms_final": [0.1, 1e10, 0.2]}, "requirements": {}, "warnings": [],
                "intervals": {"k": {"level": 0.95, "lower": [0.9, 1e300, 1.8], "upper": [1.1, 1e300, 2.2]}},
@@ -285,7 +285,7 @@ def test_the_log_interval_is_a_multiple_or_divisor_of_the_checks_and_a_change_ge
     """Logs fall on health-check steps or checks on logs; the interval is never shorter than the budget asks
     (at most MAX_LOGS logs); a run that follows a change logs at least MIN_LOGS_CHANGE times where its steps
     and the member-value budget allow."""
-    from rcotorch.run.runner import LOG_BUDGET, MAX_LOGS, MIN_LOGS_CHANGE, default_log_every
+    from rcotorch.run.cadence import LOG_BUDGET, MAX_LOGS, MIN_LOGS_CHANGE, default_log_every
     from rcotorch.verdict.health import check_every
     check = check_every(steps)
     for follows in (False, True):

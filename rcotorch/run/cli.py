@@ -493,8 +493,8 @@ def _in_shards(session: Session, what: str, job: Callable):
 
 
 def cmd_sweep(args, session: Session) -> int:
+    from .limits import run_device as _device
     from .outputs import OutputFolder
-    from .runner import _device
     from .sweep import Sweep, run_sweep
     sweep = Sweep.from_file(args.config)
     _device(args.device or "cpu")
@@ -587,8 +587,8 @@ def _tune_resume(argv: list[str], out: Path) -> str:
 
 
 def cmd_tune(args, session: Session) -> int:
+    from .limits import run_device as _device
     from .outputs import OutputFolder
-    from .runner import _device
     from .tune import run_tune
     tuning = _tuning(args)
     _device(args.device or "cpu")

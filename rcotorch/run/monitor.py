@@ -61,6 +61,9 @@ import numpy as np
 import torch
 
 from ..estimator.tracking import ChangeDetector, change_report
+from .event_file import EventFile
+from .event_file import crc32c as crc32c  # re-exported from its home, event_file
+from .event_file import masked_crc32c as masked_crc32c  # likewise
 from .scenario import truth_at
 
 TRACED_DEFAULT = 8     # members traced individually when the run does not choose them (the figures draw them)
@@ -484,115 +487,6 @@ class Monitor:
             w.close()
 
 
-def _scalar_event(values: Iterable[tuple[str, float]]):
-    from tensorboard.compat.proto.event_pb2 import Event
-    from tensorboard.compat.proto.summary_pb2 import Summary
-    return Event(summary=Summary(value=[Summary.Value(tag=tag, simple_value=value) for tag, value in values]))
-
-
-def _growing_edges(start: float = 1e-12, stop: float = 1e20, factor: float = 1.1) -> list[float]:
-    """start, start * factor, ... below stop."""
-    edges, v = [], start
-    while v < stop:
-        edges.append(v)
-        v *= factor
-    return edges
-
-
-class EventFile:
-    """A TensorBoard event file written in the calling thread: each event framed as a record (its length, the
-    masked CRC-32C of the length, the serialized event, the masked CRC-32C of the event) into a buffered file,
-    flushed every ``FLUSH_S`` seconds and by ``flush`` and ``close``. Every run's events are written so (the run,
-    its siblings, a sweep's sessions): an event costs its serialization and checksum, with no writer thread to
-    hand it to. Summaries are made by TensorBoard's and PyTorch's summary functions (``add_summary``).
-
-    Args:
-        folder: the run's folder (made if missing).
-        purge_step: where a resumed run continues: TensorBoard drops this run's earlier events from that step.
-        start: the wall time of the file's first event (default now), which TensorBoard takes as the run's start
-            time and lists its runs by (``Monitor.start``).
-    """
-
-    FLUSH_S = 5.0
-    _count = 0
-
-    def __init__(self, folder: Path, purge_step: int | None = None, start: float | None = None):
-        import os
-        import socket
-
-        from tensorboard.compat.proto.event_pb2 import Event, SessionLog
-        folder.mkdir(parents=True, exist_ok=True)
-        EventFile._count += 1
-        self.path = folder / (f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}.{os.getpid()}."
-                              f"{EventFile._count:04d}")
-        self._file = open(self.path, "wb")      # open until close
-        self._flushed = time.monotonic()
-        self._write(Event(wall_time=time.time() if start is None else start, file_version="brain.Event:2"))
-        if purge_step is not None:
-            self._write(Event(wall_time=time.time(), step=purge_step, session_log=SessionLog(status=SessionLog.START)))
-        self.flush()
-
-    # The histograms' bin edges: TensorBoard's convention, +-1e-12 growing by 10% a bin up to 1e20, and 0.
-    default_bins = [-e for e in reversed(_growing_edges())] + [0.0] + _growing_edges()
-
-    def scalars(self, step: int, wall: float, values: Iterable[tuple[str, float]]) -> None:
-        """One event holding every (tag, value) pair at ``step`` and wall time ``wall``."""
-        event = _scalar_event(values)
-        event.step, event.wall_time = step, wall
-        self._write(event)
-
-    def add_event(self, event, step: int | None = None, wall: float | None = None) -> None:
-        """An event at ``step`` (none: the event's own) and wall time ``wall`` (none: now)."""
-        event.wall_time = time.time() if wall is None else wall
-        if step is not None:
-            event.step = int(step)
-        self._write(event)
-
-    def add_summary(self, summary, step: int | None = None, wall: float | None = None) -> None:
-        """A ``Summary`` protocol buffer as an event (``add_event``)."""
-        from tensorboard.compat.proto.event_pb2 import Event
-        self.add_event(Event(summary=summary), step, wall)
-
-    def add_scalar(self, tag: str, value: float, step: int, wall: float | None = None) -> None:
-        self.scalars(step, time.time() if wall is None else wall, [(tag, float(value))])
-
-    def add_text(self, tag: str, text: str, step: int, walltime: float | None = None) -> None:
-        """Markdown text under ``tag`` (TensorBoard's Text tab)."""
-        from torch.utils.tensorboard.summary import text as text_summary
-        self.add_summary(text_summary(tag, text), step, walltime)
-
-    def add_custom_scalars(self, layout: Mapping[str, Any]) -> None:
-        """The Custom Scalars layout ({section: {title: ['Multiline' or 'Margin', tags]}})."""
-        from torch.utils.tensorboard.summary import custom_scalars
-        self.add_summary(custom_scalars(layout))
-
-    def __enter__(self) -> EventFile:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def _write(self, event) -> None:
-        import struct
-        data = event.SerializeToString()
-        head = struct.pack("<Q", len(data))
-        self._file.write(head + struct.pack("<I", masked_crc32c(head)) + data + struct.pack("<I", masked_crc32c(data)))
-        if time.monotonic() - self._flushed > self.FLUSH_S:
-            self.flush()
-
-    def flush(self) -> None:
-        if not self._file.closed:
-            self._file.flush()
-            self._flushed = time.monotonic()
-
-    def close(self) -> None:
-        if not self._file.closed:
-            try:
-                self._file.flush()
-            finally:
-                self._file.close()
-
-
 def quantiles(values: np.ndarray, qs: Iterable[float]) -> list[float]:
     """Quantiles of a non-empty 1-d array, interpolated linearly between the order statistics around each
     (numpy's and torch's default method), which a partial sort (``np.partition``) finds without sorting the
@@ -853,18 +747,3 @@ def write_session(writer: EventFile, hparams: Mapping[str, Any], summary: Mappin
     writer.add_summary(start)
     writer.add_summary(Summary(value=[Summary.Value(tag=metadata.SESSION_END_INFO_TAG,
                                                                 metadata=meta)]))
-
-
-# --- the event files' checksum ---------------------------------------------------------------------------------
-# TensorBoard's event records are checksummed (their length and their bytes) with CRC-32C; google-crc32c computes it
-# in C.
-def crc32c(data: bytes) -> int:
-    """The CRC-32C (Castagnoli) of ``data``."""
-    import google_crc32c
-    return google_crc32c.value(data)
-
-
-def masked_crc32c(data: bytes) -> int:
-    """The masked CRC-32C of TensorBoard's record format."""
-    x = crc32c(data)
-    return (((x >> 15) | (x << 17)) + 0xA282EAD8) & 0xFFFFFFFF
