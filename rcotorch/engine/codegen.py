@@ -167,24 +167,8 @@ def features_source(ports: dict[str, int]) -> tuple[str, int]:
 def member_step_source(n: int, inputs: dict[str, int], dt: float, continuous: bool, substeps: int) -> str:
     """Source of ``step(x0, .., u0, ..)``: a components-form ``f``'s discrete map for one member, its state and
     inputs as floats, the RK4 stages written out component by component, so that no array is made in a step.
-
-    Parameters
-    ----------
-    n : int
-        The state's width.
-    inputs : dict[str, int]
-        Input port -> width, in the order of the arguments after the state.
-    dt : float
-        The step [s].
-    continuous : bool
-        Whether ``f`` is a vector field (RK4) rather than the map itself.
-    substeps : int
-        RK4 steps per step.
-
-    Returns
-    -------
-    str
-        The source; it calls the globals ``f`` and ``item`` (component i of what ``f`` returns).
+    The parameters are ``step_source``'s (``inputs`` in the order of the arguments after the state); the source
+    calls the globals ``f`` and ``item`` (component i of what ``f`` returns).
     """
     xs = [f"x{i}" for i in range(n)]
     cols, start = [], 0
