@@ -140,3 +140,30 @@ def test_every_package_imports_only_from_the_levels_below_it():
     upwards = sorted((m, d) for m, deps in graph.items() if part(m) != "rcotorch" for d in deps
                      if part(d) not in ("rcotorch", part(m)) and LAYERS[part(d)] >= LAYERS[part(m)])
     assert upwards == [], f"imports that do not go down a level: {upwards}"
+
+
+FUNCTION_LINES = 80      # the most lines of code a function may have (its docstring and blank lines not counted)
+
+
+def _code_lines(fn: ast.FunctionDef | ast.AsyncFunctionDef, source: list[str]) -> int:
+    """Lines of ``fn`` holding code: its span less blank lines, comment-only lines and its docstring."""
+    body = fn.body
+    doc = set()
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+            and isinstance(body[0].value.value, str):
+        doc = set(range(body[0].lineno, body[0].end_lineno + 1))
+    lines = range(fn.lineno, fn.end_lineno + 1)
+    return sum(1 for i in lines if i not in doc and source[i - 1].strip() and not source[i - 1].strip().startswith("#"))
+
+
+def test_no_function_is_longer_than_80_lines_of_code():
+    long = []
+    for path in sorted(ROOT.rglob("*.py")):
+        text = path.read_text()
+        source = text.splitlines()
+        for node in ast.walk(ast.parse(text, str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = _code_lines(node, source)
+                if n > FUNCTION_LINES:
+                    long.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, "functions over 80 lines of code:\n" + "\n".join(long)
