@@ -128,7 +128,9 @@ def test_an_ignored_signal_stays_ignored():
 
 def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(tmp_path, monkeypatch):
     cfg = tmp_path / "sweep.toml"
-    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 4000\nseeds = 2\n')   # on PyTorch: seconds
+    # On PyTorch about 4 s of steps; the signal, sent when the first shard's TensorBoard file appears, stops it
+    # within its first 10 steps (measured).
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 1500\nseeds = 2\n')
     out = tmp_path / "sweep"
     flags = ["--threads", "1", "--engine", "torch"]
     monkeypatch.setenv("RCOTORCH_ENGINE", "torch")         # main sets it from --engine; restored afterwards
@@ -139,7 +141,7 @@ def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(tmp_
     assert proc.returncode == 143, err
     resume = f"rcotorch sweep {cfg} --out {out} --resume"
     assert f"resume with: {resume}" in err and "Traceback" not in err
-    assert 0 < load_checkpoint(out / "shard_0000" / "checkpoint.pt")["graph"]["k"] < 4000
+    assert 0 < load_checkpoint(out / "shard_0000" / "checkpoint.pt")["graph"]["k"] < 1500
     assert _last_log_line(out).endswith(f"stopped by SIGTERM; resume with: {resume}")
     assert main(["sweep", str(cfg), "--out", str(out), "--resume", *flags]) == 0
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "full"), *flags]) == 0
