@@ -18,7 +18,7 @@ _DEFINED_IN = {
     "Recording": "data.recording", "load": "data.recording",
     "AlgebraicLoopError": "errors", "ConfigError": "errors", "DataError": "errors", "DimensionError": "errors",
     "OutputError": "errors", "PortError": "errors", "RcoError": "errors",
-    "RCOEstimator": "estimator.rco",
+    "RCOEstimator": "estimator.rco", "UpdateOptions": "estimator.rco",
     "Graph": "graph",
     "LTI": "blocks.lti", "zoh": "blocks.lti",
     "MarkovRefresh": "blocks.nonlinear", "Nonlinear": "blocks.nonlinear",
@@ -40,8 +40,8 @@ __all__ = [
     "AlgebraicLoopError", "at_step", "Block", "ChangeDetector", "closed_loop_markov", "ConfigError", "DataError",
     "datasets", "derive_markov", "DimensionError", "features", "Gain", "Graph", "load", "LTI", "MarkovRefresh",
     "models", "Nonlinear", "OutputError", "PortError", "RcoError", "RCOEstimator", "Recorded", "Recording", "refine",
-    "RefinementResult", "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "validate",
-    "Validation", "WhiteNoise", "zoh",
+    "RefinementResult", "refinement", "ResetOnChange", "rls_update", "rng", "StaticMap", "Sum", "UpdateOptions",
+    "validate", "Validation", "WhiteNoise", "zoh",
 ]
 
 
@@ -79,7 +79,7 @@ if TYPE_CHECKING:
     from .engine import rng
     from .engine.rls import rls_update
     from .errors import AlgebraicLoopError, ConfigError, DataError, DimensionError, OutputError, PortError, RcoError
-    from .estimator.rco import RCOEstimator
+    from .estimator.rco import RCOEstimator, UpdateOptions
     from .estimator.tracking import ChangeDetector, ResetOnChange, at_step, closed_loop_markov
     from .graph import Graph
     from .run.refine import RefinementResult, refine

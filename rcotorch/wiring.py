@@ -35,7 +35,7 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
 
     The known subsystem ``known`` has inputs ``w`` (exogenous) and ``u`` (from the unknown subsystem) and
     outputs ``y`` (measured) and the signals the unknown subsystem sees (e.g. ``y0``). The physical system is
-    one of:
+    given by exactly one of:
 
     * ``truth``: the true unknown subsystem (one input, one output port); the physical system is then a
       copy of ``known`` (block ``plant``) with ``truth`` in feedback from ``plant.y0`` to ``plant.u``;
@@ -55,13 +55,17 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     the known model's impulse response w -> y has decayed below 1e-3 of its peak for good, plus the
     estimator's window (``holdoff_samples``). A hold-off set on the data block itself is kept.
 
-    The blocks given become parts of the graph, their names and sample times as given: ``excitation``, the
-    physical block, ``truth`` and ``noise`` enter as they are where their user named them (``graph.blocks[
-    name]``); one that still has its class's default name (or a name another block of the graph has) enters as
-    a copy named for its part, ``excitation``, ``plant``, ``unknown`` or ``noise`` (reach it through
-    ``graph.blocks`` or ``graph.role``). The known model, the estimator, the data block and ``blocks``
-    enter as they are. Markov parameters derived here are set on the estimator with the known model's sample
-    time (the estimator's ``sample_time`` where it has no ``dt``), and a hold-off set here on the data block.
+    The blocks given become parts of the graph, their names and sample times as given, as the modules given
+    to a ``torch.nn`` container become its own: ``excitation``, the physical block, ``truth`` and ``noise``
+    enter as they are where their user named them (``graph.blocks[name]``); one that still has its class's
+    default name (or a name another block of the graph has) enters as a copy named for its part,
+    ``excitation``, ``plant``, ``unknown`` or ``noise`` (reach it through ``graph.blocks`` or ``graph.role``).
+    The known model, the estimator and ``blocks`` enter as they are: the estimator given is the one that runs,
+    so its ``theta``, ``P`` and ``to_control()`` give the refinement's results after a run. Where it has no
+    Markov parameters, those derived here are set on it (``set_markov``) with the known model's sample time
+    (the estimator's ``sample_time`` where it has no ``dt``). The data block enters as it is, unless a hold-off
+    is set here: then the graph plays a copy with that hold-off (``Recorded.with_holdoff``, which shares the
+    recorded samples), and the block given keeps its own (``graph.blocks['data'].holdoff`` is the one played).
 
     Parameters
     ----------
@@ -121,16 +125,18 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
     Raises
     ------
     ConfigError
-        If not exactly one of ``truth``, ``physical`` and ``data`` is given, the data block is not named
-        'data', a simulated system has no excitation, ``noise`` comes with recorded data, ``nu`` is missing,
-        or the known model does not give the unknown subsystem exactly one signal to see.
+        If not exactly one of ``truth``, ``physical`` and ``data`` is given (the message names those given), the
+        data block is not named 'data', a simulated system has no excitation, ``noise`` comes with recorded
+        data, ``nu`` is missing, or the known model does not give the unknown subsystem exactly one signal to
+        see.
     PortError
         If a port the figure wires is missing, ``truth`` or ``noise`` has other ports than it needs, or an
         estimator input has no source.
     """
-    given = [x is not None for x in (truth, physical, data)]
-    if sum(given) != 1:
-        raise ConfigError("refinement: give exactly one of truth=, physical= or data=")
+    given = [f"{k}=" for k, x in (("truth", truth), ("physical", physical), ("data", data)) if x is not None]
+    if len(given) != 1:
+        raise ConfigError("refinement: give exactly one of truth=, physical= or data= (the physical system); "
+                          + (f"got {' and '.join(given)}" if given else "got none of them"))
     for port in (exogenous, actuation):
         if port not in known.inputs:
             raise PortError(f"refinement: known model '{known.name}' has no input '{port}'; its inputs are "
@@ -153,9 +159,9 @@ def refinement(known: Block, identified: RCOEstimator, *, truth: Block | None = 
             raise ConfigError("refinement: pass nu= (how many Markov parameters) or give the estimator markov=")
         beta, d = derive_markov(known, actuation, measured, nu)
         identified.set_markov(beta, d, dt=known.dt)
-    if data is not None and hasattr(data, "gaps") and data.gaps(exogenous) and exogenous not in data.holdoff:
-        n = holdoff_samples(known, identified, exogenous, measured) if input_holdoff is None else input_holdoff
-        data.set_holdoff({exogenous: n})
+    if data is not None:
+        played = _played_data(data, known, identified, exogenous, measured, input_holdoff)
+        parts = [played if b is data else b for b in parts]
     if data is not None and "valid" in data.outputs:
         conns.append(("data.valid", f"{en}.valid"))
     roles = {"estimator": en, "known": kn, "physical": physical_name,
@@ -210,6 +216,21 @@ def _physical_system(known: Block, parts: list, conns: list, truth, physical, da
     conns += [(w_src, f"plant.{exogenous}"), (f"plant.{sees[0]}", f"{truth.name}.{t_in}"),
               (f"{truth.name}.{t_out}", f"plant.{actuation}")]
     return w_src, f"plant.{measured}", "plant"
+
+
+def _played_data(data: Block, known: Block, identified: RCOEstimator, exogenous: str, measured: str,
+                 input_holdoff: int | None) -> Block:
+    """The data block the graph plays: ``data`` itself, or, where its exogenous input misses samples and it has no
+    hold-off for it, a copy with the hold-off ``input_holdoff`` (by default ``holdoff_samples``); ``data`` keeps
+    its own hold-offs. The copy shares the recorded samples (``Recorded.with_holdoff``)."""
+    if not hasattr(data, "gaps") or not data.gaps(exogenous) or exogenous in data.holdoff:
+        return data
+    n = holdoff_samples(known, identified, exogenous, measured) if input_holdoff is None else input_holdoff
+    if hasattr(data, "with_holdoff"):
+        return data.with_holdoff({exogenous: n})
+    played = copy.deepcopy(data)
+    played.set_holdoff({exogenous: n})
+    return played
 
 
 def _measurement(noise, data, width: int, measured: str, y_src: str, parts: list, conns: list) -> str:

@@ -187,8 +187,8 @@ class Recorded(Block):
     holdoff : Mapping[str, int], optional
         Port -> samples; after a missing sample of that port, ``valid`` stays 0 for that many further
         samples. A missing *input* is held at its last value, so a model driven by it is wrong until its
-        response to the wrong input has decayed; ``rcotorch.refinement`` sets the input's hold-off from the
-        known model unless one is given here.
+        response to the wrong input has decayed; ``rcotorch.refinement`` plays a copy of the block with the
+        input's hold-off derived from the known model (``with_holdoff``) unless one is given here.
     resample : float, optional
         Play the recording back at this sample time [s] instead of its own: each output is interpolated
         linearly onto t = k * resample (k = 0, 1, ... while t lies within the recording), without an
@@ -312,6 +312,38 @@ class Recorded(Block):
             ok &= steps - last > n                                              # and the n samples after it
         dtype = self.values.dtype
         self.valid_mask = torch.as_tensor(ok[:, :, None], dtype=dtype, device=self.values.device)
+
+    def with_holdoff(self, holdoff: Mapping[str, int]) -> Recorded:
+        """A copy of this block with ``holdoff`` added to its hold-offs; this block keeps its own.
+
+        The copy shares the recorded samples (``values`` and which samples are valid) with this block, so the
+        recording is not held twice in memory; its hold-offs, its ``valid`` mask, its step counter and the
+        module's tables (buffers, ports) are its own, so stepping, moving or changing the copy leaves this
+        block as it is.
+
+        Parameters
+        ----------
+        holdoff : Mapping[str, int]
+            Output port -> samples, added to (or replacing for the same port) those this block has, as for
+            ``set_holdoff``.
+
+        Returns
+        -------
+        Recorded
+            The copy, under this block's name.
+
+        Raises
+        ------
+        ConfigError
+            If a port is not an output of the block, or a count is not a non-negative integer.
+        """
+        out = copy.copy(self)
+        for key, value in vars(self).items():      # the module's tables and the block's own dicts, unshared
+            if isinstance(value, (dict, set, list)):
+                object.__setattr__(out, key, copy.copy(value))
+        out.k = self.k.clone()
+        out.set_holdoff(holdoff)
+        return out
 
     def window(self, start: int, stop: int) -> Recorded:
         """A copy that plays samples [start, stop) of this block's recording, from its first step.

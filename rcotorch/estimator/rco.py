@@ -44,8 +44,9 @@ Robustness options (each off by default, each a scalar or one value per member):
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -68,6 +69,64 @@ _OPTION_BUFFER = {"r_delta": "rd_sqrt", "normalize": "norm_inv_s2", "p_max": "p_
 # ``regressors_over`` filters phi by this many Markov parameters or more as one depthwise convolution over time
 # (one product and sum per parameter below it)
 CONVOLVE_NU = 32
+
+
+@dataclasses.dataclass(frozen=True)
+class UpdateOptions:
+    """The settings of the estimator's update, one record, as torch's optimizers keep theirs in ``defaults``.
+
+    ``RCOEstimator(..., options=UpdateOptions(...))`` takes them instead of its keywords of the same names, and
+    keeps the settings it was made with as ``options`` (``set_options`` replaces the robustness options there
+    too). Each value is as given and checked by the estimator that takes it (a scalar, or one value per member
+    where the keyword allows it); ``dataclasses.replace(est.options, lam=0.99)`` is another record.
+
+    Parameters
+    ----------
+    p0 : float or array_like, optional
+        Initial covariance P(0) = p0 I, scalar or one per member (B,), finite and > 0.
+    lam : float or array_like, optional
+        Forgetting factor in (0, 1], scalar or one per member (B,).
+    R : float or array_like, optional
+        Weight on z, scalar or (n_z, n_z).
+    theta_bounds : tuple, optional
+        (low, high) box for theta, scalars or (n_u, n_phi); theta is projected onto it after each update.
+    r_delta : float or array_like, optional
+        Weight of the penalty on the parameters' change (>= 0), scalar or one per member; None: none.
+    normalize : float or array_like, optional
+        Scale s of normalized regressors (> 0), scalar or one per member; None: not normalized.
+    p_max : float or array_like, optional
+        Bound on trace(P) (> 0), scalar or one per member; None: unbounded.
+    """
+
+    p0: Any = 1.0
+    lam: Any = 1.0
+    R: Any = 1.0
+    theta_bounds: Any = None
+    r_delta: Any = None
+    normalize: Any = None
+    p_max: Any = None
+
+
+def _update_options(options: UpdateOptions | None, block: str, **keywords) -> UpdateOptions:
+    """The update's settings of an estimator: ``options`` where given, else a record of ``keywords``; a keyword
+    that differs from its default beside ``options`` is refused (ConfigError naming it)."""
+    if options is None:
+        return UpdateOptions(**keywords)
+    if not isinstance(options, UpdateOptions):
+        raise ConfigError(f"block '{block}': options must be an UpdateOptions, got {type(options).__name__}")
+    defaults = UpdateOptions()
+    given = [key for key, value in keywords.items() if not _is_default(value, getattr(defaults, key))]
+    if given:
+        raise ConfigError(f"block '{block}': {', '.join(given)} given both as keywords and in options=; give "
+                          "each setting once")
+    return options
+
+
+def _is_default(value, default) -> bool:
+    """Whether a keyword's value is its default (None, or the number 1.0 of p0, lam and R)."""
+    if default is None:
+        return value is None
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == default
 
 
 class NativeCopy(NamedTuple):
@@ -126,12 +185,9 @@ class RCOEstimator(Block):
         label pins the entry to zero, as does ``mask``). For example, with u_j = theta_j1 e_j + theta_j2 e_j^2
         at three nodes j, ``tie=[[0, 1], [0, 1], [0, 1]]`` makes the function the same at every node.
         ``theta_names`` lists one name per parameter.
-    p0 : float or array_like, optional
-        Initial covariance P(0) = p0 I, scalar or one per member (B,), finite and > 0.
-    lam : float or array_like, optional
-        Forgetting factor in (0, 1], scalar or one per member (B,).
-    R : float or array_like, optional
-        Weight on z, scalar or (n_z, n_z).
+    p0, lam, R : float or array_like, optional
+        The update's initial covariance P(0) = p0 I, forgetting factor and weight on z, as ``UpdateOptions``
+        describes them.
     theta0 : array_like, optional
         Initial theta (n_u, n_phi) or (B, n_u, n_phi); zero by default.
     markov : array_like, optional
@@ -169,13 +225,19 @@ class RCOEstimator(Block):
         The block's name.
     dtype : torch.dtype, optional
         Floating-point type (float64 by default).
+    options : UpdateOptions, optional
+        The update's settings (``p0``, ``lam``, ``R``, ``theta_bounds``, ``r_delta``, ``normalize``,
+        ``p_max``) as one record, given instead of those keywords. Either way the estimator keeps them as
+        ``options``; the update reads its buffers (``p0``, ``lam``, ...), which a ``ResetOnChange`` may change
+        while the graph runs.
 
     Raises
     ------
     ConfigError
         If a port is named 'z', 'u' or 'valid', ``nc`` is not a non-negative integer, phi is empty, a setting
-        is out of its range, ``tie`` does not hold integers, the mask leaves no free entry, or values that
-        tied entries share differ.
+        is out of its range, ``tie`` does not hold integers, the mask leaves no free entry, values that
+        tied entries share differ, or ``options`` comes with a keyword of its settings other than its
+        default.
     DimensionError
         If ``R``, ``mask``, ``tie``, a bound or ``markov`` has the wrong shape, or a feature returns the wrong
         shape.
@@ -195,7 +257,7 @@ class RCOEstimator(Block):
                  proper: bool = False, feed_u: bool = True, mask=None, tie=None, p0=1.0, lam=1.0, R=1.0,
                  theta0=None, markov=None, first_delay: int = 1, dt: float | None = None,
                  u_bounds=None, theta_bounds=None, r_delta=None, normalize=None, p_max=None,
-                 name: str = "identified", dtype=DEFAULT_DTYPE):
+                 name: str = "identified", dtype=DEFAULT_DTYPE, options: UpdateOptions | None = None):
         signals = dict(signals)
         if "z" in signals or "valid" in signals or "u" in signals:
             raise ConfigError(f"block '{name}': 'z', 'u' and 'valid' are reserved port names")
@@ -204,6 +266,8 @@ class RCOEstimator(Block):
         if not isinstance(nc, int) or nc < 0:
             raise ConfigError(f"block '{name}': nc must be a non-negative integer, got {nc!r}")
         self.ports, self.n_u, self.n_z, self.nc = signals, n_u, n_z, nc
+        self.options = _update_options(options, name, p0=p0, lam=lam, R=R, theta_bounds=theta_bounds,
+                                       r_delta=r_delta, normalize=normalize, p_max=p_max)
         # Regressor signals (name -> width, and one name per channel): the ports themselves, or the features.
         self.terms = as_terms(features) if features is not None else None   # vocabulary only: both engines
         self.features = self._feature_map(features) if features is not None else None
@@ -221,36 +285,15 @@ class RCOEstimator(Block):
         self.markov_dt: float | None = None      # the sample time of the Markov parameters (set_markov)
         # Theta = T eta: which parameter each entry of theta holds (mask and tie)
         self.parameter_map = ParameterMap(n_u, self.phi_names, mask, tie, block=name, dtype=dtype)
-        for key, value in (("p0", p0), ("lam", lam)):
-            t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
-            # one value, or one per member; NaN fails both comparisons
-            bad = first_bad(t, torch.isfinite(t) & (t > 0) if key == "p0" else (t > 0) & (t <= 1))
-            if bad is not None:
-                need = "must be finite and positive" if key == "p0" else "must lie in (0, 1]"
-                raise ConfigError(f"block '{name}': {key} {need}, got {bad}")
-            self.register_buffer(key, t)
-        self._options(dtype, r_delta=r_delta, normalize=normalize, p_max=p_max)
+        self._update_buffers(dtype)
         # the parameters' covariance the end of a run measured (``record_covariance``), None before
         self.covariance = None
-        R = torch.as_tensor(R, dtype=dtype, device="cpu")
-        R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
-        if tuple(R.shape) != (n_z, n_z):
-            raise DimensionError(f"block '{name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
-        self.register_buffer("r_inv", torch.linalg.inv(R))
-        self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
             torch.as_tensor(theta0, dtype=dtype, device="cpu").reshape(-1, n_u, self.n_phi)
         theta0 = theta0 * self.parameter_map.unpinned
         self.parameter_map.check_shared("theta0", theta0.reshape(theta0.shape[0], -1))
         self.register_buffer("theta0", theta0)
-        for key, value, width in (("u", u_bounds, n_u), ("theta", theta_bounds, n_u * self.n_phi)):
-            lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
-            if key == "theta" and lo is not None:
-                for what, t in (("theta_bounds low", lo), ("theta_bounds high", hi)):
-                    if t.dim():
-                        self.parameter_map.check_shared(what, t.reshape(1, -1))
-            self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
-            self.register_buffer(f"{key}_high", hi)
+        self._bound_buffers(u_bounds, dtype)
         self.register_buffer("beta", torch.zeros(1, 0, n_z, n_u, dtype=dtype))
         self.register_buffer("delays", torch.zeros(0, dtype=torch.int64))
         self.window = 0  # first_delay + nu once Markov parameters are set
@@ -274,6 +317,40 @@ class RCOEstimator(Block):
         self._phi_is_past = (not self.proper and tail.numel() == width
                              and bool(torch.equal(tail, torch.arange(width))))
 
+    def _update_buffers(self, dtype) -> None:
+        """The buffers the update reads from ``options``, each checked: p0 and lam ((1,) or one per member), the
+        robustness options (``_options``), and R's inverse with R itself (n_z, n_z)."""
+        o = self.options
+        for key, value in (("p0", o.p0), ("lam", o.lam)):
+            t = torch.as_tensor(value, dtype=dtype, device="cpu").reshape(-1)
+            # one value, or one per member; NaN fails both comparisons
+            bad = first_bad(t, torch.isfinite(t) & (t > 0) if key == "p0" else (t > 0) & (t <= 1))
+            if bad is not None:
+                need = "must be finite and positive" if key == "p0" else "must lie in (0, 1]"
+                raise ConfigError(f"block '{self.name}': {key} {need}, got {bad}")
+            self.register_buffer(key, t)
+        self._options(dtype, r_delta=o.r_delta, normalize=o.normalize, p_max=o.p_max)
+        n_z = self.n_z
+        R = torch.as_tensor(o.R, dtype=dtype, device="cpu")
+        R = R * torch.eye(n_z, dtype=dtype) if R.dim() == 0 else R
+        if tuple(R.shape) != (n_z, n_z):
+            raise DimensionError(f"block '{self.name}': R has shape {tuple(R.shape)}, expected ({n_z}, {n_z})")
+        self.register_buffer("r_inv", torch.linalg.inv(R))
+        self.register_buffer("r_weight", R.clone(), persistent=False)     # the cost's R (normalized regressors)
+
+    def _bound_buffers(self, u_bounds, dtype) -> None:
+        """The saturation of u (``u_bounds``) and the box of theta (``options.theta_bounds``) as buffers, (low,
+        high) each, None when unbounded; values that tied entries share must agree."""
+        for key, value, width in (("u", u_bounds, self.n_u), ("theta", self.options.theta_bounds,
+                                                              self.n_u * self.n_phi)):
+            lo, hi = self._bounds(value, f"{key}_bounds", width, dtype)
+            if key == "theta" and lo is not None:
+                for what, t in (("theta_bounds low", lo), ("theta_bounds high", hi)):
+                    if t.dim():
+                        self.parameter_map.check_shared(what, t.reshape(1, -1))
+            self.register_buffer(f"{key}_low", lo)    # None when unbounded (then not in state_dict)
+            self.register_buffer(f"{key}_high", hi)
+
     def _options(self, dtype, **values) -> None:
         """The robustness options as buffers (None when off): sqrt(r_delta), 1 / s^2 and p_max, each (1,) or (B,)."""
         for key, value in values.items():
@@ -289,7 +366,7 @@ class RCOEstimator(Block):
         """Switch robustness options on after construction, before the graph runs.
 
         Each value given replaces that option (checked as in the constructor: a scalar or one value per
-        member); None leaves it as it is.
+        member), in the buffers the update reads and in ``options``; None leaves it as it is.
 
         Parameters
         ----------
@@ -309,6 +386,7 @@ class RCOEstimator(Block):
         """
         given = {k: v for k, v in (("r_delta", r_delta), ("normalize", normalize), ("p_max", p_max)) if v is not None}
         self._options(self.theta0.dtype, **given)
+        self.options = dataclasses.replace(self.options, **given)
         for key in given:
             t = getattr(self, _OPTION_BUFFER[key])
             setattr(self, _OPTION_BUFFER[key], t.to(self.theta0.device))

@@ -492,6 +492,13 @@ def _in_shards(session: Session, what: str, job: Callable):
             return None
 
 
+def _shards_control(args, session: Session):
+    """How ``rcotorch sweep`` and ``rcotorch tune`` drive their shards: ``--overwrite``, ``--resume`` and the
+    output folder the session opened (the stop request is added once the signals are caught, ``_in_shards``)."""
+    from .control import RunControl
+    return RunControl(overwrite=args.overwrite, resume=args.resume, folder=session.folder)
+
+
 def cmd_sweep(args, session: Session) -> int:
     from .limits import run_device as _device
     from .outputs import OutputFolder
@@ -500,12 +507,13 @@ def cmd_sweep(args, session: Session) -> int:
     _device(args.device or "cpu")
     session.memory_drivers = lambda: _shards_memory_drivers(sweep)
     session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
+    control = _shards_control(args, session)
     session.resume = (f"rcotorch sweep {shlex.quote(args.config)} --out {shlex.quote(str(session.folder.path))} "
                       "--resume")
     session.log(f"`{session.command()}`")            # written once run_sweep opens the folder
     rows = _in_shards(session, "sweep", lambda stop: run_sweep(
         sweep, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
-        overwrite=args.overwrite, resume=args.resume, stop=stop, folder=session.folder))
+        control=dataclasses.replace(control, stop=stop)))
     if rows is None:
         return session.exit_stopped()
     session.log(f"finished: {len(rows)} members")
@@ -596,11 +604,12 @@ def cmd_tune(args, session: Session) -> int:
     name = getattr(tuning.scenario, "name", tuning.scenario)
     out = Path(args.out or Path("runs") / f"tune-{name}")
     session.folder = OutputFolder(out, "tune")
+    control = _shards_control(args, session)
     session.resume = _tune_resume(session.argv, out)
     session.log(f"`{session.command()}`")            # written once run_tune opens the folder
     result = _in_shards(session, "tuning", lambda stop: run_tune(
         tuning, out=out, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
-        overwrite=args.overwrite, resume=args.resume, stop=stop, folder=session.folder))
+        control=dataclasses.replace(control, stop=stop)))
     if result is None:
         return session.exit_stopped()
     session.log(f"finished: {len(result.candidates)} candidates, {result.members} members")

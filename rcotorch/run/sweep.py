@@ -36,12 +36,15 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import ConfigError, RcoError
 from . import scenario as scenarios
+
+if TYPE_CHECKING:
+    from .control import RunControl
 
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
@@ -396,25 +399,28 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
 
 def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: str | Path | None = None,
               ray_address: str | None = None, progress: bool = True, overwrite: bool = False,
-              resume: bool = False, stop=None, folder=None) -> list[dict[str, Any]]:
+              resume: bool = False, stop=None, folder=None, control: RunControl | None = None
+              ) -> list[dict[str, Any]]:
     """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``.
 
     ``out`` (default ``runs/sweep-SCENARIO``) must not hold results unless ``overwrite`` (replace the sweep
     there) or ``resume`` (continue the interrupted sweep there, with the same config). ``stop()`` is asked
     between steps (Ctrl-C, SIGTERM, SIGHUP): the running shard saves a checkpoint and ``Interrupted`` is raised.
     ``folder``: an ``OutputFolder`` for ``out`` made by the caller, who closes it (and may log into it
-    meanwhile). A sweep refused (an ``RcoError``) before its first shard wrote anything leaves the folder as it
-    found it."""
+    meanwhile). ``control``: these five (``progress``, ``overwrite``, ``resume``, ``stop``, ``folder``) as one
+    ``rcotorch.run.control.RunControl``, given instead of them. A sweep refused (an ``RcoError``) before its
+    first shard wrote anything leaves the folder as it found it."""
+    from .control import RunControl
     from .outputs import OutputFolder
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if overwrite and resume:
-        raise ConfigError("choose one of --overwrite and --resume")
+    control = RunControl.given(control, progress=progress, overwrite=overwrite, resume=resume, stop=stop,
+                               folder=folder)
     shards = sweep.shards()  # validates everything before any work
     sc = sweep.scenario
     steps = sweep.steps                  # None: each shard's scenario default for its settings
-    own = folder is None
-    folder = folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
+    own = control.folder is None
+    folder = control.folder or OutputFolder(out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     shard_out = [str(folder.path / f"shard_{s['index']:04d}") for s in shards]
     # Build every shard before running any, so a bad value fails before work starts.
     runs = [make_run(sweep.scenario, s, steps, sweep.dtype, device, o) for s, o in zip(shards, shard_out)]
@@ -423,20 +429,19 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
         if ray_address and not ray.is_initialized():
             _check_ray_address(ray_address)
     config = sweep.config()
-    folder.open("resume" if resume else "overwrite" if overwrite else "new",
-                info=None if resume else {"scenario": sweep.scenario_name, "config": config})
+    folder.open(control.mode, info=None if control.resume else {"scenario": sweep.scenario_name, "config": config})
     try:
-        if resume and folder.info.get("config") != config:
+        if control.resume and folder.info.get("config") != config:
             raise ConfigError(f"--resume: the sweep in {folder.path} was run with another config")
         out = folder.path
         for name in [Path(o).name for o in shard_out] + ["members"]:
             folder.add_child(name)
         folder.register()
         if backend == "local":
-            rows = _run_local(sweep, shards, steps, device, shard_out, runs, progress, stop)
+            rows = _run_local(sweep, shards, steps, device, shard_out, runs, control)
         else:
             del runs
-            rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, progress, stop)
+            rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, control)
         rows.sort(key=lambda r: r["member"])
         folder.check()
         write_table(rows, out)
@@ -453,17 +458,18 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     return rows
 
 
-def _run_local(sweep, shards, steps, device, shard_out, runs, progress, stop) -> list[dict[str, Any]]:
+def _run_local(sweep, shards, steps, device, shard_out, runs, control: RunControl) -> list[dict[str, Any]]:
+    """The shards run one after another in this process, each asking ``control.stop`` between its steps."""
     import time
     rows = []
     for s, o, r in zip(shards, shard_out, runs):
         label = f"shard {s['index'] + 1}/{len(shards)}"
-        if progress:
+        if control.progress:
             print(f"{label}: {len(s['members'])} members", flush=True)
         start = time.perf_counter()
         part = run_shard(sweep.scenario, s, steps, sweep.dtype, device, o, run=None if Path(o).exists() else r,
-                         stop=stop, desc=label if progress else None)
-        if progress:
+                         stop=control.stop, desc=label if control.progress else None)
+        if control.progress:
             print(f"{label}: done in {time.perf_counter() - start:.1f} s; {_health_counts(part)}", flush=True)
         rows += part
     return rows
@@ -477,10 +483,12 @@ def _health_counts(rows: list[dict[str, Any]]) -> str:
 RAY_TIMEOUT = 20.0   # seconds to wait for an existing Ray cluster to answer
 
 
-def _check_ray_address(address: str, timeout: float = RAY_TIMEOUT) -> None:
-    """Fail fast when nothing answers at a Ray cluster's address (Ray itself retries for minutes)."""
+def _check_ray_address(address: str, timeout: float | None = None) -> None:
+    """Fail fast when nothing answers at a Ray cluster's address (Ray itself retries for minutes): within
+    ``timeout`` seconds, by default ``RAY_TIMEOUT`` (read when called)."""
     if address in ("auto", "local"):
         return
+    timeout = RAY_TIMEOUT if timeout is None else timeout
     hostport = address.removeprefix("ray://")
     host, _, port = hostport.rpartition(":")
     if not host or not port.isdigit():
@@ -506,7 +514,9 @@ def _import_ray():
     return ray
 
 
-def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
+def _run_ray(sweep, shards, steps, device, shard_out, address, control: RunControl) -> list[dict[str, Any]]:
+    """The shards run as Ray tasks (a local instance, or the cluster at ``address``); ``control.stop`` is asked
+    while waiting for them, and cancels those still running."""
     ray = _import_ray()
     started = not ray.is_initialized()
     if started:
@@ -522,7 +532,7 @@ def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
         parts, pending, done = {}, list(refs), 0
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=0.5)
-            if stop is not None and stop():
+            if control.stop is not None and control.stop():
                 from .runner import Interrupted
                 for ref in pending:
                     ray.cancel(ref, force=True)
@@ -531,7 +541,7 @@ def _run_ray(sweep, shards, steps, device, shard_out, address, progress, stop):
                 s = refs[ref]
                 parts[s["index"]] = ray.get(ref)
                 done += 1
-                if progress:
+                if control.progress:
                     print(f"shard {s['index'] + 1}/{len(shards)} done ({done} of {len(shards)}): "
                           f"{_health_counts(parts[s['index']])}", flush=True)
         return [row for i in sorted(parts) for row in parts[i]]

@@ -51,7 +51,7 @@ import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -59,6 +59,9 @@ from ..errors import ConfigError, OutputError, RcoError
 from . import scenario as scenarios
 from .sweep import _TYPES as SWEEP_TYPES
 from .sweep import DISTRIBUTIONS, Sweep, _check_types, _is_int, run_sweep
+
+if TYPE_CHECKING:
+    from .control import RunControl
 
 METHODS = ("grid", "random", "tpe")
 CONFIG_KEYS = {"scenario", "steps", "method", "samples", "rounds", "seeds", "seed", "fixed", "space", "shard_size",
@@ -309,22 +312,26 @@ def _fmt(v) -> str:
 
 def run_tune(tuning: Tuning, out: str | Path | None = None, backend: str = "local", device: str = "cpu",
              ray_address: str | None = None, progress: bool = True, overwrite: bool = False, resume: bool = False,
-             stop=None, folder=None) -> TuneResult:
+             stop=None, folder=None, control: RunControl | None = None) -> TuneResult:
     """Run every candidate (as a sweep in ``out/runs``; tpe: a sweep per round in ``out/runs/round_NNN``) and
     write ``tune.csv``, ``best.toml`` and ``sensitivity.csv`` into ``out`` (default ``runs/tune-SCENARIO``).
     ``stop()`` is asked between steps (``rcotorch.run.runner.Interrupted`` is raised after the running shard saved
     its checkpoint); ``resume`` continues an interrupted tuning (a tpe search re-reads its finished rounds from
     their folders and tells their scores again); ``folder``: an ``OutputFolder`` for ``out`` made by the caller,
-    who closes it.
+    who closes it. ``control``: these five (``progress``, ``overwrite``, ``resume``, ``stop``, ``folder``) as one
+    ``rcotorch.run.control.RunControl``, given instead of them; each sweep of the tuning runs with a copy of it.
 
     A folder that holds a tuning is refused unless ``resume`` or ``overwrite`` is given (``OutputError``, naming
     both), as ``rcotorch tune`` refuses it without ``--resume`` or ``--overwrite``. A tuning stopped before any
     candidate ran (an error, Ctrl-C) leaves the folder as it found it, so that the next one starts there afresh;
     one stopped later is continued with ``resume``."""
-    if folder is not None:
-        return _run_tune(tuning, out, backend, device, ray_address, progress, overwrite, resume, stop, folder)
+    from .control import RunControl
+    control = RunControl.given(control, progress=progress, overwrite=overwrite, resume=resume, stop=stop,
+                               folder=folder)
+    if control.folder is not None:
+        return _run_tune(tuning, out, backend, device, ray_address, control)
     try:
-        return _run_tune(tuning, out, backend, device, ray_address, progress, overwrite, resume, stop, None)
+        return _run_tune(tuning, out, backend, device, ray_address, control)
     except OutputError as e:                    # said in this function's arguments, not the command line's
         raise type(e)(_in_arguments(str(e))) from e.__cause__
 
@@ -340,10 +347,10 @@ def _in_arguments(message: str) -> str:
     return message
 
 
-def _run_tune(tuning: Tuning, out, backend, device, ray_address, progress, overwrite, resume, stop,
-              folder) -> TuneResult:
-    """``run_tune``, its output folder's messages in the words of the command line."""
-    from .outputs import MANIFEST, OutputFolder, write_text
+def _run_tune(tuning: Tuning, out, backend, device, ray_address, control: RunControl) -> TuneResult:
+    """``run_tune``, its output folder's messages in the words of the command line. Each sweep runs with a copy
+    of ``control`` that opens its own folder and resumes only where that folder holds a sweep."""
+    from .outputs import OutputFolder, write_text
     tpe = tuning.method == "tpe"
     if tpe:
         first = tuning.ask([], 0)
@@ -354,18 +361,17 @@ def _run_tune(tuning: Tuning, out, backend, device, ray_address, progress, overw
     sweep.shards()                           # every candidate checked before the folder is touched
     name = sweep.scenario_name
     out = Path(out or Path("runs") / f"tune-{name}")
-    own = folder is None
-    folder = folder or OutputFolder(out, "tune")
-    folder.open("resume" if resume else "overwrite" if overwrite else "new",
-                info=None if resume else {"scenario": name, "config": {**_plain(tuning.__dict__), "scenario": name}})
+    own = control.folder is None
+    folder = control.folder or OutputFolder(out, "tune")
+    config = {**_plain(tuning.__dict__), "scenario": name}
+    folder.open(control.mode, info=None if control.resume else {"scenario": name, "config": config})
     searched = list(tuning.space)
     try:
         if not tpe:
             folder.add_child("runs")
             folder.register()
             rows = run_sweep(sweep, backend=backend, device=device, out=out / "runs", ray_address=ray_address,
-                             progress=progress, overwrite=overwrite,
-                             resume=resume and (out / "runs" / MANIFEST).is_file(), stop=stop)
+                             control=_sweep_control(control, out / "runs"))
         else:
             rows, history = [], []
             sizes = tuning.round_sizes()
@@ -375,11 +381,10 @@ def _run_tune(tuning: Tuning, out, backend, device, ray_address, progress, overw
                     where = out / "runs" / f"round_{r:03d}"
                     folder.add_child(str(where.relative_to(out)))
                     folder.register()
-                    if progress:
+                    if control.progress:
                         print(f"round {r + 1}/{len(sizes)}: {len(points)} candidates", flush=True)
                     part = run_sweep(tuning.sweep(points), backend=backend, device=device, out=where,
-                                     ray_address=ray_address, progress=progress, overwrite=overwrite,
-                                     resume=resume and (where / MANIFEST).is_file(), stop=stop)
+                                     ray_address=ray_address, control=_sweep_control(control, where))
                     seeds = len(part) // len(points)            # members: candidate-major, then seed
                     history += [(p, _candidate_score(part[i * seeds:(i + 1) * seeds]))
                                 for i, p in enumerate(points)]
@@ -404,6 +409,13 @@ def _run_tune(tuning: Tuning, out, backend, device, ray_address, progress, overw
         if own:
             folder.close()
     return TuneResult(candidates=candidates, sensitivity=sensitivity, best=best, out=out, members=len(rows))
+
+
+def _sweep_control(control: RunControl, where: Path) -> RunControl:
+    """How a sweep of a tuning into ``where`` runs: as the tuning, in a folder of its own, resumed only where
+    ``where`` holds a sweep (one never started there starts afresh)."""
+    from .outputs import MANIFEST
+    return dataclasses.replace(control, folder=None, resume=control.resume and (where / MANIFEST).is_file())
 
 
 @contextlib.contextmanager
