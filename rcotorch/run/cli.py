@@ -500,11 +500,11 @@ def _shards_control(args, session: Session):
 
 
 def cmd_sweep(args, session: Session) -> int:
-    from .limits import run_device as _device
+    from .limits import run_device
     from .outputs import OutputFolder
     from .sweep import Sweep, run_sweep
     sweep = Sweep.from_file(args.config)
-    _device(args.device or "cpu")
+    run_device(args.device or "cpu")
     session.memory_drivers = lambda: _shards_memory_drivers(sweep)
     session.folder = OutputFolder(args.out or Path("runs") / f"sweep-{sweep.scenario_name}", "sweep")
     control = _shards_control(args, session)
@@ -595,11 +595,11 @@ def _tune_resume(argv: list[str], out: Path) -> str:
 
 
 def cmd_tune(args, session: Session) -> int:
-    from .limits import run_device as _device
+    from .limits import run_device
     from .outputs import OutputFolder
     from .tune import run_tune
     tuning = _tuning(args)
-    _device(args.device or "cpu")
+    run_device(args.device or "cpu")
     session.memory_drivers = lambda: _shards_memory_drivers(tuning)
     name = getattr(tuning.scenario, "name", tuning.scenario)
     out = Path(args.out or Path("runs") / f"tune-{name}")

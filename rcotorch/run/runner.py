@@ -81,13 +81,12 @@ from .resume import (
 )
 
 # Names that users, tests and the other modules of rcotorch.run import from here; each is defined in the module
-# named above (``_device`` and ``_steps``: ``limits.run_device`` and ``limits.bounded_steps``).
+# named above.
 __all__ = ["CHECKPOINT", "CHECKPOINT_FORMAT", "DTYPES", "FIT_WORSE", "HISTORY_MAX", "HISTORY_MEMBERS", "LOG_BUDGET",
            "MAX_LOGS", "MAX_STEPS", "MIN_LOGS", "MIN_LOGS_CHANGE", "RESUME_CHANGEABLE", "Interrupted", "Run",
            "check_memory", "default_log_every", "default_out", "fit_warnings", "fits_worse", "health_line",
            "loop_settle", "member_truth", "memory_needed", "prefetch", "residual_metrics", "result_table",
            "steps_bound_reason", "to_json", "tuning_warnings"]
-_device, _steps = run_device, bounded_steps
 
 HISTORY_MAX = 1000
 HISTORY_MEMBERS = 8      # members kept in the history (the traced ones, which the figures draw)

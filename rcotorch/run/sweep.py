@@ -168,8 +168,8 @@ class Sweep:
         if self.steps is not None and self.steps < 1:
             raise ConfigError(f"sweep: steps must be positive, got {self.steps}")
         if self.steps is not None:
-            from .runner import _steps
-            _steps(self.steps, "sweep: steps")
+            from .limits import bounded_steps
+            bounded_steps(self.steps, "sweep: steps")
         if self.shard_size < 1:
             raise ConfigError(f"sweep: shard_size must be positive, got {self.shard_size}")
         draws = self._draws()
