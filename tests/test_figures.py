@@ -10,7 +10,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PathCollection
 from matplotlib.colors import to_rgba
 
-from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, pngs, run_figures, sweep_figures
+from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, png, pngs, run_figures, sweep_figures
 from rcotorch.run.runner import Run
 
 
@@ -230,6 +230,19 @@ def _titles_within_the_figure(fig) -> None:
         assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1, text.get_text()
 
 
+def _labels_within_the_png(fig) -> None:
+    """Every axis label and title of the figure as ``png`` draws it (what the files hold) lies inside the
+    figure: none is clipped at an edge."""
+    png(fig)
+    renderer = fig._get_renderer()
+    texts = [t for ax in fig.axes for t in (ax.xaxis.label, ax.yaxis.label, ax.title) if t.get_text()]
+    assert texts
+    for text in texts:
+        box = text.get_window_extent(renderer)
+        assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1, text.get_text()
+        assert fig.bbox.y0 <= box.y0 and box.y1 <= fig.bbox.y1, text.get_text()
+
+
 def _residual_line(fig) -> str:
     return fig.axes[0].get_title().replace("\n", " ")
 
@@ -280,7 +293,7 @@ def test_the_residual_and_output_figures_of_a_two_output_run_name_each_output(tm
     """shear-building-damage measures floors 2 and 3: the residuals are labelled by floor (not z[0], z[1]), each
     with its rms against its output's, and the output fit draws both floors, each named with its fit; the long
     scenario name leaves every title inside the figure."""
-    run = Run("shear-building-damage", steps=1500, out=tmp_path / "shear")
+    run = Run("shear-building-damage", out=tmp_path / "shear")
     run.advance(progress=False)
     figs = run_figures(run)
     res = run.residuals()
@@ -299,6 +312,7 @@ def test_the_residual_and_output_figures_of_a_two_output_run_name_each_output(tm
     assert fit.get_suptitle().startswith("shear-building-damage: measured and model outputs")
     assert figs["model_error"].axes[1].get_title().endswith(f"output {names[0]}")
     for name in ("residuals", "output_fit", "estimates", "model_error"):
+        _labels_within_the_png(figs[name])
         _titles_within_the_figure(figs[name])
     run.close()
 

@@ -274,6 +274,12 @@ def test_a_change_detection_shows_beside_the_model_error_and_explains_the_status
         assert summary["health"]["why"] in status
     assert f"detector alarm at {first:g} s" in status
     assert table["verdict"]["metrics"]["verdict/detector first alarm [s]"] == pytest.approx(first)
+    # a graph built in Python: HParams names it as its figures do (its folder), the settings text says why it
+    # has no table, and the model error's dB say their reference where y has no unit
+    assert table["verdict"]["hparams"]["scenario"] == "change"
+    text = mux.Tensors(".", "settings/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert text.startswith("No settings: the graph was built in Python") and "| setting |" not in text
+    assert "Model error/z rms [dB re 1 unit of y]" in tags
 
 
 def test_custom_scalars_patterns_are_anchored_and_each_draws_only_its_own_tags(tmp_path):

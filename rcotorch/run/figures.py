@@ -27,6 +27,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.font_manager import FontProperties  # noqa: E402
+from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter  # noqa: E402
 
 from ..estimator.tracking import change_report  # noqa: E402
@@ -750,9 +751,14 @@ def _scenario(which):
 
 def png(fig) -> bytes:
     """The figure as PNG bytes at ``DPI``, laid out tightly unless it has a layout of its own (one drawing); a
-    figure that pyplot made is closed (removed from pyplot's list)."""
-    if fig.get_layout_engine() is None:
+    figure that pyplot made is closed (removed from pyplot's list). A constrained layout is computed once before
+    the drawing, which computes it again: the first sizes the axes with the tick labels of their size before the
+    layout, and where the locator then picks wider labels (-0.075 for -0.05) the second makes room for them."""
+    engine = fig.get_layout_engine()
+    if engine is None:
         fig.set_layout_engine("tight")             # laid out while it is drawn
+    elif isinstance(engine, ConstrainedLayoutEngine):
+        engine.execute(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
     if fig.canvas.manager is not None:

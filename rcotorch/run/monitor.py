@@ -14,8 +14,9 @@ first, and expands the first two):
   -+ the requirement's tolerance, else its confidence band over time, written at the end) and the truth in
   ``truth/``, so that one chart draws estimate, band and truth in their own colours; ``Estimates/<key> |error|
   [<unit>]`` beside it (|estimate - truth|, batch mean);
-* ``Model error/z rms [dB re 1 <unit of y>]`` (20 log10 of the rms of z over the batch and the log interval;
-  its quantiles in ``lower/`` and ``upper/``) and ``Model error/<detector> alarmed members [%]``;
+* ``Model error/z rms [dB re 1 <unit of y>]`` (``[dB re 1 unit of y]`` where y has no unit given; 20 log10 of
+  the rms of z over the batch and the log interval; its quantiles in ``lower/`` and ``upper/``) and
+  ``Model error/<detector> alarmed members [%]``;
 * ``members/<key> m<b> [<unit>]`` and ``members/z rms m<b>`` (the traced members of a batch: the ones the
   figures draw), ``bands/<key> [<unit>]`` with ``bands/<key> low|high`` (the estimate and truth -+ tolerance,
   for a margin chart), ``intervals/<key> [<unit>]`` with ``intervals/<key> lower|upper`` (the confidence band
@@ -190,7 +191,7 @@ class Monitor:
         y_unit = run.scenario.unit("y", run.settings)
         # The model error in dB (20 log10 of its rms in the unit of y): it falls by decades during a run, and
         # TensorBoard's data tables show four decimals, which would read 0 for the small values at the end.
-        self.z_unit = f"[dB re 1 {y_unit}]" if y_unit else "[dB]"
+        self.z_unit = f"[dB re 1 {y_unit}]" if y_unit else "[dB re 1 unit of y]"
         self.z_tag = f"{MODEL_ERROR}/z rms {self.z_unit}"
         self.z_members = {b: f"members/z rms m{b} {self.z_unit}" for b in self.traced}
         self.ident = run.graph.role("estimator")
@@ -210,11 +211,12 @@ class Monitor:
         self.logged: list[int] = []     # the steps logged by this writer
         if run.k == 0:
             settings = "\n".join(f"| {k} | {setting_text(v)} |" for k, v in run.settings.items())
+            table = (f"| setting | value |\n|---|---|\n{settings}" if settings else
+                     "No settings: the graph was built in Python, with its values in its blocks.")
             axis = "\n\nThe x axis: the step is the sample index k"
             axis += (f"; the simulated time is k dt, dt = {self.dt:g} s (step 1000 = {1000 * self.dt:g} s)."
                      if self.dt else ".")
-            self.writer.add_text("settings", f"| setting | value |\n|---|---|\n{settings}{axis}", 0,
-                                 walltime=self.origin)
+            self.writer.add_text("settings", table + axis, 0, walltime=self.origin)
             self.writer.add_custom_scalars(self.layout(keys))
             if self.initial:
                 self._log_estimates(0, self.initial)
@@ -479,7 +481,9 @@ class Monitor:
             self.writer.scalars(k, wall, counts)
         if getattr(self.run, "hparams_session", True):      # a sweep writes its own sessions (rcotorch.run.sweep)
             hparams = {k: v for k, v in summary["settings"].items() if isinstance(v, (int, float, str, bool))}
-            hparams.update(scenario=summary["scenario"], batch=summary["batch"])
+            # a graph built in Python shows the name its figures and charts carry (the one given, or its folder's)
+            shown = getattr(self.run.scenario, "figure_name", None) or summary["scenario"]
+            hparams.update(scenario=shown, batch=summary["batch"])
             session = self.sibling(SESSION)
             write_session(session, hparams, summary, scenario=self.run.scenario)
             session.scalars(k, wall, list(final_values(summary, scenario=self.run.scenario).items()))
