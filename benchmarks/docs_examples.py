@@ -206,7 +206,7 @@ def own_problem(r: dict) -> list[str]:
     p = r["p0_1e8"]
     suggested = re.search(r"try p0 of about ([0-9.e+-]+)", " ".join(p["warnings"]))
     out += [f"With p0 = 1e8, dk2 is {rng(p['estimates']['dk2'], '.4f', ' / ')} after 30 000 steps",
-            f"try p0 of about {suggested.group(1) if suggested else '(no warning)'}`"]
+            f"try p0 of about {suggested.group(1) if suggested else '(no warning)'}, or a longer run"]
     out.append(f"30 leaves dk2 at {rng(r['nu_30']['estimates']['dk2'], '.3f', ' / ')}, 100 at "
                f"{rng(r['nu_100']['estimates']['dk2'], '.4f', ' / ')}, 300 at {rng(est['dk2'], '.4f', ' / ')}")
     roof = r["roof_continuous"]

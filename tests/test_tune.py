@@ -123,8 +123,9 @@ def test_a_p0_far_too_small_for_the_regressors_is_named_at_the_end_of_a_run(tmp_
                   validation=False)
         run.advance(progress=False)
         warned.append(run.finish(figures=False)["warnings"])
-    assert len(warned[0]) == 1 and "p0 = 0.001 is small for the regressors" in warned[0][0]
-    suggested = float(warned[0][0].rsplit("about ", 1)[1])
+    assert len(warned[0]) == 1 and "p0 = 0.001 is small for the regressors of 2000 steps" in warned[0][0]
+    assert warned[0][0].endswith("or a longer run (the data's weight grows with the steps)")
+    suggested = float(warned[0][0].split("about ", 1)[1].split(",", 1)[0])
     assert 1e2 < suggested < 1e5 and warned[1] == []
 
 

@@ -70,9 +70,10 @@ def tuning_warnings(graph) -> list[str]:
     info = (p0 / share.clamp_min(1e-300) - p0).clamp_min(0) / p0.square()             # sum psi_i^2
     suggest = float((1e3 / info[stuck].clamp_min(1e-300)).median())
     where = f"member {members[0]}" if len(members) == 1 else f"{len(members)} members"
-    return [f"p0 = {float(p0[members[0], 0]):.3g} is small for the regressors ({where}): the data moved P by less "
-            f"than half from p0 I for {', '.join(which)}, so theta stays near its initial value; "
-            f"try p0 of about {suggest:.2g}"]
+    steps = int(est.k)
+    return [f"p0 = {float(p0[members[0], 0]):.3g} is small for the regressors of {steps} steps ({where}): the data "
+            f"moved P by less than half from p0 I for {', '.join(which)}, so theta stays near its initial value; "
+            f"try p0 of about {suggest:.2g}, or a longer run (the data's weight grows with the steps)"]
 
 
 def _fit_pairs(met: Mapping[str, torch.Tensor]):
