@@ -195,6 +195,33 @@ def test_residuals_that_are_not_white_are_said_beside_the_verdict(tmp_path):
     assert sw["health"]["residuals_white"] is True and "residuals not white" not in result_table(sw)
 
 
+def test_a_window_too_short_for_a_lag_tests_no_whiteness_and_reports_no_correlation_above_one(tmp_path):
+    """A 10-step run replays a window of 2 measured steps: its 25 lags had no pairs of steps, so the normalized
+    correlations came out as large as 1e10, the whiteness test rejected at random and the scores' long-run
+    covariance widened intervals 1e153 times. With fewer than 5 steps per lag the checks test no lag, say so, and
+    widen nothing; a window of 60 steps tests 12 lags, each correlation within [-1, 1]."""
+    from rcotorch.run.figures import residual_verdict
+    from rcotorch.run.report import result_table
+
+    short = Run("sdof-stiffness-damping", batch=64, steps=10, out=tmp_path / "s")
+    short.advance(progress=False)
+    s = short.finish(figures=False, close=False)
+    res = short.residuals()
+    assert res.steps < 5 and res.autocorr.shape[1] == 1 and bool(torch.isnan(res.whiteness_p).all())
+    assert s["health"]["residuals_white"] == [None] * 64 and not any(s["health"]["residuals_matter"])
+    assert all(w == 1.0 for w in s["health"]["residual_widening"])
+    assert all(v is None for key in ("z_autocorr_max", "z_whiteness_p", "z_w_xcorr_max") for v in s["metrics"][key])
+    assert "not white" not in result_table(s) and "not tested" in residual_verdict(short, res)
+    short.close()
+    from rcotorch.verdict import intervals as ci
+    g, _ = _room(2, window_opens=False)
+    g.advance(400)
+    state = ci.snapshot(g)
+    rep = ci.replay(g, state, 80, settle=20)
+    assert rep.residuals.steps == 60 and rep.residuals.autocorr.shape[1] == 13
+    assert float(rep.residuals.autocorr.abs().max()) <= 1.0 and bool(torch.isfinite(rep.residuals.whiteness_p).all())
+
+
 def test_a_biased_refinement_is_not_called_converged(tmp_path):
     """Coulomb friction with many Markov parameters settles away from the truth (Fc = 2, c = 0.5, which the
     basis sign(v), v represents exactly): the residuals are not white, and the output error's Gauss-Newton step

@@ -5,6 +5,7 @@ settled less (``settle_note``), and the residual checks as per-member metrics (`
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -123,7 +124,8 @@ def residual_metrics(res: ci.Residuals) -> dict[str, torch.Tensor]:
     against ``residual_bound``, 1.96 / sqrt(N)), and the Ljung-Box p-value that z is white."""
     B = res.fit.shape[0]
     out = {"fit_percent": res.fit, "fit_percent_initial": res.fit_initial,
-           "z_autocorr_max": res.autocorr[:, 1:].abs().flatten(1).amax(1),
+           "z_autocorr_max": res.autocorr[:, 1:].abs().flatten(1).amax(1) if res.autocorr.shape[1] > 1 else
+           torch.full((B,), math.nan, dtype=torch.float64),
            "z_whiteness_p": res.whiteness_p}
     if res.xcorr is not None:
         out["z_w_xcorr_max"] = res.xcorr.abs().flatten(1).amax(1)

@@ -267,6 +267,9 @@ def residual_verdict(run, res) -> str:
     intervals, or a correlation that does not matter (a parameter error the model can take back, as a noise-free
     run still converging leaves, or one that hardly widens the intervals)."""
     p = float(res.whiteness_p[0])
+    if not np.isfinite(p):
+        return (f"z's whiteness is not tested: the window held {res.steps} steps, fewer than "
+                f"{ci.SAMPLES_PER_LAG} for a lag")
     test = f"Ljung-Box p = {p:.2g}"
     if p >= ci.WHITE_P:
         return f"z is white ({test})"

@@ -498,7 +498,8 @@ class Run:
             health["determined"] = self._plain((determined & (settled == STATUSES.index("converged"))).tolist())
             health["change_explained"] = self._plain(explained.tolist())
         if res is not None:
-            health["residuals_white"] = self._plain((res.whiteness_p >= ci.WHITE_P).tolist())
+            health["residuals_white"] = self._plain([None if p != p else p >= ci.WHITE_P    # NaN: not tested
+                                                     for p in res.whiteness_p.tolist()])
             matter, widening = ci.residuals_matter(self.graph.role("estimator").covariance, found)
             health["residuals_matter"] = self._plain(matter.tolist())
             health["residual_widening"] = self._plain(finite_list(widening))

@@ -54,6 +54,7 @@ SETTLE = 0.25            # the first fraction of the replay lets the perturbed c
 SETTLE_TAUS = 5.0        # ... or, where longer, this many time constants of the frozen loop's slowest mode
 SETTLE_MAX = 4 * REPLAY_STEPS    # at most this many steps to settle (rcotorch.run.end_checks.loop_settle)
 LAGS = 25                # lags of the residual checks (z's autocorrelation, its cross-correlation with w)
+SAMPLES_PER_LAG = 5      # ... and of the scores' covariance: at most one lag per this many measured steps
 KEEP_MEMBERS = 8         # members whose replayed outputs are kept for figures
 SCORE_LAGS = 25          # lags of the scores' long-run covariance (correlated residuals widen the intervals)
 CHUNK_BYTES = 1 << 26    # the FFT of the lagged sums (off the CPU) takes members in blocks of about this many bytes
@@ -143,7 +144,8 @@ class Residuals:
         xcorr: (B, L + 1, n_z, n_w) normalized cross-correlation of z(k) with w(k - lag), lags 0..L, or None
             when the graph declares no exogenous signal (role 'exogenous').
         bound: the 95% band of a correlation of white, independent signals, 1.96 / sqrt(N).
-        whiteness_p: (B,) the Ljung-Box test's p-value that z is white (the smallest over z's channels).
+        whiteness_p: (B,) the Ljung-Box test's p-value that z is white (the smallest over z's channels); NaN
+            where the window is too short for a lag (``SAMPLES_PER_LAG``): whiteness was not tested.
         fit, fit_initial: (B,) the fit in percent, 100 (1 - |y - y_hat| / |y - mean y|), of the refined model
             and of the initial one (theta as the run started) on the same data.
         series: the first members' measured, refined and initial outputs {name: (N, M, n_y)} for figures.
@@ -185,7 +187,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     may be one per member, (B,) (then each member measures the ``steps - max(settle)`` steps after its own, so
     that what a member finds does not depend on the others).
     ``rel_step``: the parameters' perturbation relative to their size (default 1e-7 in float64, 1e-3 in
-    float32). ``lags``: correlation lags of the residual checks; ``keep``: members whose outputs are kept for
+    float32). ``lags``: correlation lags of the residual checks (at most one per ``SAMPLES_PER_LAG`` measured
+    steps, as ``score_lags``); ``keep``: members whose outputs are kept for
     figures; ``score_lags``: lags of the scores' long-run covariance (``_ScoreSums``). ``physics``: a graph like
     ``graph`` whose physical blocks (``physical_blocks``) hold the physics at the estimates; one more copy runs
     with those blocks in place of ``graph``'s, and the Gauss-Newton step of its output against the refined
@@ -208,6 +211,8 @@ def replay(graph, state: Mapping[str, torch.Tensor], steps: int, settle: int | t
     n = copies.eps.shape[1]
     first = int(settle_of.min())                          # the first step any member measures
     measured = steps - int(settle_of.max())               # the steps each member measures, after its own settle
+    # a lag needs several times its length of data (a short window tests fewer lags, one under 5 steps none)
+    lags, score_lags = min(lags, measured // SAMPLES_PER_LAG), min(score_lags, measured // SAMPLES_PER_LAG)
     sums = _WindowSums(B, n, est.n_z, score_lags, est.r_weight, copies.eps, settle_of, measured, est.theta.device)
     res = _ResidualSums(B, lags, keep, measured, settle_of, copies.w_sig is not None, est.theta.device)
     copies.settle(first)
@@ -657,10 +662,13 @@ class _ResidualSums:
             var_w = s["ww"] / N - mean_w ** 2
             scale = torch.sqrt(cov_z[0].unsqueeze(-1) * var_w.unsqueeze(1))         # (B, n_z, n_w)
             xcorr = (cov_zw / scale.unsqueeze(0)).permute(1, 0, 2, 3)
+            if L == 0:                          # one product per pair of steps: no correlation to speak of
+                xcorr = torch.full_like(xcorr, math.nan)
         r = auto[:, 1:]                                                          # lags 1..L
         lag = torch.arange(1, L + 1, dtype=torch.float64, device=self.dev).reshape(1, -1, 1)
         q = N * (N + 2) * (r * r / (N - lag).clamp_min(1)).sum(1)                 # Ljung-Box, (B, n_z)
-        p = chi2_upper_tail(L, torch.nan_to_num(q, nan=math.inf).cpu())
+        p = chi2_upper_tail(L, torch.nan_to_num(q, nan=math.inf).cpu()) if L > 0 else \
+            torch.full(q.shape, math.nan, dtype=torch.float64)                    # too few steps for a lag
         spread = torch.sqrt(s["yy"] - (s["y"] ** 2).sum(1) / N).clamp_min(1e-300)   # |y - mean y|
         return Residuals(steps=N, autocorr=auto.cpu(), xcorr=None if xcorr is None else xcorr.cpu(),
                          bound=1.959964 / math.sqrt(N), whiteness_p=p.amin(1),
