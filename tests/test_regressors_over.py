@@ -87,3 +87,37 @@ def test_markov_parameters_per_member_are_filtered_member_by_member(nu):
         stepped.append(est.last_regressor().clone())
     got = est.regressors_over(history, {"y0": torch.stack(rows)}, torch.stack(u), 0, 25)
     np.testing.assert_allclose(got.numpy(), torch.stack(stepped).numpy(), rtol=1e-11, atol=1e-15)
+
+
+@pytest.mark.parametrize("engine", ["torch", "native"])
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_held_estimator_moves_its_histories_as_a_zero_gain_does(case, engine):
+    """A held estimator (``hold``, the intervals' replay and validation) skips the retrospective cost's step: its
+    u, theta and the histories ``regressors_over`` reads are those of the same estimator stepped with P = 0
+    through the whole update, on both engines, with the program of the graph made before the hold."""
+    import copy
+    g = CASES[case]()
+    g.engine = engine
+    g.advance(40)
+    held, zero = g, copy.deepcopy(g)
+    held.advance(3)
+    zero.advance(3)
+    held.role("estimator").hold()
+    zero.role("estimator").set_state(P=torch.zeros_like(zero.role("estimator").P))
+    z_r = held.role("estimator").z_r.clone()
+    records = []
+    for graph in (held, zero):
+        rec = {("identified", "u"): torch.empty(60, 3, 1, dtype=torch.float64),
+               ("error", "out"): torch.empty(60, 3, 1, dtype=torch.float64)}
+        graph.advance(60, record=rec)
+        records.append(rec)
+    a, b = held.role("estimator"), zero.role("estimator")
+    assert a.held and not b.held
+    for sig in records[0]:
+        assert torch.equal(records[0][sig], records[1][sig]), sig
+    for key, value in a.regressor_history().items():
+        assert torch.equal(value, b.regressor_history()[key]), key
+    assert torch.equal(a.theta, b.theta) and torch.equal(a.P, b.P)
+    assert torch.equal(a.z_r, z_r) and not torch.equal(b.z_r, z_r)       # the held one made no step of the cost
+    a.reset(3)
+    assert not a.held

@@ -386,7 +386,7 @@ class Program:
 
 def _structure(graph) -> tuple:
     return (graph.batch_size, tuple(graph.order), tuple(graph.sources.items()),
-            tuple((n, id(b)) for n, b in graph.blocks.items()), tuple(map(id, graph.hooks)))
+            tuple((n, id(b), getattr(b, "held", None)) for n, b in graph.blocks.items()), tuple(map(id, graph.hooks)))
 
 
 def _param_places(graph, state_names: Mapping[str, set[str]]) -> list[tuple[dict, tuple[str, ...], int]]:
@@ -441,11 +441,12 @@ class ProgramCache:
     and ``invalidate``.
 
     An entry stands for the graph's structure (``_structure``: batch size, evaluation order, connections, the
-    blocks and hooks themselves) and for every parameter the program was made with: each buffer of the blocks
-    that the engine neither writes nor leaves unread (``Builder.state``, ``Builder.unread``), by identity and
-    PyTorch's version counter (``memo.key``). A buffer replaced (``set_markov`` with another shape,
-    ``Module.to``) or modified in place (``est.lam.fill_(0.99)``), a buffer added or removed, or a change of
-    structure (``Graph.reset`` to another batch size, another hook) lowers the graph again at the next ``get``.
+    blocks and hooks themselves, whether an estimator is held) and for every parameter the program was made
+    with: each buffer of the blocks that the engine neither writes nor leaves unread (``Builder.state``,
+    ``Builder.unread``), by identity and PyTorch's version counter (``memo.key``). A buffer replaced
+    (``set_markov`` with another shape, ``Module.to``) or modified in place (``est.lam.fill_(0.99)``), a buffer
+    added or removed, or a change of structure (``Graph.reset`` to another batch size, another hook, ``hold``)
+    lowers the graph again at the next ``get``.
     ``refilled`` keeps the entry through a change that the program itself already reads (the estimator's
     ``NativeCopy``, refilled in place). A refusal is kept likewise, as its reason. A copy of the graph
     (``copy.deepcopy``) starts empty: its blocks are other objects, for which no entry is valid.

@@ -288,6 +288,8 @@ class RCOEstimator(Block):
         self._update_buffers(dtype)
         # the parameters' covariance the end of a run measured (``record_covariance``), None before
         self.covariance = None
+        # held (``hold``): an update then only moves the window and the histories on, until ``reset``
+        self.held = False
         theta0 = torch.zeros(1, n_u, self.n_phi, dtype=dtype) if theta0 is None else \
             torch.as_tensor(theta0, dtype=dtype, device="cpu").reshape(-1, n_u, self.n_phi)
         theta0 = theta0 * self.parameter_map.unpinned
@@ -422,9 +424,10 @@ class RCOEstimator(Block):
         return self.parameter_map.identity
 
     def hold(self, eta: torch.Tensor | None = None, alive: torch.Tensor | None = None) -> None:
-        """Hold theta (at ``eta``, the free parameters (B, n_theta), where given): a zero gain P makes every update
-        leave it where it is, while u = Theta phi goes on. ``alive`` (B,) bool: the members that go on at all
-        (the others frozen, as diverged members are).
+        """Hold theta (at ``eta``, the free parameters (B, n_theta), where given) until ``reset``: u = Theta phi goes
+        on, and each update only moves the window of [phi, u] and the histories on (what ``regressors_over`` reads),
+        without the retrospective cost's step (P is zero, theta and z_r stay). ``alive`` (B,) bool: the members
+        that go on at all (the others frozen, as diverged members are).
 
         Parameters
         ----------
@@ -436,6 +439,7 @@ class RCOEstimator(Block):
         if eta is not None:
             self.set_theta_free(eta)
         self.set_state(P=torch.zeros_like(self.P))
+        self.held = True
         if alive is not None:
             self.set_state(alive=alive.to(device=self.alive.device, dtype=torch.bool).reshape(self.alive.shape).clone())
 
@@ -756,6 +760,7 @@ class RCOEstimator(Block):
         self.alive = torch.ones(B, dtype=torch.bool, device=dev)
         self.diverged_at = torch.full((B,), -1, dtype=torch.int64, device=dev)
         self.k = torch.zeros((), dtype=torch.int64, device=dev)
+        self.held = False
 
     def _current(self, inputs) -> torch.Tensor:
         if self.proper:
@@ -838,6 +843,11 @@ class RCOEstimator(Block):
         k = self._step_index()
         p = k % W
         self._store_in_window(p)
+        if self.held:                          # no step of the cost: the histories move on
+            self._shift_histories(inputs)
+            self.k += 1
+            memo.remember(self, "k", (self.k,), k + 1)
+            return
         psi_t, zeta = self._markov_filter(p, inputs["z"])
         if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
             self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
@@ -1196,6 +1206,7 @@ class RCOEstimator(Block):
                       NL=nl, **{key: -1 if t is None else b.param(t.reshape(-1, 1)) for key, t in
                                 (("RDQ", self.rd_sqrt), ("NORM", self.norm_inv_s2), ("PMAX", self.p_max))})
         fields["IDENT"] = int(self.param_of.tolist() == list(range(self.n_u * self.n_phi)))  # entry i is parameter i
+        fields["HELD"] = int(self.held)
         fields.update(phi_src=[flat[j] for j in self._gather.tolist()], param_of=self.param_of.tolist(),
                       rep=self.free_idx.tolist())
         b.emit("RCO_OUT", port="u", **fields)

@@ -802,11 +802,17 @@ static inline ALWAYS void FN(upd_shift_histories)(const int64_t *restrict e, dou
 }
 
 /* update: the [phi, u] window, the retrospective error z_R = zeta + Psi_eta^T eta, RLS on eta, theta = T eta,
- * the theta box, the member's health and the regressor histories. */
+ * the theta box, the member's health and the regressor histories (a held estimator: the window and the
+ * histories only). */
 static inline ALWAYS void FN(rco_upd_n)(const int64_t *restrict e, double *restrict S, const int64_t *restrict ctr,
                                         int64_t t, int64_t n_u, int64_t n_z, int64_t n_phi, int64_t n, int64_t nent,
                                         int64_t nl) {
     int64_t W = e[E_W], m = n_phi + n_u, k = ctr[e[E_COUNTER]] + t, pr = ring_row(k, W, (uint64_t)e[E_WMOD]);
+    if (e[E_HELD]) { /* held: theta, P and z_r stay; the window and the histories move on */
+        FN(win_row)(e, S, pr, n_phi, m);
+        if (e[E_NC]) FN(upd_shift_histories)(e, S, n_u);
+        return;
+    }
     const int64_t *param_of = e + E_N + n_phi, *rep = param_of + nent; /* the tables PARAM_OF and REP */
     /* own_scratch: one member keeps its scratch and z_R (stored to its slot once computed) in an array of its
      * own when they fit: the compiler then holds them in registers where the sizes are constants, where slots in
