@@ -21,6 +21,7 @@ for the refined model and, in the same way, for the initial model (theta at its 
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
@@ -285,6 +286,20 @@ def _simulate(g, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, tor
     return tr["y"].to(torch.float64), tr["y_hat"].to(torch.float64)
 
 
+def _restore(graph, start: Mapping[str, torch.Tensor]) -> None:
+    """Put ``graph``'s buffers back to ``start`` (a copy of its ``state_dict``), writing only those that differ:
+    the parameters a simulation leaves as they were are not written, so that the native engine's program made
+    for them stays valid (``rcotorch.engine.lowering.ProgramCache``)."""
+    now = dict(graph.named_buffers())
+    if any(k not in now or now[k].shape != v.shape for k, v in start.items()):
+        graph.load_state_dict(start)
+        return
+    with torch.no_grad():
+        for key, value in start.items():
+            if not torch.equal(now[key], value):
+                now[key].copy_(value)
+
+
 def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None, bool]:
     """The known model's initial state that best explains the first ``steps`` measured samples, per member."""
     known = graph.role("known")
@@ -298,7 +313,7 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
     start = {k: v.clone() for k, v in work.state_dict().items()}
 
     def simulate(x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        work.load_state_dict(start)
+        _restore(work, start)
         return _simulate(work, steps, x0)
     for _ in range(passes):
         y, y_hat = simulate(x0.to(x.dtype))
