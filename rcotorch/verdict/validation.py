@@ -193,16 +193,17 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
         _continue_sources(base, offset)
     scored, traces, states = {}, {}, {}
     fitted_both = True
-    for which, eta in (("refined", refined_eta), ("initial", initial_eta)):
-        g = copy.deepcopy(base)
-        _freeze(g, eta)
-        x0, fitted = _fit_state(g, fit_steps)
+    start = {k: v.clone() for k, v in base.state_dict().items()}
+    for which, eta in (("refined", refined_eta), ("initial", initial_eta)):    # in one graph, from one state
+        _restore(base, start)
+        _freeze(base, eta)
+        x0, fitted = _fit_state(base, fit_steps)
         fitted_both = fitted_both and fitted
         states[which] = x0
         if x0 is not None:
-            g.role("known").x.copy_(x0)
+            base.role("known").x.copy_(x0)
         scores = _Scores(fit_steps, keep)
-        _stream(g, steps, scores.add)
+        _stream(base, steps, scores.add)
         traces[which], traces["measured"] = scores.kept["y_hat"], scores.kept["y"]
         scored[which] = scores.result()
     return Validation(source=source, steps=steps, fit_steps=fit_steps, rmse=scored["refined"][0],
@@ -301,20 +302,29 @@ def _restore(graph, start: Mapping[str, torch.Tensor]) -> None:
 
 
 def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None, bool]:
-    """The known model's initial state that best explains the first ``steps`` measured samples, per member."""
+    """The known model's initial state that best explains the first ``steps`` measured samples, per member;
+    ``graph`` is left in the state it was given."""
     known = graph.role("known")
     x = getattr(known, "x", None)
     if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[1] == 0:
         return None, False
+    start = {k: v.clone() for k, v in graph.state_dict().items()}    # each simulation from it, and at the end
+    try:
+        return _fit_from(graph, x, start, steps, passes)
+    finally:
+        _restore(graph, start)
+
+
+def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: int, passes: int
+              ) -> tuple[torch.Tensor | None, bool]:
+    """``_fit_state``'s Gauss-Newton passes, each simulation of ``graph`` from ``start``."""
     x0 = x.detach().clone().to(torch.float64)
     B, n = x0.shape
     fitted = torch.ones(B, dtype=torch.bool, device=x0.device)
-    work = copy.deepcopy(graph)                     # each simulation from the same state, in one copy
-    start = {k: v.clone() for k, v in work.state_dict().items()}
 
     def simulate(x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        _restore(work, start)
-        return _simulate(work, steps, x0)
+        _restore(graph, start)
+        return _simulate(graph, steps, x0)
     for _ in range(passes):
         y, y_hat = simulate(x0.to(x.dtype))
         r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
