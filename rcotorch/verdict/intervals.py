@@ -134,6 +134,13 @@ def _frozen_copy(graph, state: Mapping[str, torch.Tensor], eta: torch.Tensor, en
     return g, est
 
 
+def _held_copy(frozen, eta: torch.Tensor):
+    """A copy of ``frozen`` (a ``_frozen_copy`` not yet stepped) holding theta at ``eta`` instead."""
+    g = copy.deepcopy(frozen)
+    g.role("estimator").hold(eta)
+    return g
+
+
 @dataclass
 class Residuals:
     """Checks of the refined model on the replayed window (theta frozen at its final value), per member.
@@ -257,9 +264,8 @@ class _Copies:
         eye = torch.eye(n, dtype=eta.dtype, device=eta.device)
         theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1).index_select(1, est.free_idx.to(eta.device))
         self.base, self.base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
-        self.moved = [_frozen_copy(graph, state, eta + self.eps[:, j:j + 1] * eye[j], engine=graph.engine)[0]
-                      for j in range(n)]
-        self.initial = _frozen_copy(graph, state, theta0, engine=graph.engine)[0]
+        self.moved = [_held_copy(self.base, eta + self.eps[:, j:j + 1] * eye[j]) for j in range(n)]
+        self.initial = _held_copy(self.base, theta0)
         ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
         self.regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
         self.u_sig = (est.name, "u")
