@@ -1046,7 +1046,8 @@ class RCOEstimator(Block):
         return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
 
     def _phi_over(self, history, inputs, u: torch.Tensor, lo: int, stop: int) -> torch.Tensor:
-        """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (stop - lo, B, n_phi) float64."""
+        """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (stop - lo, B, n_phi) float64: each
+        entry copied over the stretch from the signal and lag ``_gather`` maps it to."""
         f64, T, B, nc = torch.float64, stop - lo, u.shape[1], self.nc
         a = max(0, lo - nc)                          # the first recorded step the lags reach
         rows = {p: v[a:stop].to(f64).reshape(-1, v.shape[-1]) for p, v in inputs.items()}
@@ -1056,15 +1057,20 @@ class RCOEstimator(Block):
             # S[e] = s(lo - nc + e) and U[e] = u(lo - nc + e), e = 0 .. T + nc - 1
             S = torch.cat([history["past"].to(f64).flip(1).transpose(0, 1)[nc - h:], cur])
             U = torch.cat([history["past_u"].to(f64).flip(1).transpose(0, 1)[nc - h:], u[a:stop].to(f64)])
-            # past(k)[l] = s(k - 1 - l), l = 0 .. nc - 1
-            past = torch.stack([S[nc - 1 - l:nc - 1 - l + T] for l in range(nc)], dim=2)
-            past_u = torch.stack([U[nc - 1 - l:nc - 1 - l + T] for l in range(nc)], dim=2)
-        else:
-            past = history["past"].to(f64).unsqueeze(0).expand(T, -1, -1, -1)
-            past_u = history["past_u"].to(f64).unsqueeze(0).expand(T, -1, -1, -1)
-        now = cur[cur.shape[0] - T:] if self.proper else cur.new_zeros(T, B, self.n_sig)
-        flat = torch.cat([now, past.flatten(2), past_u.flatten(2)], dim=2)
-        return flat.index_select(2, self._gather.to(flat.device))
+        n_sig, nc1 = self.n_sig, max(nc, 1)
+        phi = cur.new_empty(T, B, self.n_phi)
+        # entry f of [s(k) | past s | past u], past(k)[l] = s(k - 1 - l), l = 0 .. nc - 1 (u's likewise)
+        for k, f in enumerate(self._gather.tolist()):
+            if f < n_sig:
+                phi[:, :, k] = cur[cur.shape[0] - T:, :, f] if self.proper else 0.0
+                continue
+            of_u = f >= n_sig * (1 + nc1)
+            lag, c = divmod(f - n_sig * (1 + (nc1 if of_u else 0)), self.n_u if of_u else n_sig)
+            if nc:
+                phi[:, :, k] = (U if of_u else S)[nc - 1 - lag:nc - 1 - lag + T, :, c]
+            else:
+                phi[:, :, k] = history["past_u" if of_u else "past"][:, lag, c].to(f64)
+        return phi
 
     def static_output(self, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
         """u = Theta phi(s) of a structure without memory (nc = 0, exactly proper): what ``output`` gives for
