@@ -206,7 +206,11 @@ def residual_figures(run, res, dt: float | None) -> dict:
     for c in range(auto.shape[1]):
         label = f"z of {names[c]} (rms {_share(z_rms[c], y_rms[c])} of the output's)" if several else "z"
         ax.plot(lags[1:], auto[1:, c], "o-", ms=3, lw=1, label=label)
-    ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
+    tested = len(lags) > 1                       # a window too short for a lag tests none
+    if tested:
+        ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of white noise")
+    else:
+        _untested(ax, res)
     ax.set_xlabel("lag [samples]")
     ax.set_ylabel("autocorrelation")
     if several:
@@ -226,7 +230,10 @@ def residual_figures(run, res, dt: float | None) -> dict:
                 w = f"w[{d}]" if x.shape[2] > 1 else "w"
                 ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z of {names[c]}, {w}" if x.shape[1] * x.shape[2] > 1
                         else "z(k), w(k - lag)")
-        ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
+        if tested:
+            ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
+        else:
+            _untested(ax, res)
         ax.set_xlabel("lag [samples]")
         ax.set_ylabel("cross-correlation")
         ax.grid(alpha=0.3)
@@ -258,6 +265,14 @@ def residual_figures(run, res, dt: float | None) -> dict:
     _legend_below(fig, axes[0])
     figs["output_fit"] = fig
     return figs
+
+
+def _untested(ax, res) -> None:
+    """A correlation panel of a window too short for a lag: what it would show, and why it shows nothing."""
+    ax.set_xlim(0, ci.LAGS)
+    ax.set_ylim(-1.05, 1.05)
+    ax.text(0.5, 0.5, f"not tested: the window held {res.steps} steps, {ci.SAMPLES_PER_LAG} per lag are needed",
+            transform=ax.transAxes, ha="center", va="center", fontsize=9, color="tab:gray")
 
 
 def residual_verdict(run, res) -> str:
