@@ -815,12 +815,13 @@ class RCOEstimator(Block):
         """The retrospective-cost update of theta from the error z(k), then the shift of the histories.
 
         The stages, each a method: store [phi(k), u(k)] in the window (``_store_in_window``); the Markov filter
-        gives Psi^T and zeta(k) = z(k) - sum_i beta_i u(k-i) (``_markov_filter``); both over the free parameters,
+        gives Psi^T and zeta(k) = z(k) - sum_i beta_i u(k-i) (``_markov_filter``, where the cost's step begins,
+        ``_cost_step``, which a held estimator skips); both over the free parameters,
         T^T Psi and eta (``_over_parameters``); z_R = zeta + Psi^T eta (``_retrospective_performance``);
         ``rls_update`` on (T^T Psi, z_R), rows normalized and penalty rows added per the robustness options
         (``_rls_step``); the trace bound on P (``_bound_covariance``); Theta = T eta and the projection onto
-        ``theta_bounds`` (``_write_theta``); members whose step failed are frozen (``_freeze_failed``); the
-        regressor signals and u move into the past (``_shift_histories``).
+        ``theta_bounds`` (``_write_theta``); members whose step failed are frozen (``_freeze_failed``, the step's
+        end); the regressor signals and u move into the past (``_shift_histories``).
 
         Parameters
         ----------
@@ -843,11 +844,15 @@ class RCOEstimator(Block):
         k = self._step_index()
         p = k % W
         self._store_in_window(p)
-        if self.held:                          # no step of the cost: the histories move on
-            self._shift_histories(inputs)
-            self.k += 1
-            memo.remember(self, "k", (self.k,), k + 1)
-            return
+        if not self.held:                      # held: no step of the cost, the histories move on
+            self._cost_step(p, inputs, k)
+        self._shift_histories(inputs)
+        self.k += 1
+        memo.remember(self, "k", (self.k,), k + 1)
+
+    def _cost_step(self, p: int, inputs, k: int) -> None:
+        """The retrospective cost's step of ``update`` at step ``k`` (window row ``p``): theta, P, z_r, the
+        members' health."""
         psi_t, zeta = self._markov_filter(p, inputs["z"])
         if not (self.theta.is_contiguous() and self.P.is_contiguous()):   # updated in place below
             self.set_state(theta=self.theta.contiguous(), P=self.P.contiguous())
@@ -858,9 +863,6 @@ class RCOEstimator(Block):
         self._bound_covariance(ok)
         self._write_theta(theta_flat, eta)
         self._freeze_failed(z_r, ok, k)
-        self._shift_histories(inputs)
-        self.k += 1
-        memo.remember(self, "k", (self.k,), k + 1)
 
     # --- the stages of ``update`` ---------------------------------------------------------------------------
     def _store_in_window(self, p: int) -> None:

@@ -65,8 +65,8 @@ enum { FP_GAIN = 0, FP_OFFSET = 1 };
  * change), parameter slots RDQ (sqrt(r_delta)), NORM (1 / s^2 of normalized regressors, with RW: the cost's
  * weight R, n_z x n_z) and PMAX (the trace bound on P), each -1 when off. IDENT: 1 when each entry of theta is
  * its own parameter, in order (param_of[i] = i). HELD: 1 when the estimator is held (``hold``): the update then
- * only stores the window's row and moves the histories on. WMOD: 2^64 / W + 1 (rounded down; the bits of a uint64), the
- * multiplier of the ring's row k mod W (ring_row). */
+ * only stores the window's row and moves the histories on. WMOD: 2^64 / W + 1 (rounded down; the bits of a
+ * uint64), the multiplier of the ring's row k mod W (ring_row). */
 #define RCO_ESTIMATOR_FIELDS(X)                                                                              \
     X(NU) X(NZ) X(NPHI) X(NTHETA) X(NENT) X(W) X(WMOD) X(NC) X(NC1) X(NSIG) X(LAM_ONE) X(COUNTER) X(SHARED) \
     X(THETA) X(P) X(WIN) X(PHI) X(UNOW) X(ZR) X(ALIVE) X(DIV) X(PAST) X(PASTU)                             \
