@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import ConfigError
+from .intervals import snapshot
 
 FIT_STEPS = 50           # samples that fix the initial state (excluded from the scores)
 
@@ -193,7 +194,7 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
         _continue_sources(base, offset)
     scored, traces, states = {}, {}, {}
     fitted_both = True
-    start = {k: v.clone() for k, v in base.state_dict().items()}
+    start = snapshot(base)
     for which, eta in (("refined", refined_eta), ("initial", initial_eta)):    # in one graph, from one state
         _restore(base, start)
         _freeze(base, eta)
@@ -288,7 +289,7 @@ def _simulate(g, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, tor
 
 
 def _restore(graph, start: Mapping[str, torch.Tensor]) -> None:
-    """Put ``graph``'s buffers back to ``start`` (a copy of its ``state_dict``), writing only those that differ:
+    """Put ``graph``'s buffers back to ``start`` (its ``snapshot``), writing only those that differ:
     the parameters a simulation leaves as they were are not written, so that the native engine's program made
     for them stays valid (``rcotorch.engine.lowering.ProgramCache``)."""
     now = dict(graph.named_buffers())
@@ -308,7 +309,7 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
     x = getattr(known, "x", None)
     if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[1] == 0:
         return None, False
-    start = {k: v.clone() for k, v in graph.state_dict().items()}    # each simulation from it, and at the end
+    start = snapshot(graph)                         # each simulation from it, and at the end
     try:
         return _fit_from(graph, x, start, steps, passes)
     finally:
