@@ -2,6 +2,8 @@
 the axes, a logarithmic time axis where the estimates settle early, the initial model's error beside the refined
 one's, a sweep's estimates and errors against its swept settings."""
 
+import os
+import signal
 import threading
 
 import numpy as np
@@ -10,6 +12,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PathCollection
 from matplotlib.colors import to_rgba
 
+from rcotorch.run import figures as figures_module
 from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, png, pngs, run_figures, sweep_figures
 from rcotorch.run.runner import Run
 
@@ -187,6 +190,74 @@ def test_figures_drawn_meanwhile_are_the_same_bytes_and_errors_reach_the_caller(
     with pytest.raises(ValueError, match="no history to draw"):
         draw_meanwhile(broken)()
     run.close()
+
+
+def _one_by_one(figs) -> dict:
+    return {name: png(fig) for name, fig in figs.items()}
+
+
+def test_figures_shared_out_to_forked_processes_are_the_same_bytes_in_the_same_order(tmp_path):
+    run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
+    run.advance(progress=False)
+    expected = _one_by_one(run_figures(run))
+    shares = figures_module._shares(run_figures(run), 2)
+    assert len(shares) == 2 and sorted(sum(shares, [])) == sorted(expected)
+    assert shares[0][0] == "estimates"                     # the most axes, drawn by the caller
+    drawn = pngs(run_figures(run))
+    assert drawn == expected and list(drawn) == list(expected)
+    apart = figures_module._DrawnApart(run_figures(run))
+    assert apart.pid is not None and apart() == expected and not apart.drawn_here
+    forked_in_thread = []
+    thread = threading.Thread(target=lambda: forked_in_thread.append(figures_module._DrawnApart(run_figures(run))))
+    thread.start()
+    thread.join()
+    child = forked_in_thread[0].pid
+    assert forked_in_thread[0]() == expected and not forked_in_thread[0].drawn_here
+    assert forked_in_thread[0].pid is None and child is not None
+    run.close()
+
+
+def test_a_figure_that_fails_in_a_forked_process_raises_its_error_in_the_caller():
+    from matplotlib.figure import Figure
+
+    class Broken(Figure):
+        def savefig(self, *args, **kwargs):
+            raise ValueError(f"cannot draw in {os.getpid()}")
+    good = Figure()
+    good.subplots().plot([0, 1], [1, 0])
+    figs = {"good": good, "broken": Broken()}
+    apart = figures_module._DrawnApart({"broken": figs["broken"]})
+    assert apart.pid is not None
+    with pytest.raises(ValueError, match=f"cannot draw in {os.getpid()}$"):   # drawn again here, failing here
+        apart()
+    with pytest.raises(ValueError, match="cannot draw"):
+        pngs(figs)
+
+
+def test_a_forked_drawing_stopped_by_sigterm_never_runs_the_callers_handler_and_is_drawn_here(tmp_path):
+    from matplotlib.figure import Figure
+
+    def make():
+        fig = Figure()
+        fig.subplots().plot(np.arange(200_000.0), np.sin(np.arange(200_000.0)))     # long enough to be stopped
+        return fig
+    expected = png(make())
+    fig = make()
+    marker = tmp_path / "handler ran"
+    previous = signal.signal(signal.SIGTERM, lambda *_: marker.write_text(str(os.getpid())))
+    try:
+        apart = figures_module._DrawnApart({"f": fig})
+        os.kill(apart.pid, signal.SIGTERM)              # at once: before or while it draws
+        child = apart.pid
+        assert apart() == {"f": expected} and apart.drawn_here
+        assert not marker.exists()
+        with pytest.raises(ChildProcessError):
+            os.waitpid(child, os.WNOHANG)               # reaped
+        unwaited = figures_module._DrawnApart({"f": make()})
+        unwaited.cancel()
+        assert unwaited.pid is None and unwaited.r is None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def test_on_a_linear_time_axis_the_first_steps_wild_values_stay_off_the_axis():

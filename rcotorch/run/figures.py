@@ -1,6 +1,7 @@
 """Matplotlib figures of a run: estimates vs time with the truth, model error of the initial and the refined
 model, residual checks, frequency responses; a sweep's estimates and errors against its swept settings; PNG
-bytes of figures, drawn on a second thread where the caller has other work meanwhile.
+bytes of figures, drawn on a second thread where the caller has other work meanwhile, and on every core the
+process may use.
 
 Conventions of every figure here: the truth is drawn dashed in black on top of everything else (so that it stays
 visible where an estimate covers it), the initial model dotted in grey below the estimates; legends sit below the
@@ -16,7 +17,12 @@ for the whole process, so only figures made without it can be drawn off the main
 from __future__ import annotations
 
 import io
+import os
+import pickle
+import signal
+import sys
 import threading
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from types import SimpleNamespace
 
@@ -779,15 +785,128 @@ def png(fig) -> bytes:
         engine.execute(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
-    if fig.canvas.manager is not None:
-        import matplotlib.pyplot as plt
-        plt.close(fig)
+    _close(fig)
     return buf.getvalue()
 
 
+def _close(fig) -> None:
+    """Remove a figure that pyplot made from pyplot's list."""
+    if fig.canvas.manager is not None:
+        import matplotlib.pyplot as plt
+        plt.close(fig)
+
+
 def pngs(figs: dict) -> dict[str, bytes]:
-    """{name: PNG bytes} of {name: figure}."""
-    return {name: png(fig) for name, fig in figs.items()}
+    """{name: PNG bytes} of {name: figure}. Where the process may use more than one core (Linux), the figures
+    are shared out, balanced by their number of axes, and all shares but one are drawn at once in forked
+    processes (``_DrawnApart``); the bytes are those drawn here."""
+    names = list(figs)
+    shares = _shares(figs, min(len(names), _cores()))
+    apart = [_DrawnApart({name: figs[name] for name in share}) for share in shares[1:]]
+    out: dict[str, bytes] = {}
+    try:
+        if shares:
+            out.update((name, png(figs[name])) for name in shares[0])
+        for wait in apart:
+            out.update(wait())
+    finally:
+        for wait in apart:
+            wait.cancel()
+    for name in names:
+        _close(figs[name])
+    return {name: out[name] for name in names}
+
+
+def _cores() -> int:
+    """How many cores this process may draw on at once: 1 where forking a drawing is not safe (off Linux)."""
+    if not sys.platform.startswith("linux") or not hasattr(os, "fork"):
+        return 1
+    return len(os.sched_getaffinity(0))
+
+
+def _shares(figs: dict, n: int) -> list[list[str]]:
+    """The figures' names in ``n`` shares of about equal work (a figure's axes count as its work), largest
+    first."""
+    shares: list[list[str]] = [[] for _ in range(max(1, n))]
+    work = [0] * len(shares)
+    for name in sorted(figs, key=lambda k: -len(figs[k].axes)):
+        i = work.index(min(work))
+        shares[i].append(name)
+        work[i] += max(1, len(figs[name].axes))
+    return [share for share in shares if share]
+
+
+_STOPS = (signal.SIGINT, signal.SIGTERM)
+
+
+class _DrawnApart:
+    """Draw ``figs`` in a forked process; calling the object waits for their PNG bytes, and draws them here
+    instead where the process failed. The forked process only draws (matplotlib's Agg, no torch), writes the
+    bytes to a pipe and ends at once (``os._exit``: nothing of the parent's is flushed or closed twice), with the
+    default action for SIGINT and SIGTERM, so that the run's own handlers (which save a checkpoint) never run
+    there. ``cancel`` ends it where it was not waited for; ``drawn_here`` says whether the caller drew them."""
+
+    def __init__(self, figs: dict):
+        self.figs, self.pid, self.r = figs, None, None
+        self.drawn_here = False
+        r, w = os.pipe()
+        # SIGINT and SIGTERM wait until the forked process has its own actions for them
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
+        pid = -1
+        try:
+            with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads: only Agg runs there
+                warnings.simplefilter("ignore", DeprecationWarning)
+                pid = os.fork()
+        except OSError:                      # no process to spare: the figures are drawn here when waited for
+            os.close(r)
+            os.close(w)
+            return
+        finally:
+            if pid != 0:
+                signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        if pid == 0:
+            _draw_and_exit(figs, r, w, blocked)
+        os.close(w)
+        self.pid, self.r = pid, r
+
+    def __call__(self) -> dict[str, bytes]:
+        status = 1
+        if self.pid is not None:
+            with os.fdopen(self.r, "rb") as f:
+                self.r = None
+                data = f.read()
+            _, status = os.waitpid(self.pid, 0)
+            self.pid = None
+        if status != 0:
+            self.drawn_here = True
+            return {name: png(fig) for name, fig in self.figs.items()}
+        return pickle.loads(data)
+
+    def cancel(self) -> None:
+        if self.r is not None:
+            os.close(self.r)
+            self.r = None
+        if self.pid is not None:
+            os.kill(self.pid, signal.SIGKILL)
+            os.waitpid(self.pid, 0)
+            self.pid = None
+
+
+def _draw_and_exit(figs: dict, r: int, w: int, blocked) -> None:
+    """In the forked process: draw ``figs``, write their pickled PNG bytes to ``w`` and end, with status 0 only
+    where all of that succeeded."""
+    code = 1
+    try:
+        os.close(r)
+        for sig in _STOPS:
+            signal.signal(sig, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        data = pickle.dumps({name: png(fig) for name, fig in figs.items()})
+        with os.fdopen(w, "wb") as f:
+            f.write(data)
+        code = 0
+    finally:
+        os._exit(code)
 
 
 def draw_meanwhile(make: Callable[[], dict]) -> Callable[[], dict[str, bytes]]:
