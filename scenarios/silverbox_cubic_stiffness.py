@@ -65,15 +65,17 @@ SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's 
 #   stiffness q, cubic q^3 (q the position lead samples after t_k), damping v (the velocity there),
 #   gain w(k), offset 1.
 BASES = {"cubic": ("cubic",), "linear+cubic": ("stiffness", "cubic"),
-         "all": ("stiffness", "cubic", "damping", "gain", "offset")}
-POWERS = {"stiffness": 1, "cubic": 3}      # the terms that are powers of the position
+         "all": ("stiffness", "cubic", "damping", "gain", "offset"),
+         "all+quadratic": ("stiffness", "quadratic", "cubic", "damping", "gain", "offset")}
+POWERS = {"stiffness": 1, "quadratic": 2, "cubic": 3}      # the terms that are powers of the position
+SLOPE = "w_slope"          # the derived column of the input's spline slopes (setting ``spline``)
 # The benchmark's test sets (rows of SNLS80mV.csv): the first 50 outputs of each fix the initial state.
 TEST_SETS = {"multisine": (105712, 127400), "arrow": (100, 40575), "arrow_noextrap": (100, 32100)}
 
 
 @lru_cache(maxsize=4)
 def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_rows: tuple[int, int],
-             foh: bool, lead: float) -> tuple[rt.Recording, MassSpringDamper]:
+             foh: bool, lead: float, spline: bool, u_ahead: bool) -> tuple[rt.Recording, MassSpringDamper]:
     from rcotorch.models.identification import MassSpringDamper
     silverbox = Path(path).name == "SNLS80mV.csv" and (w_col, y_col) == ("V1", "V2")
     try:
@@ -84,7 +86,8 @@ def _prepare(path: str, mtime: float, w_col: str, y_col: str, Ts: float, fit_row
                         "is right, or correct the file") from None
     fit = rec.rows(*fit_rows)
     try:
-        model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead)
+        model = MassSpringDamper.fit(fit.column(w_col), fit.column(y_col), Ts, foh=foh, lead=lead, spline=spline,
+                                     u_ahead=u_ahead)
     except DataError as e:
         raise DataError(f"scenario 'silverbox-cubic-stiffness': {path}, rows {fit_rows[0]}-{fit_rows[1]} "
                         f"(columns {w_col!r}, {y_col!r}): {e}") from None
@@ -118,17 +121,34 @@ def prepare(s) -> tuple[rt.Recording, MassSpringDamper]:
             raise ConfigError(f"scenario 'silverbox-cubic-stiffness': the {key} rows must be more than "
                               f"n_init = {s['n_init']}")
     return _prepare(str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
-                    (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
+                    (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]), bool(s["spline"]),
+                    bool(s["u_ahead"]))
+
+
+def recorded(s, rows: tuple[int, int], name: str, dtype=None) -> rt.Recorded:
+    """The recording's ``rows`` played back as block ``name`` with outputs w and y: w with the spline's slopes
+    over these rows as its second channel where the setting ``spline`` is on (``MassSpringDamper.inputs``)."""
+    from rcotorch.data.recording import function
+    from rcotorch.models.identification import spline_slopes
+    rec, _ = prepare(s)
+    part = rec.rows(*rows)
+    w = s["w_column"]
+    if s["spline"]:
+        part = part.derive(**{SLOPE: function(spline_slopes, w, unit=part.unit(w))})
+        w = [w, SLOPE]
+    kw = {} if dtype is None else {"dtype": dtype}
+    return rt.Recorded(part, {"w": w, "y": s["y_column"]}, name=name, **kw)
 
 
 @lru_cache(maxsize=64)
-def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_init, spring, offline=None):
+def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, spline, u_ahead, val_rows, n_init, spring,
+              offline=None):
     from rcotorch.models.identification import rmse
-    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
+    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, spline, u_ahead)
     if offline is not None:                  # the offline fit's model and spring, by its estimation rows
-        model, spring = _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, offline)
+        model, spring = _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, spline, u_ahead, *offline)
     val = rec.rows(*val_rows)
-    w, y = val.column(w_col), val.column(y_col)
+    w, y = model.inputs(val.column(w_col)), val.column(y_col)
     fb = None if spring is None or not any(spring.coefficients) else spring
     with np.errstate(over="ignore", invalid="ignore"):
         try:
@@ -141,16 +161,24 @@ def _validate(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, val_rows, n_in
 
 
 @lru_cache(maxsize=4)
-def _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, est_rows) -> tuple[MassSpringDamper, Polynomial]:
-    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead)
+def _offline(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, spline, u_ahead, est_rows, powers
+             ) -> tuple[MassSpringDamper, Polynomial]:
+    rec, model = _prepare(path, mtime, w_col, y_col, Ts, fit_rows, foh, lead, spline, u_ahead)
     est = rec.rows(*est_rows)
-    return model.fit_with_spring(est.column(w_col), est.column(y_col), powers=(3,))
+    return model.fit_with_spring(est.column(w_col), est.column(y_col), powers=powers)
 
 
 def _key(s) -> tuple:
     path = data_path(s)
     return (str(path), os.path.getmtime(path), s["w_column"], s["y_column"], float(s["Ts"]),
-            (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]))
+            (int(s["fit_start"]), int(s["fit_stop"])), bool(s["foh"]), float(s["lead"]), bool(s["spline"]),
+            bool(s["u_ahead"]))
+
+
+def offline_powers(s) -> tuple[int, ...]:
+    """The powers of the position in the offline fit's spring: those of the basis, the cubic at least (the
+    other terms of ``all`` are the linear model's own parameters, which the offline fit refits)."""
+    return tuple(sorted({3} | {POWERS[t] for t in BASES[s["basis"]] if POWERS.get(t, 1) > 1}))
 
 
 def sees(s) -> tuple[str, ...]:
@@ -164,7 +192,8 @@ def features(s) -> list:
     f = rt.features
     one = len(sees(s)) == 1
     q = "y0" if one else "y0[0]"
-    made = {"stiffness": lambda: f.port(q), "cubic": lambda: f.power(q, 3), "damping": lambda: f.port("y0[1]"),
+    made = {"stiffness": lambda: f.port(q), "quadratic": lambda: f.power(q, 2), "cubic": lambda: f.power(q, 3),
+            "damping": lambda: f.port("y0[1]"),
             "gain": lambda: f.port("y0[2]"), "offset": lambda: f.constant()}
     return [made[t]() for t in BASES[s["basis"]]]
 
@@ -186,14 +215,15 @@ def validate(s, theta, rows: tuple[int, int] | None = None, offline: bool = Fals
     or with ``offline`` of the offline output-error fit of the linear + cubic structure."""
     prepare(s)
     rows = (int(s["val_start"]), int(s["val_stop"])) if rows is None else tuple(int(r) for r in rows)
-    fit = (int(s["est_start"]), int(s["est_stop"])) if offline else None
+    fit = ((int(s["est_start"]), int(s["est_stop"])), offline_powers(s)) if offline else None
     return _validate(*_key(s), rows, int(s["n_init"]), None if offline else spring(s, theta), fit)
 
 
 def offline_fit(s) -> tuple[MassSpringDamper, Polynomial]:
-    """The offline output-error fit of the linear model and the cubic spring on the estimation rows."""
+    """The offline output-error fit of the linear model and the polynomial spring (``offline_powers``) on the
+    estimation rows."""
     prepare(s)
-    return _offline(*_key(s), (int(s["est_start"]), int(s["est_stop"])))
+    return _offline(*_key(s), (int(s["est_start"]), int(s["est_stop"])), offline_powers(s))
 
 
 class SilverboxCubicStiffness(Scenario):
@@ -203,14 +233,15 @@ class SilverboxCubicStiffness(Scenario):
     steps = 105712 - 40650          # the whole estimation multisine
     settings = dict(data=SILVERBOX, w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
                     fit_start=40650, fit_stop=105712, est_start=40650, est_stop=105712, val_start=105712,
-                    val_stop=127400, n_init=50, foh=True, lead=0.5, basis="all", p0=1e4, lam=1.0,
-                    nu=100, test_sets=True)
+                    val_stop=127400, n_init=50, foh=True, spline=True, u_ahead=True, lead=0.5, basis="all+quadratic",
+                    p0=1e4, lam=1.0, nu=100, test_sets=True)
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
     bounds = dict(Ts=POSITIVE, fit_start=NON_NEGATIVE, fit_stop=NON_NEGATIVE, est_start=NON_NEGATIVE,
                   est_stop=NON_NEGATIVE, val_start=NON_NEGATIVE, val_stop=NON_NEGATIVE, n_init=NON_NEGATIVE)
-    units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k1_over_m", "1/s^2"), ("damping", "1/s"),
+    units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k2_over_m", "1/(V s^2)"),
+                                                 ("k1_over_m", "1/s^2"), ("damping", "1/s"),
                                          ("gain", "1/s^2"), ("offset", "V/s^2")) for x in ("", "offline_")},
              "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V",
              **{f"test_{t}_rmse_mv{x}": "mV" for t in TEST_SETS for x in ("", "_linear", "_offline")}}
@@ -227,6 +258,8 @@ class SilverboxCubicStiffness(Scenario):
         val_stop=("row", "end (exclusive) of the validation rows"),
         n_init=("samples", "samples used to fit the initial state before refinement and validation"),
         foh=("", "interpolate the input linearly between samples (first-order hold) in the model"),
+        spline=("", "interpolate the input by the cubic spline through its samples in the model (overrides foh)"),
+        u_ahead=("", "the position the spring sees lead samples ahead includes the motion of the last sample's u"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
         basis=("", "what the identified subsystem refines: 'all' (stiffness, cubic spring, damping, input gain "
                    "and offset: the structure of the offline fit), 'linear+cubic' (theta_1 y0 + theta_3 y0^3), or "
@@ -242,11 +275,11 @@ class SilverboxCubicStiffness(Scenario):
     def build(self, s, batch, dtype, device):
         rec, model = prepare(s)
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
-        w, y, n = est.column(s["w_column"]), est.column(s["y_column"]), int(s["n_init"])
+        w, y, n = model.inputs(est.column(s["w_column"])), est.column(s["y_column"]), int(s["n_init"])
         known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype, sees=sees(s))
         ident = rt.RCOEstimator.static_gain({"y0": len(sees(s))}, features=features(s), p0=s["p0"], lam=s["lam"],
                                             dtype=dtype)
-        data = rt.Recorded(est, {"w": s["w_column"], "y": s["y_column"]}, name="data", dtype=dtype)
+        data = recorded(s, (int(s["est_start"]), int(s["est_stop"])), "data", dtype)
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
                              device=device)
 
@@ -254,10 +287,8 @@ class SilverboxCubicStiffness(Scenario):
         """Held-out data: the validation rows (by default the benchmark's multisine test set; to tune without
         looking at a test set, hold out the end of the estimation rows: est_stop = val_start < val_stop <=
         105712)."""
-        rec, _ = prepare(s)
-        val = rec.rows(int(s["val_start"]), int(s["val_stop"]))
-        return {"data": rt.Recorded(val, {"w": s["w_column"], "y": s["y_column"]}, name="held_out",
-                                    dtype=g.role("estimator").theta.dtype)}
+        return {"data": recorded(s, (int(s["val_start"]), int(s["val_stop"])), "held_out",
+                                 g.role("estimator").theta.dtype)}
 
     @staticmethod
     def model(s) -> MassSpringDamper:
@@ -276,6 +307,8 @@ class SilverboxCubicStiffness(Scenario):
         terms = BASES[s["basis"]]
         th = {name: theta[:, i] for i, name in enumerate(terms)}
         out = {"k3_over_m": model.cubic_coefficient(th["cubic"])}
+        if "quadratic" in th:
+            out["k2_over_m"] = model.cubic_coefficient(th["quadratic"])
         if "stiffness" in th:
             out["k1_over_m"] = model.b - model.g * th["stiffness"]
         if "damping" in th:
@@ -290,9 +323,7 @@ class SilverboxCubicStiffness(Scenario):
     def held_out(g, s, rows: tuple[int, int]):
         """``rt.validate`` of the refined graph on the recording's ``rows``: the refined model (theta frozen)
         and the initial linear model, free run from the state fitted to the first n_init outputs."""
-        rec, _ = prepare(s)
-        data = rt.Recorded(rec.rows(*rows), {"w": s["w_column"], "y": s["y_column"]}, name="held_out",
-                           dtype=g.role("estimator").theta.dtype)
+        data = recorded(s, rows, "held_out", g.role("estimator").theta.dtype)
         return rt.validate(g, data=data, fit_steps=int(s["n_init"]))
 
     def metrics(self, g, s):
@@ -322,7 +353,10 @@ class SilverboxCubicStiffness(Scenario):
                 out[f"test_{name}_rmse_mv"] = 1e3 * refined
                 out[f"test_{name}_rmse_mv_linear"] = full(1e3 * initial)
                 out[f"test_{name}_rmse_mv_offline"] = full(1e3 * validate(s, None, rows, offline=True)[0])
-            out["offline_k3_over_m"] = full(off.cubic_coefficient(spring_off.coefficients[0]))
+            coef = dict(zip(spring_off.powers, spring_off.coefficients))
+            out["offline_k3_over_m"] = full(off.cubic_coefficient(coef[3]))
+            if 2 in coef:
+                out["offline_k2_over_m"] = full(off.cubic_coefficient(coef[2]))
             out["offline_k1_over_m"], out["offline_damping"] = full(off.b), full(off.a)
             out["offline_gain"], out["offline_offset"] = full(off.g), full(off.d0)
         return out

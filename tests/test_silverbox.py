@@ -9,11 +9,12 @@ import control
 import numpy as np
 import pytest
 import scipy.integrate
+import scipy.interpolate
 import scipy.signal
 import torch
 
 import rcotorch as rt
-from rcotorch.models.identification import MassSpringDamper, rmse
+from rcotorch.models.identification import MassSpringDamper, rmse, spline_slopes
 from rcotorch.run import scenario as scenarios
 from rcotorch.run.runner import Run
 
@@ -74,6 +75,71 @@ def test_foh_output_matches_scipy_cont2discrete():
     _, y_ref, _ = scipy.signal.dlsim(sysd, w)
     y = m.simulate(w, m.state(0.0, 0.0, w[0]))
     np.testing.assert_allclose(y, y_ref[:, 0], rtol=0, atol=1e-12 * np.abs(y_ref).max())
+
+
+def test_spline_slopes_are_the_derivative_of_scipys_cubic_spline_and_exact_for_a_cubic():
+    k = np.arange(40.0)
+    cubic = 0.2 - 0.1 * k + 0.03 * k ** 2 - 0.001 * k ** 3
+    np.testing.assert_allclose(spline_slopes(cubic), -0.1 + 0.06 * k - 0.003 * k ** 2, rtol=0, atol=1e-12)
+    w = smooth_input(300, 1e-3, seed=5)
+    k = np.arange(300.0)
+    np.testing.assert_array_equal(spline_slopes(w), scipy.interpolate.CubicSpline(k, w)(k, 1))
+
+
+@pytest.mark.parametrize("lead", [0.0, 0.5])
+def test_a_spline_input_model_follows_a_fine_integration_of_the_spline_input(lead):
+    """The sampled model with spline=True against scipy's solve_ivp of the continuous oscillator driven by the
+    cubic spline through the samples (scipy's CubicSpline between the samples): y at every sample, and y0 (the
+    position lead samples ahead) against the same integration over lead samples from the state at t_k, with
+    the input's Taylor line there, w(k) + s(k) t / dt."""
+    dt, n = 1e-3, 120
+    m = MassSpringDamper(P["a"], P["b"], P["g"], P["d0"], dt, lead=lead, spline=True)
+    w = smooth_input(n, dt, seed=4)
+    spline = scipy.interpolate.CubicSpline(np.arange(n) * dt, w)
+
+    def f(t, x, u):
+        return [x[1], -P["a"] * x[1] - P["b"] * x[0] + P["g"] * u(t) + P["d0"]]
+
+    x_start = np.array([0.004, -0.3])
+    sol = scipy.integrate.solve_ivp(f, (0, (n - 1) * dt), x_start, args=(spline,), t_eval=np.arange(n) * dt,
+                                    rtol=1e-12, atol=1e-15, method="DOP853")
+    channels = m.inputs(w)
+    y, y0, _ = m.discrete.simulate(channels, m.state(*x_start, channels[0]))
+    scale = np.abs(sol.y[0]).max()
+    np.testing.assert_allclose(y, sol.y[0], rtol=0, atol=1e-9 * scale)
+    slopes = spline_slopes(w)
+    for k in (0, 37, 90):
+        taylor = scipy.integrate.solve_ivp(f, (0, lead * dt), sol.y[:, k], rtol=1e-12, atol=1e-15, method="DOP853",
+                                           args=(lambda t, k=k: w[k] + slopes[k] * t / dt,))
+        assert y0[k] == pytest.approx(taylor.y[0, -1], abs=1e-9 * scale)
+
+
+def test_with_u_ahead_y0_holds_the_motion_of_the_last_u_and_the_output_is_unchanged():
+    """u_ahead: a 4th state carries u(k-1), and y0 (the position lead samples ahead) is solve_ivp's from the
+    state at t_k with the input's Taylor line and g u(k-1) held over the lead; y itself equals the model
+    without it for any feedback (u(k-1) only enters what the subsystem sees)."""
+    dt, n, lead = 1e-3, 80, 0.5
+    plain = MassSpringDamper(P["a"], P["b"], P["g"], P["d0"], dt, lead=lead, spline=True)
+    ahead = MassSpringDamper(P["a"], P["b"], P["g"], P["d0"], dt, lead=lead, spline=True, u_ahead=True)
+    assert ahead.states == 4 and ahead.discrete.A.shape == (4, 4) and ahead.lti().fitted_states == (0, 1, 2)
+    w = ahead.inputs(smooth_input(n, dt, seed=6))
+    law = rt.models.identification.Polynomial((0.02, -3.0), (1, 3))
+    y, y0, u = ahead.discrete.simulate(w, ahead.state(0.003, 0.2, w[0]), law)
+    y_plain = plain.discrete.simulate(w, plain.state(0.003, 0.2, w[0]), lambda q: 0.0)[0]
+    assert not np.allclose(y, y_plain)                        # the feedback acts
+    # the state at every sample from the model's own y and u: the plain model driven by the same u
+    x = plain.state(0.003, 0.2, w[0])
+    d = plain.discrete
+    for k in range(n - 1):
+        state = x + plain.hold_offset @ w[k]                  # [y, y', 1] at t_k
+        if k in (1, 30, 70):
+            def f(t, z, k=k):
+                return [z[1], -P["a"] * z[1] - P["b"] * z[0] + P["g"] * (w[k, 0] + w[k, 1] * t / dt + u[k - 1])
+                        + P["d0"]]
+            ref = scipy.integrate.solve_ivp(f, (0, lead * dt), state[:2], rtol=1e-12, atol=1e-15, method="DOP853")
+            assert y0[k] == pytest.approx(ref.y[0, -1], abs=1e-9 * abs(ref.y[0, -1]) + 1e-15)
+            assert y[k] == pytest.approx(state[0], abs=1e-12)
+        x = d.A @ x + d.B[:, :2] @ w[k] + d.B[:, 2] * u[k]
 
 
 @pytest.mark.parametrize("lead", [0.0, 0.5, 0.3])
@@ -225,34 +291,45 @@ def test_scenario_graph_and_validation_against_references(tmp_path, silverbox_cs
     val = rt.load(silverbox_csv, rows=(105712, 127400))
     w, y = val.column("V1"), val.column("V2")
     d = model.discrete
+    # The input as the model sees it: the samples and scipy's spline's slopes through the validation rows.
+    W = np.c_[w, scipy.interpolate.CubicSpline(np.arange(len(w)), w)(np.arange(len(w)), 1)]
+    assert d.B.shape == (4, 3)                    # states y, y', 1, u(k-1); inputs w, its slope, u
     # Initial model: the whole discrete state (the constant entry too) by linear least squares on the first 50
-    # outputs, free run by scipy's dlsim.
-    sys = (d.A, d.B[:, :1], d.C[:1], d.D[:1, :1], d.dt)
-    base = scipy.signal.dlsim(sys, w[:50], x0=[0, 0, 0])[1][:, 0]
-    cols = [scipy.signal.dlsim(sys, np.zeros(50), x0=e)[1][:, 0] for e in np.eye(3)]
+    # outputs, free run by scipy's dlsim (u(k-1) moves no output without feedback: its column is zero).
+    sys = (d.A, d.B[:, :2], d.C[:1], d.D[:1, :2], d.dt)
+    base = scipy.signal.dlsim(sys, W[:50], x0=[0, 0, 0, 0])[1][:, 0]
+    cols = [scipy.signal.dlsim(sys, np.zeros((50, 2)), x0=e)[1][:, 0] for e in np.eye(4)]
     p = np.linalg.lstsq(np.column_stack(cols), y[:50] - base, rcond=None)[0]
-    y_lin = scipy.signal.dlsim(sys, w, x0=p)[1][:, 0]
+    y_lin = scipy.signal.dlsim(sys, W, x0=p)[1][:, 0]
     assert summary["metrics"]["val_rmse_initial"] == pytest.approx(rmse(y_lin[50:], y[50:]), rel=1e-6)
     # Refined model: the known model with the frozen spring as torch blocks.
     law = rt.StaticMap(lambda q: theta1 * q + theta * q ** 3, 1, name="law")
-    reference = _fitted_free_run(model, law, ("position",), w, y)
-    # validate fits the state of the nonlinear loop by two Gauss-Newton passes, the reference to convergence.
-    assert summary["metrics"]["val_rmse_refined"] == pytest.approx(reference, rel=2e-3)
+    reference = _fitted_free_run(model, law, ("position",), W, y)
+    # validate fits the state of the nonlinear loop by two Gauss-Newton passes, the reference to convergence;
+    # the error after the first 50 samples moves by a few tenths of a percent with that state.
+    assert summary["metrics"]["val_rmse_refined"] == pytest.approx(reference, rel=5e-3)
 
 
 def _fitted_free_run(model, law, sees, w, y, n=50):
     """RMS error after the first n samples of the free run of ``model`` with the feedback ``law`` (a torch
-    block from y0 to u), from the discrete state scipy's least squares fits to the first n outputs."""
+    block from y0 to u), from the discrete state scipy's least squares fits to the first n outputs; ``w`` (T, m)
+    the model's input channels."""
     import scipy.optimize
 
     def free_run(x0, T):
-        rg = rt.Graph([rt.Recorded(w[:T, None], {"w": 0}, name="data"), model.lti(x0=x0, sees=sees), law],
+        rg = rt.Graph([rt.Recorded(w[:T], {"w": list(range(w.shape[1]))}, name="data"), model.lti(x0=x0, sees=sees),
+                       law],
                       ["data.w -> known.w", "known.y0 -> law.in", "law.out -> known.u"])
         return rg.run(T, record={"y": "known.y"})["y"][:, 0, 0].numpy()
 
-    x0 = scipy.optimize.least_squares(lambda x: free_run(x, n) - y[:n], model.state(y[0], 0.0, w[0]),
+    # y, y' and the constant fitted; u(k-1) (u_ahead) held at 0
+    start = model.state(y[0], 0.0, w[0])
+
+    def state(x):
+        return np.r_[x, start[3:]]
+    x0 = scipy.optimize.least_squares(lambda x: free_run(state(x), n) - y[:n], start[:3],
                                       x_scale=[0.1, 0.1 * np.sqrt(model.b), 1.0], xtol=1e-14, ftol=1e-14).x
-    return rmse(free_run(x0, len(w))[n:], y[n:])
+    return rmse(free_run(state(x0), len(w))[n:], y[n:])
 
 
 @pytest.mark.slow
@@ -278,8 +355,12 @@ def test_silverbox_scenario_meets_requirements_with_defaults(tmp_path, silverbox
     # and its coefficients near the offline fit's.
     for name in ("multisine", "arrow", "arrow_noextrap"):
         assert m[f"test_{name}_rmse_mv"] < 1.10 * m[f"test_{name}_rmse_mv_offline"], name
-    for key in ("k3_over_m", "k1_over_m", "damping", "gain", "offset"):
-        assert summary["estimates"][key] == pytest.approx(m[f"offline_{key}"], rel=0.01), key
+    for key in ("k3_over_m", "k2_over_m", "k1_over_m", "damping", "gain", "offset"):
+        assert summary["estimates"][key] == pytest.approx(m[f"offline_{key}"], rel=0.02), key
+    # Against the field (Champneys et al. 2024: best published 0.30 / 0.26 / 0.26 mV): within 1.5x of it on the
+    # multisine and the arrow without extrapolation; the arrow's extrapolation is 1.5-2x.
+    assert m["test_multisine_rmse_mv"] <= 0.45 and m["test_arrow_noextrap_rmse_mv"] <= 0.39
+    assert m["test_arrow_rmse_mv"] <= 0.5
     assert summary["diverged"] == []
     for fig in ("validation.png", "estimates.png", "model_error.png"):
         assert (tmp_path / fig).stat().st_size > 10_000
@@ -294,20 +375,24 @@ def test_refining_every_coefficient_against_an_independent_graph(tmp_path, silve
     run = Run("silverbox-cubic-stiffness", steps=3000, out=tmp_path, overrides={"test_sets": False})
     g, s = run.graph, run.settings
     ident = g.blocks["identified"]
-    assert ident.theta_names == ["y0[0](k)", "y0[0]^3(k)", "y0[1](k)", "y0[2](k)", "1(k)"]
+    assert s["basis"] == "all+quadratic" and s["spline"] and s["u_ahead"] and s["lead"] == 0.5
+    assert ident.theta_names == ["y0[0](k)", "y0[0]^2(k)", "y0[0]^3(k)", "y0[1](k)", "y0[2](k)", "1(k)"]
     run.advance(progress=False)
     summary = run.finish(figures=False)
     model = run.scenario.model(s)
-    tq, t3, tv, tw, t1 = (float(v) for v in ident.theta[0, 0])
+    tq, t2, t3, tv, tw, t1 = (float(v) for v in ident.theta[0, 0])
     e = summary["estimates"]
     assert e["k3_over_m"] == pytest.approx(-model.g * t3) and e["k1_over_m"] == pytest.approx(model.b - model.g * tq)
+    assert e["k2_over_m"] == pytest.approx(-model.g * t2)
     assert e["damping"] == pytest.approx(model.a - model.g * tv) and e["gain"] == pytest.approx(model.g * (1 + tw))
     assert e["offset"] == pytest.approx(model.d0 + model.g * t1)
 
     val = rt.load(silverbox_csv, rows=(105712, 127400))
     w, y = val.column("V1"), val.column("V2")
-    law = rt.StaticMap(lambda x: tq * x[..., :1] + t3 * x[..., :1] ** 3 + tv * x[..., 1:2] + tw * x[..., 2:3] + t1,
-                       3, name="law")
-    reference = _fitted_free_run(model, law, ("position", "velocity", "input"), w, y)
-    assert summary["metrics"]["val_rmse_refined"] == pytest.approx(reference, rel=2e-3)
+    W = np.c_[w, scipy.interpolate.CubicSpline(np.arange(len(w)), w)(np.arange(len(w)), 1)]
+    law = rt.StaticMap(lambda x: tq * x[..., :1] + t2 * x[..., :1] ** 2 + t3 * x[..., :1] ** 3 + tv * x[..., 1:2]
+                       + tw * x[..., 2:3] + t1, 3, name="law")
+    reference = _fitted_free_run(model, law, ("position", "velocity", "input"), W, y)
+    # At 0.3 mV the two fits of the initial state (two Gauss-Newton passes, and to convergence) differ by ~1 %.
+    assert summary["metrics"]["val_rmse_refined"] == pytest.approx(reference, rel=2e-2)
     assert summary["metrics"]["val_rmse_refined"] < 0.2 * summary["metrics"]["val_rmse_initial"]

@@ -83,6 +83,33 @@ def test_the_initial_state_is_fitted_to_the_first_samples():
         validate(g, rows=(0, 100))
 
 
+def test_a_known_model_that_names_its_fitted_states_keeps_the_others_and_the_fit_stays_finite():
+    """A Silverbox-like model whose 4th state carries u(k-1) (``MassSpringDamper(u_ahead=True)``) in a cubic
+    spring's loop: fitting that state too threw the free run off (a u(k-1) of 39 on 50 mV data, NaN after six
+    samples). With ``fitted_states`` = (0, 1, 2) the state fit leaves it as it was and the refined model scores
+    the measurement noise."""
+    from rcotorch.models.identification import MassSpringDamper
+    dt, n = 1.6384e-3, 3000
+    model = MassSpringDamper(42.0, 1.84e5, 1.86e5, -1000.0, dt, spline=True, u_ahead=True)
+    w = np.random.default_rng(0).standard_normal(n + 400).cumsum() * 2e-4
+    w = np.convolve(w - w.mean(), np.ones(8) / 8, "same")[200:200 + n]
+    law = rt.models.identification.Polynomial((-4.0,), (3,))
+    channels = model.inputs(w)
+    y = model.discrete.simulate(channels, model.state(0.01, 0.0, channels[0]), law)[0]
+    y = y + np.random.default_rng(1).normal(0, 1e-5, n)
+    known = model.lti(sees=("position",))
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.power("y0", 3)], p0=1.0)
+    g = rt.refinement(known, ident, data=rt.Recorded(np.c_[channels, y], {"w": [0, 1], "y": 2}, dt=dt), nu=60)
+    g.run(2000)
+    ident.hold(torch.tensor([[-4.0]], dtype=torch.float64))         # the true spring
+    v = validate(g, rows=(2000, n))
+    assert v.state_fitted and float(v.x0[0, 3]) == 0.0              # u(k-1) as the validation started it
+    assert float(v.rmse[0]) == pytest.approx(1e-5, rel=0.15)
+    known.fitted_states = None                                      # every state fitted: the fault
+    every = validate(g, rows=(2000, n))
+    assert float(every.x0[0, 3]) != 0.0 and not float(every.rmse[0]) <= 2e-5
+
+
 def test_a_member_whose_loop_overflows_is_scored_nan_and_the_others_as_before():
     """theta of member 1 set to 1e200: its frozen loop overflows, so its outputs' sensitivity to the state is not
     finite (the state fit's least squares would fail on it); it keeps its state and scores NaN, member 0 scores

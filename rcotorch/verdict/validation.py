@@ -304,7 +304,9 @@ def _restore(graph, start: Mapping[str, torch.Tensor]) -> None:
 
 def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None, bool]:
     """The known model's initial state that best explains the first ``steps`` measured samples, per member;
-    ``graph`` is left in the state it was given."""
+    ``graph`` is left in the state it was given. A known model may name the entries of its state a fit may move
+    (its attribute ``fitted_states``, indices; e.g. not a state that carries a past input); the others keep
+    their value."""
     known = graph.role("known")
     x = getattr(known, "x", None)
     if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[1] == 0:
@@ -321,6 +323,7 @@ def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: 
     """``_fit_state``'s Gauss-Newton passes, each simulation of ``graph`` from ``start``."""
     x0 = x.detach().clone().to(torch.float64)
     B, n = x0.shape
+    moved = list(getattr(graph.role("known"), "fitted_states", None) or range(n))
     fitted = torch.ones(B, dtype=torch.bool, device=x0.device)
 
     def simulate(x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -330,8 +333,8 @@ def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: 
         y, y_hat = simulate(x0.to(x.dtype))
         r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
         scale = 1e-6 * torch.clamp(x0.abs().amax(1, keepdim=True), min=1.0)
-        S = torch.empty(B, r.shape[1], n, dtype=torch.float64, device=x0.device)
-        for i in range(n):
+        S = torch.zeros(B, r.shape[1], n, dtype=torch.float64, device=x0.device)
+        for i in moved:
             step = torch.zeros_like(x0)
             step[:, i:i + 1] = scale
             _, y_i = simulate((x0 + step).to(x.dtype))
