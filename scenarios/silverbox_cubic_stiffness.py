@@ -7,22 +7,25 @@ fs = 1e7 / 2^14 Hz.
 
 1. Known model (fitted here, not given): the linear part y'' = -a y' - b y + g (w + u) + d0, fitted by output
    error to the benchmark's estimation rows, [fit_start, fit_stop) (``rcotorch.models.identification.
-   MassSpringDamper.fit``): the best linear model of data that hold the nonlinearity. w is interpolated
-   linearly between samples (FOH).
-2. Unknown subsystem: the cubic hardening spring, and what the linear fit got wrong while it absorbed the
-   cubic spring. The identified subsystem is a static basis regressor, linear in theta (setting ``basis``):
+   MassSpringDamper.fit``): the best linear model of data that hold the nonlinearity. w is the cubic spline
+   through its samples between them (setting ``spline``; its slopes are the input's second channel), or
+   interpolated linearly (``spline=false``, ``foh``).
+2. Unknown subsystem: the cubic hardening spring, its asymmetry, and what the linear fit got wrong while it
+   absorbed the spring. The identified subsystem is a basis regressor, linear in theta (setting ``basis``):
 
-       all (default):  u(k) = theta_q q + theta_3 q^3 + theta_v v + theta_w w(k) + theta_1
-       linear+cubic:   u(k) = theta_q q + theta_3 q^3
-       cubic:          u(k) = theta_3 q^3
+       all+quadratic (default):  u(k) = theta_q q + theta_2 q^2 + theta_3 q^3 + theta_v v + theta_w w(k) + theta_1
+       all:                      u(k) = theta_q q + theta_3 q^3 + theta_v v + theta_w w(k) + theta_1
+       linear+cubic:             u(k) = theta_q q + theta_3 q^3
+       cubic:                    u(k) = theta_3 q^3
 
-   where q and v are the position and velocity the known model predicts half a sample after t_k (setting
-   ``lead``; u is held over the sample, so this is the midpoint rule of the continuous forces). ``all`` is the
-   structure of the offline fit below: every coefficient of the linear model and the cubic spring. u enters
-   as g u, like the input, so the refined model is y'' = -a' y' - k1 y - c y^3 + g' w + d0' with
+   static (``nc=0``), or with each term's and u's nc past samples (a dynamic subsystem, whose estimates are
+   its static gains), where q and v are the position and velocity the known model predicts half a sample after
+   t_k (setting ``lead``; u is held over the sample, so this is the midpoint rule of the continuous forces;
+   with ``u_ahead`` the prediction includes the motion of the last sample's u). u enters as g u, like the input,
+   so the refined model is y'' = -a' y' - k1 y - k2 y^2 - c y^3 + g' w + d0' with
 
-       c = k3_over_m = -g theta_3,  k1 = k1_over_m = b - g theta_q,  a' = damping = a - g theta_v,
-       g' = gain = g (1 + theta_w),  d0' = offset = d0 + g theta_1.
+       c = k3_over_m = -g theta_3,  k2_over_m = -g theta_2,  k1 = k1_over_m = b - g theta_q,
+       a' = damping = a - g theta_v,  g' = gain = g (1 + theta_w),  d0' = offset = d0 + g theta_1.
 
 3. Refinement: the recorded estimation multisine, rows [est_start, est_stop), is played back through
    ``rt.refinement(known, identified, data=rt.Recorded(...))``; the known model starts from the state fitted
@@ -35,9 +38,10 @@ fs = 1e7 / 2^14 Hz.
 5. The benchmark's own test sets (with the Silverbox data): the multisine (rows 105712-127400), the arrow
    (rows 100-40575) and the arrow without extrapolation (its first 32000 samples); the first 50 outputs of
    each fix the initial state, and the RMS error in mV is over the rest. Beside the refined model, in the same
-   run, two baselines: the linear model alone, and an offline output-error fit of the same linear + cubic
-   structure (a, b, g, d0, the cubic coefficient and the initial state by ``scipy.optimize.least_squares`` on
-   the free-run error over the estimation rows, ``MassSpringDamper.fit_with_spring``).
+   run, two baselines: the linear model alone, and an offline output-error fit of the same linear +
+   polynomial spring structure (a, b, g, d0, the spring's coefficients and the initial state by
+   ``scipy.optimize.least_squares`` on the free-run error over the estimation rows,
+   ``MassSpringDamper.fit_with_spring``).
 """
 
 from __future__ import annotations
@@ -234,11 +238,11 @@ class SilverboxCubicStiffness(Scenario):
     settings = dict(data=SILVERBOX, w_column="V1", y_column="V2", Ts=2 ** 14 / 1e7,
                     fit_start=40650, fit_stop=105712, est_start=40650, est_stop=105712, val_start=105712,
                     val_stop=127400, n_init=50, foh=True, spline=True, u_ahead=True, lead=0.5, basis="all+quadratic",
-                    p0=1e4, lam=1.0, nu=100, test_sets=True)
+                    nc=0, p0=1e4, lam=1.0, nu=100, test_sets=True)
     requirements = (Requirement("metrics.val_rmse_refined", "max", 0.002, inclusive=True),
                     Requirement("metrics.val_rmse_ratio", "max", 0.2, inclusive=True))
     per_member = frozenset({"p0", "lam"})
-    bounds = dict(Ts=POSITIVE, fit_start=NON_NEGATIVE, fit_stop=NON_NEGATIVE, est_start=NON_NEGATIVE,
+    bounds = dict(Ts=POSITIVE, nc=NON_NEGATIVE, fit_start=NON_NEGATIVE, fit_stop=NON_NEGATIVE, est_start=NON_NEGATIVE,
                   est_stop=NON_NEGATIVE, val_start=NON_NEGATIVE, val_stop=NON_NEGATIVE, n_init=NON_NEGATIVE)
     units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k2_over_m", "1/(V s^2)"),
                                                  ("k1_over_m", "1/s^2"), ("damping", "1/s"),
@@ -261,9 +265,11 @@ class SilverboxCubicStiffness(Scenario):
         spline=("", "interpolate the input by the cubic spline through its samples in the model (overrides foh)"),
         u_ahead=("", "the position the spring sees lead samples ahead includes the motion of the last sample's u"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
-        basis=("", "what the identified subsystem refines: 'all' (stiffness, cubic spring, damping, input gain "
-                   "and offset: the structure of the offline fit), 'linear+cubic' (theta_1 y0 + theta_3 y0^3), or "
-                   "'cubic' (theta_3 y0^3 alone)", tuple(BASES)),
+        basis=("", "what the identified subsystem refines: 'all+quadratic' (stiffness, quadratic and cubic spring, "
+                   "damping, input gain and offset), 'all' (the same without the quadratic term), 'linear+cubic' "
+                   "(theta_1 y0 + theta_3 y0^3), or 'cubic' (theta_3 y0^3 alone)", tuple(BASES)),
+        nc=("samples", "past samples of each basis term and of u in the identified subsystem: 0 a static basis, "
+                       "nc >= 1 a dynamic one whose estimates are its static gains (the offline fit stays static)"),
         test_sets=("", "score the benchmark's test sets (multisine, arrow, arrow without extrapolation) against "
                        "the linear model and an offline output-error fit of the same structure (Silverbox data)"),
     )
@@ -277,8 +283,12 @@ class SilverboxCubicStiffness(Scenario):
         est = rec.rows(int(s["est_start"]), int(s["est_stop"]))
         w, y, n = model.inputs(est.column(s["w_column"])), est.column(s["y_column"]), int(s["n_init"])
         known = model.lti(x0=model.initial_state(w[:n], y[:n]), dtype=dtype, sees=sees(s))
-        ident = rt.RCOEstimator.static_gain({"y0": len(sees(s))}, features=features(s), p0=s["p0"], lam=s["lam"],
-                                            dtype=dtype)
+        if int(s["nc"]) == 0:
+            ident = rt.RCOEstimator.static_gain({"y0": len(sees(s))}, features=features(s), p0=s["p0"],
+                                                lam=s["lam"], dtype=dtype)
+        else:                       # each term and u with nc past samples: a dynamic subsystem
+            ident = rt.RCOEstimator({"y0": len(sees(s))}, nc=int(s["nc"]), proper=True, features=features(s),
+                                    p0=s["p0"], lam=s["lam"], dtype=dtype)
         data = recorded(s, (int(s["est_start"]), int(s["est_stop"])), "data", dtype)
         return rt.refinement(known, ident, data=data, nu=int(s["nu"]), batch_size=batch, dtype=dtype,
                              device=device)
@@ -297,8 +307,13 @@ class SilverboxCubicStiffness(Scenario):
 
     @staticmethod
     def theta(graph) -> torch.Tensor:
-        """theta per member, (B, number of basis terms)."""
-        return graph.role("estimator").theta[:, 0, :]
+        """Each basis term's static gain per member, (B, number of basis terms): theta of a static basis, the
+        DC gain (I - sum_l M_l)^-1 sum_l N_l of a dynamic one (nc >= 1)."""
+        est = graph.role("estimator")
+        if est.nc == 0:
+            return est.theta[:, 0, :]
+        from rcotorch.estimator.transfer import dc_gain
+        return dc_gain(est)[:, 0, :]
 
     def estimates(self, g, s):
         """k3/m and, by basis, the refined model's k1/m, damping a, input gain g and offset d0 (u enters as

@@ -396,3 +396,24 @@ def test_refining_every_coefficient_against_an_independent_graph(tmp_path, silve
     # At 0.3 mV the two fits of the initial state (two Gauss-Newton passes, and to convergence) differ by ~1 %.
     assert summary["metrics"]["val_rmse_refined"] == pytest.approx(reference, rel=2e-2)
     assert summary["metrics"]["val_rmse_refined"] < 0.2 * summary["metrics"]["val_rmse_initial"]
+
+
+def test_a_dynamic_subsystem_reports_each_terms_static_gain(tmp_path, silverbox_csv):
+    """nc = 1: u(k) = sum_i (a_i phi_i(k) + b_i phi_i(k-1)) + c u(k-1); each estimate is the term's static gain
+    (a_i + b_i) / (1 - c) carried through the same algebra as a static basis."""
+    run = Run("silverbox-cubic-stiffness", steps=1500, out=tmp_path, overrides={"test_sets": False, "nc": 1})
+    ident = run.graph.role("estimator")
+    run.advance(progress=False)
+    names, theta = ident.theta_names, ident.theta[0, 0].tolist()
+    assert ident.nc == 1 and names[-1] == "u(k-1)" and len(names) == 13
+    c = theta[-1]
+    gains = {names[2 * i][:-3]: (theta[2 * i] + theta[2 * i + 1]) / (1 - c) for i in range(6)}
+    model = run.scenario.model(run.settings)
+    est = {k: float(v[0]) for k, v in run.scenario.estimates(run.graph, run.settings).items()}
+    assert est["k3_over_m"] == pytest.approx(-model.g * gains["y0[0]^3"], rel=1e-10)
+    assert est["k2_over_m"] == pytest.approx(-model.g * gains["y0[0]^2"], rel=1e-10)
+    assert est["k1_over_m"] == pytest.approx(model.b - model.g * gains["y0[0]"], rel=1e-10)
+    assert est["damping"] == pytest.approx(model.a - model.g * gains["y0[1]"], rel=1e-10)
+    assert est["gain"] == pytest.approx(model.g * (1 + gains["y0[2]"]), rel=1e-10)
+    assert est["offset"] == pytest.approx(model.d0 + model.g * gains["1"], rel=1e-10)
+    run.close()
