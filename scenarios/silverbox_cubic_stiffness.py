@@ -70,7 +70,15 @@ SILVERBOX = "silverbox"      # the default of setting ``data``: the benchmark's 
 #   gain w(k), offset 1.
 BASES = {"cubic": ("cubic",), "linear+cubic": ("stiffness", "cubic"),
          "all": ("stiffness", "cubic", "damping", "gain", "offset"),
-         "all+quadratic": ("stiffness", "quadratic", "cubic", "damping", "gain", "offset")}
+         "all+quadratic": ("stiffness", "quadratic", "cubic", "damping", "gain", "offset"),
+         "cubic-qv": ("stiffness", "quadratic", "cubic", "damping", "v2", "v3", "qv", "q2v", "qv2", "gain", "offset")}
+# Velocity and product terms (basis cubic-qv: the full cubic polynomial in q and v): term -> (exponents of q
+# and v, the estimate of its coefficient c in y'' = ... - c q^i v^j, and that coefficient's unit). The regressor
+# is q^i (v / omega0)^j, omega0 = sqrt(b) the linear model's natural frequency, so that each term is of the size
+# of the powers of q beside it and one p0 suits them all.
+MIXED = {"v2": ((0, 2), "c_v2_over_m", "1/V"), "v3": ((0, 3), "c_v3_over_m", "s/V^2"),
+         "qv": ((1, 1), "c_qv_over_m", "1/(V s)"), "q2v": ((2, 1), "c_q2v_over_m", "1/(V^2 s)"),
+         "qv2": ((1, 2), "c_qv2_over_m", "1/V^2")}
 POWERS = {"stiffness": 1, "quadratic": 2, "cubic": 3}      # the terms that are powers of the position
 SLOPE = "w_slope"          # the derived column of the input's spline slopes (setting ``spline``)
 # The benchmark's test sets (rows of SNLS80mV.csv): the first 50 outputs of each fix the initial state.
@@ -199,6 +207,11 @@ def features(s) -> list:
     made = {"stiffness": lambda: f.port(q), "quadratic": lambda: f.power(q, 2), "cubic": lambda: f.power(q, 3),
             "damping": lambda: f.port("y0[1]"),
             "gain": lambda: f.port("y0[2]"), "offset": lambda: f.constant()}
+    if any(t in MIXED for t in BASES[s["basis"]]):
+        omega = math.sqrt(prepare(s)[1].b)
+        for term, ((i, j), _, _) in MIXED.items():
+            made[term] = (lambda i=i, j=j: omega ** -j * f.monomial({k: e for k, e in (("y0[0]", i), ("y0[1]", j))
+                                                                     if e}))
     return [made[t]() for t in BASES[s["basis"]]]
 
 
@@ -247,6 +260,7 @@ class SilverboxCubicStiffness(Scenario):
     units = {**{f"{x}{k}": u for k, u in (("k3_over_m", "1/(V^2 s^2)"), ("k2_over_m", "1/(V s^2)"),
                                                  ("k1_over_m", "1/s^2"), ("damping", "1/s"),
                                          ("gain", "1/s^2"), ("offset", "V/s^2")) for x in ("", "offline_")},
+             **{key: unit for _, key, unit in MIXED.values()},
              "y": "V", "val_rmse_initial": "V", "val_rmse_refined": "V",
              **{f"test_{t}_rmse_mv{x}": "mV" for t in TEST_SETS for x in ("", "_linear", "_offline")}}
     about = dict(
@@ -266,7 +280,8 @@ class SilverboxCubicStiffness(Scenario):
         u_ahead=("", "the position the spring sees lead samples ahead includes the motion of the last sample's u"),
         lead=("samples", "the cubic spring sees the position this far after each sample (0.5: mid-sample)"),
         basis=("", "what the identified subsystem refines: 'all+quadratic' (stiffness, quadratic and cubic spring, "
-                   "damping, input gain and offset), 'all' (the same without the quadratic term), 'linear+cubic' "
+                   "damping, input gain and offset), 'cubic-qv' (those and v^2, v^3, q v, q^2 v, q v^2: the full "
+                   "cubic polynomial in q and v), 'all' (without the quadratic term), 'linear+cubic' "
                    "(theta_1 y0 + theta_3 y0^3), or 'cubic' (theta_3 y0^3 alone)", tuple(BASES)),
         nc=("samples", "past samples of each basis term and of u in the identified subsystem: 0 a static basis, "
                        "nc >= 1 a dynamic one whose estimates are its static gains (the offline fit stays static)"),
@@ -332,6 +347,9 @@ class SilverboxCubicStiffness(Scenario):
             out["gain"] = model.g * (1 + th["gain"])
         if "offset" in th:
             out["offset"] = model.d0 + model.g * th["offset"]
+        for term, ((_, j), key, _) in MIXED.items():
+            if term in th:
+                out[key] = model.cubic_coefficient(th[term]) / math.sqrt(model.b) ** j
         return out
 
     @staticmethod

@@ -417,3 +417,26 @@ def test_a_dynamic_subsystem_reports_each_terms_static_gain(tmp_path, silverbox_
     assert est["gain"] == pytest.approx(model.g * (1 + gains["y0[2]"]), rel=1e-10)
     assert est["offset"] == pytest.approx(model.d0 + model.g * gains["1"], rel=1e-10)
     run.close()
+
+
+def test_the_cubic_polynomial_in_q_and_v_regresses_on_q_and_v_over_omega0_and_reports_each_coefficient(
+        tmp_path, silverbox_csv):
+    """basis cubic-qv: the regressor's terms q^i (v / omega0)^j (omega0 = sqrt(b)) of the position and velocity
+    the known model predicts (y0[0], y0[1]), and each estimate c = -g theta / omega0^j of y'' = ... - c q^i v^j."""
+    run = Run("silverbox-cubic-stiffness", steps=800, out=tmp_path, overrides={"test_sets": False, "basis": "cubic-qv"})
+    g, ident = run.graph, run.graph.role("estimator")
+    model = run.scenario.model(run.settings)
+    omega = np.sqrt(model.b)
+    run.advance(progress=False)
+    y0 = g.run(1, record={"y0": "known.y0"})["y0"][0, 0].tolist()          # the step's q, v and w
+    q, v = y0[0], y0[1]
+    want = [q, q ** 2, q ** 3, v, (v / omega) ** 2, (v / omega) ** 3, q * v / omega, q ** 2 * v / omega,
+            q * (v / omega) ** 2, y0[2], 1.0]
+    np.testing.assert_allclose(ident.phi_now[0].tolist(), want, rtol=1e-12)
+    theta = ident.theta[0, 0].tolist()
+    est = {k: float(v[0]) for k, v in run.scenario.estimates(g, run.settings).items()}
+    for at, key, j in ((4, "c_v2_over_m", 2), (5, "c_v3_over_m", 3), (6, "c_qv_over_m", 1), (7, "c_q2v_over_m", 1),
+                       (8, "c_qv2_over_m", 2)):
+        assert est[key] == pytest.approx(-model.g * theta[at] / omega ** j, rel=1e-10), key
+    assert est["k3_over_m"] == pytest.approx(-model.g * theta[2], rel=1e-10)
+    run.close()

@@ -63,7 +63,9 @@ def test_the_silverbox_tables_in_the_docs_are_those_the_table_script_prints():
                                                                          results["goal"]))
     import silverbox_table
     defaults = scenarios.get("silverbox-cubic-stiffness").settings
-    best = silverbox_table.chosen(results["search"])["settings"]
-    assert best == results["search"][4]["settings"]       # ranks 1-4 (nc = 1) undetermined
+    pick = silverbox_table.chosen(results["search"])
+    best = pick["settings"]
+    above = results["search"][:results["search"].index(pick)]
+    assert all(c["status"] not in silverbox_table.SETTLED for c in above)     # better held out, not settled
     assert all(defaults[k] == v for k, v in best.items()), (best, defaults)
     assert sh["settings"]["lead"] == defaults["lead"] == 0.5
