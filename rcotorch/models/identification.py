@@ -408,16 +408,7 @@ class MassSpringDamper:
     def discrete(self) -> DiscreteModel:
         """The sampled model (state xi = [y, y', 1] - G2 w(k), see the module notes)."""
         A, bg = self.continuous()
-        G2 = self.hold_offset[:3]
-        if self.spline:
-            Phi, G = _hermite_input(A, bg, self.dt)
-            bw = Phi @ G2 + G[:, :2]
-        elif self.foh:
-            Phi, G1, _ = _expm_input(A, bg, self.dt, foh=True)
-            bw = (Phi @ G2[:, 0] + G1 - G2[:, 0])[:, None]
-        else:
-            Phi, b0 = _expm_input(A, bg, self.dt)
-            bw = b0[:, None]
+        Phi, bw, G2 = self._sampled_input
         _, bu = _expm_input(A, bg, self.dt)
         n = self.states
         if n > 3:                                  # the 4th state is u of the sample before: u(k-1)
@@ -428,6 +419,21 @@ class MassSpringDamper:
         D = np.zeros((2, G2.shape[1] + 1))
         D[0, :-1], D[1, :-1] = cy[:3] @ G2, d0
         return DiscreteModel(Phi, np.c_[bw, bu], np.vstack([cy, c0]), D, self.dt)
+
+    @cached_property
+    def _sampled_input(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Phi = e^(A dt), the input columns B_w of the causal state xi and G2 (3, ``channels``): one sample of
+        the input as the model interpolates it (module notes)."""
+        A, bg = self.continuous()
+        if self.spline:
+            Phi, G = _hermite_input(A, bg, self.dt)
+            G2 = G[:, 2:]
+            return Phi, Phi @ G2 + G[:, :2], G2
+        if self.foh:
+            Phi, G1, G2 = _expm_input(A, bg, self.dt, foh=True)
+            return Phi, (Phi @ G2 + G1 - G2)[:, None], G2[:, None]
+        Phi, b0 = _expm_input(A, bg, self.dt)
+        return Phi, b0[:, None], np.zeros((3, 1))
 
     @property
     def states(self) -> int:
@@ -480,14 +486,7 @@ class MassSpringDamper:
     @property
     def hold_offset(self) -> np.ndarray:
         """G2 (``states``, ``channels``): the discrete state is xi = [y, y', 1] - G2 w(k) (u(k-1) as it is)."""
-        A, bg = self.continuous()
-        if self.spline:
-            G2 = _hermite_input(A, bg, self.dt)[1][:, 2:]
-        elif not self.foh:
-            G2 = np.zeros((3, 1))
-        else:
-            G2 = _expm_input(A, bg, self.dt, foh=True)[2][:, None]
-        return np.pad(G2, ((0, self.states - 3), (0, 0)))
+        return np.pad(self._sampled_input[2], ((0, self.states - 3), (0, 0)))
 
     def state(self, y: float, v: float, w0=0.0) -> np.ndarray:
         """The discrete state for a position, velocity and input at the same instant.
