@@ -1,6 +1,8 @@
 """Loading recorded data (CSV, NPZ), its checks, playback with gaps, and a Figure-1 run on data with a gap."""
 
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -216,3 +218,51 @@ def test_the_measured_outputs_unit_comes_from_the_recording(tmp_path, sdof_known
     assert GraphScenario(g, units={"y": "mm/s"}).unit("y") == "mm/s"
     mixed = rt.Recorded(rec, {"w": ["force", "velocity"], "y": "velocity"})
     assert mixed.units == {"y": "m/s"}                          # a port whose columns differ in unit has none
+
+
+def _row_by_row(path, columns):
+    """The row-by-row CSV parser's result, as ``_read_csv`` returns it."""
+    import csv
+
+    from rcotorch.data import recording as R
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        return R._parse_csv(path, csv.reader(f), columns, R._record_bound(path))
+
+
+@pytest.mark.parametrize("columns", [None, ["b"], ["c [V]", "a"]])
+def test_a_plain_csv_read_in_one_pass_equals_the_row_by_row_parse(tmp_path, columns):
+    """Plain numbers (17 significant digits, exponents, signs), a trailing comma on every row, CRLF line ends, a
+    byte-order mark, a time column not asked for, units in the header, blank lines at the end: the one-pass
+    reader gives the same names, units, values (bit for bit) and time columns as the row-by-row parser."""
+    from rcotorch.data import recording as R
+    rng = np.random.default_rng(3)
+    v = rng.standard_normal((500, 3)) * 10.0 ** rng.integers(-12, 12, (500, 3))
+    lines = ["time [ms],a,b,c [V],"] + [f"{k * 0.5},{float(x)!r},{y:+.17e},{z:.6g}," for k, (x, y, z) in enumerate(v)]
+    path = tmp_path / "plain.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + "\r\n".join(lines).encode() + b"\r\n\r\n\n")
+    cols = None if columns is None else [c.split(" [")[0] for c in columns]
+    fast, slow = R._read_plain_csv(path, cols), _row_by_row(path, cols)
+    assert fast is not None
+    assert fast[:3] == slow[:3] and np.array_equal(fast[3], slow[3])
+    assert [t[:2] for t in fast[4]] == [t[:2] for t in slow[4]]
+    assert all(np.array_equal(a[2], b[2]) for a, b in zip(fast[4], slow[4]))
+    rec = rt.load(path, columns=cols)
+    assert np.array_equal(rec.values, slow[3])
+
+
+@pytest.mark.parametrize("body", ["1,2\n3,nan\n", "1,2\n\n3,4\n", "1,2\n3,\n", "1,2\n3,4,5\n", '1,2\n"3",4\n',
+                                  "1,2\n3_0,4\n", "1,2\n3,4;5\n", "1,2\n3,4\u00a0\n"])
+def test_csv_text_other_than_plain_numbers_is_left_to_the_row_by_row_parser(tmp_path, body):
+    """nan, a blank line inside, an empty field, an extra field, a quote, an underscore, another separator, text
+    that is not ASCII: the one-pass reader declines, and ``load`` reads or refuses the file as before."""
+    from rcotorch.data import recording as R
+    path = tmp_path / "odd.csv"
+    path.write_text("a,b\n" + body, encoding="utf-8")
+    assert R._read_plain_csv(path, None) is None
+    try:
+        expected = _row_by_row(path, None)
+    except rt.DataError as e:
+        with pytest.raises(rt.DataError, match=re.escape(str(e))):
+            rt.load(path, on_nonfinite="skip")
+        return
+    assert np.array_equal(rt.load(path, on_nonfinite="skip").values, expected[3], equal_nan=True)

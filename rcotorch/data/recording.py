@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import csv
+import io
 import math
 import numbers
 import re
@@ -706,6 +707,9 @@ def _read_csv(path: Path, columns) -> tuple[list[str], dict[str, str], list[int]
     (rows, columns asked for) and the time columns (header name, factor to seconds, values as written). Rows
     are parsed ``CSV_CHUNK_ROWS`` at a time into an array sized from the file's line ends, so that memory
     holds the asked-for columns and the time columns as float64 and one batch of their fields."""
+    fast = _read_plain_csv(path, columns)
+    if fast is not None:
+        return fast
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
@@ -718,9 +722,9 @@ def _read_csv(path: Path, columns) -> tuple[list[str], dict[str, str], list[int]
         raise DataError(f"{path}: not UTF-8 text ({_undecodable(path)}); save the file as UTF-8 CSV") from None
 
 
-def _parse_csv(path: Path, reader, columns, capacity: int):
-    """``_read_csv`` on an open ``csv.reader``; ``capacity`` is at least the number of data rows."""
-    header = next(reader, None)
+def _csv_header(path: Path, header: list[str] | None, columns):
+    """The header row's raw names, names, units, the indices asked for (None: all), the columns read (those asked
+    for) and the time columns, checked."""
     if header is None:
         raise DataError(f"{path}: the file is empty")
     while header and header[-1].strip() == "":  # trailing comma
@@ -729,10 +733,74 @@ def _parse_csv(path: Path, reader, columns, capacity: int):
         raise DataError(f"{path}: header row has empty column names: {header}")
     raw = [h.strip() for h in header]
     names, units = _split_units(path, raw)
-    n = len(names)
     idx = None if columns is None else _column_indices(path, names, columns)
-    picked = list(range(n)) if idx is None else idx
-    timed = [i for i in range(n) if _time_scale(raw[i]) is not None]
+    picked = list(range(len(names))) if idx is None else idx
+    timed = [i for i in range(len(names)) if _time_scale(raw[i]) is not None]
+    return raw, names, units, idx, picked, timed
+
+
+def _csv_result(raw, names, units, idx, picked, parsed, timed, values):
+    """``_read_csv``'s result from the parsed columns' values (rows, ``parsed``)."""
+    times = [(raw[i], _time_scale(raw[i]), values[:, parsed.index(i)].copy()) for i in timed if i in parsed]
+    table = values if len(parsed) == len(picked) else np.ascontiguousarray(values[:, :len(picked)])
+    return names, units, idx, table, times
+
+
+# A CSV file of plain numbers (digits, signs, points, exponents, commas, spaces) up to this size is parsed in
+# one pass by numpy (``_read_plain_csv``); others, and any a fast pass doubts, row by row (``_parse_csv``).
+PLAIN_CSV_BYTES = 1 << 29
+_PLAIN = b"0123456789+-.eE, \t\r\n"
+
+
+def _read_plain_csv(path: Path, columns):
+    """``_read_csv``'s result for a file whose data rows hold plain numbers only, every row as many fields as the
+    header (or one more, empty: a trailing comma), by ``numpy.loadtxt`` in one pass: the same values as the row by
+    row parser (both convert with Python's correctly rounded conversion). None where anything else appears (a
+    quote, nan, an empty field, a blank line, another field count, text that is not ASCII): the row by row parser
+    then reads the file and names what it finds."""
+    try:
+        if path.stat().st_size > PLAIN_CSV_BYTES:
+            return None
+        data = path.read_bytes()
+    except OSError:
+        return None
+    data = data.removeprefix(b"\xef\xbb\xbf")
+    end = data.find(b"\n")
+    body = data[end + 1:].rstrip(b"\r\n") if end >= 0 else b""        # blank lines at the end are no rows
+    if not body or body.translate(None, _PLAIN):
+        return None
+    try:
+        head = next(csv.reader([data[:end].decode("utf-8").rstrip("\r")]), None)
+    except UnicodeDecodeError:
+        return None
+    raw, names, units, idx, picked, timed = _csv_header(path, head, columns)
+    n = len(names)
+    buf = np.frombuffer(body + b"\n", np.uint8)
+    ends = np.flatnonzero(buf == ord("\n"))                # each line's end
+    stops = ends - (buf[np.maximum(ends - 1, 0)] == ord("\r"))          # past its last character ("\r\n")
+    starts = np.r_[0, ends[:-1] + 1]
+    if np.any(stops <= starts):
+        return None                                       # a blank line
+    commas = np.diff(np.searchsorted(np.flatnonzero(buf == ord(",")), ends), prepend=0)
+    trailing = buf[stops - 1] == ord(",")
+    if not np.all((commas == n - 1) | ((commas == n) & trailing)):
+        return None
+    first = body[:stops[0]].decode("ascii").split(",")
+    parsed = picked + [i for i in timed if i not in picked and _is_number(first[i])]
+    try:
+        values = np.loadtxt(io.StringIO(body.decode("ascii")), delimiter=",", comments=None, usecols=parsed,
+                            ndmin=2, dtype=np.float64)
+    except ValueError:
+        return None
+    if values.shape != (len(ends), len(parsed)):
+        return None
+    return _csv_result(raw, names, units, idx, picked, parsed, timed, values)
+
+
+def _parse_csv(path: Path, reader, columns, capacity: int):
+    """``_read_csv`` on an open ``csv.reader``; ``capacity`` is at least the number of data rows."""
+    raw, names, units, idx, picked, timed = _csv_header(path, next(reader, None), columns)
+    n = len(names)
     parsed, kept, get, values = picked, [], None, np.empty((0, 0))
     batch: list = []
     done = 0
@@ -758,9 +826,7 @@ def _parse_csv(path: Path, reader, columns, capacity: int):
     if get is None:
         raise DataError(f"{path}: no data rows")
     done = _parse_rows(path, kept, batch, values, done)
-    times = [(raw[i], _time_scale(raw[i]), values[:done, parsed.index(i)].copy()) for i in timed if i in parsed]
-    table = values[:done] if len(parsed) == len(picked) else np.ascontiguousarray(values[:done, :len(picked)])
-    return names, units, idx, table, times
+    return _csv_result(raw, names, units, idx, picked, parsed, timed, values[:done])
 
 
 def _is_number(field: str) -> bool:
