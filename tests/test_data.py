@@ -266,3 +266,15 @@ def test_csv_text_other_than_plain_numbers_is_left_to_the_row_by_row_parser(tmp_
             rt.load(path, on_nonfinite="skip")
         return
     assert np.array_equal(rt.load(path, on_nonfinite="skip").values, expected[3], equal_nan=True)
+
+
+def test_a_plain_csv_larger_than_the_one_pass_limit_is_read_row_by_row(tmp_path, monkeypatch):
+    """The one-pass reader holds the file's text several times over: above ``PLAIN_CSV_BYTES`` it declines, so
+    that a large file is read in batches, with the same values."""
+    from rcotorch.data import recording as R
+    path = tmp_path / "big.csv"
+    path.write_text("a,b\n" + "".join(f"{k},{k * 0.25}\n" for k in range(2000)))
+    assert R._read_plain_csv(path, None) is not None
+    monkeypatch.setattr(R, "PLAIN_CSV_BYTES", path.stat().st_size - 1)
+    assert R._read_plain_csv(path, None) is None
+    assert np.array_equal(rt.load(path).values, np.c_[np.arange(2000.0), np.arange(2000.0) * 0.25])

@@ -747,8 +747,10 @@ def _csv_result(raw, names, units, idx, picked, parsed, timed, values):
 
 
 # A CSV file of plain numbers (digits, signs, points, exponents, commas, spaces) up to this size is parsed in
-# one pass by numpy (``_read_plain_csv``); others, and any a fast pass doubts, row by row (``_parse_csv``).
-PLAIN_CSV_BYTES = 1 << 29
+# one pass by numpy (``_read_plain_csv``), which holds the file's text about three times over while it does;
+# larger ones, and any a fast pass doubts, row by row in batches (``_parse_csv``), whose memory is the columns
+# asked for.
+PLAIN_CSV_BYTES = 1 << 25
 _PLAIN = b"0123456789+-.eE, \t\r\n"
 
 
