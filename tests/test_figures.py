@@ -460,3 +460,30 @@ def test_a_sweep_figure_of_close_values_draws_them_apart_in_full_with_medians_an
                            ["lam"])["sweep_lam"]
     assert spread.axes[-1].get_xscale() == "linear" and list(spread.axes[0].collections[0].get_offsets()[:, 0]) == \
         pytest.approx([0.0, 0.0, 0.2, 0.2, 0.4, 0.4, 0.6, 0.6])
+
+
+def test_the_parents_uncollected_garbage_is_not_finalized_in_a_forked_drawing(tmp_path):
+    """An object in a reference cycle that the caller has dropped but not yet collected (its finalizer would
+    release a file of the caller's): the forked drawing collects nothing, so the finalizer runs once, in the
+    caller, when it collects."""
+    import gc
+
+    from matplotlib.figure import Figure
+    marker = tmp_path / "finalized"
+
+    class Held:
+        def __del__(self):
+            with open(marker, "a") as f:
+                f.write(f"{os.getpid()}\n")
+    fig = Figure()
+    fig.subplots().plot(np.arange(50_000.0), np.cos(np.arange(50_000.0)))      # enough allocation to collect
+    gc.collect()                              # the count starts afresh: the few allocations below collect nothing
+    a, b = Held(), Held()
+    a.other, b.other = b, a
+    del a, b
+    apart = figures_module._DrawnApart({"f": fig})
+    assert apart.pid is not None
+    apart()
+    assert not apart.drawn_here and not marker.exists()
+    gc.collect()
+    assert marker.read_text().split() == [str(os.getpid())] * 2

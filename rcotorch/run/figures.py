@@ -16,6 +16,7 @@ for the whole process, so only figures made without it can be drawn off the main
 
 from __future__ import annotations
 
+import gc
 import io
 import os
 import pickle
@@ -897,6 +898,7 @@ def _draw_and_exit(figs: dict, r: int, w: int, blocked) -> None:
     where all of that succeeded."""
     code = 1
     try:
+        gc.disable()        # no collection here: the finalizers of the parent's garbage (files, folders) stay its own
         os.close(r)
         for sig in _STOPS:
             signal.signal(sig, signal.SIG_DFL)
