@@ -17,6 +17,7 @@ fs = 1e7 / 2^14 Hz.
        all:                      u(k) = theta_q q + theta_3 q^3 + theta_v v + theta_w w(k) + theta_1
        linear+cubic:             u(k) = theta_q q + theta_3 q^3
        cubic:                    u(k) = theta_3 q^3
+       cubic-qv:                 all+quadratic and theta q^i (v / omega0)^j for v^2, v^3, q v, q^2 v, q v^2
 
    static (``nc=0``), or with each term's and u's nc past samples (a dynamic subsystem, whose estimates are
    its static gains), where q and v are the position and velocity the known model predicts half a sample after
@@ -41,7 +42,7 @@ fs = 1e7 / 2^14 Hz.
    run, two baselines: the linear model alone, and an offline output-error fit of the same linear +
    polynomial spring structure (a, b, g, d0, the spring's coefficients and the initial state by
    ``scipy.optimize.least_squares`` on the free-run error over the estimation rows,
-   ``MassSpringDamper.fit_with_spring``).
+   ``MassSpringDamper.fit_with_spring``); for cubic-qv and nc >= 1 its static polynomial in q only.
 """
 
 from __future__ import annotations

@@ -505,8 +505,7 @@ class MassSpringDamper:
         numpy.ndarray
             (``states``,), xi = [y, v, 1] - G2 w0, and u(k-1) = 0 with ``u_ahead``.
         """
-        w0 = np.zeros(self.channels) + np.r_[np.asarray(w0, dtype=np.float64).reshape(-1), np.zeros(self.channels)][
-            :self.channels]
+        w0 = np.r_[np.asarray(w0, dtype=np.float64).reshape(-1), np.zeros(self.channels)][:self.channels]
         return np.r_[y, v, 1.0, np.zeros(self.states - 3)] - self.hold_offset @ w0
 
     def lti(self, x0=None, name: str = "known", dtype=DEFAULT_DTYPE, sees: tuple[str, ...] = ("position",)) -> LTI:
