@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.interpolate
+import scipy.linalg
 import scipy.signal
 import torch
 
@@ -84,6 +85,20 @@ def test_spline_slopes_are_the_derivative_of_scipys_cubic_spline_and_exact_for_a
     w = smooth_input(300, 1e-3, seed=5)
     k = np.arange(300.0)
     np.testing.assert_array_equal(spline_slopes(w), scipy.interpolate.CubicSpline(k, w)(k, 1))
+
+
+@pytest.mark.parametrize("h", [1.6384e-3, 0.8192e-3])
+def test_the_input_integrals_of_one_sample_equal_scipys_adaptive_quadrature(h):
+    """Gamma_j = int_0^h e^(A (h - t)) b (t / dt)^j dt, j = 0..3, of a Silverbox-like oscillator over a sample and
+    over half of one (the spline's pieces and the mid-sample prediction), against scipy's quad_vec."""
+    from rcotorch.models.identification import _input_powers
+    A = np.array([[0.0, 1.0, 0.0], [-1.84e5, -42.0, -1000.0], [0.0, 0.0, 0.0]])
+    b, dt = np.array([0.0, 1.86e5, 0.0]), 1.6384e-3
+    Phi, G = _input_powers(A, b, h, dt, 3)
+    ref = np.stack([scipy.integrate.quad_vec(lambda t, j=j: scipy.linalg.expm(A * (h - t)) @ b * (t / dt) ** j, 0, h,
+                                             epsabs=0, epsrel=1e-13)[0] for j in range(4)], 1)
+    np.testing.assert_allclose(G, ref, rtol=0, atol=1e-14 * np.abs(ref).max())
+    np.testing.assert_allclose(Phi, scipy.linalg.expm(A * h), rtol=1e-14, atol=1e-14)
 
 
 @pytest.mark.parametrize("lead", [0.0, 0.5])

@@ -287,21 +287,19 @@ def spline_slopes(w) -> np.ndarray:
     return scipy.interpolate.CubicSpline(k, w)(k, 1)
 
 
-# Gauss-Legendre nodes and weights on [0, 1] for the input integrals of one sample: e^(A t) is smooth over a
-# sample, so 16 nodes give the integrals to rounding.
-_GL = tuple((np.polynomial.legendre.leggauss(16)[0] + 1) / 2)
-_GW = tuple(np.polynomial.legendre.leggauss(16)[1] / 2)
-
-
 def _input_powers(A, b, h, dt, degree):
-    """Phi = e^(A h) and Gamma_j = int_0^h e^(A (h - t)) b (t / dt)^j dt for j = 0..degree, (n, degree + 1)."""
+    """Phi = e^(A h) and Gamma_j = int_0^h e^(A (h - t)) b (t / dt)^j dt for j = 0..degree, (n, degree + 1), by
+    one exponential of [[A, b e_0^T], [0, N]] h, N the shift of the chain t^k / k! (its top right block holds
+    int_0^h e^(A (h - t)) b t^k / k! dt)."""
     import scipy.linalg
-    t = np.asarray(_GL) * h
-    gam = np.zeros((A.shape[0], degree + 1))
-    for tj, wj in zip(t, _GW):
-        col = scipy.linalg.expm(A * (h - tj)) @ b
-        gam += wj * h * np.outer(col, (tj / dt) ** np.arange(degree + 1))
-    return scipy.linalg.expm(A * h), gam
+    n = A.shape[0]
+    M = np.zeros((n + degree + 1, n + degree + 1))
+    M[:n, :n], M[:n, n] = A, b
+    for k in range(degree):
+        M[n + k, n + k + 1] = 1.0
+    E = scipy.linalg.expm(M * h)
+    scale = np.array([math.factorial(j) / dt ** j for j in range(degree + 1)])
+    return E[:n, :n], E[:n, n:] * scale
 
 
 def _hermite_input(A, b, dt):
