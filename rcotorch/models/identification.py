@@ -443,7 +443,7 @@ class MassSpringDamper:
         ``lead`` samples after t_k, from the state and the input's value (and slope) at t_k, and with ``u_ahead``
         u(k-1) held from t_k on."""
         A, bg = self.continuous()
-        G2 = self.hold_offset[:3]
+        G2 = self._sampled_input[2]
         if self.lead == 0:
             c, d = np.eye(3)[row], G2[row]
         elif not self.spline:                      # the input held at w(k)
