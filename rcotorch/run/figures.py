@@ -368,9 +368,9 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
                             label=f"{found.level:.0%} band over time" if i == 0 else None)
     if found is not None and key in found.estimate and len(t):
         idx = [b for b in members[:lines.shape[1]] if b < found.half_width[key].shape[0]]
-        half = found.half_width[key].cpu().numpy()[idx]
         est = found.estimate[key].cpu().numpy()[idx]
-        ax.errorbar(np.full(len(est), t[-1]), est, yerr=half, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
+        sides = np.stack([est - found.lower(key).cpu().numpy()[idx], found.upper(key).cpu().numpy()[idx] - est])
+        ax.errorbar(np.full(len(est), t[-1]), est, yerr=sides, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
                     zorder=4, label=f"{found.level:.0%} interval at the end")
         bias = (found.bias or {}).get(key)
         if bias is not None:                   # a biased estimate: where the physics' parameter lies

@@ -148,13 +148,17 @@ def _fmt(v) -> str:
 
 
 def _fmt_interval(v, interval: Mapping[str, Any] | None) -> str:
-    """An estimate with its interval: 'value ± half-width' for one member, the values' range and the median
-    half-width for a batch."""
+    """An estimate with its interval: 'value ± half-width' for one member ('value -below +above' where the
+    interval is not symmetric about it), the values' range and the median half-width for a batch."""
     if interval is None:
         return _fmt(v)
     lo, hi = interval["lower"], interval["upper"]
     if not isinstance(v, list):
-        return _fmt(v) + ("" if lo is None or hi is None else f" ± {(hi - lo) / 2:.2g}")
+        if lo is None or hi is None or v is None:
+            return _fmt(v)
+        if abs((hi - v) - (v - lo)) <= 0.05 * (hi - lo):
+            return _fmt(v) + f" ± {(hi - lo) / 2:.2g}"
+        return _fmt(v) + f" -{v - lo:.2g} +{hi - v:.2g}"
     half = sorted((b - a) / 2 for a, b in zip(lo, hi) if a is not None and b is not None)
     return _fmt(v) + (f" (± {half[len(half) // 2]:.2g} median)" if half else "")
 

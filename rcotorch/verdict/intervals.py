@@ -67,9 +67,11 @@ BIAS_TOL = 0.05          # an estimate that step moves by more than this fractio
 NEGLIGIBLE = 1e-3        # a bias or drift below this fraction of an estimate's size is corrected, never flagged
 UNEXPLAINED_MIN = 0.01   # residuals_matter: the least share of z's energy no parameter explains
 WIDENING_MATTERS = 1.25  # ... and the least widening of a standard deviation by the residuals' correlation
-OFFSET_Z = 1.96          # a move beyond this many of the step's own standard deviations widens the interval too
-DRIFT_FAR = 2.0          # ... and one beyond this many half-widths is a member still drifting (not converged)
-DRIFT_Z = 1.96           # a remaining transient beyond this many of its standard deviations is the estimate's drift
+OFFSET_HOLD_Z = 1.0      # a move beyond this many of the step's own standard deviations: the interval holds its end
+DRIFT_FAR = 2.0          # a drift beyond this many half-widths is a member still drifting (not converged) ...
+DRIFT_Z = 1.96           # ... where it is also beyond this many of its own standard deviations
+DRIFT_HOLD_Z = 1.0       # a drift beyond this many of its standard deviations: the interval holds its end ...
+DRIFT_NOISE = 1.0        # ... and this many of its standard deviations past it
 
 
 @dataclass
@@ -88,6 +90,8 @@ class ParameterCovariance:
         correlated: (B,) bool, whether the whiteness test rejected white residuals (p-value below ``WHITE_P``).
         offset_cov: (B, n, n) the covariance of ``offset``'s random error (white residuals; with forgetting the
             parameters' own covariance added).
+        optimum_cov: (B, n, n) the covariance of the output error's optimum itself, eta + offset, over the window
+            (the sandwich (sum J^T W J)^-1 (sum J^T W V W J) (sum J^T W J)^-1, white residuals).
         widening: (B,) how many times wider the correlation of the residuals makes the parameters' standard
             deviations (the largest ratio over the parameters; 1 where the residuals are white).
         unexplained: (B,) the share of z's weighted energy over the window that the output error's Gauss-Newton
@@ -110,6 +114,7 @@ class ParameterCovariance:
     widening: torch.Tensor | None = None
     unexplained: torch.Tensor | None = None
     offset_cov: torch.Tensor | None = None
+    optimum_cov: torch.Tensor | None = None
     sampling: torch.Tensor | None = None
     sampling_note: str | None = None
     bias_source: str | None = None
@@ -485,14 +490,15 @@ class _WindowSums:
             return torch.where(ok.reshape(-1, 1), s, math.nan)
         # its random error (sum J^T W J)^-1 (sum J^T W V W J) (sum J^T W J)^-1 for white residuals (the window's
         # output-error estimate's), with the parameters' own X added under forgetting (the two are then not nested)
-        offset_cov = jwj_inv @ torch.einsum("bzy,bzyij->bij", W @ V @ W, self.pairs("J", "J")) @ jwj_inv
+        optimum_cov = jwj_inv @ torch.einsum("bzy,bzyij->bij", W @ V @ W, self.pairs("J", "J")) @ jwj_inv
         forgets = (est.lam.to(f64).reshape(-1).expand(B) < 1).to(ok.device).reshape(-1, 1, 1)
-        offset_cov = torch.where(ok.reshape(-1, 1, 1), offset_cov + torch.where(forgets, X, 0.0), math.nan)
+        offset_cov = torch.where(ok.reshape(-1, 1, 1), optimum_cov + torch.where(forgets, X, 0.0), math.nan)
+        optimum_cov = torch.where(ok.reshape(-1, 1, 1), optimum_cov, math.nan)
         # the share of z's weighted energy that no parameter explains (what the Gauss-Newton step leaves)
         explained = (jwz.unsqueeze(1) @ jwj_inv @ jwz.unsqueeze(-1)).reshape(B)
         unexplained = torch.where(zwz > 0, (1 - explained / zwz.clamp_min(1e-300)).clamp(0, 1), 0.0)
         # the sampled estimate minus the physics' (``sampling``): the step the physics' output would add
-        return {"offset": step(jwz), "offset_cov": offset_cov, "unexplained": unexplained,
+        return {"offset": step(jwz), "offset_cov": offset_cov, "optimum_cov": optimum_cov, "unexplained": unexplained,
                 "sampling": step(self.weighted("J", "d").squeeze(-1)) if self.has_d else None}
 
 
@@ -951,12 +957,14 @@ class Intervals:
     bias_reason: list[str | None] | None = None
     drifting: torch.Tensor | None = None   # (B,) bool: an estimate still drifts by more than its interval
     drift: dict[str, torch.Tensor] | None = None   # the estimates' part of the remaining transient (0 if none)
+    below: dict[str, torch.Tensor] | None = None   # how far each interval reaches below its estimate (B,)
+    above: dict[str, torch.Tensor] | None = None   # ... and above it; both half_width where None
 
     def lower(self, key: str) -> torch.Tensor:
-        return self.estimate[key] - self.half_width[key]
+        return self.estimate[key] - (self.below or self.half_width)[key]
 
     def upper(self, key: str) -> torch.Tensor:
-        return self.estimate[key] + self.half_width[key]
+        return self.estimate[key] + (self.above or self.half_width)[key]
 
 
 SAMPLING_REASON = "sampling: the sampled feedback's estimate differs from the continuous physics' by more than " \
@@ -981,18 +989,27 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
       dynamics unexplained, and a step beyond the interval is then the bias they cause), the half-width
       becomes q sd + |d|, so that the interval reaches the point the data favour; where |d| is also more than
       ``BIAS_TOL`` times max(|estimate|, scale), the estimate is *biased* (the refinement settled well away
-      from what the data determine);
+      from what the data determine). Where the move is smaller than that but more than ``OFFSET_HOLD_Z`` of
+      its own standard deviations sd_d (``pc.offset_cov``), the interval extends to hold the output error's own
+      interval est + d +- q sd_o (sd_o from ``pc.optimum_cov``, the optimum's own random error): the data
+      cannot tell a closed-loop bias of that size from the step's noise, and an interval that holds both
+      covers where either is right;
     * **sampling a continuous feedback** (``pc.sampling``, where the graph declares one): the estimate's
       bias against the continuous physics, beta = g b - d (d as above where it widens the interval, else 0).
       Where |beta| is more than the half-width q sd and than ``NEGLIGIBLE`` of the estimate's size, the
       estimate is *biased* by beta (its cause the model where |g b| >= |d|, else the output error); otherwise
-      the half-width is q sd + |beta|, so that the interval holds the physics' parameter.
+      each side reaches at least |beta| past q sd, so that the interval holds the physics' parameter.
 
     And the error the recursion has not yet forgotten (``transient``, ``remaining_transient``'s tau and its
-    covariance): where the estimate's part t = g tau exceeds ``DRIFT_Z`` of its own standard deviations (the
-    estimate still drifts beyond what its noise explains), the half-width grows by |t| where |t| is at most
-    the half-width (or below ``NEGLIGIBLE`` of the estimate's size), and the member is *drifting* (not
-    converged) where it is more.
+    covariance): the estimate's part t = g tau, with standard deviation sd_t, says the physics' value lies
+    near est - t, so where t exceeds ``DRIFT_HOLD_Z`` of its standard deviations the interval reaches
+    |t| + ``DRIFT_NOISE`` sd_t past the estimate on that side (a test at ``DRIFT_Z`` first would leave the
+    members whose drift did not stand out that far too narrow). Where t exceeds ``DRIFT_Z`` of its standard
+    deviations and ``DRIFT_FAR`` half-widths (and ``NEGLIGIBLE`` of the estimate's size), the member is
+    *drifting* (not converged).
+
+    An interval is therefore not always symmetric about its estimate: ``below`` and ``above`` hold its two
+    sides, ``half_width`` half its width.
 
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
@@ -1003,7 +1020,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     grads = estimate_gradients(graph, estimates, pc.std)
     X = pc.cov.cpu()
     det = pc.settles.cpu().clone()
-    half, bad, moved, biases, flagged = {}, [], {}, {}, []
+    half, below, above, bad, moved, biases, flagged = {}, {}, {}, [], {}, {}, []
     widened = torch.zeros_like(det)
     any_off, any_sampled, drifting = torch.zeros_like(det), torch.zeros_like(det), torch.zeros_like(det)
     drifts = {}
@@ -1016,25 +1033,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         hw = q * var.clamp_min(0).sqrt()
         scale = float((scales or {}).get(key, 0.0))
         size = torch.clamp(v.abs(), min=scale)
-        bias = torch.full_like(v, math.nan)
-        off = torch.zeros_like(det)
-        d, extra = torch.zeros_like(v), torch.zeros_like(v)      # the output error's move, the widening
-        d_seen = torch.zeros_like(v)                              # ... where only its own noise says it counts
-        if pc.offset is not None:
-            d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
-            moved[key] = d
-            beyond = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
-            widen = beyond if pc.correlated is None else beyond | (pc.correlated.cpu() & torch.isfinite(d))
-            off = beyond & (d.abs() > BIAS_TOL * size)          # the data favour a point well away
-            bias = torch.where(off, -d, bias)
-            significant = torch.zeros_like(widen)   # beyond the step's own random error: widens, never flags
-            if pc.offset_cov is not None:
-                sd_d = torch.einsum("bi,bij,bj->b", g, pc.offset_cov.cpu(), g).clamp_min(0).sqrt()
-                significant = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_Z * sd_d) & ~widen
-            d_seen = torch.where(significant, d, 0.0)
-            d = torch.where(widen, d, 0.0)
-            extra = d.abs() + d_seen.abs()
-            widened |= widen | significant
+        d, extra, low, high, off, bias = _output_error_reach(pc, g, hw, size, factor, q, moved, widened, key)
         sampled = torch.zeros_like(det)
         if pc.sampling is not None:
             # the estimate minus the physics' parameter: the model's bias, less the part of it that the output
@@ -1044,21 +1043,31 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             known = torch.isfinite(total) & torch.isfinite(hw)
             flag = known & (total.abs() > hw) & (total.abs() > NEGLIGIBLE * size)
             bias = torch.where(flag, total, bias)
-            extra = torch.where(known & ~flag, (total - d_seen).abs(), extra)
+            reach = total.abs() - extra                   # the physics' value, held on both sides
+            low = torch.where(known & ~flag, torch.maximum(low, reach), low)
+            high = torch.where(known & ~flag, torch.maximum(high, reach), high)
             sampled = flag & (model.abs() >= d.abs())      # the model's part dominates, else the output error's
             off = off | (flag & ~sampled)
         hw = hw + extra
+        lo_w, hi_w = hw + low, hw + high
         if transient is not None:
             t = torch.einsum("bi,bi->b", g, transient[0])
             sd_t = torch.einsum("bi,bij,bj->b", g, transient[1], g).clamp_min(0).sqrt()
-            moving = torch.isfinite(t) & torch.isfinite(hw) & (t.abs() > DRIFT_Z * sd_t)
+            found = torch.isfinite(t) & torch.isfinite(hw)
+            moving = found & (t.abs() > DRIFT_Z * sd_t)
+            held = found & (t.abs() > DRIFT_HOLD_Z * sd_t)
             drifts[key] = torch.where(moving, t, 0.0)
-            far = moving & (t.abs() > DRIFT_FAR * hw) & (t.abs() > NEGLIGIBLE * size)
+            far = moving & (t.abs() > DRIFT_FAR * torch.maximum(lo_w, hi_w)) & (t.abs() > NEGLIGIBLE * size)
             drifting |= far
-            hw = torch.where(moving & ~far, hw + t.abs(), hw)
-        half[key] = torch.where(torch.isfinite(var), hw, math.nan)
+            reach = torch.where(held & ~far, t.abs() + DRIFT_NOISE * sd_t, 0.0)   # towards est - t
+            lo_w = torch.where(t > 0, lo_w + reach, lo_w)
+            hi_w = torch.where(t < 0, hi_w + reach, hi_w)
+        finite = torch.isfinite(var)
+        below[key] = torch.where(finite, lo_w, math.nan)
+        above[key] = torch.where(finite, hi_w, math.nan)
+        half[key] = (below[key] + above[key]) / 2
         biases[key] = bias
-        ok = torch.isfinite(half[key]) & (half[key] <= rel_tol * size)
+        ok = torch.isfinite(half[key]) & (torch.maximum(below[key], above[key]) <= rel_tol * size)
         bad.append(~ok)
         flagged.append(off | sampled)
         any_off |= off
@@ -1075,4 +1084,35 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     return Intervals(level=level, estimate=values, half_width=half, determined=det,
                      undetermined_keys=per_member(bad), offset=moved or None, widened=widened,
                      biased=any_off | any_sampled, bias=biases, biased_keys=per_member(flagged),
-                     bias_reason=reason, drifting=drifting if transient is not None else None, drift=drifts or None)
+                     bias_reason=reason, drifting=drifting if transient is not None else None, drift=drifts or None,
+                     below=below, above=above)
+
+
+def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, size: torch.Tensor,
+                        factor: torch.Tensor, q: float, moved: dict, widened: torch.Tensor, key: str):
+    """One estimate's part of the output error's step (``estimate_intervals``): its move d where it widens the
+    interval on both sides (else 0), that widening, how much further each side reaches to hold the optimum's own
+    interval (``OFFSET_HOLD_Z``), whether the estimate is biased by it, and that bias (NaN where not). Records
+    the move in ``moved[key]`` and the members whose interval it widened in ``widened``."""
+    zero = torch.zeros_like(hw)
+    off, bias = torch.zeros_like(widened), torch.full_like(hw, math.nan)
+    if pc.offset is None:
+        return zero, zero, zero, zero, off, bias
+    low, high = zero, zero
+    d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+    moved[key] = d
+    beyond = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
+    widen = beyond if pc.correlated is None else beyond | (pc.correlated.cpu() & torch.isfinite(d))
+    off = beyond & (d.abs() > BIAS_TOL * size)          # the data favour a point well away
+    bias = torch.where(off, -d, bias)
+    if pc.offset_cov is not None:   # a smaller move beyond its own noise: hold the optimum's own interval
+        sd_d = torch.einsum("bi,bij,bj->b", g, pc.offset_cov.cpu(), g).clamp_min(0).sqrt()
+        hold = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_HOLD_Z * sd_d) & ~widen
+        own = pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov
+        sd_o = torch.einsum("bi,bij,bj->b", g, own.cpu(), g).clamp_min(0).sqrt()
+        low = torch.where(hold, (q * sd_o - d - hw).clamp_min(0), 0.0)
+        high = torch.where(hold, (q * sd_o + d - hw).clamp_min(0), 0.0)
+        widened |= hold & ((low > 0) | (high > 0))
+    widened |= widen
+    d = torch.where(widen, d, 0.0)
+    return d, d.abs(), low, high, off, bias
