@@ -60,6 +60,31 @@ def duffing(members: int, out: Path, steps: int = 20000) -> dict:
     return res.summary
 
 
+def drag(members: int, out: Path, steps: int = 20000) -> dict:
+    """Quadratic air drag (a graph built in Python, a problem of the kind no scenario ships): a mass on a spring
+    q'' + 0.1 q' + 2 q + 0.3 v |v| = w, continuous and integrated by RK4 substeps, its velocity measured with 1%
+    noise; the known model is the linear oscillator, the identified subsystem u = theta [v |v|, v] (drag
+    cd = -theta_0 = 0.3, extra viscous damping c = -theta_1 = 0)."""
+    Ts, seeds = 0.02, list(range(1, members + 1))
+
+    def field(x, inputs):
+        q, v = x[:, :1], x[:, 1:]
+        return torch.cat([v, -2.0 * q - 0.1 * v - 0.3 * v * (v * v) ** 0.5 + inputs["w"]], dim=1)
+    physical = rt.Nonlinear(field, lambda x: x[:, 1:], 2, inputs={"w": 1}, outputs={"y": 1}, dt=Ts,
+                            continuous=True, substeps=8, name="drag")
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.1, 2.0, measured=["velocity"], sees=["velocity"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=Ts, name="known")
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, p0=1e2, features=[
+        rt.features.absolute("y0") * rt.features.port("y0"), rt.features.port("y0")])
+    g = rt.refinement(known, ident, physical=physical, excitation=rt.WhiteNoise(1, std=2.0, seed=seeds), nu=40,
+                      noise=rt.WhiteNoise(1, std=0.02, seed=[s + 100 for s in seeds]), batch_size=members)
+    res = rt.refine(g, steps, {"cd": lambda g: -g.role("estimator").theta[:, 0, 0],
+                               "c": lambda g: -g.role("estimator").theta[:, 0, 1]},
+                    truth={"cd": 0.3, "c": 0.0}, scales={"c": 0.1}, out=out, overwrite=True, figures=False,
+                    progress=False)
+    return res.summary
+
+
 CASES = {
     # name: (scenario or graph, overrides, steps); the first group has the model class exact, the second not
     "sdof-discrete": ("sdof-stiffness", {"truth": "discrete", "noise": 0.05}, 20000),
@@ -75,6 +100,7 @@ CASES = {
     "sdof-damping-noise": ("sdof-stiffness-damping", {"noise": 0.05}, 20000),
     "mass-friction-shipped": ("mass-friction", {}, 20000),
     "duffing": (duffing, {}, 20000),
+    "drag": (drag, {}, 20000),
 }
 
 
