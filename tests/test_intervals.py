@@ -23,8 +23,10 @@ def _regression_graph(theta_true, noise_std, seed=5, p0=1e8):
     physical = rt.LTI(np.zeros((n, n)), np.eye(n), np.asarray([theta_true], dtype=float), np.zeros((1, n)),
                       inputs={"w": n}, outputs={"y": 1}, dt=1.0)
     ident = rt.RCOEstimator.static_gain({"w": n}, p0=p0)
+    many = isinstance(seed, list)           # one seed per member: a batch
     return rt.refinement(known, ident, physical=physical, excitation=rt.WhiteNoise(n, seed=seed),
-                         noise=rt.WhiteNoise(1, std=noise_std, seed=seed + 1), nu=1)
+                         noise=rt.WhiteNoise(1, std=noise_std, seed=[s + 1000 for s in seed] if many else seed + 1),
+                         nu=1, batch_size=len(seed) if many else 1)
 
 
 def test_intervals_of_a_static_regression_are_the_least_squares_intervals(tmp_path):
@@ -45,10 +47,14 @@ def test_intervals_of_a_static_regression_are_the_least_squares_intervals(tmp_pa
     half = scipy.stats.t.ppf(0.975, N - p) * np.sqrt(s2 * np.diag(np.linalg.inv(X.T @ X)))
     names = [f"theta[{n}]" for n in est.theta_names]
     got_est = np.array([res.estimates[k].item() for k in names])
-    got_half = np.array([res.half_width[k].item() for k in names])
+    below = np.array([(res.estimates[k] - res.lower[k]).item() for k in names])
+    above = np.array([(res.upper[k] - res.estimates[k]).item() for k in names])
     np.testing.assert_allclose(got_est, beta, rtol=0, atol=1e-6)
-    # sigma^2 comes from the last part of the run (the replay), s^2 from every residual: a few % apart
-    np.testing.assert_allclose(got_half, half, rtol=0.08)
+    # sigma^2 comes from the last part of the run (the replay), s^2 from every residual: a few % apart; the side
+    # towards which the drift check finds the estimate still moving reaches further (docs/intervals.md), the
+    # other is the least-squares half-width
+    np.testing.assert_allclose(np.minimum(below, above), half, rtol=0.08)
+    assert np.all(np.maximum(below, above) >= 0.92 * half)
     # the residual checks on the replayed window (theta frozen), from the same streams: z(t) = y(t) - theta w(t-1)
     start = res.summary["health"]["criteria"]["window_start"]
     replayed = min(steps - start, 4000)
@@ -150,6 +156,22 @@ def test_intervals_cover_the_truth_at_their_level_over_200_seeds(name, tmp_path)
         cover = np.mean((lo <= truth) & (truth <= hi))
         assert 0.92 <= cover <= 0.98, (key, cover)
     assert np.mean(s["health"]["determined"]) == 1.0
+
+
+@pytest.mark.slow
+def test_a_static_regression_under_lam_1_covers_at_its_level_over_200_seeds(tmp_path):
+    """The least-squares case of the first test over 200 members with their own streams (lam = 1, the model
+    exact): the drift check widens a side of some intervals, the nominal 95% intervals still hold the truth in
+    92-98% of members for each parameter, and every member is converged."""
+    theta_true, seeds = [0.7, -1.3, 0.2], list(range(1, 201))
+    g = _regression_graph(theta_true, 0.1, seed=seeds)
+    names = [f"theta[{n}]" for n in g.role("estimator").theta_names]
+    res = rt.refine(g, 5000, out=tmp_path / "run", figures=False, validation=False, progress=False,
+                    truth=dict(zip(names, theta_true)))
+    assert res.status == ["converged"] * 200
+    for name, truth in zip(names, theta_true):
+        cover = float(((res.lower[name] <= truth) & (truth <= res.upper[name])).double().mean())
+        assert 0.92 <= cover <= 0.98, (name, cover)
 
 
 def test_a_graph_run_resumed_inside_its_window_gives_the_same_intervals_and_checks(tmp_path):
