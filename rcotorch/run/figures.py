@@ -359,11 +359,17 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
     over = run.band_over_time() if hasattr(run, "band_over_time") else None
     if over is not None and key in over[1] and len(over[0]) == len(t):      # the band over time, in each colour
         hw = over[1][key].cpu().numpy()[:, :lines.shape[1]]
+        below, above = np.ones(hw.shape[1]), np.ones(hw.shape[1])
+        if found is not None and key in found.estimate:     # each side as the final interval's
+            ratios = [r.cpu().numpy() for r in found.side_ratios(key)]
+            idx = [b for b in members[:hw.shape[1]] if b < len(ratios[0])]
+            below[:len(idx)], above[:len(idx)] = ratios[0][idx], ratios[1][idx]
         finite = lines[np.isfinite(lines)]
         span = float(np.ptp(finite)) if finite.size else 0.0
         low, high = (finite.min() - 0.25 * span, finite.max() + 0.25 * span) if span > 0 else (-np.inf, np.inf)
         for i in range(hw.shape[1]):               # clipped near the paths: a restarted P's band is far wider
-            ax.fill_between(t, np.clip(lines[:, i] - hw[:, i], low, high), np.clip(lines[:, i] + hw[:, i], low, high),
+            ax.fill_between(t, np.clip(lines[:, i] - hw[:, i] * below[i], low, high),
+                            np.clip(lines[:, i] + hw[:, i] * above[i], low, high),
                             color=f"C{i}", alpha=0.18, lw=0, zorder=1,
                             label=f"{found.level:.0%} band over time" if i == 0 else None)
     if found is not None and key in found.estimate and len(t):

@@ -430,6 +430,7 @@ class Monitor:
             scale = t.scaled.scale
             values = torch.stack(history[key]).to(torch.float64)          # (T, history members)
             hw = widths.get(key)
+            below, above = (r.to(torch.float64).cpu()[self.run.history_members] for r in found.side_ratios(key))
             own = self.batch == 1 and not t.tolerance
             for step in steps:
                 v = values[at[step]]
@@ -441,10 +442,10 @@ class Monitor:
                 if hw is not None and step in band_at:
                     w = hw[band_at[step]]
                     inside = ok[:w.shape[0]] & torch.isfinite(w)
-                    if bool(inside.any()):
+                    if bool(inside.any()):          # each side as far as the final interval's, in half-widths
                         mid = float(v[:w.shape[0]][inside].mean())
-                        half = float(w[inside].mean())
-                        lower, upper = mid - half, mid + half
+                        lower = mid - float((w * below[:w.shape[0]])[inside].mean())
+                        upper = mid + float((w * above[:w.shape[0]])[inside].mean())
                 main[step] += [(t.centre, mid / scale), (t.lower, lower / scale), (t.upper, upper / scale)]
                 if own:
                     edges[step][LOW].append((t.estimate, lower / scale))

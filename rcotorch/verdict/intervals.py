@@ -966,6 +966,17 @@ class Intervals:
     def upper(self, key: str) -> torch.Tensor:
         return self.estimate[key] + (self.above or self.half_width)[key]
 
+    def side_ratios(self, key: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """How far each side of the interval reaches in half-widths, (B,) each: 1 and 1 for a symmetric one (and
+        where the half-width is 0 or not finite). A band drawn as half-width h about the estimate reaches
+        h * below-ratio under it and h * above-ratio over it."""
+        half = self.half_width[key]
+        ok = torch.isfinite(half) & (half > 0)
+        ratio = lambda side: torch.where(ok, side / torch.where(ok, half, 1.0), 1.0)    # noqa: E731
+        if self.below is None or self.above is None:
+            return torch.ones_like(half), torch.ones_like(half)
+        return ratio(self.below[key]), ratio(self.above[key])
+
 
 SAMPLING_REASON = "sampling: the sampled feedback's estimate differs from the continuous physics' by more than " \
     "its interval"
