@@ -971,11 +971,11 @@ class Intervals:
         where the half-width is 0 or not finite). A band drawn as half-width h about the estimate reaches
         h * below-ratio under it and h * above-ratio over it."""
         half = self.half_width[key]
-        ok = torch.isfinite(half) & (half > 0)
-        ratio = lambda side: torch.where(ok, side / torch.where(ok, half, 1.0), 1.0)    # noqa: E731
         if self.below is None or self.above is None:
             return torch.ones_like(half), torch.ones_like(half)
-        return ratio(self.below[key]), ratio(self.above[key])
+        ok = torch.isfinite(half) & (half > 0)
+        safe = torch.where(ok, half, 1.0)
+        return (torch.where(ok, self.below[key] / safe, 1.0), torch.where(ok, self.above[key] / safe, 1.0))
 
 
 SAMPLING_REASON = "sampling: the sampled feedback's estimate differs from the continuous physics' by more than " \
@@ -1044,7 +1044,8 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         hw = q * var.clamp_min(0).sqrt()
         scale = float((scales or {}).get(key, 0.0))
         size = torch.clamp(v.abs(), min=scale)
-        d, extra, low, high, off, bias = _output_error_reach(pc, g, hw, size, factor, q, moved, widened, key)
+        d, low, high, off, bias = _output_error_reach(pc, g, hw, size, factor, q, moved, widened, key)
+        extra = d.abs()                                  # the move that widens both sides
         sampled = torch.zeros_like(det)
         if pc.sampling is not None:
             # the estimate minus the physics' parameter: the model's bias, less the part of it that the output
@@ -1063,7 +1064,7 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
         lo_w, hi_w = hw + low, hw + high
         if transient is not None:
             t = torch.einsum("bi,bi->b", g, transient[0])
-            sd_t = torch.einsum("bi,bij,bj->b", g, transient[1], g).clamp_min(0).sqrt()
+            sd_t = _sd(g, transient[1])
             found = torch.isfinite(t) & torch.isfinite(hw)
             moving = found & (t.abs() > DRIFT_Z * sd_t)
             held = found & (t.abs() > DRIFT_HOLD_Z * sd_t)
@@ -1102,13 +1103,13 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
 def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, size: torch.Tensor,
                         factor: torch.Tensor, q: float, moved: dict, widened: torch.Tensor, key: str):
     """One estimate's part of the output error's step (``estimate_intervals``): its move d where it widens the
-    interval on both sides (else 0), that widening, how much further each side reaches to hold the optimum's own
+    interval on both sides by |d| (else 0), how much further each side reaches to hold the optimum's own
     interval (``OFFSET_HOLD_Z``), whether the estimate is biased by it, and that bias (NaN where not). Records
     the move in ``moved[key]`` and the members whose interval it widened in ``widened``."""
     zero = torch.zeros_like(hw)
     off, bias = torch.zeros_like(widened), torch.full_like(hw, math.nan)
     if pc.offset is None:
-        return zero, zero, zero, zero, off, bias
+        return zero, zero, zero, off, bias
     low, high = zero, zero
     d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
     moved[key] = d
@@ -1117,13 +1118,16 @@ def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tens
     off = beyond & (d.abs() > BIAS_TOL * size)          # the data favour a point well away
     bias = torch.where(off, -d, bias)
     if pc.offset_cov is not None:   # a smaller move beyond its own noise: hold the optimum's own interval
-        sd_d = torch.einsum("bi,bij,bj->b", g, pc.offset_cov.cpu(), g).clamp_min(0).sqrt()
+        sd_d = _sd(g, pc.offset_cov)
         hold = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_HOLD_Z * sd_d) & ~widen
-        own = pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov
-        sd_o = torch.einsum("bi,bij,bj->b", g, own.cpu(), g).clamp_min(0).sqrt()
+        sd_o = _sd(g, pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov)
         low = torch.where(hold, (q * sd_o - d - hw).clamp_min(0), 0.0)
         high = torch.where(hold, (q * sd_o + d - hw).clamp_min(0), 0.0)
         widened |= hold & ((low > 0) | (high > 0))
     widened |= widen
-    d = torch.where(widen, d, 0.0)
-    return d, d.abs(), low, high, off, bias
+    return torch.where(widen, d, 0.0), low, high, off, bias
+
+
+def _sd(g: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """(B,) standard deviation of g eta where eta has the covariance ``cov`` (B, n, n), g (B, n)."""
+    return torch.einsum("bi,bij,bj->b", g, cov.cpu(), g).clamp_min(0).sqrt()
