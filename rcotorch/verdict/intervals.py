@@ -1002,9 +1002,9 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
       ``BIAS_TOL`` times max(|estimate|, scale), the estimate is *biased* (the refinement settled well away
       from what the data determine). Where the move is smaller than that but more than ``OFFSET_HOLD_Z`` of
       its own standard deviations sd_d (``pc.offset_cov``), the interval extends to hold the output error's own
-      interval est + d +- q sd_o (sd_o from ``pc.optimum_cov``, the optimum's own random error): the data
-      cannot tell a closed-loop bias of that size from the step's noise, and an interval that holds both
-      covers where either is right;
+      interval est + d - g b +- q sd_o (sd_o from ``pc.optimum_cov``, the optimum's own random error; g b the
+      model class's bias against the physics, below, where it is measured): the data cannot tell a closed-loop
+      bias of that size from the step's noise, and an interval that holds both covers where either is right;
     * **sampling a continuous feedback** (``pc.sampling``, where the graph declares one): the estimate's
       bias against the continuous physics, beta = g b - d (d as above where it widens the interval, else 0).
       Where |beta| is more than the half-width q sd and than ``NEGLIGIBLE`` of the estimate's size, the
@@ -1121,8 +1121,12 @@ def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tens
         sd_d = _sd(g, pc.offset_cov)
         hold = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_HOLD_Z * sd_d) & ~widen
         sd_o = _sd(g, pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov)
-        low = torch.where(hold, (q * sd_o - d - hw).clamp_min(0), 0.0)
-        high = torch.where(hold, (q * sd_o + d - hw).clamp_min(0), 0.0)
+        centre = d                  # the optimum, less the model class's own bias where the physics measured it
+        if pc.sampling is not None:
+            model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
+            centre = d - torch.where(torch.isfinite(model), model, 0.0)
+        low = torch.where(hold, (q * sd_o - centre - hw).clamp_min(0), 0.0)
+        high = torch.where(hold, (q * sd_o + centre - hw).clamp_min(0), 0.0)
         widened |= hold & ((low > 0) | (high > 0))
     widened |= widen
     return torch.where(widen, d, 0.0), low, high, off, bias
