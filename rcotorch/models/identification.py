@@ -311,14 +311,13 @@ def _hermite_input(A, b, dt):
 
 
 def _expm_input(A, b, h, foh=False):
-    """exp of the augmented matrix: (Phi, Gamma) of a ZOH over h, and with ``foh`` also the ramp term."""
+    """exp of the augmented matrix: (Phi, Gamma) of a ZOH over h (``_input_powers`` of degree 0), and with ``foh``
+    also the ramp term (its own augmented matrix, the ramp scaled by 1/h inside it)."""
     import scipy.linalg
     n = A.shape[0]
     if not foh:
-        M = np.zeros((n + 1, n + 1))
-        M[:n, :n], M[:n, n] = A, b
-        E = scipy.linalg.expm(M * h)
-        return E[:n, :n], E[:n, n]
+        Phi, gamma = _input_powers(A, b, h, h, 0)
+        return Phi, gamma[:, 0]
     M = np.zeros((n + 2, n + 2))
     M[:n, :n], M[:n, n], M[n, n + 1] = A, b, 1.0 / h
     E = scipy.linalg.expm(M * h)
