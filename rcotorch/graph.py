@@ -528,6 +528,56 @@ class Graph(nn.Module):
                 _TOLD.add(reason)
                 logger.warning("graph: running on the PyTorch engine: %s", reason)
 
+    def extend(self, blocks: Sequence[Block], sources: Mapping[Signal, Signal]) -> None:
+        """Add ``blocks`` to the graph as they are (their state kept, nothing reset), with their inputs wired by
+        ``sources`` {(block, input port): (block, output port)}; the graph's own blocks, wiring and step counter
+        stay as they were.
+
+        Parameters
+        ----------
+        blocks : Sequence[Block]
+            New blocks, each reset for this graph's batch size, with this graph's dtype and device, and named
+            apart from the graph's blocks.
+        sources : Mapping[tuple of (str, str), tuple of (str, str)]
+            Every input of the new blocks that is not optional -> the output port that drives it (of a new
+            block or of one of the graph's).
+
+        Raises
+        ------
+        ConfigError
+            If a block is named as one of the graph's or cannot be named so, or was reset for another batch
+            size.
+        PortError, DimensionError, AlgebraicLoopError
+            As for the constructor, for the new blocks' wiring.
+        """
+        B = self.batch_size
+        for blk in blocks:
+            if blk.name in self.blocks or hasattr(self.blocks, blk.name) or "." in blk.name or not blk.name:
+                raise ConfigError(f"graph: cannot add block '{blk.name}': the name is taken or not allowed")
+            if blk.batch_size != B:
+                raise ConfigError(f"graph: block '{blk.name}' is reset for {blk.batch_size} members, the graph "
+                                  f"for {B}")
+        before = dict(self.sources)
+        try:
+            for blk in blocks:
+                self.blocks[blk.name] = blk
+            for dst, src in sources.items():
+                self._connect(src, dst)
+            for blk in blocks:
+                for port in blk.inputs:
+                    if (blk.name, port) not in self.sources and port not in blk.optional_inputs:
+                        raise PortError(f"graph: input '{blk.name}.{port}' is not connected")
+            self._check_sample_times()
+            self.order = self._schedule()
+        except Exception:                      # refused: the graph as it was
+            for blk in blocks:
+                if blk.name in self.blocks:
+                    del self.blocks[blk.name]
+            self.sources = before
+            raise
+        self._program_cache.invalidate()
+        self._last, self._last_native = {}, None
+
     def add_hook(self, hook: Callable[[Graph], object]) -> Callable:
         """Call ``hook(graph)`` after every step (e.g. a ``MarkovRefresh``).
 

@@ -63,8 +63,8 @@ def duffing(members: int, out: Path, steps: int = 20000) -> dict:
 def drag(members: int, out: Path, steps: int = 20000) -> dict:
     """Quadratic air drag (a graph built in Python, a problem of the kind no scenario ships): a mass on a spring
     q'' + 0.1 q' + 2 q + 0.3 v |v| = w, continuous and integrated by RK4 substeps, its velocity measured with noise
-    of standard deviation 0.02; the known model is the linear oscillator, the identified subsystem u = theta [v |v|, v] (drag
-    cd = -theta_0 = 0.3, extra viscous damping c = -theta_1 = 0)."""
+    of standard deviation 0.02; the known model is the linear oscillator, the identified subsystem
+    u = theta [v |v|, v] (drag cd = -theta_0 = 0.3, extra viscous damping c = -theta_1 = 0)."""
     Ts, seeds = 0.02, list(range(1, members + 1))
 
     def field(x, inputs):

@@ -447,3 +447,80 @@ def test_the_native_replay_sums_equal_pytorchs(normalize):
         assert torch.isfinite(a).all(), key
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-8, atol=1e-12 * float(b.abs().max()), err_msg=key)
     np.testing.assert_allclose(native.residuals.whiteness_p.numpy(), plain.residuals.whiteness_p.numpy(), rtol=1e-8)
+
+
+def _sdof_with_truth(gain):
+    known = rt.LTI.continuous(*rt.models.sdof_matrices(1.0, 0.4, 4.0, measured=["position"], sees=["position"]),
+                              inputs=["w", "u"], outputs={"y": 1, "y0": 1}, dt=0.05, name="known")
+    est = rt.RCOEstimator.static_gain({"y0": 1}, p0=1e3)
+    return rt.refinement(known, est, truth=rt.Gain(torch.tensor([[gain]])), excitation=rt.WhiteNoise(1, seed=3),
+                         noise=rt.WhiteNoise(1, std=0.01, seed=4), nu=12)
+
+
+@pytest.mark.parametrize("hooked", [False, True])
+def test_the_replays_copies_stepped_in_one_graph_give_the_numbers_of_separate_copies(hooked):
+    """The replay's copies (moved parameters, the initial theta, the physics at the estimates) stepped inside the
+    base copy's graph, sharing its excitation, noise and measured system, give bit for bit the covariance,
+    output-error step, bias and residual checks of copies stepped as separate graphs; that graph holds only the
+    copies' model side (the estimator, the known model, the error), and a graph with a step hook keeps separate
+    copies."""
+    from unittest import mock
+
+    from rcotorch.verdict import intervals as ci
+    g = _sdof_with_truth(0.5)
+    g.reset(3)
+    if hooked:
+        g.add_hook(lambda graph: None)
+    g.advance(300)
+    state = ci.snapshot(g)
+    g.advance(300)
+    physics = _sdof_with_truth(0.45)
+    physics.reset(3)
+    added = []
+    extend = rt.Graph.extend
+    with mock.patch.object(rt.Graph, "extend", lambda self, blocks, src: added.extend(b.name for b in blocks) or
+                           extend(self, blocks, src)):
+        joined = ci.replay(g, state, 300, physics=physics)
+    with mock.patch.object(ci, "JOIN_COPIES", False):
+        apart = ci.replay(g, state, 300, physics=physics)
+    if hooked:
+        assert added == []
+    else:
+        est, known, err = g.roles["estimator"], g.roles["known"], g.roles["error"].split(".")[0]
+        assert sorted(added) == sorted([f"{b}__{c}" for c in ("moved0", "initial") for b in (est, known, err)]
+                                       + [f"{b}__physical" for b in ci.physical_blocks(g)])
+        assert len(ci.physical_blocks(g)) == 2               # the measured system and the truth in its feedback
+    assert joined.covariance.sampling is not None
+    for key in ("cov", "gain", "noise", "offset", "optimum_cov", "unexplained", "sampling"):
+        assert torch.equal(getattr(joined.covariance, key), getattr(apart.covariance, key)), key
+    for key in ("whiteness_p", "fit", "fit_initial", "autocorr"):
+        assert torch.equal(getattr(joined.residuals, key), getattr(apart.residuals, key)), key
+
+
+def test_a_graph_extended_with_blocks_keeps_its_state_and_refuses_a_taken_name_or_batch():
+    """``Graph.extend`` adds blocks in their state (nothing reset) and names what it refuses: a name the graph
+    holds, a block reset for another batch size, an input left unconnected."""
+    g = _sdof_with_truth(0.5)
+    g.reset(2)
+    g.advance(50)
+    x = g.blocks["known"].x.clone()
+    extra = rt.Gain(torch.tensor([[2.0]]), name="twice")
+    extra.reset(2)
+    g.extend([extra], {("twice", "in"): g.role_signal("measured")})
+    assert torch.equal(g.blocks["known"].x, x) and int(g.k) == 50
+    g.advance(1)
+    names, sources = list(g.blocks), dict(g.sources)
+    assert torch.allclose(g.last[("twice", "out")], 2 * g.last[g.role_signal("measured")])
+    taken = rt.Gain(torch.tensor([[1.0]]), name="known")
+    taken.reset(2)
+    with pytest.raises(rt.ConfigError, match="'known'.*taken"):
+        g.extend([taken], {("known", "in"): g.role_signal("measured")})
+    other = rt.Gain(torch.tensor([[1.0]]), name="other")
+    other.reset(3)
+    with pytest.raises(rt.ConfigError, match="'other' is reset for 3 members, the graph for 2"):
+        g.extend([other], {("other", "in"): g.role_signal("measured")})
+    loose = rt.Gain(torch.tensor([[1.0]]), name="loose")
+    loose.reset(2)
+    with pytest.raises(rt.PortError, match="'loose.in' is not connected"):
+        g.extend([loose], {})
+    assert list(g.blocks) == names and g.sources == sources           # a refused extension leaves the graph as it was

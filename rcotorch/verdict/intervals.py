@@ -72,6 +72,7 @@ DRIFT_FAR = 2.0          # a drift beyond this many half-widths is a member stil
 DRIFT_Z = 1.96           # ... where it is also beyond this many of its own standard deviations
 DRIFT_HOLD_Z = 0.5       # a drift beyond this many of its standard deviations: the interval holds its end ...
 DRIFT_NOISE = 1.0        # ... and this many of its standard deviations past it
+JOIN_COPIES = True       # step the replay's copies inside one graph, sharing what they compute alike (``_join``)
 
 
 @dataclass
@@ -251,7 +252,13 @@ class _Copies:
     estimate), one per parameter with that parameter moved by eps (their differences of z from the base copy's are
     J = Psi_true^T), one with the initial theta (the initial model's fit), and where a physics at the estimates is
     given (``physics``) a copy with its physical blocks in place of the graph's (``_physics_copy``). Each
-    stretch's records land in buffers kept from stretch to stretch."""
+    stretch's records land in buffers kept from stretch to stretch.
+
+    Where the graph has no step hooks, the other copies run inside the base copy's graph (``_join``): of each,
+    only the blocks that differ from the base copy's and that its recorded signal depends on (for a moved
+    parameter: the estimator and the model it feeds back through), reading every other signal (the excitation,
+    the measured system, recorded data) from the base copy's blocks. The signals are the same numbers as
+    separate copies give; what the copies share is computed once."""
 
     def __init__(self, graph, state, rel_step: float | None, physics):
         est = graph.role("estimator")
@@ -269,8 +276,9 @@ class _Copies:
         eye = torch.eye(n, dtype=eta.dtype, device=eta.device)
         theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1).index_select(1, est.free_idx.to(eta.device))
         self.base, self.base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
-        self.moved = [_held_copy(self.base, eta + self.eps[:, j:j + 1] * eye[j]) for j in range(n)]
-        self.initial = _held_copy(self.base, theta0)
+        variants = {f"moved{j}": _held_copy(self.base, eta + self.eps[:, j:j + 1] * eye[j]) for j in range(n)}
+        variants["initial"] = _held_copy(self.base, theta0)
+        changed = {name: {est.name} for name in variants}
         ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
         self.regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
         self.u_sig = (est.name, "u")
@@ -278,13 +286,22 @@ class _Copies:
         # (``sampling``) from the replay's first step on, so that it settles as long as the copies.
         swap = physical_blocks(graph) if physics is not None else None
         self.how = sampling.plan(graph) if not swap else "the physics at the estimates are simulated instead"
-        self.physical = _physics_copy(graph, state, eta, physics, swap) if swap else None
+        if swap:
+            variants["physical"], changed["physical"] = _physics_copy(graph, state, eta, physics, swap), set(swap)
         self.continuous = None
         if isinstance(self.how, dict):
             self.continuous = sampling.ContinuousPrediction(self.base, self.how,
                                                             self.base.blocks[self.how["known"]].x.clone())
         self.bias_source = "physics" if swap else "sampling" if self.continuous is not None else None
         self.note = None if self.bias_source else self.how
+        # each copy: the graph that steps it and where its signals are in that graph
+        self.copies = {"base": (self.base, {sig: sig for sig in self._signals("base")})}
+        for name, g in variants.items():
+            sigs = self._signals(name)
+            self.copies[name] = (self.base, _join(self.base, g, changed[name], sigs, name)) if JOIN_COPIES and \
+                not graph.hooks else (g, {sig: sig for sig in sigs})
+        self.graphs = list({id(g): g for g, _ in self.copies.values()}.values())
+        self.moved = [name for name in self.copies if name.startswith("moved")]
         self.buffers: dict = {}
         self.history = None
 
@@ -299,28 +316,35 @@ class _Copies:
             out += self.how["record"]
         return list(dict.fromkeys(out))
 
-    def _run(self, g, name: str, C: int) -> dict:
-        """Advance copy ``g`` ``C`` steps, recording its signals into the kept buffers: {signal: (C, B, w)}."""
-        bufs = self.buffers.get(name)
-        if bufs is None or next(iter(bufs.values())).shape[0] < C:
-            bufs = self.buffers[name] = {
-                sig: kernels.empty((C, g.batch_size, g.blocks[sig[0]].outputs[sig[1]]), self.base_est.theta.dtype,
-                                   self.base_est.theta.device) for sig in self._signals(name)}
-        g.advance(C, record={sig: buf[:C] for sig, buf in bufs.items()})
-        return {sig: buf[:C].to(torch.float64) for sig, buf in bufs.items()}
+    def _run(self, C: int, graphs: list | None = None) -> dict:
+        """Advance the copies' graphs (or ``graphs`` of them) ``C`` steps, recording the copies' signals into the
+        kept buffers: {copy: {signal: (C, B, w)}} of the copies those graphs step."""
+        out = {}
+        for g in graphs or self.graphs:
+            names = [name for name, (h, _) in self.copies.items() if h is g]
+            wanted = list(dict.fromkeys(at for name in names for at in self.copies[name][1].values()))
+            bufs = self.buffers.get(id(g))
+            if bufs is None or next(iter(bufs.values())).shape[0] < C:
+                bufs = self.buffers[id(g)] = {
+                    sig: kernels.empty((C, g.batch_size, g.blocks[sig[0]].outputs[sig[1]]), self.base_est.theta.dtype,
+                                       self.base_est.theta.device) for sig in wanted}
+            g.advance(C, record={sig: buf[:C] for sig, buf in bufs.items()})
+            got = {sig: buf[:C].to(torch.float64) for sig, buf in bufs.items()}
+            out.update({name: {sig: got[at] for sig, at in self.copies[name][1].items()} for name in names})
+        return out
 
     def settle(self, steps: int) -> None:
         """Advance every copy the first ``steps`` steps (nothing recorded), carrying the continuous simulation on
         over them where there is one."""
-        for g in self.moved + [self.initial] + ([self.physical] if self.physical is not None else []):
-            g.advance(steps)
+        for g in self.graphs:
+            if g is not self.base or self.continuous is None:
+                g.advance(steps)
         if self.continuous is None:
-            self.base.advance(steps)
             return
         span = max(1, STRETCH_BYTES // max(1, 8 * self.base.batch_size * 8))
         for t0 in range(0, steps, span):
             C = min(span, steps - t0)
-            self.continuous.predict(self._run(self.base, "base", C), C)
+            self.continuous.predict(self._run(C, [self.base])["base"], C)
 
     def record(self, C: int) -> dict:
         """Step every copy ``C`` steps and return, float64, the base copy's z, y, w (None without an exogenous
@@ -328,15 +352,14 @@ class _Copies:
         initial copy's as ``'initial'``; and where a physics or a continuous feedback is simulated, its prediction
         less the refined model's as ``'d'`` (z_c - z_f, ``sampling``)."""
         self.history = self.base_est.regressor_history()
-        base = self._run(self.base, "base", C)
+        runs = self._run(C)
+        base = runs["base"]
         rec = {"z": base[self.z_sig], "y": base[self.y_sig], "w": None if self.w_sig is None else base[self.w_sig],
                "inputs": {p: base[sig] for p, sig in self.regressor_inputs.items()}, "u": base[self.u_sig]}
-        rec["moved"] = torch.stack([self._run(g, f"moved{j}", C)[self.z_sig] for j, g in enumerate(self.moved)],
-                                   dim=3)
-        rec["initial"] = self._run(self.initial, "initial", C)[self.z_sig]
-        if self.physical is not None:
-            rec["d"] = self._run(self.physical, "physical", C)[self.physical_y] - \
-                base[self.graph.role_signal("prediction")]
+        rec["moved"] = torch.stack([runs[name][self.z_sig] for name in self.moved], dim=3)
+        rec["initial"] = runs["initial"][self.z_sig]
+        if "physical" in runs:
+            rec["d"] = runs["physical"][self.physical_y] - base[self.graph.role_signal("prediction")]
         elif self.continuous is not None:
             rec["d"] = self.continuous.predict(base, C) - base[self.graph.role_signal("prediction")]
         return rec
@@ -519,6 +542,39 @@ def physical_blocks(graph) -> dict[str, str] | None:
         if blk == name and src not in (w_blk, *model):
             out[src] = None
     return out
+
+
+def _join(base, variant, changed: set[str], signals: list, tag: str) -> dict:
+    """Add to ``base`` the blocks of ``variant`` (a copy of ``base`` in the same state, its blocks ``changed``
+    replaced or holding other parameters) that differ from base's and that ``signals`` of ``variant`` depend
+    on: the blocks ``changed`` drives (through any input), of those the ones the signals' blocks read (through
+    any input), renamed '<name>__<tag>'. They read every other signal from base's blocks, which compute the
+    same numbers. Returns {signal of variant: the signal of base that carries it}."""
+    readers: dict[str, set[str]] = {}
+    feeders: dict[str, set[str]] = {}
+    for (dst, _), (src, _) in variant.sources.items():
+        readers.setdefault(src, set()).add(dst)
+        feeders.setdefault(dst, set()).add(src)
+
+    def closure(start: set[str], step: dict[str, set[str]]) -> set[str]:
+        out, todo = set(start), list(start)
+        while todo:
+            for nxt in step.get(todo.pop(), ()):
+                if nxt not in out:
+                    out.add(nxt)
+                    todo.append(nxt)
+        return out
+    own = closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
+    rename = {name: f"{name}__{tag}" for name in own}
+    blocks = []
+    for name in [name for name in variant.blocks if name in own]:         # in the graph's order
+        blk = variant.blocks[name]
+        blk.name = rename[name]
+        blocks.append(blk)
+    wiring = {(rename[dst], p): (rename.get(src, src), q) for (dst, p), (src, q) in variant.sources.items()
+              if dst in own}
+    base.extend(blocks, wiring)
+    return {sig: (rename.get(sig[0], sig[0]), sig[1]) for sig in signals}
 
 
 def _physics_copy(graph, state, eta, physics, swap: Mapping[str, Any]):
