@@ -1,6 +1,7 @@
 """Confidence intervals and the verdict: against closed-form least squares, per member, for a graph built in
 Python, on an undetermined structure, and by coverage over seeds (slow)."""
 
+import contextlib
 import json
 
 import numpy as np
@@ -438,7 +439,7 @@ def test_the_native_replay_sums_equal_pytorchs(normalize):
     with unittest.mock.patch.object(ci, "STRETCH_BYTES", 8 * 3 * 2 * 2 * 7), \
             unittest.mock.patch.object(kernels, "window_sums", lambda *a: took.append(summed(*a)) or took[-1]):
         native = ci.replay(g, state, 300, settle)           # 7 steps a stretch
-    assert len(took) == -(-(300 - 40) // 7) and all(t is not None for t in took)    # the kernel took each stretch
+    assert len(took) == -(-(300 - 40) // 7) and all(took)              # the kernel took each stretch
     with unittest.mock.patch.object(ci, "STRETCH_BYTES", 8 * 3 * 2 * 2 * 7):
         with kernels.disabled():
             plain = ci.replay(g, state, 300, settle)
@@ -524,3 +525,43 @@ def test_a_graph_extended_with_blocks_keeps_its_state_and_refuses_a_taken_name_o
     with pytest.raises(rt.PortError, match="'loose.in' is not connected"):
         g.extend([loose], {})
     assert list(g.blocks) == names and g.sources == sources           # a refused extension leaves the graph as it was
+
+
+@pytest.mark.parametrize("lags", [0, 1, 6])
+def test_the_native_replay_sums_take_the_scores_long_run_sums_as_pytorch_does(lags):
+    """The native kernel's long-run sums of the scores (``_ScoreSums``: sum s s^T, the moving sums of L + 1 scores
+    and the ring of the last L carried from stretch to stretch) equal PyTorch's over stretches of several lengths,
+    members measuring from different steps, normalized regressors and two outputs."""
+    from rcotorch.engine import kernels
+    from rcotorch.verdict import intervals as ci
+    gen = torch.Generator().manual_seed(7)
+    B, nz, n, T, measured = 11, 2, 3, 40, 25
+    own = torch.tensor([0, 3, 5, 9, 15, 0, 1, 2, 12, 7, 4])
+    W = torch.tensor([[1.0, 0.3], [0.3, 2.0]], dtype=torch.float64)
+    eps = torch.rand(B, n, generator=gen, dtype=torch.float64) + 0.5
+
+    class Est:
+        norm_inv_s2 = torch.tensor(0.7, dtype=torch.float64)
+
+        def row_scale(self, psi):
+            return torch.sqrt(1 + self.norm_inv_s2 * torch.einsum("kzi,zy,kyi->k", psi, W, psi))
+    sums = {}
+    for native in (True, False):
+        ws = ci._WindowSums(B, n, nz, lags, W, eps, own, measured, "cpu")
+        with contextlib.nullcontext() if native else kernels.disabled():
+            g2 = torch.Generator().manual_seed(3)
+            for t0, C in ((0, 7), (7, 1), (8, 13), (21, 19)):
+                rec = {"z": torch.randn(C, B, nz, generator=g2, dtype=torch.float64),
+                       "moved": torch.randn(C, B, nz, n, generator=g2, dtype=torch.float64),
+                       "d": torch.randn(C, B, nz, generator=g2, dtype=torch.float64)}
+                at = torch.arange(t0, t0 + C).reshape(-1, 1) - own.reshape(1, B)
+                inside = ((at >= 0) & (at < measured)).to(torch.float64)      # each member's measured steps
+                ws.add(torch.randn(C, B, nz, n, generator=g2, dtype=torch.float64), rec, t0, inside, Est())
+        assert ws.upper == native and t0 + C == T
+        sums[native] = ws.scores
+    for key in ("gram", "moving", "ring"):
+        np.testing.assert_allclose(getattr(sums[True], key).numpy(), getattr(sums[False], key).numpy(), rtol=1e-12,
+                                   atol=1e-12, err_msg=key)
+    everyone = torch.ones(B, dtype=torch.bool)
+    np.testing.assert_allclose(sums[True].long_run(everyone).numpy(), sums[False].long_run(everyone).numpy(),
+                               rtol=1e-12, atol=1e-12)

@@ -256,29 +256,34 @@ def lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch.
 
 def window_sums(z: torch.Tensor, moved: torch.Tensor, psi: torch.Tensor, d: torch.Tensor | None, eps: torch.Tensor,
                 own: torch.Tensor, t0: int, measured: int, weight: torch.Tensor, norm: torch.Tensor | None,
-                gram: torch.Tensor) -> torch.Tensor | None:
+                gram: torch.Tensor, ring: torch.Tensor, score_gram: torch.Tensor, moving: torch.Tensor) -> bool:
     """The intervals' replay sums over a stretch (``rcotorch.verdict.intervals._WindowSums``): from time-major
     float64 records z (C, B, n_z), moved (C, B, n_z, n), psi (C, B, n_z, n) and d (C, B, n_z) or None, with eps
     (B, n), each member's first measured step ``own`` (B,) int64, ``measured`` steps each, the stretch's first
     step ``t0``, the weight W (n_z, n_z) and ``norm`` (B,) (1 / s^2 of normalized regressors, None if not): adds
     g g^T, g = [J, z, d, psi / m, J / m, z / m], to the upper triangle of ``gram`` (B, K, K) in the blocks
-    [J, z, d] x [J, z, d], psi / m x [psi / m, J / m] and z / m x z / m (the others stay 0), and returns the scores
-    (psi / m)^T W (z / m), (C, B, n), 0 outside a member's measured steps; None where the kernel does not apply
-    (not allowed here, not the CPU)."""
+    [J, z, d] x [J, z, d], psi / m x [psi / m, J / m] and z / m x z / m (the others stay 0), and takes the scores
+    s = (psi / m)^T W (z / m), 0 outside a member's measured steps, into their long-run sums in place
+    (``_ScoreSums``): ``score_gram`` (B, n, n) += s s^T and ``moving`` (B, n, n) += S S^T, S the sum of the last
+    L + 1 scores, the L before each step in ``ring`` (B, L, n), oldest first, which the stretch's last L replace.
+    Returns False where the kernel does not apply (not allowed here, not the CPU), having changed nothing."""
     if not allowed() or z.device.type != "cpu":
-        return None
+        return False
     C, B, nz = z.shape
     n = moved.shape[3]
     f64 = lambda t: t.to(torch.float64).contiguous()      # noqa: E731
     args = [f64(z), f64(moved), f64(psi), None if d is None else f64(d), f64(eps), own.to(torch.int64).contiguous(),
             f64(weight), None if norm is None else f64(norm.reshape(-1).expand(B))]
     K = 3 * nz * n + 3 * nz
-    if gram.dtype != torch.float64 or not gram.is_contiguous() or tuple(gram.shape) != (B, K, K):
-        raise ValueError(f"window_sums: gram must be a contiguous float64 ({B}, {K}, {K}) tensor")
-    scores = torch.empty(C, B, n, dtype=torch.float64)
+    L = ring.shape[1]
+    for name, t, shape in (("gram", gram, (B, K, K)), ("ring", ring, (B, L, n)), ("score_gram", score_gram, (B, n, n)),
+                           ("moving", moving, (B, n, n))):
+        if t.dtype != torch.float64 or not t.is_contiguous() or tuple(t.shape) != shape:
+            raise ValueError(f"window_sums: {name} must be a contiguous float64 {shape} tensor")
     _engine.window_sums(C, B, nz, n, int(t0), int(measured), *(0 if t is None else t.data_ptr() for t in args),
-                        gram.data_ptr(), scores.data_ptr(), threads(B, C))
-    return scores
+                        gram.data_ptr(), L, ring.data_ptr() if L else 0, score_gram.data_ptr(), moving.data_ptr(),
+                        threads(B, C))
+    return True
 
 
 def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:

@@ -411,11 +411,11 @@ class _WindowSums:
         z, d = rec["z"], rec.get("d")
         self.has_d = self.has_d or d is not None
         norm = getattr(est, "norm_inv_s2", None)
-        scores = kernels.window_sums(z, rec["moved"], psi, d, self.eps, self.settle_of, t0, self.measured,
-                                     self.weight, norm, self.gram)
-        if scores is not None:
+        sc = self.scores
+        if kernels.window_sums(z, rec["moved"], psi, d, self.eps, self.settle_of, t0, self.measured, self.weight,
+                               norm, self.gram, sc.ring, sc.gram, sc.moving):
             self.upper = True
-            self.scores.add(scores)
+            sc.n += C
             return
         jac = (rec["moved"] - z.unsqueeze(3)) / self.eps.reshape(1, B, 1, n)          # (C, B, n_z, n)
         m = est.row_scale(psi.transpose(0, 1).reshape(-1, n_z, n))          # the rows as weighed, (B C,)
