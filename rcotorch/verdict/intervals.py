@@ -34,6 +34,7 @@ method, with its gradient from central differences.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -276,9 +277,8 @@ class _Copies:
         eye = torch.eye(n, dtype=eta.dtype, device=eta.device)
         theta0 = est.theta0.expand(B, -1, -1).reshape(B, -1).index_select(1, est.free_idx.to(eta.device))
         self.base, self.base_est = _frozen_copy(graph, state, eta, engine=graph.engine)
-        variants = {f"moved{j}": _held_copy(self.base, eta + self.eps[:, j:j + 1] * eye[j]) for j in range(n)}
-        variants["initial"] = _held_copy(self.base, theta0)
-        changed = {name: {est.name} for name in variants}
+        holds = {f"moved{j}": eta + self.eps[:, j:j + 1] * eye[j] for j in range(n)}
+        holds["initial"] = theta0
         ports = [p for p in est.inputs if p not in ("z", "valid") and (est.name, p) in graph.sources]
         self.regressor_inputs = {p: graph.sources[(est.name, p)] for p in ports}
         self.u_sig = (est.name, "u")
@@ -286,8 +286,6 @@ class _Copies:
         # (``sampling``) from the replay's first step on, so that it settles as long as the copies.
         swap = physical_blocks(graph) if physics is not None else None
         self.how = sampling.plan(graph) if not swap else "the physics at the estimates are simulated instead"
-        if swap:
-            variants["physical"], changed["physical"] = _physics_copy(graph, state, eta, physics, swap), set(swap)
         self.continuous = None
         if isinstance(self.how, dict):
             self.continuous = sampling.ContinuousPrediction(self.base, self.how,
@@ -296,10 +294,21 @@ class _Copies:
         self.note = None if self.bias_source else self.how
         # each copy: the graph that steps it and where its signals are in that graph
         self.copies = {"base": (self.base, {sig: sig for sig in self._signals("base")})}
-        for name, g in variants.items():
-            sigs = self._signals(name)
-            self.copies[name] = (self.base, _join(self.base, g, changed[name], sigs, name)) if JOIN_COPIES and \
-                not graph.hooks else (g, {sig: sig for sig in sigs})
+        if not JOIN_COPIES or graph.hooks:
+            for name, value in holds.items():
+                self.copies[name] = (_held_copy(self.base, value), {sig: sig for sig in self._signals(name)})
+            if swap:
+                self.copies["physical"] = (_physics_copy(graph, state, eta, physics, swap),
+                                           {sig: sig for sig in self._signals("physical")})
+        else:
+            structure = (list(self.base.blocks), dict(self.base.sources))        # before any copy joins it
+            for name, value in holds.items():
+                self.copies[name] = (self.base, _join(self.base, structure, {est.name}, self._signals(name), name,
+                                                      functools.partial(_held_block, self.base, est.name, value)))
+            if swap:
+                self.copies["physical"] = (self.base, _join(
+                    self.base, structure, set(swap), self._signals("physical"), "physical",
+                    functools.partial(_physics_block, self.base, physics, swap)))
         self.graphs = list({id(g): g for g, _ in self.copies.values()}.values())
         self.moved = [name for name in self.copies if name.startswith("moved")]
         self.buffers: dict = {}
@@ -544,15 +553,18 @@ def physical_blocks(graph) -> dict[str, str] | None:
     return out
 
 
-def _join(base, variant, changed: set[str], signals: list, tag: str) -> dict:
-    """Add to ``base`` the blocks of ``variant`` (a copy of ``base`` in the same state, its blocks ``changed``
-    replaced or holding other parameters) that differ from base's and that ``signals`` of ``variant`` depend
-    on: the blocks ``changed`` drives (through any input), of those the ones the signals' blocks read (through
-    any input), renamed '<name>__<tag>'. They read every other signal from base's blocks, which compute the
-    same numbers. Returns {signal of variant: the signal of base that carries it}."""
+def _join(base, structure: tuple[list, Mapping], changed: set[str], signals: list, tag: str,
+          block: Callable[[str], Any]) -> dict:
+    """Add to ``base`` (a frozen copy not yet stepped; ``structure``: its block names and wiring before any copy
+    joined it) a copy of it whose blocks ``changed`` differ (``block(name)``: that copy's block ``name``, in the
+    state base's has): of that copy, only the blocks that differ from base's and that its ``signals`` depend on,
+    i.e. the blocks ``changed`` drives (through any input) of those the signals' blocks read (through any input),
+    renamed '<name>__<tag>'. They read every other signal from base's blocks, which compute the same numbers.
+    Returns {signal of the copy: the signal of base that carries it}."""
+    names, sources = structure
     readers: dict[str, set[str]] = {}
     feeders: dict[str, set[str]] = {}
-    for (dst, _), (src, _) in variant.sources.items():
+    for (dst, _), (src, _) in sources.items():
         readers.setdefault(src, set()).add(dst)
         feeders.setdefault(dst, set()).add(src)
 
@@ -567,14 +579,36 @@ def _join(base, variant, changed: set[str], signals: list, tag: str) -> dict:
     own = closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
     rename = {name: f"{name}__{tag}" for name in own}
     blocks = []
-    for name in [name for name in variant.blocks if name in own]:         # in the graph's order
-        blk = variant.blocks[name]
+    for name in [name for name in names if name in own]:                  # in the graph's order
+        blk = block(name)
         blk.name = rename[name]
         blocks.append(blk)
-    wiring = {(rename[dst], p): (rename.get(src, src), q) for (dst, p), (src, q) in variant.sources.items()
-              if dst in own}
+    wiring = {(rename[dst], p): (rename.get(src, src), q) for (dst, p), (src, q) in sources.items() if dst in own}
     base.extend(blocks, wiring)
     return {sig: (rename.get(sig[0], sig[0]), sig[1]) for sig in signals}
+
+
+def _held_block(base, est_name: str, eta: torch.Tensor, name: str):
+    """A copy of ``base``'s block ``name``, the estimator holding theta at ``eta``."""
+    blk = copy.deepcopy(base.blocks[name])
+    if name == est_name:
+        blk.hold(eta)
+    return blk
+
+
+def _physics_block(base, physics, swap: Mapping[str, Any], name: str):
+    """Block ``name`` of ``base`` with ``swap``'s blocks taken from ``physics`` (``_physics_copy``)."""
+    if name not in swap:
+        return copy.deepcopy(base.blocks[name])
+    if name not in physics.blocks:
+        raise ConfigError(f"intervals: the physics graph has no block '{name}' (the graph's physical system)")
+    blk = copy.deepcopy(physics.blocks[name]).to(device=base.k.device)
+    blk.reset(base.batch_size)
+    mine = dict(blk.named_buffers(recurse=False))
+    for key, value in base.blocks[name].named_buffers(recurse=False):
+        if key in ("x", "k") and key in mine and mine[key].shape == value.shape:
+            blk.set_state(**{key: value.clone()})
+    return blk
 
 
 def _physics_copy(graph, state, eta, physics, swap: Mapping[str, Any]):
@@ -582,15 +616,7 @@ def _physics_copy(graph, state, eta, physics, swap: Mapping[str, Any]):
     a buffer of the same name and shape exists): its measured output is the physics' at the estimates."""
     g, _ = _frozen_copy(graph, state, eta, engine=graph.engine)
     for name in swap:
-        if name not in physics.blocks:
-            raise ConfigError(f"intervals: the physics graph has no block '{name}' (the graph's physical system)")
-        blk = copy.deepcopy(physics.blocks[name]).to(device=eta.device)
-        blk.reset(eta.shape[0])
-        mine = dict(blk.named_buffers(recurse=False))
-        for key, value in g.blocks[name].named_buffers(recurse=False):
-            if key in ("x", "k") and key in mine and mine[key].shape == value.shape:
-                blk.set_state(**{key: value.clone()})
-        g.blocks[name] = blk
+        g.blocks[name] = _physics_block(g, physics, swap, name)
     return g
 
 
