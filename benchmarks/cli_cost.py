@@ -22,12 +22,15 @@ End to end, as a user waits for it, ``rcotorch run`` in a fresh process (``--end
 run at each B (the medians of three of each, alternating), whose difference gives the marginal member-step (goal: at
 least 0.5x the numba peer's speed; at B = 1 the long run takes 20,000,000 steps, about a second of the engine), and
 a 10-step run at B = 4096 (goal: under 3 s). Writes benchmarks/results/cli_cost.json.
+
+    python benchmarks/cli_cost.py --table      # the results on record (and sweep_cost.json's), as docs/cli.md
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import json
 import statistics
 import subprocess
 import sys
@@ -35,12 +38,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import numba
-import torch
-from common import add_common_args, machine, setup_cpu, table, write_json
-from peer import _numba_call
-
-from rcotorch.run.runner import Run
+from common import RESULTS, add_common_args, machine, setup_cpu, table, write_json
 
 NAME = "sdof-stiffness-damping"
 GOAL = 1.5
@@ -51,6 +49,11 @@ REPEATS = 3                # runs of each length for a marginal member-step (the
 
 
 def measure(B: int, steps: int, threads: int, name: str = NAME, peer: bool = True) -> dict:
+    import numba
+    import torch
+    from peer import _numba_call
+
+    from rcotorch.run.runner import Run
     torch.set_num_threads(threads)
     numba.set_num_threads(threads)
     first = max(1, steps // 20)
@@ -121,11 +124,59 @@ def marginal(B: int, short: int, long: int, threads: int, numba_ns: float, repea
             "met": ns > 0 and numba_ns / ns >= MARGINAL_GOAL}
 
 
+def markdown(results: dict, sweeps: dict | None) -> str:
+    """The results on record (``cli_cost.json``, and ``sweep_cost.json`` where given) as Markdown tables."""
+    def f2(v: float) -> str:
+        return f"{v:.2f}"
+
+    def yes(m: dict) -> str:
+        return "yes" if m["met"] else "no"
+    parts = ["intervals", "validation", "summary", "figures", "files"]
+    lines = ["| scenario | B | steps | engine s | " + " | ".join(parts) + " | end s | end / engine | run ns | "
+             "engine ns |", "|" + "---|" * (8 + len(parts))]
+    for r in results["results"]:
+        cells = [r["scenario"], r["B"], r["steps"], f2(r["engine_s"]),
+                 *(f2(r["finish_parts_s"].get(k, 0.0)) for k in parts), f2(r["finish_s"]),
+                 f"{r['finish_over_engine']:.1f}x", f"{r['cli_ns_per_member_step']:.1f}",
+                 f"{r['engine_ns_per_member_step']:.1f}"]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+    e2e = results.get("end_to_end") or []
+    if e2e:
+        lines += ["", "| end to end, a fresh process | rcotorch run | the numba peer | goal | met |",
+                  "|---|---|---|---|---|"]
+        for m in e2e:
+            if "marginal_ns_per_member_step" in m:
+                lines.append(f"| marginal member-step at B = {m['B']} ({m['long_steps']:,} less "
+                             f"{m['short_steps']:,} steps) | {m['marginal_ns_per_member_step']:.1f} ns | "
+                             f"{m['numba_ns_per_member_step']:.1f} ns | at least {m['goal']}x the peer's speed "
+                             f"({m['speed_vs_numba']:.2f}x) | {yes(m)} |")
+            else:
+                lines.append(f"| a {m['steps']}-step run at B = {m['B']} | {f2(m['seconds'])} s | | under "
+                             f"{m['goal_s']} s | {yes(m)} |")
+    if sweeps:
+        lines += ["", "| sweep of sdof-stiffness, 2000 steps | seconds | against | goal | met |",
+                  "|---|---|---|---|---|",
+                  f"| {sweeps['members']} members in {sweeps['shards']} shards | {f2(sweeps['sweep_s'])} | | under "
+                  f"{sweeps['goal_s']} s | {yes(sweeps)} |"]
+        big = sweeps.get("large")
+        if big:
+            lines.append(f"| {big['members']} members in {big['shards']} shards | {f2(big['sweep_s'])} | one batch "
+                         f"of {big['members']}: {f2(big['one_batch_s'])} s ({big['ratio']:.1f}x) | within "
+                         f"{big['goal']}x | {yes(big)} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_args(ap)
     ap.add_argument("--end-to-end", action="store_true", help="also time rcotorch run in fresh processes")
+    ap.add_argument("--table", action="store_true", help="print the results on record as Markdown and stop")
     args = ap.parse_args(argv)
+    if args.table:
+        sweeps = RESULTS / "sweep_cost.json"
+        print(markdown(json.loads((RESULTS / "cli_cost.json").read_text()),
+                       json.loads(sweeps.read_text()) if sweeps.is_file() else None))
+        return {}
     dev = setup_cpu(args, "the command line's cost is measured on the CPU")
     if dev is None:
         return {}
