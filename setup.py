@@ -43,6 +43,6 @@ class BuildEngine(build_ext):
 setup(
     ext_modules=[Extension("rcotorch.engine._engine", sources=["rcotorch/engine/csrc/engine.c"],
                            depends=["rcotorch/engine/csrc/engine.h", "rcotorch/engine/csrc/lanes.h",
-                                    "rcotorch/engine/csrc/widths.h"], optional=True)],
+                                    "rcotorch/engine/csrc/widths.h", "rcotorch/engine/csrc/replay.h"], optional=True)],
     cmdclass={"build_ext": BuildEngine},
 )

@@ -3,6 +3,9 @@ intervals' replay uses instead of stepping) equal, step by step, those its updat
 after each step), for every way phi is built: a static gain, a dynamic subsystem with u's past, a strictly
 proper one, features, masks and ties, normalized regressors, Markov parameters per member."""
 
+import contextlib
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch
@@ -66,8 +69,13 @@ def test_rebuilt_regressors_equal_those_of_each_update(case, start):
                                    atol=1e-13 * float(stepped.abs().max()))
 
 
+@pytest.mark.parametrize("native", [True, False])
 @pytest.mark.parametrize("nu", [12, 40])
-def test_markov_parameters_per_member_are_filtered_member_by_member(nu):
+def test_markov_parameters_per_member_are_filtered_member_by_member(nu, native):
+    """On the CPU the native kernel filters the stretch (``kernels.markov_filter``); elsewhere (here: the kernels
+    disabled) PyTorch does, by a product per Markov parameter or, for many, one convolution."""
+    from rcotorch.engine import kernels
+    mf = kernels.markov_filter
     g = _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3), nu=nu)
     est = g.role("estimator")
     beta = est.beta.expand(3, -1, -1, -1).clone()
@@ -85,7 +93,11 @@ def test_markov_parameters_per_member_are_filtered_member_by_member(nu):
         rows.append(g.last[sig].clone())
         u.append(g.last[(est.name, "u")].clone())
         stepped.append(est.last_regressor().clone())
-    got = est.regressors_over(history, {"y0": torch.stack(rows)}, torch.stack(u), 0, 25)
+    called = []
+    with contextlib.nullcontext() if native else kernels.disabled(), \
+            mock.patch.object(kernels, "markov_filter", lambda *a: called.append(mf(*a)) or called[-1]):
+        got = est.regressors_over(history, {"y0": torch.stack(rows)}, torch.stack(u), 0, 25)
+    assert len(called) == 1 and (called[0] is not None) == native          # the kernel filtered, or PyTorch
     np.testing.assert_allclose(got.numpy(), torch.stack(stepped).numpy(), rtol=1e-11, atol=1e-15)
 
 

@@ -286,6 +286,24 @@ def window_sums(z: torch.Tensor, moved: torch.Tensor, psi: torch.Tensor, d: torc
     return True
 
 
+def markov_filter(phi: torch.Tensor, beta: torch.Tensor, s0: int, T: int) -> torch.Tensor | None:
+    """Psi(t)[b, o, j] = sum_{i=0}^{nu-1} beta[b, i, o] phi(t + s0 - i)[b, j] for t = 0 .. T - 1: the regressors of
+    a stretch (``RCOEstimator.regressors_over``) from phi time-major (rows, B, n_phi) and the Markov parameters
+    beta (B or 1, nu, n_out), as (T, B, n_out, n_phi) float64; None where the kernel does not apply (not allowed
+    here, not the CPU, not float64), or where the rows do not reach (s0 < nu - 1 or rows < T + s0)."""
+    if not allowed() or phi.device.type != "cpu" or phi.dtype != torch.float64 or beta.dtype != torch.float64:
+        return None
+    rows, B, n_phi = phi.shape
+    nu, n_out = beta.shape[1], beta.shape[2]
+    if s0 < nu - 1 or rows < T + s0 or beta.shape[0] not in (1, B):
+        return None
+    phi, beta = phi.contiguous(), beta.contiguous()
+    psi = torch.empty(T, B, n_out, n_phi, dtype=torch.float64)
+    _engine.markov_filter(T, B, n_phi, n_out, nu, s0, phi.data_ptr(), beta.data_ptr(), int(beta.shape[0] == 1),
+                          psi.data_ptr(), threads(B, T))
+    return psi
+
+
 def window_gram(win: torch.Tensor, n: int) -> torch.Tensor | None:
     """sum_w x x^T over the rows of a time-major window (W, B, m), x = win[w, b, :n], as (B, n, n), or None where
     the kernel does not apply (not allowed here, not the CPU, float64 and contiguous)."""

@@ -1022,20 +1022,21 @@ class RCOEstimator(Block):
         f64, B, nu, fd = torch.float64, u.shape[1], self.nu, self.first_delay
         W = nu + fd
         lo = max(0, start - W)                       # the recorded steps whose phi the window reaches
-        phi = self._phi_over(history, inputs, u, lo, stop)                    # (stop - lo, B, n_phi)
+        ahead = W if lo == 0 else 0                  # the steps before the stretch, from the window: phi(k0 - W + j)
+        phi = self._phi_over(history, inputs, u, lo, stop, ahead)            # (ahead + stop - lo, B, n_phi)
         k0 = int(history["k"])
-        if lo == 0:                                  # the steps before the stretch, from the window: phi(k0 - W + j)
-            ring = history["win"][:, :, :self.n_phi].to(f64)
-            before = ring[torch.arange(k0 - W, k0, device=ring.device) % W] if W else ring[:0]
-            phi = torch.cat([before, phi])
+        if ahead:
+            ring = history["win"][:, :, :self.n_phi]
+            phi[:W] = ring[torch.arange(k0 - W, k0, device=ring.device) % W]
             lo -= W
         # Psi^T(k)[z, a * n_phi + j] = sum_{i = fd}^{W - 1} beta_{i - fd}[z, a] phi(k - i)[j]: a product and sum
         # per Markov parameter over a stretch of steps short enough to stay in cache (beta per member or shared)
         T, n_out = stop - start, self.n_z * self.n_u
         beta = self.beta.to(f64).reshape(self.beta.shape[0], nu, n_out, 1)
-        if nu >= CONVOLVE_NU:
+        psi = kernels.markov_filter(phi, beta[..., 0], start - fd - lo, T)        # on the CPU; else in PyTorch:
+        if psi is None and nu >= CONVOLVE_NU:
             psi = _markov_convolution(phi[start - fd - nu + 1 - lo:stop - fd - lo], beta, B)
-        else:
+        elif psi is None:
             psi = phi.new_empty(T, B, n_out, self.n_phi)
             span = max(1, (1 << 19) // max(1, B * n_out * self.n_phi))                # steps of about 4 MB
             for t0 in range(0, T, span):
@@ -1047,9 +1048,10 @@ class RCOEstimator(Block):
         psi = psi.reshape(T * B, self.n_z, self.n_u * self.n_phi)
         return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
 
-    def _phi_over(self, history, inputs, u: torch.Tensor, lo: int, stop: int) -> torch.Tensor:
-        """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (stop - lo, B, n_phi) float64: each
-        entry copied over the stretch from the signal and lag ``_gather`` maps it to."""
+    def _phi_over(self, history, inputs, u: torch.Tensor, lo: int, stop: int, ahead: int = 0) -> torch.Tensor:
+        """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (ahead + stop - lo, B, n_phi) float64,
+        its first ``ahead`` rows left for the caller: each entry copied over the stretch from the signal and lag
+        ``_gather`` maps it to."""
         f64, T, B, nc = torch.float64, stop - lo, u.shape[1], self.nc
         a = max(0, lo - nc)                          # the first recorded step the lags reach
         rows = {p: v[a:stop].to(f64).reshape(-1, v.shape[-1]) for p, v in inputs.items()}
@@ -1060,7 +1062,8 @@ class RCOEstimator(Block):
             S = torch.cat([history["past"].to(f64).flip(1).transpose(0, 1)[nc - h:], cur])
             U = torch.cat([history["past_u"].to(f64).flip(1).transpose(0, 1)[nc - h:], u[a:stop].to(f64)])
         n_sig, nc1 = self.n_sig, max(nc, 1)
-        phi = cur.new_empty(T, B, self.n_phi)
+        full = cur.new_empty(ahead + T, B, self.n_phi)
+        phi = full[ahead:]
         # entry f of [s(k) | past s | past u], past(k)[l] = s(k - 1 - l), l = 0 .. nc - 1 (u's likewise)
         for k, f in enumerate(self._gather.tolist()):
             if f < n_sig:
@@ -1072,7 +1075,7 @@ class RCOEstimator(Block):
                 phi[:, :, k] = (U if of_u else S)[nc - 1 - lag:nc - 1 - lag + T, :, c]
             else:
                 phi[:, :, k] = history["past_u" if of_u else "past"][:, lag, c].to(f64)
-        return phi
+        return full
 
     def static_output(self, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
         """u = Theta phi(s) of a structure without memory (nc = 0, exactly proper): what ``output`` gives for

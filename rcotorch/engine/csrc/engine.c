@@ -265,8 +265,10 @@ static inline int64_t markov_slots(int64_t N, int64_t m, int64_t p, int64_t nu) 
 #define CAT(a, b) CAT_(a, b)
 #define FN(name) CAT(CAT(name, _), CAT(VL, ISA))
 
+#define RFN(name) CAT(CAT(name, _), ISA)
 #define ISA base
 #include "widths.h"
+#include "replay.h"
 #undef ISA
 
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
@@ -275,12 +277,14 @@ static inline int64_t markov_slots(int64_t N, int64_t m, int64_t p, int64_t nu) 
 #pragma GCC target("avx2")
 #define ISA avx2
 #include "widths.h"
+#include "replay.h"
 #undef ISA
 #pragma GCC pop_options
 #pragma GCC push_options
 #pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,avx2")
 #define ISA avx512
 #include "widths.h"
+#include "replay.h"
 #undef ISA
 #pragma GCC pop_options
 #endif
@@ -294,6 +298,13 @@ static chunk_fn CHUNK[4] = {chunk_1base, chunk_4base, chunk_8base, chunk_16base}
 static rls_fn RLS[4] = {rls_chunk_1base, rls_chunk_4base, rls_chunk_8base, rls_chunk_16base};
 static markov_fn MARKOV[4] = {markov_chunk_1base, markov_chunk_4base, markov_chunk_8base, markov_chunk_16base};
 static const char *ISA_NAME = "baseline";
+typedef void (*window_sums_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *, const double *,
+                               const double *, const double *, const double *, const int64_t *, const double *,
+                               const double *, double *, int64_t, double *, double *, double *, int);
+typedef void (*markov_filter_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *,
+                                 const double *, int, double *, int);
+static window_sums_fn WINDOW_SUMS = window_sums_base;
+static markov_filter_fn MARKOV_FILTER = markov_filter_base;
 
 static void select_isa(void) {
 #ifdef RCO_MULTI_ISA
@@ -306,6 +317,8 @@ static void select_isa(void) {
         memcpy(CHUNK, c, sizeof c);
         memcpy(RLS, r, sizeof r);
         memcpy(MARKOV, k, sizeof k);
+        WINDOW_SUMS = window_sums_avx512;
+        MARKOV_FILTER = markov_filter_avx512;
         ISA_NAME = "avx512";
     } else if (__builtin_cpu_supports("avx2")) {
         chunk_fn c[4] = {chunk_1avx2, chunk_4avx2, chunk_8avx2, chunk_16avx2};
@@ -314,6 +327,8 @@ static void select_isa(void) {
         memcpy(CHUNK, c, sizeof c);
         memcpy(RLS, r, sizeof r);
         memcpy(MARKOV, k, sizeof k);
+        WINDOW_SUMS = window_sums_avx2;
+        MARKOV_FILTER = markov_filter_avx2;
         ISA_NAME = "avx2";
     }
 #endif
@@ -576,165 +591,6 @@ static PyObject *py_lag_sums(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* The replay's sums over a stretch of C steps (verdict/intervals.py, _WindowSums), per member b, from time-major
- * records: z (C, B, nz), the moved copies' z (C, B, nz, n), the regressors psi (C, B, nz, n) and d (C, B, nz) or
- * none. At a step t0 + t inside the member's measured steps [own_b, own_b + measured), with J = (moved - z) / eps_b
- * and, where norm is given (normalized regressors, norm_b = 1 / s^2 per member),
- * m = sqrt(1 + norm_b sum_{r,i} psi[r,i] (W psi)[r,i]) (else m = 1),
- * the row g = [J, z, d, psi / m, J / m, z / m] (K = 3 nz n + 3 nz) adds g g^T to gram[b] (K x K) in the blocks the
- * covariance reads (upper triangle: [J, z, d] x [J, z, d], psi / m x [psi / m, J / m], z / m x z / m), and the
- * score s = (psi / m)^T W (z / m) (n) enters the scores' long-run sums (_ScoreSums): sgram[b] += s s^T and, with
- * S the sum of the last L + 1 scores (ring[b], (L, n), the L before this step, oldest first, carried from stretch
- * to stretch), moving[b] += S S^T at every step; outside the member's measured steps g and s are 0.
- * Members in lanes of WS_LANES, each pair's sum a vector over the lanes,
- * loaded from gram before the stretch and stored after it: every member's sums are added in the order of its
- * steps, as one member at a time would add them. */
-#define WS_LANES 8
-static void window_sums(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t t0, int64_t measured, const double *z,
-                        const double *moved, const double *psi, const double *d, const double *eps,
-                        const int64_t *own, const double *W, const double *norm, double *gram, int64_t L,
-                        double *ring, double *sgram, double *moving, int nthreads) {
-    const int64_t nj = nz * n, K = 3 * nj + 3 * nz;
-    /* the pairs (a, c) of the blocks the covariance reads */
-    int64_t *pa = malloc(sizeof(int64_t) * K * K * 2), np = 0;
-    if (!pa) return;
-    int64_t *pc = pa + K * K;
-    const int64_t top[3] = {nj + 2 * nz, 3 * nj + 2 * nz, K};
-    for (int64_t a = 0; a < K; a++) {
-        if (a >= 2 * nj + 2 * nz && a < 3 * nj + 2 * nz) continue; /* J / m: only beside psi */
-        const int64_t end = a < top[0] ? top[0] : a < 2 * nj + 2 * nz ? top[1] : top[2];
-        for (int64_t c = a; c < end; c++) {
-            pa[np] = a;
-            pc[np] = c;
-            np++;
-        }
-    }
-    enum { NB = WS_LANES };
-    const int64_t nblocks = (B + NB - 1) / NB;
-#ifdef _OPENMP
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256)
-#endif
-    {
-        /* per lane l: acc[p * NB + l] the pairs' sums, g[k * NB + l], the scores' ring (L, n), their sums */
-        double *acc = malloc(sizeof(double) * NB * (np + K + (L + 2) * n + 2 * n * n + nz));
-        if (acc) {
-            double *g = acc + np * NB, *rl = g + K * NB, *sv = rl + L * n * NB, *Sv = sv + n * NB;
-            double *sg = Sv + n * NB, *mv2 = sg + n * n * NB, *wz = mv2 + n * n * NB;
-#ifdef _OPENMP
-#pragma omp for schedule(static)
-#endif
-            for (int64_t blk = 0; blk < nblocks; blk++) {
-                const int64_t b0 = blk * NB, nb = b0 + NB < B ? NB : B - b0;
-                for (int64_t p = 0; p < np; p++)
-                    for (int64_t l = 0; l < NB; l++)
-                        acc[p * NB + l] = l < nb ? gram[(b0 + l) * K * K + pa[p] * K + pc[p]] : 0.0;
-                for (int64_t l = 0; l < NB; l++)
-                    for (int64_t i = 0; i < n; i++) {
-                        for (int64_t j = 0; j < L; j++)
-                            rl[(j * n + i) * NB + l] = l < nb ? ring[((b0 + l) * L + j) * n + i] : 0.0;
-                        for (int64_t j = 0; j < n; j++) {
-                            sg[(i * n + j) * NB + l] = l < nb ? sgram[((b0 + l) * n + i) * n + j] : 0.0;
-                            mv2[(i * n + j) * NB + l] = l < nb ? moving[((b0 + l) * n + i) * n + j] : 0.0;
-                        }
-                    }
-                int64_t head = 0; /* the ring's oldest entry */
-                for (int64_t t = 0; t < C; t++) {
-                    for (int64_t l = 0; l < NB; l++) {
-                        const int64_t b = b0 + l, at = t0 + t - (l < nb ? own[b] : t0 + t + 1);
-                        if (l >= nb || at < 0 || at >= measured) {
-                            for (int64_t k = 0; k < K; k++) g[k * NB + l] = 0.0;
-                            for (int64_t i = 0; i < n; i++) sv[i * NB + l] = 0.0;
-                            continue;
-                        }
-                        const double *zt = z + (t * B + b) * nz, *mv = moved + (t * B + b) * nj,
-                                     *ps = psi + (t * B + b) * nj, *e = eps + b * n;
-                        double m = 1.0;
-                        if (norm) {
-                            double q = 0.0;
-                            for (int64_t r = 0; r < nz; r++)
-                                for (int64_t s2 = 0; s2 < nz; s2++)
-                                    for (int64_t i = 0; i < n; i++)
-                                        q += ps[r * n + i] * W[r * nz + s2] * ps[s2 * n + i];
-                            m = sqrt(1.0 + q * norm[b]);
-                        }
-                        /* x / m, written x where m is 1 (the same number, without a division) */
-#define WS_BY_M(x) (norm ? (x) / m : (x))
-                        for (int64_t r = 0; r < nz; r++) {
-                            for (int64_t i = 0; i < n; i++) {
-                                double j = (mv[r * n + i] - zt[r]) / e[i];
-                                g[(r * n + i) * NB + l] = j;
-                                g[(nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(ps[r * n + i]);
-                                g[(2 * nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(j);
-                            }
-                            g[(nj + r) * NB + l] = zt[r];
-                            g[(nj + nz + r) * NB + l] = d ? d[(t * B + b) * nz + r] : 0.0;
-                            g[(3 * nj + 2 * nz + r) * NB + l] = WS_BY_M(zt[r]);
-                        }
-                        for (int64_t r = 0; r < nz; r++) {
-                            wz[r] = 0.0;
-                            for (int64_t s2 = 0; s2 < nz; s2++) wz[r] += W[r * nz + s2] * WS_BY_M(zt[s2]);
-                        }
-                        for (int64_t i = 0; i < n; i++) {
-                            double a = 0.0;
-                            for (int64_t r = 0; r < nz; r++) a += WS_BY_M(ps[r * n + i]) * wz[r];
-                            sv[i * NB + l] = a;
-                        }
-#undef WS_BY_M
-                    }
-                    for (int64_t p = 0; p < np; p++) {
-                        double *restrict o = acc + p * NB;
-                        const double *restrict x = g + pa[p] * NB, *restrict y = g + pc[p] * NB;
-                        for (int64_t l = 0; l < NB; l++) o[l] += x[l] * y[l];
-                    }
-                    /* the scores: S the sum of the ring's L and this one, oldest first (the ring's entries head
-                     * .. L - 1, then 0 .. head - 1); this one replaces the ring's oldest */
-                    for (int64_t i = 0; i < n; i++) {
-                        double S[NB];
-                        for (int64_t l = 0; l < NB; l++) S[l] = 0.0;
-                        for (int64_t j = head; j < L; j++) {
-                            const double *restrict r = rl + (j * n + i) * NB;
-                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
-                        }
-                        for (int64_t j = 0; j < head; j++) {
-                            const double *restrict r = rl + (j * n + i) * NB;
-                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
-                        }
-                        for (int64_t l = 0; l < NB; l++) Sv[i * NB + l] = S[l] + sv[i * NB + l];
-                    }
-                    for (int64_t i = 0; i < n; i++)
-                        for (int64_t j = 0; j < n; j++) {
-                            double *restrict a1 = sg + (i * n + j) * NB, *restrict a2 = mv2 + (i * n + j) * NB;
-                            const double *restrict si = sv + i * NB, *restrict sj = sv + j * NB;
-                            const double *restrict Si = Sv + i * NB, *restrict Sj = Sv + j * NB;
-                            for (int64_t l = 0; l < NB; l++) {
-                                a1[l] += si[l] * sj[l];
-                                a2[l] += Si[l] * Sj[l];
-                            }
-                        }
-                    if (L > 0) {
-                        for (int64_t i = 0; i < n; i++)
-                            for (int64_t l = 0; l < NB; l++) rl[(head * n + i) * NB + l] = sv[i * NB + l];
-                        head = (head + 1) % L;
-                    }
-                }
-                for (int64_t p = 0; p < np; p++)
-                    for (int64_t l = 0; l < nb; l++) gram[(b0 + l) * K * K + pa[p] * K + pc[p]] = acc[p * NB + l];
-                for (int64_t l = 0; l < nb; l++)
-                    for (int64_t i = 0; i < n; i++) {
-                        for (int64_t j = 0; j < L; j++)
-                            ring[((b0 + l) * L + j) * n + i] = rl[((((head + j) % L) * n) + i) * NB + l];
-                        for (int64_t j = 0; j < n; j++) {
-                            sgram[((b0 + l) * n + i) * n + j] = sg[(i * n + j) * NB + l];
-                            moving[((b0 + l) * n + i) * n + j] = mv2[(i * n + j) * NB + l];
-                        }
-                    }
-            }
-            free(acc);
-        }
-    }
-    free(pa);
-}
-
 static PyObject *py_window_sums(PyObject *self, PyObject *args) {
     long long C, B, nz, n, t0, measured, L;
     unsigned long long z, moved, psi, d, eps, own, W, norm, gram, ring, sgram, moving;
@@ -743,9 +599,22 @@ static PyObject *py_window_sums(PyObject *self, PyObject *args) {
                           &own, &W, &norm, &gram, &L, &ring, &sgram, &moving, &nthreads))
         return NULL;
     Py_BEGIN_ALLOW_THREADS
-    window_sums(C, B, nz, n, t0, measured, ADDR(z), ADDR(moved), ADDR(psi), d ? ADDR(d) : NULL, ADDR(eps),
+    WINDOW_SUMS(C, B, nz, n, t0, measured, ADDR(z), ADDR(moved), ADDR(psi), d ? ADDR(d) : NULL, ADDR(eps),
                 ADDR(own), ADDR(W), norm ? ADDR(norm) : NULL, ADDR(gram), L, L ? ADDR(ring) : NULL, ADDR(sgram),
                 ADDR(moving), nthreads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_markov_filter(PyObject *self, PyObject *args) {
+    long long T, B, n_phi, n_out, nu, s0;
+    unsigned long long phi, beta, psi;
+    int bshared, nthreads;
+    if (!PyArg_ParseTuple(args, "LLLLLLKKiKi", &T, &B, &n_phi, &n_out, &nu, &s0, &phi, &beta, &bshared, &psi,
+                          &nthreads))
+        return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    MARKOV_FILTER(T, B, n_phi, n_out, nu, s0, ADDR(phi), ADDR(beta), bshared, ADDR(psi), nthreads);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -907,6 +776,9 @@ static PyMethodDef METHODS[] = {
     {"window_sums", py_window_sums, METH_VARARGS,
      "window_sums(C, B, nz, n, t0, measured, z, moved, psi, d, eps, own, W, norm, gram, L, ring, sgram, moving, "
      "threads): the replay's Gram sums and its scores' long-run sums over a stretch, per member"},
+    {"markov_filter", py_markov_filter, METH_VARARGS,
+     "markov_filter(T, B, n_phi, n_out, nu, s0, phi, beta, bshared, psi, threads): the regressors of a stretch "
+     "filtered by the Markov parameters"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
     {"lag_sums", py_lag_sums, METH_VARARGS,

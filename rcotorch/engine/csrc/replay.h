@@ -1,0 +1,215 @@
+/* The replay's kernels (verdict/intervals.py, estimator/rco.py), included by engine.c once per instruction set
+ * (ISA: base, avx2, avx512), their names suffixed by it (RFN); engine.c calls the copy the processor runs. */
+#ifndef REPLAY_SIZES
+#define REPLAY_SIZES
+#define WS_LANES 8  /* window_sums: members side by side in a group */
+#define MF_BLOCK 64 /* markov_filter: members a block */
+#endif
+
+/* The replay's sums over a stretch of C steps (verdict/intervals.py, _WindowSums), per member b, from time-major
+ * records: z (C, B, nz), the moved copies' z (C, B, nz, n), the regressors psi (C, B, nz, n) and d (C, B, nz) or
+ * none. At a step t0 + t inside the member's measured steps [own_b, own_b + measured), with J = (moved - z) / eps_b
+ * and, where norm is given (normalized regressors, norm_b = 1 / s^2 per member),
+ * m = sqrt(1 + norm_b sum_{r,i} psi[r,i] (W psi)[r,i]) (else m = 1),
+ * the row g = [J, z, d, psi / m, J / m, z / m] (K = 3 nz n + 3 nz) adds g g^T to gram[b] (K x K) in the blocks the
+ * covariance reads (upper triangle: [J, z, d] x [J, z, d], psi / m x [psi / m, J / m], z / m x z / m), and the
+ * score s = (psi / m)^T W (z / m) (n) enters the scores' long-run sums (_ScoreSums): sgram[b] += s s^T and, with
+ * S the sum of the last L + 1 scores (ring[b], (L, n), the L before this step, oldest first, carried from stretch
+ * to stretch), moving[b] += S S^T at every step; outside the member's measured steps g and s are 0.
+ * Members in lanes of WS_LANES, each pair's sum a vector over the lanes,
+ * loaded from gram before the stretch and stored after it: every member's sums are added in the order of its
+ * steps, as one member at a time would add them. */
+static void RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t t0, int64_t measured,
+                             const double *z, const double *moved, const double *psi, const double *d,
+                             const double *eps, const int64_t *own, const double *W, const double *norm, double *gram,
+                             int64_t L, double *ring, double *sgram, double *moving, int nthreads) {
+    const int64_t nj = nz * n, K = 3 * nj + 3 * nz;
+    /* the pairs (a, c) of the blocks the covariance reads */
+    int64_t *pa = malloc(sizeof(int64_t) * K * K * 2), np = 0;
+    if (!pa) return;
+    int64_t *pc = pa + K * K;
+    const int64_t top[3] = {nj + 2 * nz, 3 * nj + 2 * nz, K};
+    for (int64_t a = 0; a < K; a++) {
+        if (a >= 2 * nj + 2 * nz && a < 3 * nj + 2 * nz) continue; /* J / m: only beside psi */
+        const int64_t end = a < top[0] ? top[0] : a < 2 * nj + 2 * nz ? top[1] : top[2];
+        for (int64_t c = a; c < end; c++) {
+            pa[np] = a;
+            pc[np] = c;
+            np++;
+        }
+    }
+    enum { NB = WS_LANES };
+    const int64_t nblocks = (B + NB - 1) / NB;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#endif
+    {
+        /* per lane l: acc[p * NB + l] the pairs' sums, g[k * NB + l], the scores' ring (L, n), their sums */
+        double *acc = malloc(sizeof(double) * NB * (np + K + (L + 2) * n + 2 * n * n + nz));
+        if (acc) {
+            double *g = acc + np * NB, *rl = g + K * NB, *sv = rl + L * n * NB, *Sv = sv + n * NB;
+            double *sg = Sv + n * NB, *mv2 = sg + n * n * NB, *wz = mv2 + n * n * NB;
+#ifdef _OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t blk = 0; blk < nblocks; blk++) {
+                const int64_t b0 = blk * NB, nb = b0 + NB < B ? NB : B - b0;
+                for (int64_t p = 0; p < np; p++)
+                    for (int64_t l = 0; l < NB; l++)
+                        acc[p * NB + l] = l < nb ? gram[(b0 + l) * K * K + pa[p] * K + pc[p]] : 0.0;
+                for (int64_t l = 0; l < NB; l++)
+                    for (int64_t i = 0; i < n; i++) {
+                        for (int64_t j = 0; j < L; j++)
+                            rl[(j * n + i) * NB + l] = l < nb ? ring[((b0 + l) * L + j) * n + i] : 0.0;
+                        for (int64_t j = 0; j < n; j++) {
+                            sg[(i * n + j) * NB + l] = l < nb ? sgram[((b0 + l) * n + i) * n + j] : 0.0;
+                            mv2[(i * n + j) * NB + l] = l < nb ? moving[((b0 + l) * n + i) * n + j] : 0.0;
+                        }
+                    }
+                int64_t head = 0; /* the ring's oldest entry */
+                for (int64_t t = 0; t < C; t++) {
+                    for (int64_t l = 0; l < NB; l++) {
+                        const int64_t b = b0 + l, at = t0 + t - (l < nb ? own[b] : t0 + t + 1);
+                        if (l >= nb || at < 0 || at >= measured) {
+                            for (int64_t k = 0; k < K; k++) g[k * NB + l] = 0.0;
+                            for (int64_t i = 0; i < n; i++) sv[i * NB + l] = 0.0;
+                            continue;
+                        }
+                        const double *zt = z + (t * B + b) * nz, *mv = moved + (t * B + b) * nj,
+                                     *ps = psi + (t * B + b) * nj, *e = eps + b * n;
+                        double m = 1.0;
+                        if (norm) {
+                            double q = 0.0;
+                            for (int64_t r = 0; r < nz; r++)
+                                for (int64_t s2 = 0; s2 < nz; s2++)
+                                    for (int64_t i = 0; i < n; i++)
+                                        q += ps[r * n + i] * W[r * nz + s2] * ps[s2 * n + i];
+                            m = sqrt(1.0 + q * norm[b]);
+                        }
+                        /* x / m, written x where m is 1 (the same number, without a division) */
+#define WS_BY_M(x) (norm ? (x) / m : (x))
+                        for (int64_t r = 0; r < nz; r++) {
+                            for (int64_t i = 0; i < n; i++) {
+                                double j = (mv[r * n + i] - zt[r]) / e[i];
+                                g[(r * n + i) * NB + l] = j;
+                                g[(nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(ps[r * n + i]);
+                                g[(2 * nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(j);
+                            }
+                            g[(nj + r) * NB + l] = zt[r];
+                            g[(nj + nz + r) * NB + l] = d ? d[(t * B + b) * nz + r] : 0.0;
+                            g[(3 * nj + 2 * nz + r) * NB + l] = WS_BY_M(zt[r]);
+                        }
+                        for (int64_t r = 0; r < nz; r++) {
+                            wz[r] = 0.0;
+                            for (int64_t s2 = 0; s2 < nz; s2++) wz[r] += W[r * nz + s2] * WS_BY_M(zt[s2]);
+                        }
+                        for (int64_t i = 0; i < n; i++) {
+                            double a = 0.0;
+                            for (int64_t r = 0; r < nz; r++) a += WS_BY_M(ps[r * n + i]) * wz[r];
+                            sv[i * NB + l] = a;
+                        }
+#undef WS_BY_M
+                    }
+                    for (int64_t p = 0; p < np; p++) {
+                        double *restrict o = acc + p * NB;
+                        const double *restrict x = g + pa[p] * NB, *restrict y = g + pc[p] * NB;
+                        for (int64_t l = 0; l < NB; l++) o[l] += x[l] * y[l];
+                    }
+                    /* the scores: S the sum of the ring's L and this one, oldest first (the ring's entries head
+                     * .. L - 1, then 0 .. head - 1); this one replaces the ring's oldest */
+                    for (int64_t i = 0; i < n; i++) {
+                        double S[NB];
+                        for (int64_t l = 0; l < NB; l++) S[l] = 0.0;
+                        for (int64_t j = head; j < L; j++) {
+                            const double *restrict r = rl + (j * n + i) * NB;
+                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
+                        }
+                        for (int64_t j = 0; j < head; j++) {
+                            const double *restrict r = rl + (j * n + i) * NB;
+                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
+                        }
+                        for (int64_t l = 0; l < NB; l++) Sv[i * NB + l] = S[l] + sv[i * NB + l];
+                    }
+                    for (int64_t i = 0; i < n; i++)
+                        for (int64_t j = 0; j < n; j++) {
+                            double *restrict a1 = sg + (i * n + j) * NB, *restrict a2 = mv2 + (i * n + j) * NB;
+                            const double *restrict si = sv + i * NB, *restrict sj = sv + j * NB;
+                            const double *restrict Si = Sv + i * NB, *restrict Sj = Sv + j * NB;
+                            for (int64_t l = 0; l < NB; l++) {
+                                a1[l] += si[l] * sj[l];
+                                a2[l] += Si[l] * Sj[l];
+                            }
+                        }
+                    if (L > 0) {
+                        for (int64_t i = 0; i < n; i++)
+                            for (int64_t l = 0; l < NB; l++) rl[(head * n + i) * NB + l] = sv[i * NB + l];
+                        head = (head + 1) % L;
+                    }
+                }
+                for (int64_t p = 0; p < np; p++)
+                    for (int64_t l = 0; l < nb; l++) gram[(b0 + l) * K * K + pa[p] * K + pc[p]] = acc[p * NB + l];
+                for (int64_t l = 0; l < nb; l++)
+                    for (int64_t i = 0; i < n; i++) {
+                        for (int64_t j = 0; j < L; j++)
+                            ring[((b0 + l) * L + j) * n + i] = rl[((((head + j) % L) * n) + i) * NB + l];
+                        for (int64_t j = 0; j < n; j++) {
+                            sgram[((b0 + l) * n + i) * n + j] = sg[(i * n + j) * NB + l];
+                            moving[((b0 + l) * n + i) * n + j] = mv2[(i * n + j) * NB + l];
+                        }
+                    }
+            }
+            free(acc);
+        }
+    }
+    free(pa);
+}
+
+/* The regressors of a stretch of steps filtered by the Markov parameters (estimator/rco.py, regressors_over):
+ * psi[t, b, o, j] = sum_{i=0}^{nu-1} beta[b, i, o] phi[t + s0 - i, b, j] for t = 0 .. T - 1, from phi time-major
+ * (rows, B, n_phi) with rows >= T + s0 and s0 >= nu - 1, beta (B, nu, n_out) or, shared (bshared), (1, nu, n_out);
+ * psi (T, B, n_out, n_phi). The sum over i in increasing order, as one multiply-add per term. Members in blocks of
+ * MF_BLOCK: a step reads nu rows of the block's phi, each contiguous. */
+static void RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out, int64_t nu, int64_t s0,
+                               const double *phi, const double *beta, int bshared, double *psi, int nthreads) {
+    const int64_t nblocks = (B + MF_BLOCK - 1) / MF_BLOCK, row = B * n_phi;
+#ifdef _OPENMP
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#endif
+    {
+        /* per block: the Markov parameters spread over the block's (member, regressor) pairs, and the sums */
+        double *bx = malloc(sizeof(double) * (nu * n_out + 1) * MF_BLOCK * n_phi);
+        if (bx) {
+            double *acc = bx + nu * n_out * MF_BLOCK * n_phi;
+#ifdef _OPENMP
+#pragma omp for schedule(static)
+#endif
+            for (int64_t blk = 0; blk < nblocks; blk++) {
+                const int64_t b0 = blk * MF_BLOCK, nb = b0 + MF_BLOCK < B ? MF_BLOCK : B - b0, nq = nb * n_phi;
+                for (int64_t i = 0; i < nu; i++)
+                    for (int64_t o = 0; o < n_out; o++)
+                        for (int64_t l = 0; l < nb; l++)
+                            for (int64_t j = 0; j < n_phi; j++)
+                                bx[(i * n_out + o) * nq + l * n_phi + j] =
+                                    beta[((bshared ? 0 : b0 + l) * nu + i) * n_out + o];
+                for (int64_t t = 0; t < T; t++)
+                    for (int64_t o = 0; o < n_out; o++) {
+                        double *restrict a = acc;
+                        for (int64_t q = 0; q < nq; q++) a[q] = 0.0;
+                        for (int64_t i = 0; i < nu; i++) {
+                            const double *restrict x = phi + (t + s0 - i) * row + b0 * n_phi;
+                            const double *restrict w = bx + (i * n_out + o) * nq;
+                            for (int64_t q = 0; q < nq; q++) a[q] += w[q] * x[q];
+                        }
+                        double *out = psi + ((t * B + b0) * n_out + o) * n_phi;
+                        if (n_out == 1)
+                            memcpy(out, a, sizeof(double) * nq);
+                        else
+                            for (int64_t l = 0; l < nb; l++)
+                                for (int64_t j = 0; j < n_phi; j++) out[l * n_out * n_phi + j] = a[l * n_phi + j];
+                    }
+            }
+            free(bx);
+        }
+    }
+}
+
