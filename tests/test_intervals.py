@@ -565,3 +565,30 @@ def test_the_native_replay_sums_take_the_scores_long_run_sums_as_pytorch_does(la
     everyone = torch.ones(B, dtype=torch.bool)
     np.testing.assert_allclose(sums[True].long_run(everyone).numpy(), sums[False].long_run(everyone).numpy(),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_the_replays_copies_join_a_graph_that_already_has_their_names():
+    """A graph whose blocks already carry the names the replay gives its copies' blocks ('<name>__moved0') still
+    has its copies joined, under names of their own, with the numbers of separate copies."""
+    from unittest import mock
+
+    from rcotorch.verdict import intervals as ci
+    g = _sdof_with_truth(0.5)
+    extra = rt.Gain(torch.tensor([[1.0]]), name=f"{g.roles['estimator']}__moved0")
+    g = rt.Graph(list(g.blocks.values()) + [extra],
+                 [(f"{s[0]}.{s[1]}", f"{d[0]}.{d[1]}") for d, s in g.sources.items()]
+                 + [(".".join(g.role_signal("measured")), f"{extra.name}.in")], roles=g.roles)
+    g.reset(2)
+    g.advance(200)
+    state = ci.snapshot(g)
+    g.advance(200)
+    added = []
+    extend = rt.Graph.extend
+    with mock.patch.object(rt.Graph, "extend", lambda self, blocks, src: added.extend(b.name for b in blocks) or
+                           extend(self, blocks, src)):
+        joined = ci.replay(g, state, 200)
+    assert f"{g.roles['estimator']}___moved0" in added and f"{g.roles['estimator']}__moved1" not in added
+    with mock.patch.object(ci, "JOIN_COPIES", False):
+        apart = ci.replay(g, state, 200)
+    for key in ("cov", "gain", "offset"):
+        assert torch.equal(getattr(joined.covariance, key), getattr(apart.covariance, key)), key

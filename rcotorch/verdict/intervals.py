@@ -559,8 +559,8 @@ def _join(base, structure: tuple[list, Mapping], changed: set[str], signals: lis
     joined it) a copy of it whose blocks ``changed`` differ (``block(name)``: that copy's block ``name``, in the
     state base's has): of that copy, only the blocks that differ from base's and that its ``signals`` depend on,
     i.e. the blocks ``changed`` drives (through any input) of those the signals' blocks read (through any input),
-    renamed '<name>__<tag>'. They read every other signal from base's blocks, which compute the same numbers.
-    Returns {signal of the copy: the signal of base that carries it}."""
+    renamed '<name>__<tag>' (or with more underscores where base has that name). They read every other signal from
+    base's blocks, which compute the same numbers. Returns {signal of the copy: the signal of base that carries it}."""
     names, sources = structure
     readers: dict[str, set[str]] = {}
     feeders: dict[str, set[str]] = {}
@@ -577,7 +577,12 @@ def _join(base, structure: tuple[list, Mapping], changed: set[str], signals: lis
                     todo.append(nxt)
         return out
     own = closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
-    rename = {name: f"{name}__{tag}" for name in own}
+    rename = {}
+    for name in own:                       # a name no block of base has (more underscores where one had it)
+        new = f"{name}__{tag}"
+        while new in base.blocks or new in rename.values():
+            new = f"{name}_{new[len(name):]}"
+        rename[name] = new
     blocks = []
     for name in [name for name in names if name in own]:                  # in the graph's order
         blk = block(name)
