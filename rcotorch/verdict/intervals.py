@@ -424,7 +424,6 @@ class _WindowSums:
         if kernels.window_sums(z, rec["moved"], psi, d, self.eps, self.settle_of, t0, self.measured, self.weight,
                                norm, self.gram, sc.ring, sc.gram, sc.moving):
             self.upper = True
-            sc.n += C
             return
         jac = (rec["moved"] - z.unsqueeze(3)) / self.eps.reshape(1, B, 1, n)          # (C, B, n_z, n)
         m = est.row_scale(psi.transpose(0, 1).reshape(-1, n_z, n))          # the rows as weighed, (B C,)
@@ -635,21 +634,20 @@ class _ScoreSums:
     does not explain; its whiteness test's p-value below WHITE_P) the lagged terms widen the intervals."""
 
     def __init__(self, B: int, n: int, lags: int, device):
-        self.L, self.n = lags, 0
+        self.L = lags
         self.ring = torch.zeros(B, lags, n, dtype=torch.float64, device=device)      # the last L scores
         self.gram = torch.zeros(B, n, n, dtype=torch.float64, device=device)          # sum s s^T
         self.moving = torch.zeros(B, n, n, dtype=torch.float64, device=device)        # sum S S^T
 
     def add(self, s: torch.Tensor) -> None:
         """Add the scores of consecutive steps, (C, B, n)."""
-        L, C = self.L, s.shape[0]
+        L = self.L
         s = s.transpose(0, 1)                                                   # (B, C, n), batch first
         x = torch.cat([self.ring, s], dim=1)                                    # (B, L + C, n)
         S = x.unfold(1, L + 1, 1).sum(-1)                                       # (B, C, n): windows ending at s
         self.gram += s.mT @ s
         self.moving += S.mT @ S
         self.ring = x[:, x.shape[1] - L:].contiguous()
-        self.n += C
 
     def long_run(self, members: torch.Tensor) -> torch.Tensor:
         """Omega_0 for every member, Omega_L for ``members`` ((B,) bool) only: where z is white the lagged terms

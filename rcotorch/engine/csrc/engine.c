@@ -298,10 +298,10 @@ static chunk_fn CHUNK[4] = {chunk_1base, chunk_4base, chunk_8base, chunk_16base}
 static rls_fn RLS[4] = {rls_chunk_1base, rls_chunk_4base, rls_chunk_8base, rls_chunk_16base};
 static markov_fn MARKOV[4] = {markov_chunk_1base, markov_chunk_4base, markov_chunk_8base, markov_chunk_16base};
 static const char *ISA_NAME = "baseline";
-typedef void (*window_sums_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *, const double *,
+typedef int (*window_sums_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *, const double *,
                                const double *, const double *, const double *, const int64_t *, const double *,
                                const double *, double *, int64_t, double *, double *, double *, int);
-typedef void (*markov_filter_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *,
+typedef int (*markov_filter_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *,
                                  const double *, int, double *, int);
 static window_sums_fn WINDOW_SUMS = window_sums_base;
 static markov_filter_fn MARKOV_FILTER = markov_filter_base;
@@ -598,11 +598,13 @@ static PyObject *py_window_sums(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "LLLLLLKKKKKKKKKLKKKi", &C, &B, &nz, &n, &t0, &measured, &z, &moved, &psi, &d, &eps,
                           &own, &W, &norm, &gram, &L, &ring, &sgram, &moving, &nthreads))
         return NULL;
+    int fail;
     Py_BEGIN_ALLOW_THREADS
-    WINDOW_SUMS(C, B, nz, n, t0, measured, ADDR(z), ADDR(moved), ADDR(psi), d ? ADDR(d) : NULL, ADDR(eps),
-                ADDR(own), ADDR(W), norm ? ADDR(norm) : NULL, ADDR(gram), L, L ? ADDR(ring) : NULL, ADDR(sgram),
-                ADDR(moving), nthreads);
+    fail = WINDOW_SUMS(C, B, nz, n, t0, measured, ADDR(z), ADDR(moved), ADDR(psi), d ? ADDR(d) : NULL, ADDR(eps),
+                       ADDR(own), ADDR(W), norm ? ADDR(norm) : NULL, ADDR(gram), L, L ? ADDR(ring) : NULL,
+                       ADDR(sgram), ADDR(moving), nthreads);
     Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
 
@@ -613,9 +615,11 @@ static PyObject *py_markov_filter(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "LLLLLLKKiKi", &T, &B, &n_phi, &n_out, &nu, &s0, &phi, &beta, &bshared, &psi,
                           &nthreads))
         return NULL;
+    int fail;
     Py_BEGIN_ALLOW_THREADS
-    MARKOV_FILTER(T, B, n_phi, n_out, nu, s0, ADDR(phi), ADDR(beta), bshared, ADDR(psi), nthreads);
+    fail = MARKOV_FILTER(T, B, n_phi, n_out, nu, s0, ADDR(phi), ADDR(beta), bshared, ADDR(psi), nthreads);
     Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
 

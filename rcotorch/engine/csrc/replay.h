@@ -19,14 +19,15 @@
  * Members in lanes of WS_LANES, each pair's sum a vector over the lanes,
  * loaded from gram before the stretch and stored after it: every member's sums are added in the order of its
  * steps, as one member at a time would add them. */
-static void RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t t0, int64_t measured,
+static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t t0, int64_t measured,
                              const double *z, const double *moved, const double *psi, const double *d,
                              const double *eps, const int64_t *own, const double *W, const double *norm, double *gram,
                              int64_t L, double *ring, double *sgram, double *moving, int nthreads) {
     const int64_t nj = nz * n, K = 3 * nj + 3 * nz;
     /* the pairs (a, c) of the blocks the covariance reads */
     int64_t *pa = malloc(sizeof(int64_t) * K * K * 2), np = 0;
-    if (!pa) return;
+    int fail = 0;
+    if (!pa) return 1;
     int64_t *pc = pa + K * K;
     const int64_t top[3] = {nj + 2 * nz, 3 * nj + 2 * nz, K};
     for (int64_t a = 0; a < K; a++) {
@@ -41,11 +42,12 @@ static void RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_
     enum { NB = WS_LANES };
     const int64_t nblocks = (B + NB - 1) / NB;
 #ifdef _OPENMP
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
 #endif
     {
         /* per lane l: acc[p * NB + l] the pairs' sums, g[k * NB + l], the scores' ring (L, n), their sums */
         double *acc = malloc(sizeof(double) * NB * (np + K + (L + 2) * n + 2 * n * n + nz));
+        fail |= !acc;
         if (acc) {
             double *g = acc + np * NB, *rl = g + K * NB, *sv = rl + L * n * NB, *Sv = sv + n * NB;
             double *sg = Sv + n * NB, *mv2 = sg + n * n * NB, *wz = mv2 + n * n * NB;
@@ -162,22 +164,26 @@ static void RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_
         }
     }
     free(pa);
+    return fail;
 }
 
 /* The regressors of a stretch of steps filtered by the Markov parameters (estimator/rco.py, regressors_over):
  * psi[t, b, o, j] = sum_{i=0}^{nu-1} beta[b, i, o] phi[t + s0 - i, b, j] for t = 0 .. T - 1, from phi time-major
  * (rows, B, n_phi) with rows >= T + s0 and s0 >= nu - 1, beta (B, nu, n_out) or, shared (bshared), (1, nu, n_out);
- * psi (T, B, n_out, n_phi). The sum over i in increasing order, as one multiply-add per term. Members in blocks of
- * MF_BLOCK: a step reads nu rows of the block's phi, each contiguous. */
-static void RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out, int64_t nu, int64_t s0,
+ * psi (T, B, n_out, n_phi). The sum over i in increasing order, each term a product then a sum (not fused).
+ * Members in blocks of MF_BLOCK: a step reads nu rows of the block's phi, each contiguous. Both kernels return 1
+ * where memory for their scratch was refused (their results are then not valid), else 0. */
+static int RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out, int64_t nu, int64_t s0,
                                const double *phi, const double *beta, int bshared, double *psi, int nthreads) {
     const int64_t nblocks = (B + MF_BLOCK - 1) / MF_BLOCK, row = B * n_phi;
+    int fail = 0;
 #ifdef _OPENMP
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
 #endif
     {
         /* per block: the Markov parameters spread over the block's (member, regressor) pairs, and the sums */
         double *bx = malloc(sizeof(double) * (nu * n_out + 1) * MF_BLOCK * n_phi);
+        fail |= !bx;
         if (bx) {
             double *acc = bx + nu * n_out * MF_BLOCK * n_phi;
 #ifdef _OPENMP
@@ -211,5 +217,6 @@ static void RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_ou
             free(bx);
         }
     }
+    return fail;
 }
 
