@@ -584,6 +584,12 @@ class Graph(nn.Module):
         A hook with an integer attribute ``every`` promises to act only after steps k with k % every == 0: it
         is called only there on the native engine, which runs the steps in between.
 
+        A hook with an attribute ``acts_on`` (block names) promises to change nothing but those blocks, and one
+        with ``keeps_theta = True`` as well never to change an estimator's theta (it may change its P, forgetting
+        factors or Markov parameters, which a held estimator's output does not depend on). The end of a run
+        then replays its intervals' copies inside one graph where no copy needs its own copy of a block a hook
+        changes (``rcotorch.verdict.intervals``); without them every copy is a whole graph of its own.
+
         Parameters
         ----------
         hook : Callable[[Graph], object]

@@ -130,7 +130,7 @@ class ShearBuildingDamage(Scenario):
         def change(g):
             g.blocks["unknown"].K.copy_(damage.to(g.blocks["unknown"].K))
 
-        graph.add_hook(rt.at_step(self.change_step(s), change))
+        graph.add_hook(rt.at_step(self.change_step(s), change, acts_on=["unknown"]))
         graph.add_hook(rt.ResetOnChange(graph, every=int(s["restart_every"]), p0=s["restart_p0"] or None,
                                         restart=bool(s["restart_p0"]), lam=s["track_lam"],
                                         hold=int(s["track_hold"]), markov=s["track_markov"],

@@ -498,6 +498,62 @@ def test_the_replays_copies_stepped_in_one_graph_give_the_numbers_of_separate_co
         assert torch.equal(getattr(joined.residuals, key), getattr(apart.residuals, key)), key
 
 
+class _DoubleP:
+    """A hook that changes the estimator's P (never theta) at every step and says so."""
+    keeps_theta = True
+
+    def __init__(self, name):
+        self.acts_on = frozenset({name})
+
+    def __call__(self, graph):
+        graph.blocks[next(iter(self.acts_on))].P.mul_(2.0)
+
+
+@pytest.mark.parametrize("case", ["truth", "truth-and-physics", "model", "theta"])
+def test_the_replays_copies_join_a_graph_whose_hooks_say_what_they_change(case):
+    """Step hooks that declare the blocks they change (``acts_on``; ``keeps_theta`` where they change an
+    estimator's P but not its theta) let the copies step inside one graph where no copy needs its own copy of
+    such a block: a change of the truth during the replay, and a hook on the estimator's P, give bit for bit the
+    numbers of separate copies. Where a copy needs its own copy of a block a hook changes (the physics copy's
+    truth, the known model) or a hook may change theta, the copies stay separate graphs."""
+    from unittest import mock
+
+    from rcotorch.verdict import intervals as ci
+    g = _sdof_with_truth(0.5)
+    g.reset(3)
+    est = g.roles["estimator"]
+    if case == "model":
+        g.add_hook(rt.at_step(450, lambda gr: gr.blocks["known"].x.mul_(0.5), acts_on=["known"]))
+    else:
+        g.add_hook(rt.at_step(450, lambda gr: gr.blocks["unknown"].K.fill_(0.7), acts_on=["unknown"]))
+    hook = g.add_hook(_DoubleP(est))
+    if case == "theta":
+        hook.keeps_theta = False
+    g.advance(300)
+    state = ci.snapshot(g)
+    g.advance(300)
+    physics = None
+    if case == "truth-and-physics":
+        physics = _sdof_with_truth(0.45)
+        physics.reset(3)
+    made = []
+    init = ci._Copies.__init__
+    with mock.patch.object(ci._Copies, "__init__", lambda self, *a: init(self, *a) or made.append(self)):
+        joined = ci.replay(g, state, 300, physics=physics)
+    assert made[0].joined == (case == "truth")
+    with mock.patch.object(ci, "JOIN_COPIES", False):
+        apart = ci.replay(g, state, 300, physics=physics)
+    assert torch.isfinite(joined.covariance.cov).all()
+    assert (joined.covariance.sampling is None) == (physics is None)
+    for key in ("cov", "gain", "noise", "offset", "optimum_cov", "unexplained", "sampling"):
+        a, b = getattr(joined.covariance, key), getattr(apart.covariance, key)
+        assert (a is None and b is None) or torch.equal(a, b), key
+    for key in ("whiteness_p", "fit", "fit_initial", "autocorr"):
+        assert torch.equal(getattr(joined.residuals, key), getattr(apart.residuals, key)), key
+    with pytest.raises(rt.ConfigError, match="acts_on must be a list of block names"):
+        rt.at_step(5, print, acts_on="unknown")
+
+
 def test_a_graph_extended_with_blocks_keeps_its_state_and_refuses_a_taken_name_or_batch():
     """``Graph.extend`` adds blocks in their state (nothing reset) and names what it refuses: a name the graph
     holds, a block reset for another batch size, an input left unconnected."""

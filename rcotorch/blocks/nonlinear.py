@@ -441,6 +441,13 @@ class MarkovRefresh:
         self.ident = graph.blocks[identified] if identified else graph.role("estimator")
         self.known_name, self.actuation, self.measured = self.known.name, actuation, measured
 
+    keeps_theta = True      # it sets the estimator's Markov parameters, never theta (``Graph.add_hook``)
+
+    @property
+    def acts_on(self) -> frozenset[str]:
+        """The blocks it changes (``Graph.add_hook``): the estimator."""
+        return frozenset({self.ident.name})
+
     def __call__(self, graph=None) -> bool:
         """Set new Markov parameters if the graph is at a multiple of ``every`` steps.
 

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import torch
 
@@ -323,6 +323,13 @@ class ResetOnChange:
     def _est(self):
         return self.graph.blocks[self.estimator] if self.estimator else self.graph.role("estimator")
 
+    keeps_theta = True      # it restarts P and sets the forgetting and the Markov parameters, never theta
+
+    @property
+    def acts_on(self) -> frozenset[str]:
+        """The blocks it changes (``Graph.add_hook``): the detector and the estimator."""
+        return frozenset({self.detector, self._est().name})
+
     def __call__(self, graph=None) -> bool:
         """Act after a step: restart the members that alarmed since the last call, and set the factors.
 
@@ -415,17 +422,24 @@ class at_step:
         The step count (``graph.k``) at which to act, >= 1.
     action : Callable
         Called with the graph.
+    acts_on : list of str, optional
+        The blocks the action changes (``Graph.add_hook``), e.g. the truth whose change it simulates. Where it
+        is given, the intervals' replay shares the blocks the action leaves alone among its copies.
 
     Raises
     ------
     ConfigError
-        If ``step`` is not a positive integer.
+        If ``step`` is not a positive integer, or ``acts_on`` is not a list of block names.
     """
 
-    def __init__(self, step: int, action: Callable):
+    def __init__(self, step: int, action: Callable, acts_on: Iterable[str] | None = None):
         if isinstance(step, bool) or not isinstance(step, int) or step < 1:
             raise ConfigError(f"at_step: step must be a positive integer, got {step!r}")
         self.every, self.step, self.action = step, step, action
+        if acts_on is not None:
+            if isinstance(acts_on, str) or not all(isinstance(a, str) for a in acts_on):
+                raise ConfigError(f"at_step: acts_on must be a list of block names, got {acts_on!r}")
+            self.acts_on = frozenset(acts_on)
 
     def __call__(self, graph) -> bool:
         """Call the action if the graph is at the step.

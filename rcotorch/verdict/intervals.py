@@ -294,21 +294,23 @@ class _Copies:
         self.note = None if self.bias_source else self.how
         # each copy: the graph that steps it and where its signals are in that graph
         self.copies = {"base": (self.base, {sig: sig for sig in self._signals("base")})}
-        if not JOIN_COPIES or graph.hooks:
+        structure = (list(self.base.blocks), dict(self.base.sources))        # before any copy joins it
+        plans = {name: ({est.name}, functools.partial(_held_block, self.base, est.name, value))
+                 for name, value in holds.items()}
+        if swap:
+            plans["physical"] = (set(swap), functools.partial(_physics_block, self.base, physics, swap))
+        own = {name: _own_blocks(structure, changed, self._signals(name)) for name, (changed, _) in plans.items()}
+        self.joined = JOIN_COPIES and _hooks_leave(self.base.hooks, set().union(*own.values()), est.name)
+        if not self.joined:
             for name, value in holds.items():
                 self.copies[name] = (_held_copy(self.base, value), {sig: sig for sig in self._signals(name)})
             if swap:
                 self.copies["physical"] = (_physics_copy(graph, state, eta, physics, swap),
                                            {sig: sig for sig in self._signals("physical")})
         else:
-            structure = (list(self.base.blocks), dict(self.base.sources))        # before any copy joins it
-            for name, value in holds.items():
-                self.copies[name] = (self.base, _join(self.base, structure, {est.name}, self._signals(name), name,
-                                                      functools.partial(_held_block, self.base, est.name, value)))
-            if swap:
-                self.copies["physical"] = (self.base, _join(
-                    self.base, structure, set(swap), self._signals("physical"), "physical",
-                    functools.partial(_physics_block, self.base, physics, swap)))
+            for name, (_, block) in plans.items():
+                self.copies[name] = (self.base, _join(self.base, structure, own[name], self._signals(name), name,
+                                                      block))
         self.graphs = list({id(g): g for g, _ in self.copies.values()}.values())
         self.moved = [name for name in self.copies if name.startswith("moved")]
         self.buffers: dict = {}
@@ -552,15 +554,11 @@ def physical_blocks(graph) -> dict[str, str] | None:
     return out
 
 
-def _join(base, structure: tuple[list, Mapping], changed: set[str], signals: list, tag: str,
-          block: Callable[[str], Any]) -> dict:
-    """Add to ``base`` (a frozen copy not yet stepped; ``structure``: its block names and wiring before any copy
-    joined it) a copy of it whose blocks ``changed`` differ (``block(name)``: that copy's block ``name``, in the
-    state base's has): of that copy, only the blocks that differ from base's and that its ``signals`` depend on,
-    i.e. the blocks ``changed`` drives (through any input) of those the signals' blocks read (through any input),
-    renamed '<name>__<tag>' (or with more underscores where base has that name). They read every other signal from
-    base's blocks, which compute the same numbers. Returns {signal of the copy: the signal of base that carries it}."""
-    names, sources = structure
+def _own_blocks(structure: tuple[list, Mapping], changed: set[str], signals: list) -> set[str]:
+    """The blocks a copy whose blocks ``changed`` differ from the graph's (``structure``: its block names and
+    wiring) needs of its own for its ``signals``: those ``changed`` drives (through any input) of those the
+    signals' blocks read (through any input)."""
+    _, sources = structure
     readers: dict[str, set[str]] = {}
     feeders: dict[str, set[str]] = {}
     for (dst, _), (src, _) in sources.items():
@@ -575,7 +573,32 @@ def _join(base, structure: tuple[list, Mapping], changed: set[str], signals: lis
                     out.add(nxt)
                     todo.append(nxt)
         return out
-    own = closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
+    return closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
+
+
+def _hooks_leave(hooks: list, own: set[str], est_name: str) -> bool:
+    """Whether every step hook promises to leave the blocks ``own`` alone (``Graph.add_hook``: its ``acts_on``),
+    the estimator excepted where the hook keeps theta (``keeps_theta``): every copy holds theta, so that what
+    such a hook changes in an estimator does not change what the copy puts out. Only then may the copies run
+    inside one graph, where the hooks act on the base copy's blocks alone."""
+    for hook in hooks:
+        acts = getattr(hook, "acts_on", None)
+        if acts is None:
+            return False
+        mine = own - {est_name} if getattr(hook, "keeps_theta", False) else own
+        if set(acts) & mine:
+            return False
+    return True
+
+
+def _join(base, structure: tuple[list, Mapping], own: set[str], signals: list, tag: str,
+          block: Callable[[str], Any]) -> dict:
+    """Add to ``base`` (a frozen copy not yet stepped; ``structure``: its block names and wiring before any copy
+    joined it) the blocks ``own`` of a copy of it (``_own_blocks``; ``block(name)``: that copy's block ``name``,
+    in the state base's has), renamed '<name>__<tag>' (or with more underscores where base has that name). They
+    read every other signal from base's blocks, which compute the same numbers. Returns {signal of the copy: the
+    signal of base that carries it}."""
+    names, sources = structure
     rename = {}
     for name in own:                       # a name no block of base has (more underscores where one had it)
         new = f"{name}__{tag}"
