@@ -5,7 +5,7 @@ streams (seed = 1 .. B); an estimate's coverage is the fraction of members whose
 truth. Calibrated intervals cover about their level (95%); intervals that are too narrow cover less. The cases
 and the measurement of one (``coverage``) are ``tests/coverage_cases.py``, where the tests run some of them.
 
-    python benchmarks/interval_coverage.py                 # every case, 200 members each (several minutes)
+    python benchmarks/interval_coverage.py                 # every case, 1000 members each (about 10 minutes)
     python benchmarks/interval_coverage.py --table         # the table of the cases last run (docs/intervals.md)
     python benchmarks/interval_coverage.py --members 50 --case sdof-discrete
 
@@ -24,25 +24,27 @@ from coverage_cases import CASES, coverage  # noqa: E402
 
 
 def table(results: dict) -> str:
-    """The cases as a Markdown table: status shares and the coverage among converged members."""
-    lines = ["| case | steps | converged | biased | undetermined | other | estimate | coverage among converged "
-             "| all members | residual warning |", "|" + "---|" * 10]
+    """The cases as a Markdown table: status shares and the coverage among converged members, with the exact
+    (Clopper-Pearson) 95% interval of that share from the converged members' count."""
+    lines = ["| case | members | steps | converged | biased | undetermined | other | estimate "
+             "| coverage among converged | its 95% interval | all members | residual warning |", "|" + "---|" * 12]
     for name, r in results.items():
         sh = r["shares"]
         other = sh["not_converged"] + sh["diverged"]
         for i, (key, row) in enumerate(r["estimates"].items()):
             cov = "-" if row["coverage"] is None else f"{row['coverage']:.3f}"
-            head = (f"| {name} | {r['steps']} | {sh['converged']:.2f} | {sh['biased']:.2f} | {sh['undetermined']:.2f} "
-                    f"| {other:.2f} |") if i == 0 else "| | | | | | |"
-            lines.append(f"{head} {key} | {cov} | {row['coverage_all']:.3f} | "
-                         f"{r['residual_warning']:.2f} |" if i == 0 else f"{head} {key} | {cov} | "
-                         f"{row['coverage_all']:.3f} | |")
+            band = row.get("coverage_95")
+            band = "-" if band is None else f"{band[0]:.3f}-{band[1]:.3f}"
+            head = (f"| {name} | {r['members']} | {r['steps']} | {sh['converged']:.2f} | {sh['biased']:.2f} | "
+                    f"{sh['undetermined']:.2f} | {other:.2f} |") if i == 0 else "| | | | | | | |"
+            warn = f"{r['residual_warning']:.2f}" if i == 0 else ""
+            lines.append(f"{head} {key} | {cov} | {band} | {row['coverage_all']:.3f} | {warn} |")
     return "\n".join(lines)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--members", type=int, default=200)
+    p.add_argument("--members", type=int, default=1000)
     p.add_argument("--case", action="append", choices=sorted(CASES))
     p.add_argument("--out", default="runs/coverage")
     p.add_argument("--table", action="store_true", help="print the table of the results on record and stop")

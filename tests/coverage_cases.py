@@ -104,6 +104,16 @@ CASES = {
 }
 
 
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> list[float]:
+    """The exact (Clopper-Pearson) confidence interval of a share from k successes in n trials: the range of
+    coverages that these members' count does not rule out at ``level``."""
+    from scipy.stats import beta
+    tail = (1 - level) / 2
+    lo = 0.0 if k == 0 else float(beta.ppf(tail, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - tail, k + 1, n - k))
+    return [lo, hi]
+
+
 def coverage(name: str, members: int, out: Path) -> dict:
     """One case: every member's status, and per estimate the coverage among the members called converged."""
     scenario, overrides, steps = CASES[name]
@@ -129,7 +139,10 @@ def coverage(name: str, members: int, out: Path) -> dict:
                        for x in (iv["lower"], iv["upper"], values))
         t = np.asarray(truth, dtype=float)
         inside = (lo <= t) & (t <= hi)
+        n_conv, n_in = int(converged.sum()), int(inside[converged].sum())
         rows[key] = {"coverage": float(np.mean(inside[converged])) if converged.any() else None,
+                     "converged_members": n_conv,
+                     "coverage_95": clopper_pearson(n_in, n_conv) if n_conv else None,
                      "coverage_all": float(np.mean(inside)),
                      "spread": float(np.nanstd(est)), "mean_error": float(np.nanmean(est - t)),
                      "predicted_sd": float(np.nanmean((hi - lo) / 2 / 1.959964))}

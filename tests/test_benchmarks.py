@@ -191,6 +191,17 @@ def test_the_coverage_table_in_the_docs_is_the_one_the_script_prints():
     assert table.startswith("| case |") and table in (ROOT / "docs" / "intervals.md").read_text()
 
 
+def test_the_coverage_tables_interval_is_the_exact_binomial_one():
+    """The coverage's 95% interval in the table is the Clopper-Pearson interval that scipy's binomial test gives,
+    including at 0 and all of n."""
+    from scipy.stats import binomtest
+
+    from coverage_cases import clopper_pearson
+    for k, n in ((950, 1000), (388, 394), (0, 12), (12, 12), (1, 2)):
+        ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="exact")
+        assert clopper_pearson(k, n) == pytest.approx([ci.low, ci.high], abs=1e-12), (k, n)
+
+
 def test_the_coverage_of_a_case_built_in_python_is_measured(tmp_path):
     """The Duffing case (a graph built in Python with a continuous nonlinear truth) at a tiny size."""
     from coverage_cases import coverage
