@@ -194,9 +194,8 @@ def test_the_coverage_table_in_the_docs_is_the_one_the_script_prints():
 def test_the_coverage_tables_interval_is_the_exact_binomial_one():
     """The coverage's 95% interval in the table is the Clopper-Pearson interval that scipy's binomial test gives,
     including at 0 and all of n."""
-    from scipy.stats import binomtest
-
     from coverage_cases import clopper_pearson
+    from scipy.stats import binomtest
     for k, n in ((950, 1000), (388, 394), (0, 12), (12, 12), (1, 2)):
         ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="exact")
         assert clopper_pearson(k, n) == pytest.approx([ci.low, ci.high], abs=1e-12), (k, n)
