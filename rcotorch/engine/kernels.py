@@ -10,6 +10,8 @@ definition), and wraps the kernels with the checks they need:
 * ``health_bounds``: the member health checks' bounds (``rcotorch.verdict.health``) of every member;
 * ``window_gram``: the sum of the regressors' outer products over the estimator's window;
 * ``lag_sums``: the lagged products of two time series per member (the intervals' correlations and scores);
+* ``window_sums``, ``residual_sums``, ``markov_filter``: the intervals' replay, stretch by stretch (its Gram and
+  scores' sums, the residual checks' sums, the regressors);
 
 and ``empty``, the allocation of the large buffers the engine fills (recordings).
 
@@ -284,6 +286,47 @@ def window_sums(z: torch.Tensor, moved: torch.Tensor, psi: torch.Tensor, d: torc
                         gram.data_ptr(), L, ring.data_ptr() if L else 0, score_gram.data_ptr(), moving.data_ptr(),
                         threads(B, C))
     return True
+
+
+def residual_sums(z: torch.Tensor, zi: torch.Tensor, y: torch.Tensor, w: torch.Tensor | None, own: torch.Tensor,
+                  t0: int, measured: int, zlag: torch.Tensor, wlag: torch.Tensor | None, zring: torch.Tensor,
+                  wring: torch.Tensor | None, sums: torch.Tensor, scratch: torch.Tensor | None = None) -> bool:
+    """The residual checks' sums over a stretch (``rcotorch.verdict.intervals._ResidualSums``) from time-major
+    float64 records z and zi (C, B, n_z), y (C, B, n_y) and w (C, B, n_w) or None, each member's first measured step
+    ``own`` (B,) int64 and ``measured`` steps each, the stretch's first step ``t0``; every value counts 0 outside
+    its member's measured steps. Adds in place, L = zlag.shape[0] - 1: to zlag (L + 1, B, n_z) z(t) z(t - lag) per
+    channel, to wlag (L + 1, B, n_z, n_w) z(t) w(t - lag) per pair, the L values before the stretch in zring
+    (B, L, n_z) and wring (B, L, n_w), which the stretch's last L replace, and to sums (B, n_z + 2 n_w + n_y + 3)
+    [sum z, sum w, sum w^2, sum |z|^2, sum |zi|^2, sum y, sum |y|^2]. ``scratch``: a float64 tensor the kernel may
+    work in, from ``residual_scratch`` (zeros when made, kept from call to call), else it allocates its own.
+    Returns False where the kernel does not apply (not allowed here, not the CPU), having changed nothing."""
+    if not allowed() or z.device.type != "cpu":
+        return False
+    C, B, nz = z.shape
+    ny, nw, L = y.shape[2], 0 if w is None else w.shape[2], zlag.shape[0] - 1
+    shapes = (("zlag", zlag, (L + 1, B, nz)), ("zring", zring, (B, L, nz)), ("sums", sums, (B, nz + 2 * nw + ny + 3)))
+    if w is not None:
+        shapes += (("wlag", wlag, (L + 1, B, nz, nw)), ("wring", wring, (B, L, nw)))
+    for name, t, shape in shapes:
+        if t is None or t.dtype != torch.float64 or not t.is_contiguous() or tuple(t.shape) != shape:
+            raise ValueError(f"residual_sums: {name} must be a contiguous float64 {shape} tensor")
+    f64 = lambda t: None if t is None else t.to(torch.float64).contiguous()      # noqa: E731
+    args = [own.to(torch.int64).contiguous(), f64(z), f64(zi), f64(y), f64(w)]
+    _engine.residual_sums(C, B, nz, nw, ny, int(t0), int(measured), args[0].data_ptr(), L,
+                          *(0 if t is None else t.data_ptr() for t in args[1:]), zlag.data_ptr(),
+                          0 if wlag is None else wlag.data_ptr(), zring.data_ptr() if L else 0,
+                          wring.data_ptr() if L and w is not None else 0, sums.data_ptr(),
+                          0 if scratch is None else scratch.data_ptr(), 0 if scratch is None else scratch.numel(),
+                          threads(B, C))
+    return True
+
+
+def residual_scratch(B: int, nz: int, nw: int, lags: int, C: int) -> torch.Tensor | None:
+    """A scratch for ``residual_sums`` over stretches of at most C steps (zeros, float64), or None where the kernel
+    does not apply."""
+    if not allowed():
+        return None
+    return torch.zeros(_engine.residual_scratch(B, nz, nw, lags, C), dtype=torch.float64)
 
 
 def markov_filter(phi: torch.Tensor, beta: torch.Tensor, s0: int, T: int) -> torch.Tensor | None:

@@ -736,31 +736,71 @@ class _ResidualSums:
     def __init__(self, B: int, lags: int, keep: int, measured: int, settle_of: torch.Tensor, w_on: bool, device):
         self.B, self.L, self.keep, self.dev, self.n = B, lags, min(keep, B), device, measured
         self.settle_of = settle_of.tolist()[:self.keep]
+        self.settle_all = settle_of
         self.zz, self.zw = _LagSums(lags, outer=False), _LagSums(lags, outer=True) if w_on else None
         self.sums: dict[str, torch.Tensor] = {}
         self.series: dict[str, torch.Tensor] = {}
+        self.native: dict[str, torch.Tensor] | None = None    # the native kernel's sums, where it takes them
 
     def _sum(self, key: str, value: torch.Tensor) -> None:
         self.sums[key] = value if key not in self.sums else self.sums[key] + value
 
+    def _add_native(self, t0: int, rec: Mapping) -> bool:
+        """The stretch's sums by the native kernel (``kernels.residual_sums``), into ``self.native``; False where
+        it does not apply (the sums taken so far then move to PyTorch's)."""
+        z, y, w = rec["z"], rec["y"], rec["w"]
+        if self.native is None and not self.sums and self.zz.sum is None:
+            B, nz, L = z.shape[1], z.shape[2], self.L
+            nw, ny = 0 if w is None else w.shape[2], y.shape[2]
+            new = functools.partial(torch.zeros, dtype=torch.float64, device=z.device)
+            self.native = {"zlag": new(L + 1, B, nz), "zring": new(B, L, nz), "sums": new(B, nz + 2 * nw + ny + 3),
+                           "wlag": new(L + 1, B, nz, nw) if nw else None, "wring": new(B, L, nw) if nw else None,
+                           "scratch": kernels.residual_scratch(B, nz, nw, L, z.shape[0])}
+        if self.native is None:
+            return False
+        nat = self.native
+        if kernels.residual_sums(z, rec["initial"], y, w, self.settle_all, t0, self.n, nat["zlag"], nat["wlag"],
+                                 nat["zring"], nat["wring"], nat["sums"], nat["scratch"]):
+            return True
+        self._from_native()
+        return False
+
+    def _from_native(self) -> None:
+        """Move the native kernel's sums into PyTorch's (``_LagSums`` and ``sums``)."""
+        nat, self.native = self.native, None
+        if nat is None:
+            return
+        self.zz.sum, self.zz.ring = nat["zlag"], nat["zring"].transpose(0, 1).contiguous()
+        if self.zw is not None and nat["wlag"] is not None:
+            self.zw.sum, self.zw.ring = nat["wlag"], nat["wring"].transpose(0, 1).contiguous()
+        nz = nat["zlag"].shape[2]
+        nw = 0 if nat["wlag"] is None else nat["wlag"].shape[3]
+        cols = nat["sums"].split([nz, nw, nw, 1, 1, nat["sums"].shape[1] - nz - 2 * nw - 3, 1], dim=1)
+        for key, col in zip(("z", "w", "ww", "zz", "zi", "y", "yy"), cols):
+            if key not in ("w", "ww") or nw:
+                self.sums[key] = col.squeeze(1) if key in ("zz", "zi", "yy") else col
+
     def add(self, t0: int, rec: Mapping, inside: torch.Tensor | None) -> None:
         """Add the stretch of steps from ``t0`` (``_Copies.record``'s records; ``inside`` (C, B) 1 at each member's
-        measured steps, None where all are measured)."""
+        measured steps, None where all are measured). On the CPU the native kernel takes the sums in one pass."""
         z, y, z_init, w = rec["z"], rec["y"], rec["initial"], rec["w"]
         C = z.shape[0]
-        if inside is not None:                 # outside a member's measured steps every sum counts zero
-            z, y, z_init = (v * inside.unsqueeze(-1) for v in (z, y, z_init))
-            w = None if w is None else w * inside.unsqueeze(-1)
-        self.zz.add(z, z)                                                      # z(k) z(k - lag)
-        self._sum("z", z.sum(0))
-        if w is not None:
-            self.zw.add(z, w)                                                  # z(k) w(k - lag)
-            self._sum("ww", (w * w).sum(0))
-            self._sum("w", w.sum(0))
-        self._sum("zz", (z * z).sum((0, 2)))
-        self._sum("zi", (z_init * z_init).sum((0, 2)))
-        self._sum("y", y.sum(0))
-        self._sum("yy", (y * y).sum((0, 2)))
+        if not self._add_native(t0, rec):
+            if inside is not None:                 # outside a member's measured steps every sum counts zero
+                z, y, z_init = (v * inside.unsqueeze(-1) for v in (z, y, z_init))
+                w = None if w is None else w * inside.unsqueeze(-1)
+            self.zz.add(z, z)                                                      # z(k) z(k - lag)
+            self._sum("z", z.sum(0))
+            if w is not None:
+                self.zw.add(z, w)                                                  # z(k) w(k - lag)
+                self._sum("ww", (w * w).sum(0))
+                self._sum("w", w.sum(0))
+            self._sum("zz", (z * z).sum((0, 2)))
+            self._sum("zi", (z_init * z_init).sum((0, 2)))
+            self._sum("y", y.sum(0))
+            self._sum("yy", (y * y).sum((0, 2)))
+        k = self.keep                          # the kept members' outputs only
+        y, z, z_init = y[:, :k], z[:, :k], z_init[:, :k]
         for name, v in (("measured", y), ("refined", y - z), ("initial", y - z_init)):
             if name not in self.series:
                 self.series[name] = v.new_zeros(self.n, self.keep, v.shape[2], device="cpu")
@@ -770,6 +810,7 @@ class _ResidualSums:
                     self.series[name][lo - own:hi - own, b] = v[lo - t0:hi - t0, b].cpu()
 
     def result(self) -> Residuals:
+        self._from_native()
         N, L, s = self.n, self.L, self.sums
         counts = (N - torch.arange(L + 1, dtype=torch.float64, device=self.dev)).clamp_min(1).reshape(-1, 1, 1)
         mean_z = s["z"] / N

@@ -7,6 +7,8 @@
  *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
  *   lag_sums     the lagged products of two time series, per member (the intervals' correlations and scores)
  *   window_sums  the intervals' replay: the Gram sums of a stretch's sensitivities and regressors, per member
+ *   residual_sums the intervals' replay: the residual checks' lagged and plain sums of a stretch, per member
+ *   markov_filter the intervals' replay: the regressors of a stretch filtered by the Markov parameters
  *   lti_markov   the Markov parameters of one linear system per member, written where the estimator keeps them
  *
  * Members are independent, so a batch is cut into chunks of VL lanes (VL = 1, 4, 8 or 16, chosen by the
@@ -303,7 +305,11 @@ typedef int (*window_sums_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64
                                const double *, double *, int64_t, double *, double *, double *, int);
 typedef int (*markov_filter_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const double *,
                                  const double *, int, double *, int);
+typedef int (*residual_sums_fn)(int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, int64_t, const int64_t *,
+                                 int64_t, const double *, const double *, const double *, const double *, double *,
+                                 double *, double *, double *, double *, double *, int64_t, int);
 static window_sums_fn WINDOW_SUMS = window_sums_base;
+static residual_sums_fn RESIDUAL_SUMS = residual_sums_base;
 static markov_filter_fn MARKOV_FILTER = markov_filter_base;
 
 static void select_isa(void) {
@@ -318,6 +324,7 @@ static void select_isa(void) {
         memcpy(RLS, r, sizeof r);
         memcpy(MARKOV, k, sizeof k);
         WINDOW_SUMS = window_sums_avx512;
+        RESIDUAL_SUMS = residual_sums_avx512;
         MARKOV_FILTER = markov_filter_avx512;
         ISA_NAME = "avx512";
     } else if (__builtin_cpu_supports("avx2")) {
@@ -328,6 +335,7 @@ static void select_isa(void) {
         memcpy(RLS, r, sizeof r);
         memcpy(MARKOV, k, sizeof k);
         WINDOW_SUMS = window_sums_avx2;
+        RESIDUAL_SUMS = residual_sums_avx2;
         MARKOV_FILTER = markov_filter_avx2;
         ISA_NAME = "avx2";
     }
@@ -608,6 +616,30 @@ static PyObject *py_window_sums(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+static PyObject *py_residual_sums(PyObject *self, PyObject *args) {
+    long long C, B, nz, nw, ny, t0, measured, L, scratch_len;
+    unsigned long long own, z, zi, y, w, zlag, wlag, zring, wring, sums, scratch;
+    int nthreads;
+    if (!PyArg_ParseTuple(args, "LLLLLLLKLKKKKKKKKKKLi", &C, &B, &nz, &nw, &ny, &t0, &measured, &own, &L, &z, &zi,
+                          &y, &w, &zlag, &wlag, &zring, &wring, &sums, &scratch, &scratch_len, &nthreads))
+        return NULL;
+    int fail;
+    Py_BEGIN_ALLOW_THREADS
+    fail = RESIDUAL_SUMS(C, B, nz, nw, ny, t0, measured, ADDR(own), L, ADDR(z), ADDR(zi), ADDR(y),
+                         nw ? ADDR(w) : NULL, ADDR(zlag), nw ? ADDR(wlag) : NULL, L ? ADDR(zring) : NULL,
+                         L && nw ? ADDR(wring) : NULL, ADDR(sums), scratch ? ADDR(scratch) : NULL, scratch_len,
+                         nthreads);
+    Py_END_ALLOW_THREADS
+    if (fail) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_residual_scratch(PyObject *self, PyObject *args) {
+    long long B, nz, nw, L, C;
+    if (!PyArg_ParseTuple(args, "LLLLL", &B, &nz, &nw, &L, &C)) return NULL;
+    return PyLong_FromLongLong(rs_scratch(B, nz, nw, L, C));
+}
+
 static PyObject *py_markov_filter(PyObject *self, PyObject *args) {
     long long T, B, n_phi, n_out, nu, s0;
     unsigned long long phi, beta, psi;
@@ -780,6 +812,11 @@ static PyMethodDef METHODS[] = {
     {"window_sums", py_window_sums, METH_VARARGS,
      "window_sums(C, B, nz, n, t0, measured, z, moved, psi, d, eps, own, W, norm, gram, L, ring, sgram, moving, "
      "threads): the replay's Gram sums and its scores' long-run sums over a stretch, per member"},
+    {"residual_sums", py_residual_sums, METH_VARARGS,
+     "residual_sums(C, B, nz, nw, ny, t0, measured, own, L, z, zi, y, w, zlag, wlag, zring, wring, sums, scratch, "
+     "scratch_len, threads): the residual checks' lagged and plain sums over a stretch, per member"},
+    {"residual_scratch", py_residual_scratch, METH_VARARGS,
+     "residual_scratch(B, nz, nw, L, C): the doubles of residual_sums' scratch for a stretch of C steps"},
     {"markov_filter", py_markov_filter, METH_VARARGS,
      "markov_filter(T, B, n_phi, n_out, nu, s0, phi, beta, bshared, psi, threads): the regressors of a stretch "
      "filtered by the Markov parameters"},

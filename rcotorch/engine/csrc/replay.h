@@ -4,6 +4,16 @@
 #define REPLAY_SIZES
 #define WS_LANES 8  /* window_sums: members side by side in a group */
 #define MF_BLOCK 64 /* markov_filter: members a block */
+#define RS_BLOCK 256 /* residual_sums: members a block */
+#define RS_LANES 8  /* ... members side by side in its lagged sums */
+#define RS_LAGS 6   /* ... and lags at a time (the six sums written out below) */
+/* residual_sums' scratch, in doubles: (L + C) steps of nz + nw channels per member, blocks padded (as it lays them) */
+static inline int64_t rs_scratch(int64_t B, int64_t nz, int64_t nw, int64_t L, int64_t C) {
+    const int64_t NB = B >= RS_BLOCK ? RS_BLOCK : (B + RS_LANES - 1) / RS_LANES * RS_LANES;
+    return (B + NB - 1) / NB * (L + C) * ((nz + nw) * NB + RS_LANES);
+}
+/* RS_LANES doubles, loaded from anywhere a double may lie */
+typedef double rs_vec __attribute__((vector_size(RS_LANES * sizeof(double)), aligned(sizeof(double))));
 #endif
 
 /* The replay's sums over a stretch of C steps (verdict/intervals.py, _WindowSums), per member b, from time-major
@@ -171,7 +181,7 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
  * psi[t, b, o, j] = sum_{i=0}^{nu-1} beta[b, i, o] phi[t + s0 - i, b, j] for t = 0 .. T - 1, from phi time-major
  * (rows, B, n_phi) with rows >= T + s0 and s0 >= nu - 1, beta (B, nu, n_out) or, shared (bshared), (1, nu, n_out);
  * psi (T, B, n_out, n_phi). The sum over i in increasing order, each term a product then a sum (not fused).
- * Members in blocks of MF_BLOCK: a step reads nu rows of the block's phi, each contiguous. Both kernels return 1
+ * Members in blocks of MF_BLOCK: a step reads nu rows of the block's phi, each contiguous. The kernels here return 1
  * where memory for their scratch was refused (their results are then not valid), else 0. */
 static int RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out, int64_t nu, int64_t s0,
                                const double *phi, const double *beta, int bshared, double *psi, int nthreads) {
@@ -220,3 +230,138 @@ static int RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out
     return fail;
 }
 
+
+/* The residual checks' sums over a stretch of C steps (verdict/intervals.py, _ResidualSums), per member b, from
+ * time-major records z and zi (the initial model's z) (C, B, nz), y (C, B, ny) and w (C, B, nw) or none. Each value
+ * is multiplied by 1 inside the member's measured steps [own_b, own_b + measured) and by 0 outside them (v below),
+ * and adds: to zlag (L + 1, B, nz) z_v(t) z_v(t - lag) per channel and to wlag (L + 1, B, nz, nw) z_v(t) w_v(t - lag)
+ * per pair, for lag = 0 .. L, the L values before the stretch read from zring (B, L, nz) and wring (B, L, nw)
+ * (oldest first), which the stretch's last L replace; and to sums (B, nz + 2 nw + ny + 3) the member's
+ * [sum z_v, sum w_v, sum w_v^2, sum |z_v|^2, sum |zi_v|^2, sum y_v, sum |y_v|^2], step by step. The lagged sums
+ * of a stretch are summed from 0 in the order of its steps, then added to zlag and wlag, as one member at a time
+ * would. The records are read once, in the order they lie, into blocks of RS_BLOCK members (each block's steps
+ * together); each group of RS_LAGS lags of RS_LANES members is then summed over the block's steps in registers.
+ * Scratch: (L + C) (nz + nw) values per member (padded to a block). */
+static int RFN(residual_sums)(int64_t C, int64_t B, int64_t nz, int64_t nw, int64_t ny, int64_t t0, int64_t measured,
+                               const int64_t *own, int64_t L, const double *z, const double *zi, const double *y,
+                               const double *w, double *zlag, double *wlag, double *zring, double *wring,
+                               double *sums, double *scratch, int64_t scratch_len, int nthreads) {
+    /* members a block: RS_BLOCK, or where the batch is smaller, the batch rounded up to RS_LANES */
+    const int64_t NB = B >= RS_BLOCK ? RS_BLOCK : (B + RS_LANES - 1) / RS_LANES * RS_LANES;
+    const int64_t nblocks = (B + NB - 1) / NB, rows = L + C, ch = nz + nw, S = nz + 2 * nw + ny + 3;
+    /* from one step of a channel to the next in a block, a cache line more than the channels take: rows a power of
+     * two apart would share the cache's sets */
+    const int64_t row = ch * NB + RS_LANES;
+    /* (block, step, channel, lane): the caller's scratch where it is large enough (zero in the lanes past the
+     * last member, which are read and never written), else one of its own */
+    const int64_t need = rs_scratch(B, nz, nw, L, C);
+    double *own_buf = scratch_len >= need ? NULL : calloc((size_t)need, sizeof(double));
+    double *buf = own_buf ? own_buf : scratch;
+    double *fl = malloc(sizeof(double) * B);
+    if (!buf || !fl) {
+        free(own_buf);
+        free(fl);
+        return 1;
+    }
+#define RS_AT(blk, r, c) (buf + ((blk) * rows + (r)) * row + (c) * NB)
+    for (int64_t b = 0; b < B; b++)
+        for (int64_t l = 0; l < L; l++) {
+            for (int64_t i = 0; i < nz; i++) RS_AT(b / NB, l, i)[b % NB] = zring[(b * L + l) * nz + i];
+            for (int64_t j = 0; j < nw; j++) RS_AT(b / NB, l, nz + j)[b % NB] = wring[(b * L + l) * nw + j];
+        }
+    for (int64_t t = 0; t < C; t++) {
+        for (int64_t b = 0; b < B; b++) {
+            const int64_t at = t0 + t - own[b];
+            fl[b] = at >= 0 && at < measured ? 1.0 : 0.0;
+        }
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B >= 1024)
+#endif
+        for (int64_t blk = 0; blk < nblocks; blk++) {
+            const int64_t b0 = blk * NB, nb = b0 + NB < B ? NB : B - b0, e0 = t * B + b0;
+            const double *f = fl + b0;
+            double *sm = sums + b0 * S;
+            for (int64_t i = 0; i < nz; i++) {
+                double *restrict o = RS_AT(blk, L + t, i);
+                for (int64_t q = 0; q < nb; q++) {
+                    const double v = z[(e0 + q) * nz + i] * f[q], vi = zi[(e0 + q) * nz + i] * f[q];
+                    o[q] = v;
+                    sm[q * S + i] += v;
+                    sm[q * S + nz + 2 * nw] += v * v;
+                    sm[q * S + nz + 2 * nw + 1] += vi * vi;
+                }
+            }
+            for (int64_t j = 0; j < nw; j++) {
+                double *restrict o = RS_AT(blk, L + t, nz + j);
+                for (int64_t q = 0; q < nb; q++) {
+                    const double v = w[(e0 + q) * nw + j] * f[q];
+                    o[q] = v;
+                    sm[q * S + nz + j] += v;
+                    sm[q * S + nz + nw + j] += v * v;
+                }
+            }
+            for (int64_t k = 0; k < ny; k++)
+                for (int64_t q = 0; q < nb; q++) {
+                    const double v = y[(e0 + q) * ny + k] * f[q];
+                    sm[q * S + nz + 2 * nw + 2 + k] += v;
+                    sm[q * S + nz + 2 * nw + 2 + ny] += v * v;
+                }
+        }
+    }
+#ifdef _OPENMP
+#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B >= 256)
+#endif
+    for (int64_t blk = 0; blk < nblocks; blk++) {
+        const int64_t b0 = blk * NB, nb = b0 + NB < B ? NB : B - b0;
+        for (int64_t i = 0; i < nz; i++)
+            for (int64_t j = -1; j < nw; j++) /* j = -1: z with itself, else z with w's channel j */
+                for (int64_t g0 = 0; g0 <= L; g0 += RS_LAGS)
+                    for (int64_t l0 = 0; l0 < nb; l0 += RS_LANES) {
+                        const int64_t ng = g0 + RS_LAGS <= L + 1 ? RS_LAGS : L + 1 - g0;
+                        double sum[RS_LAGS][RS_LANES] = {{0.0}};
+                        const double *x = RS_AT(blk, L, i) + l0;
+                        const double *p = RS_AT(blk, L - g0, j < 0 ? i : nz + j) + l0;
+                        if (ng == RS_LAGS) { /* a whole group: the sums stay in registers, a vector each */
+                            rs_vec s0 = {0.0}, s1 = {0.0}, s2 = {0.0}, s3 = {0.0}, s4 = {0.0}, s5 = {0.0};
+                            for (int64_t t = 0; t < C; t++, x += row, p += row) {
+                                const rs_vec xv = *(const rs_vec *)x;
+                                s0 += xv * *(const rs_vec *)p;
+                                s1 += xv * *(const rs_vec *)(p - row);
+                                s2 += xv * *(const rs_vec *)(p - 2 * row);
+                                s3 += xv * *(const rs_vec *)(p - 3 * row);
+                                s4 += xv * *(const rs_vec *)(p - 4 * row);
+                                s5 += xv * *(const rs_vec *)(p - 5 * row);
+                            }
+                            const rs_vec all[RS_LAGS] = {s0, s1, s2, s3, s4, s5};
+                            for (int64_t g = 0; g < RS_LAGS; g++)
+                                for (int64_t v = 0; v < RS_LANES; v++) sum[g][v] = all[g][v];
+                        } else {
+                            rs_vec part[RS_LAGS] = {{0.0}};
+                            for (int64_t t = 0; t < C; t++, x += row, p += row) {
+                                const rs_vec xv = *(const rs_vec *)x;
+                                for (int64_t g = 0; g < ng; g++) part[g] += xv * *(const rs_vec *)(p - g * row);
+                            }
+                            for (int64_t g = 0; g < ng; g++)
+                                for (int64_t v = 0; v < RS_LANES; v++) sum[g][v] = part[g][v];
+                        }
+                        for (int64_t g = 0; g < ng; g++)
+                            for (int64_t v = 0; v < RS_LANES && l0 + v < nb; v++) {
+                                const int64_t b = b0 + l0 + v;
+                                if (j < 0)
+                                    zlag[((g0 + g) * B + b) * nz + i] += sum[g][v];
+                                else
+                                    wlag[(((g0 + g) * B + b) * nz + i) * nw + j] += sum[g][v];
+                            }
+                    }
+        for (int64_t q = 0; q < nb; q++)
+            for (int64_t l = 0; l < L; l++) {
+                const int64_t b = b0 + q;
+                for (int64_t i = 0; i < nz; i++) zring[(b * L + l) * nz + i] = RS_AT(blk, C + l, i)[q];
+                for (int64_t j = 0; j < nw; j++) wring[(b * L + l) * nw + j] = RS_AT(blk, C + l, nz + j)[q];
+            }
+    }
+#undef RS_AT
+    free(own_buf);
+    free(fl);
+    return 0;
+}
