@@ -2,7 +2,8 @@
  * (ISA: base, avx2, avx512), their names suffixed by it (RFN); engine.c calls the copy the processor runs. */
 #ifndef REPLAY_SIZES
 #define REPLAY_SIZES
-#define WS_LANES 8  /* window_sums: members side by side in a group */
+#define WS_LANES 64      /* window_sums: members side by side in a group ... */
+#define WS_LANES_SMALL 8 /* ... or in a batch smaller than that */
 #define MF_BLOCK 64 /* markov_filter: members a block */
 #define RS_BLOCK 256 /* residual_sums: members a block */
 #define RS_LANES 8  /* ... members side by side in its lagged sums */
@@ -49,7 +50,8 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
             np++;
         }
     }
-    enum { NB = WS_LANES };
+    /* lanes: WS_LANES, or in a smaller batch WS_LANES_SMALL, so that one member does not pay for a wide group */
+    const int64_t NB = B >= WS_LANES ? WS_LANES : WS_LANES_SMALL;
     const int64_t nblocks = (B + NB - 1) / NB;
 #ifdef _OPENMP
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
