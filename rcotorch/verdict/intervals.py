@@ -749,15 +749,15 @@ class _ResidualSums:
         """The stretch's sums by the native kernel (``kernels.residual_sums``), into ``self.native``; False where
         it does not apply (the sums taken so far then move to PyTorch's)."""
         z, y, w = rec["z"], rec["y"], rec["w"]
-        if self.native is None and not self.sums and self.zz.sum is None:
+        if self.native is None:                # the first stretch, on the CPU with the kernels, starts it
+            if self.sums or self.zz.sum is not None or z.device.type != "cpu" or not kernels.allowed():
+                return False
             B, nz, L = z.shape[1], z.shape[2], self.L
             nw, ny = 0 if w is None else w.shape[2], y.shape[2]
             new = functools.partial(torch.zeros, dtype=torch.float64, device=z.device)
             self.native = {"zlag": new(L + 1, B, nz), "zring": new(B, L, nz), "sums": new(B, nz + 2 * nw + ny + 3),
                            "wlag": new(L + 1, B, nz, nw) if nw else None, "wring": new(B, L, nw) if nw else None,
                            "scratch": kernels.residual_scratch(B, nz, nw, L, z.shape[0])}
-        if self.native is None:
-            return False
         nat = self.native
         if kernels.residual_sums(z, rec["initial"], y, w, self.settle_all, t0, self.n, nat["zlag"], nat["wlag"],
                                  nat["zring"], nat["wring"], nat["sums"], nat["scratch"]):
