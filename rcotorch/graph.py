@@ -599,7 +599,16 @@ class Graph(nn.Module):
         -------
         Callable
             ``hook`` itself.
+
+        Raises
+        ------
+        ConfigError
+            If the hook's ``acts_on`` names a block the graph does not have.
         """
+        unknown = sorted(set(getattr(hook, "acts_on", None) or ()) - set(self.blocks))
+        if unknown:
+            raise ConfigError(f"add_hook: {type(hook).__name__}'s acts_on names {unknown}, which the graph does not "
+                              f"have (its blocks: {sorted(self.blocks)})")
         self.hooks.append(hook)
         return hook
 

@@ -552,6 +552,8 @@ def test_the_replays_copies_join_a_graph_whose_hooks_say_what_they_change(case):
         assert torch.equal(getattr(joined.residuals, key), getattr(apart.residuals, key)), key
     with pytest.raises(rt.ConfigError, match="acts_on must be a list of block names"):
         rt.at_step(5, print, acts_on="unknown")
+    with pytest.raises(rt.ConfigError, match=r"at_step's acts_on names \['unknwn'\], which the graph does not have"):
+        g.add_hook(rt.at_step(5, print, acts_on=["unknwn"]))             # a misspelt block would join wrongly
 
 
 def test_a_graph_extended_with_blocks_keeps_its_state_and_refuses_a_taken_name_or_batch():
