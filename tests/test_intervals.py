@@ -267,16 +267,11 @@ def test_a_biased_refinement_is_not_called_converged(tmp_path):
     assert "output error: the refinement settled away from the point the data favour" in health_line(s)
 
 
-@pytest.mark.parametrize("native", [True, False], ids=["native kernel", "FFT"])
-def test_the_replays_lagged_sums_in_chunks_equal_the_sums_written_out(native):
+def test_the_replays_lagged_sums_in_chunks_equal_the_sums_written_out():
     """The replay sums its scores and residuals in chunks of steps: the lagged products G_lag = sum_t s(t)
-    s(t - lag)^T and z(t) w(t - lag) equal the sums written out in NumPy, whatever the chunks, on the native
-    kernel (the CPU) and by FFT (elsewhere)."""
-    import contextlib
-
-    from rcotorch.engine import kernels
-    with contextlib.nullcontext() if native else kernels.disabled():
-        _lagged_sums_equal_the_sums_written_out()
+    s(t - lag)^T and z(t) w(t - lag) equal the sums written out in NumPy, whatever the chunks, by FFT (PyTorch's
+    path; the native residual_sums is checked against it in test_the_native_residual_sums_are_pytorchs)."""
+    _lagged_sums_equal_the_sums_written_out()
 
 
 def _lagged_sums_equal_the_sums_written_out():

@@ -9,7 +9,6 @@ definition), and wraps the kernels with the checks they need:
 * ``uniform_grid``: the integer hashing behind ``rcotorch.engine.rng.normal`` on a grid;
 * ``health_bounds``: the member health checks' bounds (``rcotorch.verdict.health``) of every member;
 * ``window_gram``: the sum of the regressors' outer products over the estimator's window;
-* ``lag_sums``: the lagged products of two time series per member (the intervals' correlations and scores);
 * ``window_sums``, ``residual_sums``, ``markov_filter``: the intervals' replay, stretch by stretch (its Gram and
   scores' sums, the residual checks' sums, the regressors);
 
@@ -240,20 +239,6 @@ def health_bounds(P: torch.Tensor, theta: torch.Tensor, u_now: torch.Tensor, phi
     code = torch.empty(B, dtype=torch.int64)
     _engine.health_bounds(B, n, n_u, n_phi, *(t.data_ptr() for t in args), code.data_ptr(), threads())
     return code
-
-
-def lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch.Tensor | None:
-    """sum over t = lag .. T-1 of a(t) b(t - lag) (``outer``: a(t) b(t - lag)^T) for lag = 0 .. ``lags``, of
-    time-major series a (T, B, n) and b (T, B, m) (m = n unless ``outer``), as (lags + 1, B, n) or
-    (lags + 1, B, n, m); None where the kernel does not apply (not allowed here, not the CPU, not float64)."""
-    if not allowed() or a.device.type != "cpu" or a.dtype != torch.float64 or b.dtype != torch.float64:
-        return None
-    T, B, n = a.shape
-    m = b.shape[2]
-    a, b = a.transpose(1, 2).contiguous(), b.transpose(1, 2).contiguous()       # component-major (T, n, B)
-    out = torch.empty((lags + 1, n, m, B) if outer else (lags + 1, n, B), dtype=torch.float64)
-    _engine.lag_sums(T, B, n, m, lags, int(outer), a.data_ptr(), b.data_ptr(), out.data_ptr(), threads())
-    return out.permute(0, 3, 1, 2) if outer else out.transpose(1, 2)
 
 
 def window_sums(z: torch.Tensor, moved: torch.Tensor, psi: torch.Tensor, d: torch.Tensor | None, eps: torch.Tensor,

@@ -708,12 +708,9 @@ def _lag_sums(a: torch.Tensor, b: torch.Tensor, lags: int, outer: bool) -> torch
     """sum over t = lag .. T-1 of a(t) * b(t - lag) (``outer``: the outer product a(t) b(t - lag)^T) for
     lag = 0 .. ``lags``, stacked: a (T, B, n), b (T, B, m) -> (lags + 1, B, n) or (lags + 1, B, n, m).
 
-    On the CPU the native kernel (``kernels.lag_sums``) takes them in one pass over time; elsewhere every lag at
-    once by FFT over time (the cross-correlation, zero-padded to at least T + lags so that no lag wraps around),
-    members taken in blocks whose spectra hold about CHUNK_BYTES."""
-    native = kernels.lag_sums(a, b, lags, outer)
-    if native is not None:
-        return native
+    Every lag at once by FFT over time (the cross-correlation, zero-padded to at least T + lags so that no lag
+    wraps around), members taken in blocks whose spectra hold about CHUNK_BYTES: the residual checks' path where
+    the native ``residual_sums`` does not run (off the CPU)."""
     T, B, n, m = a.shape[0], a.shape[1], a.shape[2], b.shape[2]
     nfft = 1 << max(1, (T + lags - 1).bit_length())
     width = n + m + (n * m if outer else n)

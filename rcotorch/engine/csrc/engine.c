@@ -5,7 +5,6 @@
  *   uniform_grid the integer part of rcotorch.engine.rng.normal on a (member, pair of steps, component) grid
  *   health_bounds the member health checks' bounds (definiteness, windup, runaway) of every member
  *   window_gram  the sum of the regressors' outer products over the estimator's window, per member
- *   lag_sums     the lagged products of two time series, per member (the intervals' correlations and scores)
  *   window_sums  the intervals' replay: the Gram sums of a stretch's sensitivities and regressors, per member
  *   residual_sums the intervals' replay: the residual checks' lagged and plain sums of a stretch, per member
  *   markov_filter the intervals' replay: the regressors of a stretch filtered by the Markov parameters
@@ -559,46 +558,6 @@ static void window_gram(int64_t W, int64_t B, int64_t m, int64_t n, const double
     }
 }
 
-/* out[lag, i, j, b] = sum_{t = lag}^{T-1} a[t, i, b] b[t - lag, j, b] for lag = 0 .. L: the lagged products of two
- * component-major series a (T, n, B) and b (T, m, B), every pair (i, j) (outer), or only j = i (m = n, out
- * (L + 1, n, B)) (verdict/intervals.py: the residual checks' correlations, the scores' long-run covariance).
- * Members in blocks of 64 (the innermost loop, contiguous), time in order: the last L + 1 rows stay in cache. */
-static void lag_sums(int64_t T, int64_t B, int64_t n, int64_t m, int64_t L, int outer, const double *a,
-                     const double *b, double *out, int nthreads) {
-    const int64_t w = outer ? n * m : n;
-#ifdef _OPENMP
-#pragma omp parallel for schedule(static) num_threads(nthreads) if (nthreads > 1 && B >= 256)
-#endif
-    for (int64_t b0 = 0; b0 < B; b0 += 64) {
-        int64_t nb = b0 + 64 < B ? 64 : B - b0;
-        for (int64_t r = 0; r < (L + 1) * w; r++)
-            for (int64_t q = 0; q < nb; q++) out[r * B + b0 + q] = 0.0;
-        for (int64_t t = 0; t < T; t++) {
-            int64_t top = t < L ? t : L;
-            for (int64_t lag = 0; lag <= top; lag++)
-                for (int64_t i = 0; i < n; i++) {
-                    const double *x = a + (t * n + i) * B + b0;
-                    for (int64_t j = outer ? 0 : i; j < (outer ? m : i + 1); j++) {
-                        const double *y = b + ((t - lag) * m + j) * B + b0;
-                        double *o = out + ((lag * w) + (outer ? i * m + j : i)) * B + b0;
-                        for (int64_t q = 0; q < nb; q++) o[q] += x[q] * y[q];
-                    }
-                }
-        }
-    }
-}
-
-static PyObject *py_lag_sums(PyObject *self, PyObject *args) {
-    long long T, B, n, m, L;
-    unsigned long long a, b, out;
-    int outer, nthreads;
-    if (!PyArg_ParseTuple(args, "LLLLLiKKKi", &T, &B, &n, &m, &L, &outer, &a, &b, &out, &nthreads)) return NULL;
-    Py_BEGIN_ALLOW_THREADS
-    lag_sums(T, B, n, m, L, outer, ADDR(a), ADDR(b), ADDR(out), nthreads);
-    Py_END_ALLOW_THREADS
-    Py_RETURN_NONE;
-}
-
 static PyObject *py_window_sums(PyObject *self, PyObject *args) {
     long long C, B, nz, n, t0, measured, L;
     unsigned long long z, moved, psi, d, eps, own, W, norm, gram, ring, sgram, moving;
@@ -822,8 +781,6 @@ static PyMethodDef METHODS[] = {
      "filtered by the Markov parameters"},
     {"window_gram", py_window_gram, METH_VARARGS,
      "window_gram(W, B, m, n, win, out, threads): sum of x x^T over the window's rows, x = win[w, b, :n]"},
-    {"lag_sums", py_lag_sums, METH_VARARGS,
-     "lag_sums(T, B, n, m, L, outer, a, b, out, threads): sum_t a(t) (x) b(t - lag) for lag = 0..L, per member"},
     {"lti_markov", py_lti_markov, METH_VARARGS,
      "lti_markov(B, N, m, p, d, nu, A, Bm, C, D0, rows, stable, targets, ntargets, lanes, threads): beta_t = "
      "-H_(d+t) of one system per member, written into the targets"},
