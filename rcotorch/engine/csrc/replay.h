@@ -9,8 +9,12 @@
 #define RS_LANES 8  /* ... members side by side in its lagged sums */
 #define RS_LAGS 6   /* ... and lags at a time (the six sums written out below) */
 /* residual_sums' scratch, in doubles: (L + C) steps of nz + nw channels per member, blocks padded (as it lays them) */
+/* residual_sums' members a block: RS_BLOCK, or where the batch is smaller, the batch rounded up to RS_LANES */
+static inline int64_t rs_block(int64_t B) {
+    return B >= RS_BLOCK ? RS_BLOCK : (B + RS_LANES - 1) / RS_LANES * RS_LANES;
+}
 static inline int64_t rs_scratch(int64_t B, int64_t nz, int64_t nw, int64_t L, int64_t C) {
-    const int64_t NB = B >= RS_BLOCK ? RS_BLOCK : (B + RS_LANES - 1) / RS_LANES * RS_LANES;
+    const int64_t NB = rs_block(B);
     return (B + NB - 1) / NB * (L + C) * ((nz + nw) * NB + RS_LANES);
 }
 /* RS_LANES doubles, loaded from anywhere a double may lie */
@@ -248,8 +252,7 @@ static int RFN(residual_sums)(int64_t C, int64_t B, int64_t nz, int64_t nw, int6
                                const int64_t *own, int64_t L, const double *z, const double *zi, const double *y,
                                const double *w, double *zlag, double *wlag, double *zring, double *wring,
                                double *sums, double *scratch, int64_t scratch_len, int nthreads) {
-    /* members a block: RS_BLOCK, or where the batch is smaller, the batch rounded up to RS_LANES */
-    const int64_t NB = B >= RS_BLOCK ? RS_BLOCK : (B + RS_LANES - 1) / RS_LANES * RS_LANES;
+    const int64_t NB = rs_block(B);
     const int64_t nblocks = (B + NB - 1) / NB, rows = L + C, ch = nz + nw, S = nz + 2 * nw + ny + 3;
     /* from one step of a channel to the next in a block, a cache line more than the channels take: rows a power of
      * two apart would share the cache's sets */
