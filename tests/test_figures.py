@@ -273,8 +273,8 @@ def test_on_a_linear_time_axis_the_first_steps_wild_values_stay_off_the_axis():
     path = np.where(t > 60, -0.2, 0.0) + 0.005 * np.sin(t)
     wild = path.copy()
     wild[:2] = [50.0, -30.0]
-    run = SimpleNamespace(truth={"dk": -0.2}, truth_history={"dk": [(0.0, 0.0), (60.0, -0.2)]},
-                          graph=SimpleNamespace(known_sample_time=lambda: 0.01))
+    run = SimpleNamespace(truth={"dk": -0.2}, truth_path={"dk": (np.array([0.0, 60.0, 100.0]), [0.0, -0.2, -0.2])},
+                          intervals=None, dt=0.01)
     ax = Figure().subplots()
     ax.plot(t, wild)
     _focus_after_start(ax, run, "dk", t, wild[:, None])

@@ -223,7 +223,8 @@ def test_a_window_too_short_for_a_lag_tests_no_whiteness_and_reports_no_correlat
     correlations came out as large as 1e10, the whiteness test rejected at random and the scores' long-run
     covariance widened intervals 1e153 times. With fewer than 5 steps per lag the checks test no lag, say so, and
     widen nothing; a window of 60 steps tests 12 lags, each correlation within [-1, 1]."""
-    from rcotorch.run.figures import png, residual_figures, residual_verdict
+    from rcotorch.run.figure_data import residual_verdict, run_figure_data
+    from rcotorch.run.figures import png, residual_figures
     from rcotorch.run.report import result_table
 
     short = Run("sdof-stiffness-damping", batch=64, steps=10, out=tmp_path / "s")
@@ -235,7 +236,7 @@ def test_a_window_too_short_for_a_lag_tests_no_whiteness_and_reports_no_correlat
     assert all(w == 1.0 for w in s["health"]["residual_widening"])
     assert all(v is None for key in ("z_autocorr_max", "z_whiteness_p", "z_w_xcorr_max") for v in s["metrics"][key])
     assert "not white" not in result_table(s) and "not tested" in residual_verdict(short, res)
-    fig = residual_figures(short, res, short.graph.known_sample_time())["residuals"]
+    fig = residual_figures(run_figure_data(short))["residuals"]
     assert all("not tested" in " ".join(t.get_text() for t in ax.texts) for ax in fig.axes)
     png(fig)
     short.close()

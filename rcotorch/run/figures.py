@@ -31,17 +31,13 @@ import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter  # noqa: E402
 
-from ..estimator.tracking import change_report  # noqa: E402
-from ..verdict import intervals as ci  # noqa: E402
-from .scenario import truth_at  # noqa: E402
+from .figure_data import MAX_LINES  # noqa: E402
 
-MAX_LINES = 8
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
 INITIAL_STYLE = dict(color="tab:gray", ls=":", lw=1.3, zorder=1.5)     # below the estimates
@@ -62,50 +58,50 @@ TITLE_OVERHANG = 60.0  # points by which a title may be wider than its axes (ove
 _MEASURE_LOCK = threading.Lock()
 
 
-def run_figures(run) -> dict:
+def run_figures(data) -> dict:
     """Estimates against time (one row per estimate: the traced members' paths up to ``MAX_LINES``, the truth
     dashed on top, the initial model's value dotted; beside it the convergence window with the final
     intervals) and the model error: the rms of z over each log interval, and z of the initial model beside the
-    refined one's on held-out data (or on the replayed window), with units and legends below the axes."""
-    h = run.history
-    dt = run.graph.known_sample_time()
-    t = np.asarray(h["step"], dtype=float) * (dt or 1.0)
-    xlabel = "time [s]" if dt else "step"
-    members = list(getattr(run, "history_members", range(MAX_LINES)))
+    refined one's on held-out data (or on the replayed window), with units and legends below the axes.
+    ``data``: the run's figure data (``rcotorch.run.figure_data.run_figure_data``), or a run, whose data are
+    taken then."""
+    if not hasattr(data, "series"):
+        from .figure_data import run_figure_data
+        data = run_figure_data(data)
+    d = data
+    t = d.t
+    xlabel = "time [s]" if d.dt else "step"
     figs = {}
-    keys = [k for k in h if k not in ("step", "z_rms")]
-    series = {key: torch.stack(h[key]).cpu().numpy()[:, :MAX_LINES] for key in keys} if len(t) else {}
-    changes = any(len(pairs) > 1 for pairs in (getattr(run, "truth_history", None) or {}).values())
-    log_t = not changes and log_time_axis(t, series.values())          # a run with a change: linear time
+    keys = list(d.series)
+    log_t = not d.changes and log_time_axis(t, d.series.values())          # a run with a change: linear time
     if keys and len(t):
-        found = run.intervals() if hasattr(run, "intervals") else None
-        start = run.health.window_start * (dt or 1.0) if found is not None else None
+        found = d.intervals
+        start = found.window_start if found is not None else None
         zoom = found is not None and bool((t >= start).sum() >= 2)
         fig = Figure(figsize=(10.5 if zoom else 7.5, 2.3 * len(keys) + 1.2), layout="constrained")
         axes = fig.subplots(len(keys), 2 if zoom else 1, sharex="col", squeeze=False,
                             gridspec_kw={"width_ratios": [2.4, 1]} if zoom else None)
         for row, key in zip(axes, keys):
-            v = series[key]
-            _estimate_panel(row[0], run, key, t, v, members)
+            v = d.series[key]
+            _estimate_panel(row[0], d, key, t, v)
             if log_t:
                 row[0].set_xscale("log")
             else:
-                _focus_after_start(row[0], run, key, t, v)
+                _focus_after_start(row[0], d, key, t, v)
             if zoom:
-                _window_panel(row[1], run, key, t[t >= start], v[t >= start], found)
+                _window_panel(row[1], d, key, t[t >= start], v[t >= start])
         axes[-1, 0].set_xlabel(xlabel + (", log scale" if log_t else ""))
-        shown = _members_shown(len(members), run.batch)
-        _title(axes[0, 0], _named(run.scenario, f"estimates{shown}"))
+        shown = _members_shown(len(d.members), d.batch)
+        _title(axes[0, 0], _named(d, f"estimates{shown}"))
         if zoom:
             axes[-1, 1].set_xlabel(xlabel)
             _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
         _legend_below(fig, axes[0, 0], more=list(axes.flat[1:]))
         figs["estimates"] = fig
-    if len(t):
-        figs["model_error"] = _model_error_figure(run, t, xlabel, log_t, members, dt)
-    res = run.residuals() if hasattr(run, "residuals") else None
-    if res is not None:
-        figs.update(residual_figures(run, res, dt))
+    if len(t) and d.z_rms is not None:
+        figs["model_error"] = _model_error_figure(d, xlabel, log_t)
+    if d.residuals is not None:
+        figs.update(residual_figures(d))
     return figs
 
 
@@ -127,88 +123,67 @@ def log_time_axis(t: np.ndarray, series) -> bool:
     return True
 
 
-def _model_error_figure(run, t: np.ndarray, xlabel: str, log_t: bool, members: list[int], dt) -> Figure:
+def _model_error_figure(d, xlabel: str, log_t: bool) -> Figure:
     """The rms of z over each log interval (with the held-out rms of the initial and the refined model where
     the run validated them), and z of the initial and the refined model side by side on held-out data (else
     on the replayed window), member 0."""
-    h = run.history
-    trace = _initial_and_refined(run)
+    t = d.t
+    trace = d.trace
     fig = Figure(figsize=(7.5, 5.6 if trace else 3.4), layout="constrained")
     axes = fig.subplots(2 if trace else 1, 1, squeeze=False)[:, 0]
     ax = axes[0]
-    z = torch.stack(h["z_rms"]).cpu().numpy()[:, :MAX_LINES]
-    labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in members[:z.shape[1]]]
+    z = d.z_rms
+    labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in d.members[:z.shape[1]]]
     ax.semilogy(t, z, lw=1, label=labels)
-    _change_marks(ax, run, t, members)
-    held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
-    if held is not None:
-        ax.axhline(float(held.rmse_initial[0]), **INITIAL_STYLE, label="initial model, held-out data (member 0)")
-        ax.axhline(float(held.rmse[0]), color="tab:red", ls="-.", lw=1.3, zorder=5,
+    _change_marks(ax, d, t)
+    if d.held_out is not None:
+        ax.axhline(d.held_out[0], **INITIAL_STYLE, label="initial model, held-out data (member 0)")
+        ax.axhline(d.held_out[1], color="tab:red", ls="-.", lw=1.3, zorder=5,
                    label="refined model, held-out data (member 0)")
     if log_t:
         ax.set_xscale("log")
     ax.set_xlabel(xlabel + (", log scale" if log_t else ""))
-    y_unit = run.scenario.unit("y", run.settings)
+    y_unit = d.y_unit
     ax.set_ylabel(_with_unit("rms of z = y - y_hat", y_unit))
-    shown = _members_shown(len(members), run.batch)
-    _title(ax, _named(run.scenario, f"model error (rms over each log interval){shown}"))
+    shown = _members_shown(len(d.members), d.batch)
+    _title(ax, _named(d, f"model error (rms over each log interval){shown}"))
     ax.grid(alpha=0.3, which="both")
     _legend_below(fig, ax, axes=ax)
     if trace:
         where, k, z_init, z_ref, n_y = trace
         ax = axes[1]
-        x = k * (dt or 1.0)
+        x = k * (d.dt or 1.0)
         rms = [f"rms {float(np.sqrt(np.mean(v ** 2))):.3g} {y_unit}".rstrip() for v in (z_init, z_ref)]
         ax.plot(x, z_init, color="tab:gray", lw=1.0, label=f"initial model ({rms[0]})")
         ax.plot(x, z_ref, color="tab:red", lw=1.0, zorder=3, label=f"refined model ({rms[1]})")
-        ax.set_xlabel(("time" if dt else "samples") + f" into the {where}" + (" [s]" if dt else ""))
+        ax.set_xlabel(("time" if d.dt else "samples") + f" into the {where}" + (" [s]" if d.dt else ""))
         ax.set_ylabel(_with_unit("z = y - y_hat", y_unit))
-        output = f", output {output_names(run, n_y)[0]}" if n_y > 1 else ""
+        output = f", output {output_names(d, n_y)[0]}" if n_y > 1 else ""
         _title(ax, f"z of the initial and the refined model on the {where}, member 0{output}")
         ax.grid(alpha=0.3)
         _legend_below(fig, ax, axes=ax)
     return fig
 
 
-def _initial_and_refined(run):
-    """(where, sample indices, z of the initial model, z of the refined one, the number of outputs) for member 0,
-    output 0: on the held-out data where the run validated its model (after the samples that fixed the initial
-    state), else on the replayed window (its last 600 samples); None without either."""
-    held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
-    if held is not None:
-        y = held.measured[held.fit_steps:, 0, 0].cpu().numpy()
-        k = np.arange(len(y))
-        return ("held-out data", k, y - held.initial[held.fit_steps:, 0, 0].cpu().numpy(),
-                y - held.refined[held.fit_steps:, 0, 0].cpu().numpy(), held.measured.shape[-1])
-    res = run.residuals() if hasattr(run, "residuals") else None
-    if res is None:
-        return None
-    y = res.series["measured"][:, 0, 0].cpu().numpy()
-    n = min(len(y), 600)
-    k = np.arange(len(y))[-n:]
-    return ("replayed window", k, y[-n:] - res.series["initial"][-n:, 0, 0].cpu().numpy(),
-            y[-n:] - res.series["refined"][-n:, 0, 0].cpu().numpy(), res.series["measured"].shape[-1])
-
-
-def residual_figures(run, res, dt: float | None) -> dict:
+def residual_figures(d) -> dict:
     """The refined model checked on the replayed window (member 0): z's autocorrelation and its
     cross-correlation with w against the 95% band of white, independent signals, one line per measured output
     (named, ``output_names``), under a line that says how small z is against the measured output and whether
-    its correlation matters for the estimates (``residual_verdict``); the measured output against the refined
-    and the initial model's outputs, with their fit in percent, one panel per output."""
+    its correlation matters for the estimates (``rcotorch.run.figure_data.residual_verdict``); the measured
+    output against the refined and the initial model's outputs, with their fit in percent, one panel per output.
+    ``d``: the run's figure data (``rcotorch.run.figure_data.run_figure_data``) with its residual checks."""
     figs = {}
-    lags = np.arange(res.autocorr.shape[1])
-    y = res.series["measured"][:, 0].cpu().numpy()                     # (T, n_y), member 0
-    refined = res.series["refined"][:, 0].cpu().numpy()
-    initial = res.series["initial"][:, 0].cpu().numpy()
-    names = output_names(run, y.shape[1])
-    y_unit = run.scenario.unit("y", run.settings)
+    res, dt = d.residuals, d.dt
+    lags = np.arange(res.autocorr.shape[0])
+    y, refined, initial = res.measured, res.refined, res.initial                 # (T, n_y), member 0
+    names = output_names(d, y.shape[1])
+    y_unit = d.y_unit
     z_rms, y_rms = _rms(y - refined), _rms(y)
     n_panels = 2 if res.xcorr is not None else 1
     fig = Figure(figsize=(7.5, 2.6 * n_panels + 1.5), layout="constrained")
     axes = fig.subplots(n_panels, 1, squeeze=False)[:, 0]
     ax = axes[0]
-    auto = res.autocorr[0].cpu().numpy()                               # (L + 1, n_z)
+    auto = res.autocorr                                                # (L + 1, n_z)
     several = auto.shape[1] > 1
     for c in range(auto.shape[1]):
         label = f"z of {names[c]} (rms {_share(z_rms[c], y_rms[c])} of the output's)" if several else "z"
@@ -224,18 +199,18 @@ def residual_figures(run, res, dt: float | None) -> dict:
         size = f"z rms at most {_share(float(np.max(z_rms / np.maximum(y_rms, 1e-300))), 1.0)} of its output's rms"
     else:
         size = f"z rms {z_rms[0]:.2g}{' ' + y_unit if y_unit else ''}, {_share(z_rms[0], y_rms[0])} of y's rms"
-    fig.suptitle(_wrap(_named(run.scenario, "residual z = y - y_hat of the refined model, member 0"),
+    fig.suptitle(_wrap(_named(d, "residual z = y - y_hat of the refined model, member 0"),
                        fig.get_figwidth() * 72.0 - 20, 12.0), fontsize=12)
-    _title(ax, f"{size}; {residual_verdict(run, res)}", fontsize=9)
+    _title(ax, f"{size}; {res.verdict}", fontsize=9)
     ax.grid(alpha=0.3)
     _legend_below(fig, ax, axes=ax)
     if res.xcorr is not None:
         ax = axes[1]
-        x = res.xcorr[0].cpu().numpy()                                  # (L + 1, n_z, n_w)
+        x = res.xcorr                                                   # (L + 1, n_z, n_w)
         for c in range(x.shape[1]):
-            for d in range(x.shape[2]):
-                w = f"w[{d}]" if x.shape[2] > 1 else "w"
-                ax.plot(lags, x[:, c, d], "o-", ms=3, lw=1, label=f"z of {names[c]}, {w}" if x.shape[1] * x.shape[2] > 1
+            for j in range(x.shape[2]):
+                w = f"w[{j}]" if x.shape[2] > 1 else "w"
+                ax.plot(lags, x[:, c, j], "o-", ms=3, lw=1, label=f"z of {names[c]}, {w}" if x.shape[1] * x.shape[2] > 1
                         else "z(k), w(k - lag)")
         if tested:
             ax.axhspan(-res.bound, res.bound, color="tab:blue", alpha=0.15, label="95% band of independence")
@@ -251,7 +226,7 @@ def residual_figures(run, res, dt: float | None) -> dict:
     n_y = y.shape[1]
     fig = Figure(figsize=(7.5, 3.8 if n_y == 1 else 2.4 * n_y + 1.4), layout="constrained")
     axes = fig.subplots(n_y, 1, sharex=True, squeeze=False)[:, 0]
-    fits = [(float(res.fit[0]), float(res.fit_initial[0]))] if n_y == 1 else \
+    fits = [(res.fit, res.fit_initial)] if n_y == 1 else \
         [(_fit(y[:, c], refined[:, c]), _fit(y[:, c], initial[:, c])) for c in range(n_y)]
     for c, (ax, (fit, fit_initial)) in enumerate(zip(axes, fits)):
         ax.plot(t[-n:], y[-n:, c], color="k", lw=1.6, label="measured", zorder=2)
@@ -266,9 +241,9 @@ def residual_figures(run, res, dt: float | None) -> dict:
     axes[-1].set_xlabel("time before the window's end [s]" if dt else "steps before the window's end")
     what = "measured and model outputs, member 0 (theta frozen)"
     if n_y == 1:
-        _title(axes[0], _named(run.scenario, what))
+        _title(axes[0], _named(d, what))
     else:
-        fig.suptitle(_wrap(_named(run.scenario, what), fig.get_figwidth() * 72.0 - 20, 12.0), fontsize=12)
+        fig.suptitle(_wrap(_named(d, what), fig.get_figwidth() * 72.0 - 20, 12.0), fontsize=12)
     _legend_below(fig, axes[0])
     figs["output_fit"] = fig
     return figs
@@ -276,62 +251,20 @@ def residual_figures(run, res, dt: float | None) -> dict:
 
 def _untested(ax, res) -> None:
     """A correlation panel of a window too short for a lag: what it would show, and why it shows nothing."""
-    ax.set_xlim(0, ci.LAGS)
+    ax.set_xlim(0, res.lags)
     ax.set_ylim(-1.05, 1.05)
-    ax.text(0.5, 0.5, f"not tested: the window held {res.steps} steps, {ci.SAMPLES_PER_LAG} per lag are needed",
+    ax.text(0.5, 0.5, f"not tested: the window held {res.steps} steps, {res.samples_per_lag} per lag are needed",
             transform=ax.transAxes, ha="center", va="center", fontsize=9, color="tab:gray")
 
 
-def residual_verdict(run, res) -> str:
-    """What the whiteness test of member 0's residuals says, and whether it matters for the estimates
-    (``rcotorch.verdict.intervals.residuals_matter``, as ``health.residuals_matter`` of summary.json): white; or
-    not white, and then either dynamics the model leaves unexplained that bias the estimates or widen their
-    intervals, or a correlation that does not matter (a parameter error the model can take back, as a noise-free
-    run still converging leaves, or one that hardly widens the intervals)."""
-    p = float(res.whiteness_p[0])
-    if not np.isfinite(p):
-        return (f"z's whiteness is not tested: the window held {res.steps} steps, fewer than "
-                f"{ci.SAMPLES_PER_LAG} for a lag")
-    test = f"Ljung-Box p = {p:.2g}"
-    if p >= ci.WHITE_P:
-        return f"z is white ({test})"
-    graph = getattr(run, "graph", None)
-    pc = getattr(graph.role("estimator"), "covariance", None) if graph is not None and "estimator" in graph.roles \
-        else None
-    found = run.intervals() if hasattr(run, "intervals") else None
-    if not isinstance(pc, ci.ParameterCovariance) or found is None:
-        return f"z is not white ({test})"
-    matter, widening = ci.residuals_matter(pc, found)
-    w = float(widening[0])
-    if bool(matter[0]):
-        return (f"z is not white ({test}), and it matters: dynamics the model leaves unexplained bias the "
-                f"estimates or widen their intervals ({w:.3g} times)")
-    unexplained = float(pc.unexplained[0]) if pc.unexplained is not None else 1.0
-    if unexplained < ci.UNEXPLAINED_MIN:
-        return (f"z is not white ({test}), which does not matter here: it is a parameter error the model can "
-                f"take back (it leaves {unexplained:.2g} of z's energy unexplained)")
-    return (f"z is not white ({test}), which does not matter here: its correlation widens the intervals "
-            f"{_below(w, ci.WIDENING_MATTERS)} times (less than {ci.WIDENING_MATTERS:g}) and biases no estimate "
-            "beyond its interval")
-
-
-def output_names(run, n: int) -> list[str]:
-    """The names of a run's ``n`` measured outputs: the scenario's (``Scenario.output_names``), else 'y' for one
-    and 'y[0]', 'y[1]', ... for several (the channels of the known model's measured port)."""
-    sc = getattr(run, "scenario", None)
-    names = list(sc.output_names(run.settings)) if hasattr(sc, "output_names") else []
+def output_names(d, n: int) -> list[str]:
+    """The names of a run's ``n`` measured outputs: the scenario's (``Scenario.output_names``, as the figure data
+    ``d`` hold them), else 'y' for one and 'y[0]', 'y[1]', ... for several (the channels of the known model's
+    measured port)."""
+    names = list(d.output_names)
     if len(names) == n:
         return [str(name) for name in names]
     return ["y"] if n == 1 else [f"y[{c}]" for c in range(n)]
-
-
-def _below(value: float, limit: float) -> str:
-    """``value`` (below ``limit``) to three significant digits, or to as many more as keep it below the limit."""
-    for digits in range(3, 10):
-        text = f"{value:.{digits}g}"
-        if float(text) < limit:
-            return text
-    return f"{value:.10g}"
 
 
 def _rms(v: np.ndarray) -> np.ndarray:
@@ -350,20 +283,19 @@ def _fit(y: np.ndarray, y_hat: np.ndarray) -> float:
     return 100.0 * (1.0 - float(np.linalg.norm(y - y_hat)) / spread) if spread > 0 else float("nan")
 
 
-def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: list[int]) -> None:
+def _estimate_panel(ax, d, key: str, t: np.ndarray, v: np.ndarray) -> None:
     """One estimate against time: the drawn members, the truth on top and the initial model's value below."""
+    members = d.members
     lines = v[:, :MAX_LINES]
     labels = ["estimate"] if lines.shape[1] == 1 else [f"member {b}" for b in members[:lines.shape[1]]]
     ax.plot(t, lines, lw=1.2, label=labels, zorder=2)
-    found = run.intervals() if hasattr(run, "intervals") else None
-    over = run.band_over_time() if hasattr(run, "band_over_time") else None
-    if over is not None and key in over[1] and len(over[0]) == len(t):      # the band over time, in each colour
-        hw = over[1][key].cpu().numpy()[:, :lines.shape[1]]
+    found = d.intervals
+    if d.band is not None and key in d.band:           # the band over time, in each colour
+        hw = d.band[key][:, :lines.shape[1]]
         below, above = np.ones(hw.shape[1]), np.ones(hw.shape[1])
         if found is not None and key in found.estimate:     # each side as the final interval's
-            ratios = [r.cpu().numpy() for r in found.side_ratios(key)]
-            idx = [b for b in members[:hw.shape[1]] if b < len(ratios[0])]
-            below[:len(idx)], above[:len(idx)] = ratios[0][idx], ratios[1][idx]
+            n = min(hw.shape[1], len(found.below[key]))
+            below[:n], above[:n] = found.below[key][:n], found.above[key][:n]
         finite = lines[np.isfinite(lines)]
         span = float(np.ptp(finite)) if finite.size else 0.0
         low, high = (finite.min() - 0.25 * span, finite.max() + 0.25 * span) if span > 0 else (-np.inf, np.inf)
@@ -371,43 +303,37 @@ def _estimate_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, members: li
             ax.fill_between(t, np.clip(lines[:, i] - hw[:, i] * below[i], low, high),
                             np.clip(lines[:, i] + hw[:, i] * above[i], low, high),
                             color=f"C{i}", alpha=0.18, lw=0, zorder=1,
-                            label=f"{found.level:.0%} band over time" if i == 0 else None)
+                            label=f"{found.level:.0%} band over time" if i == 0 and found is not None else None)
     if found is not None and key in found.estimate and len(t):
-        idx = [b for b in members[:lines.shape[1]] if b < found.half_width[key].shape[0]]
-        est = found.estimate[key].cpu().numpy()[idx]
-        sides = np.stack([est - found.lower(key).cpu().numpy()[idx], found.upper(key).cpu().numpy()[idx] - est])
+        est = found.estimate[key][:lines.shape[1]]
+        sides = np.stack([est - found.lower[key][:len(est)], found.upper[key][:len(est)] - est])
         ax.errorbar(np.full(len(est), t[-1]), est, yerr=sides, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
                     zorder=4, label=f"{found.level:.0%} interval at the end")
-        bias = (found.bias or {}).get(key)
+        bias = found.bias.get(key)
         if bias is not None:                   # a biased estimate: where the physics' parameter lies
-            b = bias.cpu().numpy()[idx]
+            b = bias[:len(est)]
             shown = np.isfinite(b)
             if shown.any():
                 ax.plot(np.full(int(shown.sum()), t[-1]), (est - b)[shown], ls="none", marker="x", ms=8, mew=2,
                         color=STATUS_COLOURS["biased"], zorder=5, label="estimate - bias (biased)")
-    truth = run.truth.get(key)
-    history = (getattr(run, "truth_history", None) or {}).get(key)
-    if history and len(t):                      # a truth that changes: as it was at each time
-        times = [x for x, _ in history if t[0] < x < t[-1]]
-        xs = np.r_[t[0], times, t[-1]]
-        ys = [truth_at(history, x) for x in xs]
-        ax.step(xs, ys, where="post", **TRUTH_STYLE, label="truth")
+    truth = d.truth.get(key)
+    path = d.truth_path.get(key)
+    if path is not None and len(t):              # a truth that changes: as it was at each time
+        ax.step(path[0], path[1], where="post", **TRUTH_STYLE, label="truth")
     elif truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
-        if values.size > 1:
-            values = values[[b for b in members if b < values.size]]
         for i, tv in enumerate(np.unique(values[np.isfinite(values)])[:MAX_LINES]):
             ax.axhline(tv, **TRUTH_STYLE, label="truth" if i == 0 else None)
-    _change_marks(ax, run, t, members)
-    initial = (run.monitor.initial or {}).get(key) if getattr(run, "monitor", None) is not None else None
+    _change_marks(ax, d, t)
+    initial = d.initial.get(key)
     if initial is not None:
-        for i, iv in enumerate(np.unique(initial.cpu().numpy()[members])[:MAX_LINES]):
+        for i, iv in enumerate(np.unique(initial)[:MAX_LINES]):
             ax.axhline(iv, **INITIAL_STYLE, label="initial model" if i == 0 else None)
-    ax.set_ylabel(_with_unit(key, run.scenario.unit(key)))
+    ax.set_ylabel(_with_unit(key, d.units.get(key, "")))
     ax.grid(alpha=0.3, which="both")
 
 
-def _focus_after_start(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
+def _focus_after_start(ax, d, key: str, t: np.ndarray, v: np.ndarray) -> None:
     """On a linear time axis, the y-axis fitted to the paths after the first ``EARLY`` of the run (with the
     truth and the final intervals) where the first steps' values, the estimate's jumps before it has data, would
     squeeze everything after them into a sliver; the axis says so."""
@@ -416,38 +342,36 @@ def _focus_after_start(ax, run, key: str, t: np.ndarray, v: np.ndarray) -> None:
     every, after = lines[np.isfinite(lines)], lines[late][np.isfinite(lines[late])]
     if not after.size or not every.size:
         return
-    extra = [x for x in np.atleast_1d(np.asarray(run.truth.get(key, []), dtype=float)) if np.isfinite(x)]
-    extra += [float(value) for _, value in (getattr(run, "truth_history", None) or {}).get(key, [])]
-    found = run.intervals() if hasattr(run, "intervals") else None
+    truth = d.truth.get(key)
+    extra = [x for x in np.atleast_1d(np.asarray([] if truth is None else truth, dtype=float)) if np.isfinite(x)]
+    path = d.truth_path.get(key)
+    extra += [float(value) for value in (path[1] if path is not None else [])]
+    found = d.intervals
     if found is not None and key in found.estimate:
-        for bound in (found.lower(key), found.upper(key)):
-            b = bound.cpu().numpy()
+        for b in (found.lower[key], found.upper[key]):
             extra += [float(x) for x in b[np.isfinite(b)][:MAX_LINES]]
     low, high = min(after.min(), *extra) if extra else after.min(), max(after.max(), *extra) if extra else after.max()
     span = high - low if high > low else max(abs(high), 1e-12)
     if np.ptp(every) <= FOCUS * span:
         return
     ax.set_ylim(low - 0.15 * span, high + 0.15 * span)
-    unit = " s" if run.graph.known_sample_time() else " steps"
+    unit = " s" if d.dt else " steps"
     ax.text(0.01, 0.97, f"values before {t[0] + EARLY * (t[-1] - t[0]):.3g}{unit} off the axis",
             transform=ax.transAxes, ha="left", va="top", fontsize=7, color="0.35")
 
 
-def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
+def _change_marks(ax, d, t: np.ndarray) -> None:
     """Vertical lines at each change of a truth (``Scenario.truth_history``) and at each drawn member's first
     alarm of a change detector (``rcotorch.estimator.tracking.change_report``), within the plotted times."""
     if not len(t):
         return
-    dt = run.graph.known_sample_time()
-    changes = sorted({x for pairs in (getattr(run, "truth_history", None) or {}).values() for x, _ in pairs[1:]})
-    for i, x in enumerate(c for c in changes if t[0] <= c <= t[-1]):
+    for i, x in enumerate(c for c in d.changes if t[0] <= c <= t[-1]):
         ax.axvline(x, **CHANGE_STYLE, label="change" if i == 0 else None)
     labelled = False
-    for name, found in change_report(run.graph).items():
-        first = found["first_alarm_step"].cpu().numpy()
-        for b in members[:MAX_LINES]:
-            if b < len(first) and first[b] >= 0:
-                x = first[b] * (dt or 1.0)
+    for name, first in d.alarms.items():
+        for step in first[:MAX_LINES]:
+            if step >= 0:
+                x = step * (d.dt or 1.0)
                 if t[0] <= x <= t[-1]:
                     ax.axvline(x, **DETECTION_STYLE, label=None if labelled else f"{name}: first alarm")
                     ax.plot([x], [1.0], marker="v", ms=7, color=DETECTION_STYLE["color"], clip_on=False,
@@ -455,23 +379,24 @@ def _change_marks(ax, run, t: np.ndarray, members: list[int]) -> None:
                     labelled = True
 
 
-def _window_panel(ax, run, key: str, t: np.ndarray, v: np.ndarray, found) -> None:
+def _window_panel(ax, d, key: str, t: np.ndarray, v: np.ndarray) -> None:
     """The convergence window of one estimate, zoomed: each drawn member's path and its final interval shaded
     in its colour, the truth on top."""
     lines = ax.plot(t, v[:, :MAX_LINES], lw=1.2, zorder=2)
-    members = list(getattr(run, "history_members", range(len(lines))))
+    found = d.intervals
     if key in found.estimate:
-        lo, hi = found.lower(key).cpu().numpy(), found.upper(key).cpu().numpy()
-        for b, line in zip(members, lines):
-            if b < len(lo) and np.isfinite(lo[b]) and np.isfinite(hi[b]):
-                ax.axhspan(lo[b], hi[b], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
-        bias = (found.bias or {}).get(key)
+        lo, hi = found.lower[key], found.upper[key]
+        for i, line in enumerate(lines[:len(lo)]):
+            if np.isfinite(lo[i]) and np.isfinite(hi[i]):
+                ax.axhspan(lo[i], hi[i], color=line.get_color(), alpha=0.18, lw=0, zorder=1)
+        bias = found.bias.get(key)
         if bias is not None:                   # a biased member: the physics' parameter, estimate - bias
-            est, b_ = found.estimate[key].cpu().numpy(), bias.cpu().numpy()
-            for i, b in enumerate(m for m in members[:len(lines)] if m < len(b_) and np.isfinite(b_[m])):
-                ax.axhline(est[b] - b_[b], color=STATUS_COLOURS["biased"], ls="--", lw=1.2, zorder=3,
-                           label="estimate - bias (biased)" if i == 0 else None)
-    truth = run.truth_now().get(key)
+            est = found.estimate[key]
+            shown = [i for i in range(min(len(lines), len(bias))) if np.isfinite(bias[i])]
+            for j, i in enumerate(shown):
+                ax.axhline(est[i] - bias[i], color=STATUS_COLOURS["biased"], ls="--", lw=1.2, zorder=3,
+                           label="estimate - bias (biased)" if j == 0 else None)
+    truth = d.truth_now.get(key)
     if truth is not None:
         values = np.atleast_1d(np.asarray(truth, dtype=float))
         for tv in np.unique(values[np.isfinite(values)])[:MAX_LINES]:
@@ -549,13 +474,12 @@ def _with_unit(label: str, unit: str) -> str:
     return f"{label} [{unit}]" if unit else label
 
 
-def _named(scenario, what: str) -> str:
-    """A figure's title 'NAME: what', NAME being the name the scenario shows in figures: ``figure_name`` where it
-    has one (a graph built in Python: the name ``rcotorch.refine`` was given, else its output folder's; '' for
-    neither, and the title is then ``what`` alone), else its name."""
-    name = getattr(scenario, "figure_name", None)
+def _named(d, what: str) -> str:
+    """A figure's title 'NAME: what', NAME being the name the run shows in figures (``RunFigureData.name``; for
+    a sweep, the scenario's ``figure_name`` where it has one, else its name), the title ``what`` alone for none."""
+    name = getattr(d, "figure_name", None)
     if name is None:
-        name = getattr(scenario, "name", "") or ""
+        name = getattr(d, "name", "") or ""
     return f"{name}: {what}" if name else what
 
 
@@ -782,18 +706,33 @@ def _scenario(which):
 
 def png(fig) -> bytes:
     """The figure as PNG bytes at ``DPI``, laid out tightly unless it has a layout of its own (one drawing); a
-    figure that pyplot made is closed (removed from pyplot's list). A constrained layout is computed once before
-    the drawing, which computes it again: the first sizes the axes with the tick labels of their size before the
-    layout, and where the locator then picks wider labels (-0.075 for -0.05) the second makes room for them."""
+    figure that pyplot made is closed (removed from pyplot's list). A constrained layout is computed before the
+    drawing: it sizes the axes with the tick labels the locators pick at the axes' size before the layout. Where
+    they pick other ticks at the laid-out size (-0.075 for -0.05, a wider label), the drawing lays the figure out
+    again with those; where they pick the same, that second layout would change nothing and is left out."""
     engine = fig.get_layout_engine()
     if engine is None:
         fig.set_layout_engine("tight")             # laid out while it is drawn
     elif isinstance(engine, ConstrainedLayoutEngine):
+        before = _tick_locations(fig)
         engine.execute(fig)
+        if _tick_locations(fig) == before:
+            fig.set_layout_engine("none")          # the layout stands as computed
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
     _close(fig)
     return buf.getvalue()
+
+
+def _tick_locations(fig) -> list:
+    """The major and minor tick locations every axis of ``fig`` would show at its present size and limits (the
+    locators alone: no tick or label is made)."""
+    out = []
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_visible():
+                out.append((tuple(axis.get_majorticklocs()), tuple(axis.get_minorticklocs())))
+    return out
 
 
 def _close(fig) -> None:
