@@ -7,10 +7,10 @@
 and at B = 4096 for its 20,000 default steps, each measured three ways in one process:
 
 * **the command line**: ``Run`` as ``rcotorch run NAME --batch B --steps S`` makes it (health checks, TensorBoard
-  logs, figures' history, the output folder's checks), stepped with ``Run.advance`` after a first stretch of
-  S / 20 steps (the first stretch pays for one-time work: lowering the graph, opening the TensorBoard files and
-  the imports they need; it is reported apart, as is ``finish``: the summary, intervals, validation, figures and
-  the final checkpoint);
+  logs, figures' history, the output folder's checks, the process that draws the figures), stepped with
+  ``Run.advance`` after a first stretch of S / 20 steps (the first stretch pays for one-time work: lowering the
+  graph, opening the TensorBoard files and the imports they need; it is reported apart, as is ``finish``: the
+  summary, intervals, validation, figures and the final checkpoint);
 * **the engine alone**: a copy of the same graph, ``Graph.advance`` for the same steps;
 * **the numba peer**: the best of its variants (``benchmarks/peer.py``) for the same number of member-steps.
 
@@ -53,12 +53,15 @@ def measure(B: int, steps: int, threads: int, name: str = NAME, peer: bool = Tru
     import torch
     from peer import _numba_call
 
+    from rcotorch.run.drawing import DrawingProcess
     from rcotorch.run.runner import Run
     torch.set_num_threads(threads)
     numba.set_num_threads(threads)
     first = max(1, steps // 20)
     with tempfile.TemporaryDirectory() as folder:
+        drawing = DrawingProcess()          # as rcotorch run starts it, before the run
         run = Run(name, batch=B, steps=first + steps, out=Path(folder) / "run")
+        run.drawing = drawing
         graph = copy.deepcopy(run.graph)
         t = time.perf_counter()
         run.advance(until=first, progress=False)
@@ -75,6 +78,7 @@ def measure(B: int, steps: int, threads: int, name: str = NAME, peer: bool = Tru
         finish_s = time.perf_counter() - t
         parts = {k: v for k, v in run.timings.items() if k != "end"}
         run.close()
+        drawing.close()
     ns = lambda s: s / (steps * B) * 1e9            # noqa: E731
     own = {"scenario": name, "B": B, "steps": steps, "threads": threads, "log_every": run.log_every,
            "logs": steps // run.log_every, "cli_ns_per_member_step": ns(cli_s),

@@ -487,3 +487,61 @@ def test_the_parents_uncollected_garbage_is_not_finalized_in_a_forked_drawing(tm
     assert not apart.drawn_here and not marker.exists()
     gc.collect()
     assert marker.read_text().split() == [str(os.getpid())] * 2
+
+
+def test_a_drawing_process_draws_the_same_bytes_and_the_run_draws_them_itself_where_it_failed(tmp_path):
+    """The process ``rcotorch run`` starts first draws the figure data it is sent, the same PNG bytes as drawn in
+    the run's own process; one that died before its data came, or that fails on them, leaves the run to draw them
+    itself (the same bytes, and the same error where a figure cannot be drawn); one never sent data ends on
+    ``close`` and is reaped."""
+    from rcotorch.run.drawing import DrawingProcess
+    from rcotorch.run.figure_data import run_figure_data
+
+    run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
+    run.advance(progress=False)
+    data = run_figure_data(run)
+    expected = pngs(run_figures(data))
+    drawing = DrawingProcess()
+    assert drawing.started
+    wait = drawing.draw(data)
+    assert not drawing.started and wait() == expected and drawing.pid is None
+    dead = DrawingProcess()
+    os.kill(dead.pid, signal.SIGKILL)
+    assert dead.draw(data)() == expected and dead.pid is None
+    unused = DrawingProcess()
+    pid = unused.pid
+    unused.close()
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
+    data.series = {"dK": np.zeros(3)}              # one dimension where a path over time needs two
+    with pytest.raises(IndexError):
+        DrawingProcess().draw(data)()
+    run.close()
+
+
+def test_rcotorch_run_draws_its_figures_in_a_process_that_imports_matplotlib_beside_the_run(tmp_path):
+    """``rcotorch run`` leaves its figures to the drawing process: the run's own process never imports
+    matplotlib, and the figures are the bytes the run draws without that process."""
+    import subprocess
+    import sys
+    script = ("import sys\nfrom rcotorch.run.cli import main\n"
+              "import rcotorch.run.drawing as drawing\n"
+              "if sys.argv[2] == 'none':\n"
+              "    class Absent(drawing.DrawingProcess):\n"
+              "        def __init__(self):\n"
+              "            self.pid = self._jobs = self._results = None\n"
+              "    drawing.DrawingProcess = Absent\n"
+              "code = main(['run', 'sdof-stiffness', '--steps', '600', '--batch', '2', '--quiet',\n"
+              "             '--out', sys.argv[1]])\n"
+              "print(code, 'matplotlib' in sys.modules)\n")
+    lines = {}
+    for how in ("process", "none"):
+        done = subprocess.run([sys.executable, "-c", script, str(tmp_path / how), how], capture_output=True,
+                              text=True, timeout=300)
+        lines[how] = done.stdout.strip().splitlines()[-1]
+    code = lines["none"].split()[0]
+    assert lines == {"process": f"{code} False", "none": f"{code} True"}
+    names = sorted(p.name for p in (tmp_path / "process").glob("*.png"))
+    assert names == ["estimates.png", "model_error.png", "output_fit.png", "residuals.png"]
+    for name in names:
+        assert (tmp_path / "process" / name).read_bytes() == (tmp_path / "none" / name).read_bytes()

@@ -204,6 +204,7 @@ class Session:
         self.summarizing = False                # a stop signal abandons the summary at once (StopSummary)
         # what the work's memory grows with, for the line of a run that ran out of it (None: the batch)
         self.memory_drivers: Callable[[], str] | None = None
+        self.drawing = None                     # the process that draws a run's figures (``DrawingProcess``)
 
     def command(self) -> str:
         return "rcotorch " + " ".join(shlex.quote(a) for a in self.argv)
@@ -270,7 +271,9 @@ class Session:
                 self.folder.log(line)
 
     def close(self) -> None:
-        """Release the run (its TensorBoard writer is flushed) and the output folder."""
+        """Release the run (its TensorBoard writer is flushed), the output folder and the drawing process."""
+        if self.drawing is not None:
+            self.drawing.close()
         if self.run is not None:
             with contextlib.suppress(OSError):
                 self.run.close()
@@ -429,6 +432,7 @@ def cmd_run(args, session: Session) -> int:
         raise _named(e, given) from None
     session.folder, session.run = r.folder, r
     r.figures_expected = not args.no_figures
+    r.drawing = session.drawing
     session.resume = f"rcotorch run --resume {shlex.quote(str(r.out))}"
     if args.checkpoint_every:
         session.resume += f" --checkpoint-every {args.checkpoint_every}"
@@ -637,6 +641,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if getattr(args, "engine", None):
                 os.environ["RCOTORCH_ENGINE"] = args.engine
+            if args.command == "run" and not args.no_figures:
+                from .drawing import DrawingProcess
+                session.drawing = DrawingProcess()     # first: it imports matplotlib while this imports torch
             if args.command not in ("list", "show"):
                 _threads(args)
             code = COMMANDS[args.command](args, session)

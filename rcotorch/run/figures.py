@@ -724,6 +724,17 @@ def png(fig) -> bytes:
     return buf.getvalue()
 
 
+def warm() -> None:
+    """Load what the first figure drawn would load (the fonts, the parser of a log axis' labels, Agg), so that
+    processes forked after it draw without loading them again."""
+    fig = Figure(figsize=(1.0, 1.0))
+    ax = fig.subplots()
+    ax.semilogy([1.0, 2.0], [1.0, 100.0])
+    ax.set_title("x")
+    fig.savefig(io.BytesIO(), format="png", dpi=20)
+    _text_width("x", 10.0)
+
+
 def _tick_locations(fig) -> list:
     """The major and minor tick locations every axis of ``fig`` would show at its present size and limits (the
     locators alone: no tick or label is made)."""

@@ -202,6 +202,7 @@ class Run:
         self.hparams_session = True
         self.tb_origin: float | None = None    # TensorBoard's wall time at step 0 (``Monitor.wall``)
         self.figures_expected = True           # whether ``finish`` will draw figures (their imports start early)
+        self.drawing = None                    # a process that draws the run's figures (``DrawingProcess``)
         self.timings: dict[str, float] = {}    # seconds of each part of the end of the run (``finish``)
 
     def header(self) -> str:
@@ -255,7 +256,7 @@ class Run:
         self.graph.check_steps(until - self.k)
         self._start_monitor()
         if self.batch * (until - self.k) >= PREFETCH_MEMBER_STEPS:
-            prefetch(figures=self.figures_expected)
+            prefetch(figures=self.figures_expected and (self.drawing is None or self._own_figures()))
         bar = None
         if progress or (progress is None and until - self.k >= 5000):
             from tqdm import tqdm
@@ -717,9 +718,16 @@ class Run:
                 bar.update(1)
             t = time.perf_counter()
             if figures:
-                from .figures import draw_meanwhile, pngs, run_figures
-                scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
-                run_pngs = draw_meanwhile(lambda: run_figures(self))
+                scenario_pngs = {}
+                if self._own_figures():
+                    from .figures import pngs
+                    scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
+                if self.drawing is not None and self.drawing.started:
+                    from .figure_data import run_figure_data
+                    run_pngs = self.drawing.draw(run_figure_data(self))
+                else:
+                    from .figures import draw_meanwhile, run_figures
+                    run_pngs = draw_meanwhile(lambda: run_figures(self))
             t_files = time.perf_counter()
             write_text(self.out / "summary.json", to_json(summary) + "\n")
             self.save()
@@ -742,6 +750,11 @@ class Run:
         if close:
             self.close()
         return summary
+
+
+    def _own_figures(self) -> bool:
+        """Whether the scenario draws figures of its own (``Scenario.figures``; drawn in this process)."""
+        return type(self.scenario).figures is not scenarios.Scenario.figures
 
 
 def _say_share(bar, what: str, done: int, total: int) -> None:
