@@ -685,9 +685,10 @@ class Run:
 
     def finish(self, figures: bool = True, close: bool = True, progress: bool | None = None) -> dict[str, Any]:
         """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
-        (unless ``close`` is False). The run's own figures (from its history) are drawn on a second thread
-        while summary.json and the checkpoint are written; the scenario's figures (which may read the graph
-        and use pyplot) are drawn before, in this thread. ``progress``: show the parts of the end as a progress
+        (unless ``close`` is False). The run's own figures (from its history) are drawn while summary.json and
+        the checkpoint are written: by the drawing process handed to the run (``drawing``, as ``rcotorch run``
+        does), else on a second thread; the scenario's figures (which may read the graph and use pyplot) are
+        drawn before, in this thread. ``progress``: show the parts of the end as a progress
         bar (None: where the steps showed one). ``timings`` then holds the seconds of each part: ``intervals``
         (the replay of the window and the intervals), ``validation``, ``summary`` (the rest of it), ``figures``,
         ``files`` (summary.json, the checkpoint, TensorBoard's last records) and ``end`` (all of it)."""
@@ -750,7 +751,6 @@ class Run:
         if close:
             self.close()
         return summary
-
 
     def _own_figures(self) -> bool:
         """Whether the scenario draws figures of its own (``Scenario.figures``; drawn in this process)."""
