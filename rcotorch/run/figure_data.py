@@ -89,7 +89,7 @@ def run_figure_data(run) -> RunFigureData:
     truth = dict(run.truth)
     scenario = run.scenario
     return RunFigureData(
-        name=_name(scenario), batch=int(run.batch), members=members, t=t, dt=dt, series=series, z_rms=z_rms,
+        name=shown_name(scenario), batch=int(run.batch), members=members, t=t, dt=dt, series=series, z_rms=z_rms,
         units={key: scenario.unit(key) for key in keys}, y_unit=scenario.unit("y", run.settings),
         output_names=[str(n) for n in scenario.output_names(run.settings)] if hasattr(scenario, "output_names")
         else [],
@@ -109,9 +109,9 @@ def _np(t) -> np.ndarray:
     return t.detach().cpu().numpy() if hasattr(t, "detach") else np.asarray(t)
 
 
-def _name(scenario) -> str:
-    """The name a scenario shows in figures: ``figure_name`` where it has one (a graph built in Python: the name
-    ``rcotorch.refine`` was given, else its output folder's; '' for neither), else its name."""
+def shown_name(scenario) -> str:
+    """The name a scenario (or figure data) shows in figures: ``figure_name`` where it has one (a graph built in
+    Python: the name ``rcotorch.refine`` was given, else its output folder's; '' for neither), else its name."""
     name = getattr(scenario, "figure_name", None)
     if name is None:
         name = getattr(scenario, "name", "") or ""

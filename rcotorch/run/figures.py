@@ -36,7 +36,7 @@ from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter  # noqa: E402
 
-from .figure_data import MAX_LINES  # noqa: E402
+from .figure_data import MAX_LINES, shown_name  # noqa: E402
 
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
@@ -475,11 +475,9 @@ def _with_unit(label: str, unit: str) -> str:
 
 
 def _named(d, what: str) -> str:
-    """A figure's title 'NAME: what', NAME being the name the run shows in figures (``RunFigureData.name``; for
-    a sweep, the scenario's ``figure_name`` where it has one, else its name), the title ``what`` alone for none."""
-    name = getattr(d, "figure_name", None)
-    if name is None:
-        name = getattr(d, "name", "") or ""
+    """A figure's title 'NAME: what', NAME being the name a run's figure data or a scenario shows in figures
+    (``rcotorch.run.figure_data.shown_name``), the title ``what`` alone for none."""
+    name = shown_name(d)
     return f"{name}: {what}" if name else what
 
 
