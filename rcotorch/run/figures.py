@@ -1,7 +1,8 @@
 """Matplotlib figures of a run: estimates vs time with the truth, model error of the initial and the refined
 model, residual checks, frequency responses; a sweep's estimates and errors against its swept settings; PNG
-bytes of figures, drawn on a second thread where the caller has other work meanwhile, and on every core the
-process may use.
+bytes of figures, drawn on a second thread where the caller has other work meanwhile (or in the process
+``rcotorch.run.drawing`` starts beside a run), and on every core the process may use. A run's figures are drawn
+from its figure data (``rcotorch.run.figure_data``: NumPy arrays and text), so that this module imports no torch.
 
 Conventions of every figure here: the truth is drawn dashed in black on top of everything else (so that it stays
 visible where an estimate covers it), the initial model dotted in grey below the estimates; legends sit below the
