@@ -37,7 +37,7 @@ from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter  # noqa: E402
 
-from .figure_data import MAX_LINES, shown_name  # noqa: E402
+from .figure_data import MAX_LINES, TRACE, shown_name  # noqa: E402
 
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
@@ -222,7 +222,7 @@ def residual_figures(d) -> dict:
         ax.grid(alpha=0.3)
         _legend_below(fig, ax, axes=ax)
     figs["residuals"] = fig
-    n = min(len(y), 600)                                          # the last samples of the window
+    n = min(len(y), TRACE)                                        # the last samples of the window
     t = (np.arange(len(y)) - len(y) + 1) * (dt or 1.0)            # 0 at the window's end
     n_y = y.shape[1]
     fig = Figure(figsize=(7.5, 3.8 if n_y == 1 else 2.4 * n_y + 1.4), layout="constrained")
