@@ -545,3 +545,34 @@ def test_rcotorch_run_draws_its_figures_in_a_process_that_imports_matplotlib_bes
     assert names == ["estimates.png", "model_error.png", "output_fit.png", "residuals.png"]
     for name in names:
         assert (tmp_path / "process" / name).read_bytes() == (tmp_path / "none" / name).read_bytes()
+
+
+def test_rcotorch_sweep_draws_its_figures_in_a_process_that_imports_matplotlib_beside_the_sweep(tmp_path):
+    """``rcotorch sweep`` leaves its figures to the drawing process as ``rcotorch run`` does (drawn while the
+    sweep writes its table and HParams sessions): the sweep's own process never imports matplotlib, and the
+    figure is the bytes the sweep draws without that process, with the scenario's units and name."""
+    import json
+    import subprocess
+    import sys
+    config = tmp_path / "sweep.json"
+    config.write_text(json.dumps({"scenario": "sdof-stiffness", "steps": 300, "seeds": 2,
+                                  "grid": {"dK": [0.3, 0.5]}}))
+    script = ("import sys\nfrom rcotorch.run.cli import main\n"
+              "import rcotorch.run.drawing as drawing\n"
+              "if sys.argv[2] == 'none':\n"
+              "    class Absent(drawing.DrawingProcess):\n"
+              "        def __init__(self):\n"
+              "            self.pid = self._jobs = self._results = None\n"
+              "    drawing.DrawingProcess = Absent\n"
+              "code = main(['sweep', sys.argv[3], '--out', sys.argv[1]])\n"
+              "print(code, 'matplotlib' in sys.modules)\n")
+    lines = {}
+    for how in ("process", "none"):
+        done = subprocess.run([sys.executable, "-c", script, str(tmp_path / how), how, str(config)],
+                              capture_output=True, text=True, timeout=300)
+        lines[how] = done.stdout.strip().splitlines()[-1]
+    assert lines == {"process": "0 False", "none": "0 True"}
+    drawn = (tmp_path / "process" / "sweep_dK.png").read_bytes()
+    assert drawn == (tmp_path / "none" / "sweep_dK.png").read_bytes()
+    rows = json.loads((tmp_path / "process" / "sweep.json").read_text())
+    assert png(sweep_figures(rows, ["dK"], "sdof-stiffness")["sweep_dK"]) == drawn

@@ -598,6 +598,11 @@ def test_a_large_sweep_makes_one_session_per_shard_and_says_why(tmp_path, monkey
     assert "6 members" in note and "sweep.csv" in note and "500 runs" in note
     # the shards of a sweep share one Custom Scalars category, named after the sweep
     assert _layout(mux, "shard_0001").category[0].title == "sw (shards): estimates"
+    # each shard's manifest lists the session and the note the sweep wrote into it: --overwrite replaces them
+    # (unlisted, they made the same sweep refuse to run again: "holds results that no rcotorch manifest lists")
+    again = sweeps.run_sweep(sweeps.Sweep.from_dict(SWEEP), out=tmp_path / "sw", progress=False, overwrite=True)
+    assert [r["est_dK"] for r in again] == [r["est_dK"] for r in rows]
+    assert sorted(_sessions(_mux(tmp_path / "sw"))) == ["shard_0000/verdict", "shard_0001/verdict"]
 
 
 def test_sweep_figures_are_written_as_png_and_tensorboard_images(tmp_path):

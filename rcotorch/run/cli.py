@@ -517,7 +517,7 @@ def cmd_sweep(args, session: Session) -> int:
     session.log(f"`{session.command()}`")            # written once run_sweep opens the folder
     rows = _in_shards(session, "sweep", lambda stop: run_sweep(
         sweep, backend=args.backend, device=args.device or "cpu", ray_address=args.ray_address,
-        control=dataclasses.replace(control, stop=stop)))
+        control=dataclasses.replace(control, stop=stop), drawing=session.drawing))
     if rows is None:
         return session.exit_stopped()
     session.log(f"finished: {len(rows)} members")
@@ -641,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if getattr(args, "engine", None):
                 os.environ["RCOTORCH_ENGINE"] = args.engine
-            if args.command == "run" and not args.no_figures:
+            if (args.command == "run" and not args.no_figures) or args.command == "sweep":
                 from .drawing import DrawingProcess
                 session.drawing = DrawingProcess()     # first: it imports matplotlib while this imports torch
             if args.command not in ("list", "show"):

@@ -1,9 +1,11 @@
-"""A process that draws a run's figures beside the run.
+"""A process that draws a run's (or a sweep's) figures beside it.
 
 ``rcotorch run`` starts it first, before it imports torch: while the run imports torch, builds its graph and
 steps, the drawing process imports matplotlib and the figures on a core of its own, and at the end of the run it
 draws the figure data the run sends it (``rcotorch.run.figure_data.RunFigureData``: NumPy arrays and text) on
-every core it may use (``rcotorch.run.figures.pngs``) and sends back their PNG bytes. It never imports torch.
+every core it may use (``rcotorch.run.figures.pngs``) and sends back their PNG bytes. ``rcotorch sweep`` starts
+one the same way for the sweep's figures (``rcotorch.run.figure_data.SweepFigureData``), which it draws while the
+sweep writes its table and HParams sessions. It never imports torch.
 Where it cannot start (off Linux, no process to spare) or fails, the run draws its figures itself, the same
 bytes. Importing this module imports neither torch nor matplotlib.
 """
@@ -21,7 +23,8 @@ from collections.abc import Callable
 
 
 class DrawingProcess:
-    """One forked process that draws one run's figures (``draw``); ``close`` ends it where it was not used."""
+    """One forked process that draws one run's or sweep's figures (``draw``); ``close`` ends it where it was not
+    used."""
 
     def __init__(self) -> None:
         self.pid: int | None = None
@@ -54,9 +57,9 @@ class DrawingProcess:
         return self.pid is not None and self._jobs is not None
 
     def draw(self, data) -> Callable[[], dict[str, bytes]]:
-        """Send ``data`` (``RunFigureData``) to be drawn; the returned function waits for the figures' PNG bytes
-        {name: bytes}, and draws them in this process where the drawing process was not started or failed (so
-        that an error in a figure is raised here, as drawn here)."""
+        """Send ``data`` (``RunFigureData`` or ``SweepFigureData``) to be drawn; the returned function waits for
+        the figures' PNG bytes {name: bytes}, and draws them in this process where the drawing process was not
+        started or failed (so that an error in a figure is raised here, as drawn here)."""
         sent = False
         if self.started:
             try:
@@ -72,8 +75,8 @@ class DrawingProcess:
             out = self._receive() if sent else None
             if out is None:
                 self.close()
-                from .figures import pngs, run_figures
-                out = pngs(run_figures(data))
+                from .figures import figures_of, pngs
+                out = pngs(figures_of(data))
             return out
         return wait
 
@@ -126,7 +129,7 @@ def _serve(jobs: int, results: int) -> None:
             code = 0
             return
         data = pickle.loads(got[0])
-        payload = pickle.dumps(figures.pngs(figures.run_figures(data)), protocol=pickle.HIGHEST_PROTOCOL)
+        payload = pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL)
         with os.fdopen(results, "wb") as f:
             f.write(payload)
         code = 0

@@ -71,6 +71,30 @@ class RunFigureData:
     residuals: ResidualData | None
 
 
+@dataclass
+class SweepFigureData:
+    """Everything ``rcotorch.run.figures.sweep_figures`` draws: the sweep's table (``rows``, one dict per member,
+    as sweep.json holds it), the settings drawn against (``swept``), the units of the estimates and settings, and
+    the scenario's name in the titles ('' for none)."""
+    rows: list[dict[str, Any]]
+    swept: list[str]
+    units: dict[str, str]
+    name: str
+
+
+def sweep_figure_data(rows, swept, scenario=None) -> SweepFigureData:
+    """The figures' data of a finished sweep; ``scenario`` (an object, optional) gives the units and the name."""
+    keys = list(dict.fromkeys(c[4:] for r in rows for c in r if c.startswith("est_")))
+    units: dict[str, str] = {}
+    if scenario is not None:
+        units = {key: scenario.unit(key) for key in keys}
+        units.update({s: scenario.unit(s) for s in swept if s in getattr(scenario, "settings", {})})
+        name = shown_name(scenario)
+    else:
+        name = str(rows[0].get("scenario") or "") if rows else ""
+    return SweepFigureData(rows=[dict(r) for r in rows], swept=list(swept), units=units, name=name)
+
+
 def run_figure_data(run) -> RunFigureData:
     """The figures' data of a run (``rcotorch.run.runner.Run``, or an object with its attributes)."""
     import torch

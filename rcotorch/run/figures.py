@@ -26,7 +26,6 @@ import sys
 import threading
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from types import SimpleNamespace
 
 import matplotlib
 
@@ -37,7 +36,7 @@ from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter  # noqa: E402
 
-from .figure_data import MAX_LINES, TRACE, shown_name  # noqa: E402
+from .figure_data import MAX_LINES, TRACE, SweepFigureData, shown_name, sweep_figure_data  # noqa: E402
 
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
@@ -57,6 +56,12 @@ CROWDED = 0.5          # ... when two neighbours lie closer than this share of t
 TITLE_MARGIN = 90.0    # points of a figure's width beside an axes' title: its tick labels and y label
 TITLE_OVERHANG = 60.0  # points by which a title may be wider than its axes (over their tick labels)
 _MEASURE_LOCK = threading.Lock()
+
+
+def figures_of(data) -> dict:
+    """The figures of figure data: a sweep's (``SweepFigureData``: ``sweep_figures``) or a run's
+    (``rcotorch.run.figure_data.RunFigureData``: ``run_figures``)."""
+    return sweep_figures(data) if isinstance(data, SweepFigureData) else run_figures(data)
 
 
 def run_figures(data) -> dict:
@@ -517,7 +522,7 @@ def frequency_figure(omega, curves: dict, title: str, nyquist: float | None = No
     return fig
 
 
-def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) -> dict:
+def sweep_figures(rows: Sequence[Mapping] | SweepFigureData, swept: Sequence[str] = (), scenario=None) -> dict:
     """The figures of a finished sweep, one per swept setting: for each estimate (the rows' ``est_<key>``
     columns) the estimate against the setting, the truth on top (``truth_<key>``, black crosses), and its
     |error| (``err_<key>``) against the setting, each member a dot coloured by its status. Where members share a
@@ -526,8 +531,11 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
     value in full (no offset above the axis). ``rows``: the sweep's table (``rcotorch.run.sweep.run_sweep``,
     sweep.json); ``swept``: the settings to draw against (columns of the rows; numbers, or words drawn as
     categories; numbers too, where a few values crowd together, as 0.999 and 1 beside 0.99 do); ``scenario`` (a
-    name or object, optional): the units of the axes. Returns {``sweep_<setting>``: Figure}."""
-    sc = _scenario(scenario)
+    name or object, optional): the units of the axes. ``rows`` may instead be the figures' data
+    (``rcotorch.run.figure_data.SweepFigureData``: the rows, settings, units and name), as a drawing process gets
+    them. Returns {``sweep_<setting>``: Figure}."""
+    d = rows if isinstance(rows, SweepFigureData) else sweep_figure_data(rows, swept, _scenario(scenario))
+    rows, swept = d.rows, d.swept
     keys = list(dict.fromkeys(c[4:] for r in rows for c in r if c.startswith("est_")))
     figs = {}
     if not rows or not keys:
@@ -545,7 +553,7 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
             est = _column(rows, f"est_{key}")
             truth = _column(rows, f"truth_{key}")
             err = np.abs(_column(rows, f"err_{key}"))
-            unit = sc.unit(key) if sc is not None else ""
+            unit = d.units.get(key, "")
             for name in dict.fromkeys(status):
                 sel = np.array([s == name for s in status])
                 colour = STATUS_COLOURS.get(name, "tab:blue")
@@ -576,16 +584,14 @@ def sweep_figures(rows: Sequence[Mapping], swept: Sequence[str], scenario=None) 
                 value = ticks[int(groups[best][0])] if ticks is not None else _value_text(groups[best][0])
                 head += f": smallest median at {setting} = {value}"
             _title(row[1], head, fontsize=10)
-        s_unit = sc.unit(setting) if sc is not None and setting in getattr(sc, "settings", {}) else ""
+        s_unit = d.units.get(setting, "")
         for ax in axes[-1]:
             ax.set_xlabel(_with_unit(setting, s_unit))
             if ticks is not None:
                 ax.set_xticks(range(len(ticks)), ticks)
             elif _log_spread(x):
                 ax.set_xscale("log")
-        shown = sc if sc is not None else SimpleNamespace(
-            name=rows[0].get("scenario") if isinstance(rows[0], Mapping) else None)
-        _title(axes[0, 0], _named(shown, f"estimates against {setting} ({len(rows)} members)"))
+        _title(axes[0, 0], _named(d, f"estimates against {setting} ({len(rows)} members)"))
         _legend_below(fig, axes[0, 0], more=list(axes.flat[1:]))
         figs[f"sweep_{setting}"] = fig
     return figs

@@ -53,7 +53,7 @@ import math
 import re
 import time
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -540,15 +540,17 @@ def write_images(writer: EventFile, pngs: Mapping[str, bytes], step: int, wall: 
 
 
 def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: list[str], scenario=None,
-                        run: str | Path | None = None) -> list[Path]:
+                        run: str | Path | None = None, drawn: Callable[[], dict[str, bytes]] | None = None
+                        ) -> list[Path]:
     """The figures of a finished sweep (``rcotorch.run.figures.sweep_figures``: each estimate and its |error| against
     each swept setting) as PNG files ``out/sweep_<setting>.png`` and as images ``figures/sweep_<setting>`` of
     the TensorBoard run in ``run`` (a sweep: its first shard's folder, so that the sweep's folder is no run of
-    its own and the sweep adds no run to TensorBoard's list; default ``out``). Returns the files written."""
-    from .figures import pngs, sweep_figures
+    its own and the sweep adds no run to TensorBoard's list; default ``out``). ``drawn``: where the figures are
+    being drawn already (``draw_sweep_figures``), the function that waits for their PNG bytes. Returns the files
+    written."""
     from .outputs import MANIFEST, atomic_write, list_in_manifest
     out = Path(out)
-    drawn = pngs(sweep_figures(rows, swept, scenario))
+    drawn = (drawn or draw_sweep_figures(rows, swept, scenario))()
     paths = []
     for name, data in drawn.items():
         atomic_write(out / f"{name}.png", lambda f, data=data: f.write(data))
@@ -559,6 +561,29 @@ def write_sweep_figures(out: str | Path, rows: list[Mapping[str, Any]], swept: l
         if run is not None and (Path(run) / MANIFEST).exists():      # a finished shard lists what it holds
             list_in_manifest(run, [w.path])
     return paths
+
+
+def draw_sweep_figures(rows: list[Mapping[str, Any]], swept: list[str], scenario=None, drawing=None
+                       ) -> Callable[[], dict[str, bytes]]:
+    """Start drawing a finished sweep's figures: in ``drawing`` (a ``rcotorch.run.drawing.DrawingProcess``), which
+    draws them while the caller goes on, else here when the returned function is called; that function returns
+    their PNG bytes {name: bytes}. ``scenario``: a name or object (the units and the name in the titles)."""
+    from .figure_data import sweep_figure_data
+    if isinstance(scenario, str):
+        from ..errors import RcoError
+        from . import scenario as scenarios
+        try:
+            scenario = scenarios.get(scenario)
+        except RcoError:                  # a name no scenario has: no units
+            scenario = None
+    data = sweep_figure_data(rows, swept, scenario)
+    if drawing is not None and drawing.started:
+        return drawing.draw(data)
+
+    def here() -> dict[str, bytes]:
+        from .figures import pngs, sweep_figures
+        return pngs(sweep_figures(data))
+    return here
 
 
 def final_values(summary: Mapping[str, Any], scenario=None) -> dict[str, float]:

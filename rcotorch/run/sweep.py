@@ -399,7 +399,7 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
 
 def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: str | Path | None = None,
               ray_address: str | None = None, progress: bool = True, overwrite: bool = False,
-              resume: bool = False, stop=None, folder=None, control: RunControl | None = None
+              resume: bool = False, stop=None, folder=None, control: RunControl | None = None, drawing=None
               ) -> list[dict[str, Any]]:
     """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``.
 
@@ -408,8 +408,10 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     between steps (Ctrl-C, SIGTERM, SIGHUP): the running shard saves a checkpoint and ``Interrupted`` is raised.
     ``folder``: an ``OutputFolder`` for ``out`` made by the caller, who closes it (and may log into it
     meanwhile). ``control``: these five (``progress``, ``overwrite``, ``resume``, ``stop``, ``folder``) as one
-    ``rcotorch.run.control.RunControl``, given instead of them. A sweep refused (an ``RcoError``) before its
-    first shard wrote anything leaves the folder as it found it."""
+    ``rcotorch.run.control.RunControl``, given instead of them. ``drawing``: a ``rcotorch.run.drawing.DrawingProcess``
+    that draws the sweep's figures while the sweep writes its table (``rcotorch sweep`` starts one before it
+    imports torch); without it they are drawn here. A sweep refused (an ``RcoError``) before its first shard wrote
+    anything leaves the folder as it found it."""
     from .control import RunControl
     from .outputs import OutputFolder
     if backend not in ("local", "ray"):
@@ -444,10 +446,12 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
             rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, control)
         rows.sort(key=lambda r: r["member"])
         folder.check()
+        from .monitor import draw_sweep_figures, write_sweep_figures
+        swept = list(sweep.grid) + list(sweep.random) or ["seed"]
+        drawn = draw_sweep_figures(rows, swept, sc, drawing)       # in the drawing process meanwhile, where given
         write_table(rows, out)
         write_hparams(rows, sweep, out, [Path(o) for o in shard_out])
-        from .monitor import write_sweep_figures
-        write_sweep_figures(out, rows, list(sweep.grid) + list(sweep.random) or ["seed"], sc, run=shard_out[0])
+        write_sweep_figures(out, rows, swept, sc, run=shard_out[0], drawn=drawn)
         folder.register()
     except RcoError:
         folder.discard()
@@ -555,9 +559,7 @@ def write_table(rows: list[dict[str, Any]], out: Path) -> None:
     from .outputs import write_text
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "sweep.json", json.dumps(rows, indent=1) + "\n")
-    columns: list[str] = []
-    for r in rows:
-        columns += [c for c in r if c not in columns]
+    columns = list(dict.fromkeys(c for r in rows for c in r))          # each column once, in the order met
     text = io.StringIO(newline="")
     w = csv.DictWriter(text, fieldnames=columns)
     w.writeheader()
@@ -582,6 +584,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     import time
 
     from .monitor import SESSION, EventFile, final_values, setting_text, write_session
+    from .outputs import MANIFEST, list_in_manifest
     sc = sweep.scenario
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
@@ -624,8 +627,10 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
         with EventFile(folder / SESSION) as w:
             write_session(w, hp, summary, scenario=sc)
             w.scalars(summary["steps"], time.time(), list(final_values(summary, scenario=sc).items()))
-        with EventFile(folder) as w:
-            w.add_text("sweep", note, 0)
+        with EventFile(folder) as n:
+            n.add_text("sweep", note, 0)
+        if (folder / MANIFEST).is_file():        # the shard lists them, so that --overwrite may replace them
+            list_in_manifest(folder, [w.path, n.path])
 
 
 def _member_summary(row: Mapping[str, Any], settings: set[str]) -> dict[str, Any]:
