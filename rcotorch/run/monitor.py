@@ -422,34 +422,39 @@ class Monitor:
         band_at, widths = ({s: i for i, s in enumerate(band[0])}, band[1]) if band is not None else ({}, {})
         main: dict[int, list] = {s: [] for s in steps}
         edges: dict[int, dict[str, list]] = {s: {LOW: [], HIGH: []} for s in steps}
+        rows = [at[s] for s in steps]
         for key in found.estimate:
             lo, hi = _finite(found.lower(key).cpu().numpy()), _finite(found.upper(key).cpu().numpy())
             if not (lo.size and hi.size) or not history.get(key):
                 continue
             t = self.tags(key)
             scale = t.scaled.scale
-            values = torch.stack(history[key]).to(torch.float64)          # (T, history members)
+            # every step at once: the history members' values (steps, members), their mean where finite
+            v = torch.stack(history[key]).to(torch.float64).cpu().numpy()[rows]
+            ok = np.isfinite(v)
+            mid = _row_means(v, ok)
+            lower, upper = np.full(len(steps), float(lo.mean())), np.full(len(steps), float(hi.mean()))
             hw = widths.get(key)
-            below, above = (r.to(torch.float64).cpu()[self.run.history_members] for r in found.side_ratios(key))
+            banded = [i for i, s in enumerate(steps) if s in band_at]
+            if hw is not None and banded:
+                below, above = (r.to(torch.float64).cpu().numpy()[self.run.history_members]
+                                for r in found.side_ratios(key))
+                w = np.asarray(hw)[[band_at[steps[i]] for i in banded]]                  # (steps, m)
+                m = w.shape[1]
+                inside = ok[banded, :m] & np.isfinite(w)
+                has = inside.any(1)          # each side as far as the final interval's, in half-widths
+                centre = _row_means(v[banded, :m], inside)
+                sel = np.asarray(banded, dtype=np.int64)[has]
+                mid[sel] = centre[has]
+                lower[sel] = centre[has] - _row_means(w * below[:m], inside)[has]
+                upper[sel] = centre[has] + _row_means(w * above[:m], inside)[has]
             own = self.batch == 1 and not t.tolerance
-            for step in steps:
-                v = values[at[step]]
-                ok = torch.isfinite(v)
-                if not bool(ok.any()):
-                    continue
-                mid = float(v[ok].mean())
-                lower, upper = float(lo.mean()), float(hi.mean())
-                if hw is not None and step in band_at:
-                    w = hw[band_at[step]]
-                    inside = ok[:w.shape[0]] & torch.isfinite(w)
-                    if bool(inside.any()):          # each side as far as the final interval's, in half-widths
-                        mid = float(v[:w.shape[0]][inside].mean())
-                        lower = mid - float((w * below[:w.shape[0]])[inside].mean())
-                        upper = mid + float((w * above[:w.shape[0]])[inside].mean())
-                main[step] += [(t.centre, mid / scale), (t.lower, lower / scale), (t.upper, upper / scale)]
+            for i in np.flatnonzero(ok.any(1)).tolist():
+                step, low, high = steps[i], float(lower[i]) / scale, float(upper[i]) / scale
+                main[step] += [(t.centre, float(mid[i]) / scale), (t.lower, low), (t.upper, high)]
                 if own:
-                    edges[step][LOW].append((t.estimate, lower / scale))
-                    edges[step][HIGH].append((t.estimate, upper / scale))
+                    edges[step][LOW].append((t.estimate, low))
+                    edges[step][HIGH].append((t.estimate, high))
         for step in steps:
             if main[step]:
                 self.writer.scalars(step, self.wall(step), main[step])
@@ -513,12 +518,20 @@ def _column_means(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, np.where(ok, a, 0.0).sum(0) / np.maximum(n, 1), math.nan)
 
 
+def _row_means(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The mean of each row of ``a`` over the entries ``ok`` (NaN for none)."""
+    n = ok.sum(1)
+    return np.where(n > 0, np.where(ok, a, 0.0).sum(1) / np.maximum(n, 1), math.nan)
+
+
 def _finite(v: np.ndarray) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
 def db(rms):
     """20 log10 of an rms (a number or an array): ``DB_FLOOR`` where it is zero, NaN where it is NaN."""
+    if isinstance(rms, float):                      # one number (a float or a NumPy float64)
+        return 20.0 * math.log10(rms) if rms > 0 else DB_FLOOR if rms == 0 else math.nan
     x = np.asarray(rms, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.where(x > 0, 20.0 * np.log10(np.where(x > 0, x, 1.0)), np.where(x == 0, DB_FLOOR, math.nan))
