@@ -12,6 +12,7 @@ bytes. Importing this module imports neither torch nor matplotlib.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import pickle
@@ -20,6 +21,8 @@ import sys
 import threading
 import warnings
 from collections.abc import Callable
+
+NICE = 10      # the drawing process's niceness above the run's (about a tenth of a core where both want one)
 
 
 class DrawingProcess:
@@ -115,6 +118,8 @@ def _serve(jobs: int, results: int) -> None:
         gc.disable()        # no collection here: the finalizers of the parent's garbage (files, folders) stay its own
         signal.signal(signal.SIGINT, signal.SIG_IGN)     # Ctrl-C reaches the process group: the run answers it
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        with contextlib.suppress(OSError):
+            os.nice(NICE)       # a core the run needs goes to the run: the drawing takes the cores it leaves idle
         got: list[bytes] = []
 
         def read() -> None:

@@ -685,10 +685,11 @@ class Run:
 
     def finish(self, figures: bool = True, close: bool = True, progress: bool | None = None) -> dict[str, Any]:
         """Write summary.json, the figures (PNG and TensorBoard) and a final checkpoint; release the folder
-        (unless ``close`` is False). The run's own figures (from its history) are drawn while summary.json and
-        the checkpoint are written: by the drawing process handed to the run (``drawing``, as ``rcotorch run``
-        does), else on a second thread; the scenario's figures (which may read the graph and use pyplot) are
-        drawn before, in this thread. ``progress``: show the parts of the end as a progress
+        (unless ``close`` is False). The run's own figures (from its history) are drawn by the drawing process
+        handed to the run (``drawing``, as ``rcotorch run`` does) while this process makes the summary, draws the
+        scenario's figures and writes summary.json and the checkpoint; else on a second thread while the files are
+        written, after the scenario's figures (which may read the graph and use pyplot), drawn in this thread.
+        ``progress``: show the parts of the end as a progress
         bar (None: where the steps showed one). ``timings`` then holds the seconds of each part: ``intervals``
         (the replay of the window and the intervals), ``validation``, ``summary`` (the rest of it), ``figures``,
         ``files`` (summary.json, the checkpoint, TensorBoard's last records) and ``end`` (all of it)."""
@@ -712,21 +713,26 @@ class Run:
                 if bar is not None:
                     bar.update(1)
             t = time.perf_counter()
+            run_pngs = None
+            if figures and self.drawing is not None and self.drawing.started:
+                # the drawing process draws the run's figures while this one makes the summary and the scenario's
+                # own figures: they read the intervals, residual checks and validation just computed, not the summary
+                from .figure_data import run_figure_data
+                run_pngs = self.drawing.draw(run_figure_data(self))
+            sent = time.perf_counter() - t
+            t = time.perf_counter()
             summary = self.summary()
             self.timings["summary"] = time.perf_counter() - t
             if bar is not None:
                 bar.set_postfix_str("figures" if figures else "files")
                 bar.update(1)
-            t = time.perf_counter()
+            t = time.perf_counter() - sent
             if figures:
                 scenario_pngs = {}
                 if self._own_figures():
                     from .figures import pngs
                     scenario_pngs = pngs(self.scenario.figures(self.graph, self.settings))
-                if self.drawing is not None and self.drawing.started:
-                    from .figure_data import run_figure_data
-                    run_pngs = self.drawing.draw(run_figure_data(self))
-                else:
+                if run_pngs is None:
                     from .figures import draw_meanwhile, run_figures
                     run_pngs = draw_meanwhile(lambda: run_figures(self))
             t_files = time.perf_counter()
