@@ -513,6 +513,26 @@ def test_a_drawing_process_draws_the_same_bytes_and_the_run_draws_them_itself_wh
     unused.close()
     with pytest.raises(ChildProcessError):
         os.waitpid(pid, os.WNOHANG)
+    # several jobs, drawn in the order sent; one that fails there, or a process that died, leaves the rest to the
+    # run (a job sent after the failure never blocks on the pipe)
+    import dataclasses
+    first, second = (dataclasses.replace(data, only=names) for names in (("estimates",), ("model_error",)))
+    two = DrawingProcess()
+    waits = [two.draw(first, more=True), two.draw(second)]
+    assert [w() for w in waits] == [{"estimates": expected["estimates"]}, {"model_error": expected["model_error"]}]
+    assert two.pid is None
+    broken = dataclasses.replace(first, series={"dK": np.zeros(3)})
+    failing = DrawingProcess()
+    waits = [failing.draw(second, more=True), failing.draw(broken, more=True), failing.draw(first)]
+    assert waits[0]() == {"model_error": expected["model_error"]}
+    with pytest.raises(IndexError):
+        waits[1]()
+    assert waits[2]() == {"estimates": expected["estimates"]} and failing.pid is None
+    killed = DrawingProcess()
+    wait_first = killed.draw(first, more=True)
+    assert wait_first() == {"estimates": expected["estimates"]}
+    os.kill(killed.pid, signal.SIGKILL)
+    assert killed.draw(second)() == {"model_error": expected["model_error"]} and killed.pid is None
     data.series = {"dK": np.zeros(3)}              # one dimension where a path over time needs two
     with pytest.raises(IndexError):
         DrawingProcess().draw(data)()
@@ -579,9 +599,11 @@ def test_rcotorch_sweep_draws_its_figures_in_a_process_that_imports_matplotlib_b
 
 
 def test_the_drawing_process_yields_a_core_the_run_needs_and_gets_its_data_before_the_summary(tmp_path):
-    """The drawing process runs at a lower priority (``NICE``): where the run's end still computes (its summary,
-    a scenario's own figures), the run keeps its core and the drawing takes what is idle. It is sent the run's
-    figure data before the summary is made, so that it draws while the run makes it."""
+    """The drawing process runs at a lower priority (``NICE``): where the run's end still computes (validation,
+    its summary, a scenario's own figures), the run keeps its core and the drawing takes what is idle. It is sent
+    the figures that show no validation once the intervals are done (drawn while the run validates: without
+    the held-out data, which the run has not measured yet), the figure of the held-out data after validation,
+    both before the summary is made; the files are those of one job."""
     import time
 
     from rcotorch.run.drawing import NICE, DrawingProcess
@@ -599,11 +621,16 @@ def test_the_drawing_process_yields_a_core_the_run_needs_and_gets_its_data_befor
     run = Run("sdof-stiffness", steps=200, batch=2, out=tmp_path / "r", log_every=20)
     run.drawing = DrawingProcess()
     sent = run.drawing.draw
-    run.drawing.draw = lambda data: (order.append("figure data"), sent(data))[1]
+    run.drawing.draw = lambda data, **kw: (order.append((data.only, data.held_out is None)), sent(data, **kw))[1]
     made = run.summary
     run.summary = lambda: (order.append("summary"), made())[1]
     run.advance(progress=False)
     run.finish(progress=False)
-    assert order == ["figure data", "summary"]
-    assert sorted(p.name for p in (tmp_path / "r").glob("*.png")) == ["estimates.png", "model_error.png",
-                                                                       "output_fit.png", "residuals.png"]
+    assert order == [(("estimates", "residuals", "output_fit"), True), (("model_error",), False), "summary"]
+    names = ["estimates.png", "model_error.png", "output_fit.png", "residuals.png"]
+    assert sorted(p.name for p in (tmp_path / "r").glob("*.png")) == names
+    one = Run("sdof-stiffness", steps=200, batch=2, out=tmp_path / "one", log_every=20)
+    one.advance(progress=False)
+    one.finish(progress=False)                  # no drawing process: drawn here, in one go
+    for name in names:
+        assert (tmp_path / "r" / name).read_bytes() == (tmp_path / "one" / name).read_bytes(), name

@@ -16,6 +16,7 @@ import contextlib
 import gc
 import os
 import pickle
+import queue
 import signal
 import sys
 import threading
@@ -26,13 +27,16 @@ NICE = 10      # the drawing process's niceness above the run's (about a tenth o
 
 
 class DrawingProcess:
-    """One forked process that draws one run's or sweep's figures (``draw``); ``close`` ends it where it was not
-    used."""
+    """One forked process that draws one run's or sweep's figures (``draw``, one or more jobs); ``close`` ends it
+    where it was not used."""
 
     def __init__(self) -> None:
         self.pid: int | None = None
         self._jobs: int | None = None          # the pipe the figure data go to
         self._results: int | None = None       # the pipe the PNG bytes come back on
+        self._sent = 0                         # jobs sent, and the results read back, in order
+        self._got: dict[int, dict[str, bytes]] = {}
+        self._read = 0
         if not sys.platform.startswith("linux") or not hasattr(os, "fork"):
             return
         jobs_r, jobs_w = os.pipe()
@@ -56,26 +60,28 @@ class DrawingProcess:
 
     @property
     def started(self) -> bool:
-        """Whether the process runs and has not been sent its figures yet."""
+        """Whether the process runs and takes figures to draw (its last job not sent yet)."""
         return self.pid is not None and self._jobs is not None
 
-    def draw(self, data) -> Callable[[], dict[str, bytes]]:
+    def draw(self, data, more: bool = False) -> Callable[[], dict[str, bytes]]:
         """Send ``data`` (``RunFigureData`` or ``SweepFigureData``) to be drawn; the returned function waits for
         the figures' PNG bytes {name: bytes}, and draws them in this process where the drawing process was not
-        started or failed (so that an error in a figure is raised here, as drawn here)."""
-        sent = False
+        started or failed (so that an error in a figure is raised here, as drawn here). ``more``: another job
+        follows (the process draws its jobs in the order sent); else this is its last."""
+        index = None
         if self.started:
             try:
-                payload = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
-                with os.fdopen(self._jobs, "wb") as f:
-                    self._jobs = None
-                    f.write(payload)
-                sent = True
+                _write_frame(self._jobs, pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL))
+                index = self._sent
+                self._sent += 1
             except OSError:                  # the process has ended
                 pass
+            if not more or index is None:
+                os.close(self._jobs)
+                self._jobs = None
 
         def wait() -> dict[str, bytes]:
-            out = self._receive() if sent else None
+            out = None if index is None else self._result(index)
             if out is None:
                 self.close()
                 from .figures import figures_of, pngs
@@ -83,15 +89,27 @@ class DrawingProcess:
             return out
         return wait
 
-    def _receive(self) -> dict[str, bytes] | None:
-        with os.fdopen(self._results, "rb") as f:
+    def _result(self, index: int) -> dict[str, bytes] | None:
+        """The PNG bytes of job ``index``, reading the results in order; None where the process ended (or failed)
+        before it sent them. The process is reaped once every result sent is read."""
+        while index >= self._read and self._results is not None:
+            frame = _read_frame(self._results)
+            if frame is None:
+                self._reap()
+                break
+            self._got[self._read] = pickle.loads(frame)
+            self._read += 1
+        if self._results is not None and self._jobs is None and self._read == self._sent:
+            self._reap()
+        return self._got.pop(index, None)
+
+    def _reap(self) -> None:
+        if self._results is not None:
+            os.close(self._results)
             self._results = None
-            payload = f.read()
-        _, status = os.waitpid(self.pid, 0)
-        self.pid = None
-        if status != 0 or not payload:
-            return None
-        return pickle.loads(payload)
+        if self.pid is not None and self._jobs is None:
+            os.waitpid(self.pid, 0)
+            self.pid = None
 
     def close(self) -> None:
         """End the process (where it still runs) and release its pipes."""
@@ -109,10 +127,35 @@ class DrawingProcess:
             self.pid = None
 
 
+def _write_frame(fd: int, payload: bytes) -> None:
+    """One message on a pipe: its length (8 bytes, little-endian), then its bytes."""
+    view = memoryview(len(payload).to_bytes(8, "little") + payload)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _read_frame(fd: int) -> bytes | None:
+    """The next message on a pipe (``_write_frame``); None where the pipe ended before a whole one."""
+    def exactly(n: int) -> bytes | None:
+        parts, left = [], n
+        while left:
+            chunk = os.read(fd, min(left, 1 << 20))
+            if not chunk:
+                return None
+            parts.append(chunk)
+            left -= len(chunk)
+        return b"".join(parts)
+    head = exactly(8)
+    return None if head is None else exactly(int.from_bytes(head, "little"))
+
+
 def _serve(jobs: int, results: int) -> None:
-    """In the forked process: read the figure data from ``jobs`` while importing the figures, draw them and
-    write their pickled PNG bytes to ``results``; end with status 0 only where all of that succeeded (or no
-    figures came: the run ended without them)."""
+    """In the forked process: read the figure data from ``jobs`` while importing the figures (a thread reads every
+    job as it comes, so that a job sent while this draws never waits on the pipe); draw each job in a process of
+    its own, forked as the job comes (a job sent while an earlier one is drawn is drawn beside it), and write
+    their pickled PNG bytes to ``results`` in the order the jobs came. End with status 0 only where all of that
+    succeeded (or no figures came: the run ended without them); at the first job that fails, end at once with
+    status 1 (the run draws that job and the later ones itself)."""
     code = 1
     try:
         gc.disable()        # no collection here: the finalizers of the parent's garbage (files, folders) stay its own
@@ -120,25 +163,56 @@ def _serve(jobs: int, results: int) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         with contextlib.suppress(OSError):
             os.nice(NICE)       # a core the run needs goes to the run: the drawing takes the cores it leaves idle
-        got: list[bytes] = []
+        got: queue.SimpleQueue = queue.SimpleQueue()
+        drawn: queue.SimpleQueue = queue.SimpleQueue()   # (pid, pipe) of each job's process, in order; None: the end
 
         def read() -> None:
-            with os.fdopen(jobs, "rb") as f:
-                got.append(f.read())
-        reader = threading.Thread(target=read, daemon=True)
-        reader.start()
+            while True:
+                frame = _read_frame(jobs)
+                got.put(frame)
+                if frame is None:
+                    return
+
+        def forward() -> None:
+            while (job := drawn.get()) is not None:
+                pid, pipe = job
+                payload = _read_frame(pipe)
+                os.close(pipe)
+                _, status = os.waitpid(pid, 0)
+                if payload is None or status != 0:
+                    os._exit(1)
+                _write_frame(results, payload)
+        threading.Thread(target=read, daemon=True).start()
+        forwarder = threading.Thread(target=forward, daemon=True)
+        forwarder.start()
         from . import figures  # matplotlib: the long part, beside the run
         figures.warm()
-        reader.join()
-        if not got or not got[0]:
-            code = 0
-            return
-        data = pickle.loads(got[0])
-        payload = pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL)
-        with os.fdopen(results, "wb") as f:
-            f.write(payload)
+        while (frame := got.get()) is not None:
+            drawn.put(_draw_apart(figures, frame))
+        drawn.put(None)
+        forwarder.join()
         code = 0
     except BaseException:       # the run draws the figures itself, and reports what fails there
         code = 1
     finally:
         os._exit(code)
+
+
+def _draw_apart(figures, frame: bytes) -> tuple[int, int]:
+    """Fork a process that draws one job (its pickled figure data) and writes its pickled PNG bytes to a pipe;
+    returns its pid and the pipe's reading end."""
+    r, w = os.pipe()
+    with warnings.catch_warnings():           # the threads here only read pipes: none holds what the fork needs
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.close(r)
+            data = pickle.loads(frame)
+            _write_frame(w, pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL))
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(w)
+    return pid, r

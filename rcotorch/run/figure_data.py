@@ -69,6 +69,7 @@ class RunFigureData:
     held_out: tuple[float, float] | None           # member 0's rms of z on held-out data: initial, refined
     trace: tuple[str, np.ndarray, np.ndarray, np.ndarray, int] | None
     residuals: ResidualData | None
+    only: tuple[str, ...] | None = None            # the figures to draw (None: all of them)
 
 
 @dataclass
@@ -95,8 +96,14 @@ def sweep_figure_data(rows, swept, scenario=None) -> SweepFigureData:
     return SweepFigureData(rows=[dict(r) for r in rows], swept=list(swept), units=units, name=name)
 
 
-def run_figure_data(run) -> RunFigureData:
-    """The figures' data of a run (``rcotorch.run.runner.Run``, or an object with its attributes)."""
+RUN_FIGURES = ("estimates", "model_error", "residuals", "output_fit")   # the figures a run draws, where it has them
+HELD_OUT_FIGURES = ("model_error",)      # those that draw what validation measured
+
+
+def run_figure_data(run, held_out: bool = True, only=None) -> RunFigureData:
+    """The figures' data of a run (``rcotorch.run.runner.Run``, or an object with its attributes). ``held_out``:
+    False leaves validation out (not run, not read: no held-out rms or trace), for the figures other than
+    ``HELD_OUT_FIGURES``, drawn while the run validates; ``only``: the names of the figures to draw (None: all)."""
     import torch
     h = run.history
     dt = run.graph.known_sample_time()
@@ -108,7 +115,8 @@ def run_figure_data(run) -> RunFigureData:
     z_rms = _np(torch.stack(h["z_rms"]))[:, :MAX_LINES] if len(t) and h.get("z_rms") else None
     found = run.intervals() if hasattr(run, "intervals") else None
     res = run.residuals() if hasattr(run, "residuals") else None
-    held = run.validation() if hasattr(run, "validation") and getattr(run, "validation_on", False) else None
+    held = run.validation() if held_out and hasattr(run, "validation") and getattr(run, "validation_on", False) \
+        else None
     history = getattr(run, "truth_history", None) or {}
     truth = dict(run.truth)
     scenario = run.scenario
@@ -126,7 +134,8 @@ def run_figure_data(run) -> RunFigureData:
         intervals=_intervals(run, found, members, dt) if found is not None else None,
         band=_band(run, t, members), held_out=None if held is None else
         (float(held.rmse_initial[0]), float(held.rmse[0])),
-        trace=_trace(held, res), residuals=_residuals(run, res) if res is not None else None)
+        trace=_trace(held, res), residuals=_residuals(run, res) if res is not None else None,
+        only=None if only is None else tuple(only))
 
 
 def _np(t) -> np.ndarray:

@@ -70,17 +70,20 @@ def run_figures(data) -> dict:
     intervals) and the model error: the rms of z over each log interval, and z of the initial model beside the
     refined one's on held-out data (or on the replayed window), with units and legends below the axes.
     ``data``: the run's figure data (``rcotorch.run.figure_data.run_figure_data``), or a run, whose data are
-    taken then."""
+    taken then; where the data name the figures to draw (``only``), those of them the run has."""
     if not hasattr(data, "series"):
         from .figure_data import run_figure_data
         data = run_figure_data(data)
     d = data
+
+    def wanted(name: str) -> bool:
+        return d.only is None or name in d.only
     t = d.t
     xlabel = "time [s]" if d.dt else "step"
     figs = {}
     keys = list(d.series)
     log_t = not d.changes and log_time_axis(t, d.series.values())          # a run with a change: linear time
-    if keys and len(t):
+    if keys and len(t) and wanted("estimates"):
         found = d.intervals
         start = found.window_start if found is not None else None
         zoom = found is not None and bool((t >= start).sum() >= 2)
@@ -104,10 +107,10 @@ def run_figures(data) -> dict:
             _title(axes[0, 1], f"window: final {found.level:.0%} intervals")
         _legend_below(fig, axes[0, 0], more=list(axes.flat[1:]))
         figs["estimates"] = fig
-    if len(t) and d.z_rms is not None:
+    if len(t) and d.z_rms is not None and wanted("model_error"):
         figs["model_error"] = _model_error_figure(d, xlabel, log_t)
-    if d.residuals is not None:
-        figs.update(residual_figures(d))
+    if d.residuals is not None and (wanted("residuals") or wanted("output_fit")):
+        figs.update({name: fig for name, fig in residual_figures(d).items() if wanted(name)})
     return figs
 
 

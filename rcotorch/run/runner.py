@@ -700,6 +700,25 @@ class Run:
             from tqdm import tqdm
             bar = tqdm(total=len(parts) + 2, desc="verdict", unit="part", mininterval=0, disable=None,
                        file=sys.stderr, bar_format="{desc}: {n_fmt}/{total_fmt} parts, {elapsed}{postfix}")
+        waits, sent = [], 0.0
+
+        def send(held_out: bool) -> None:
+            """The run's figures to the drawing process, which draws them while this one goes on: after the
+            intervals, those that do not show validation (drawn while the run validates); after validation, the
+            rest (drawn while the run makes its summary and the scenario's own figures). None reads the summary."""
+            nonlocal sent
+            if not (figures and self.drawing is not None and self.drawing.started):
+                return
+            from .figure_data import HELD_OUT_FIGURES, RUN_FIGURES, run_figure_data
+            t = time.perf_counter()
+            if not self.validation_on:         # one job: every figure
+                only, more = None, False
+            elif held_out:
+                only, more = HELD_OUT_FIGURES, False
+            else:
+                only, more = [n for n in RUN_FIGURES if n not in HELD_OUT_FIGURES], True
+            waits.append(self.drawing.draw(run_figure_data(self, held_out=held_out, only=only), more=more))
+            sent += time.perf_counter() - t
         try:
             self._start_monitor()
             if self.sums.pending_log():
@@ -710,16 +729,15 @@ class Run:
                     self._replay_progress = functools.partial(_say_share, bar, what)
                 part()
                 self._replay_progress = None
+                if part == self._replayed:
+                    send(held_out=False)
                 if bar is not None:
                     bar.update(1)
-            t = time.perf_counter()
+            if self.validation_on:
+                send(held_out=True)
             run_pngs = None
-            if figures and self.drawing is not None and self.drawing.started:
-                # the drawing process draws the run's figures while this one makes the summary and the scenario's
-                # own figures: they read the intervals, residual checks and validation just computed, not the summary
-                from .figure_data import run_figure_data
-                run_pngs = self.drawing.draw(run_figure_data(self))
-            sent = time.perf_counter() - t
+            if waits:
+                run_pngs = lambda: {name: png for wait in waits for name, png in wait().items()}   # noqa: E731
             t = time.perf_counter()
             summary = self.summary()
             self.timings["summary"] = time.perf_counter() - t
