@@ -1,6 +1,7 @@
 """What a sweep costs per shard: 64 members of sdof-stiffness over a grid of 16 values of nu (a setting that fixes
 the graph's structure, so each value is a shard of its own) with 4 seeds each, 2000 steps, as
-``rcotorch sweep`` runs it (shards in this process, one after another).
+``rcotorch sweep`` runs it (shards in this process, one after another; the sweep's figures in the drawing process
+that ``rcotorch sweep`` starts, ``rcotorch.run.drawing``).
 
     python benchmarks/sweep_cost.py --threads 1          # about half a minute
 
@@ -21,6 +22,7 @@ import torch
 from common import add_common_args, machine, setup_cpu, table, write_json
 
 from rcotorch.run import scenario as scenarios
+from rcotorch.run.drawing import DrawingProcess
 from rcotorch.run.sweep import Sweep, run_sweep
 
 NAME = "sdof-stiffness"
@@ -44,7 +46,7 @@ def main(argv=None) -> dict:
     sc.build(sc.resolve({"nu": values[0]}), 4, torch.float64, "cpu").advance(10)     # imports and compilation
     with tempfile.TemporaryDirectory() as folder:
         t = time.perf_counter()
-        rows = run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False)
+        rows = run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False, drawing=DrawingProcess())
         total = time.perf_counter() - t
     t = time.perf_counter()
     for nu in values:
@@ -71,10 +73,11 @@ def large(steps: int) -> dict:
     spec = {"scenario": NAME, "steps": steps, "seeds": 64, "grid": {"nu": list(range(5, 69))}}
     with tempfile.TemporaryDirectory() as folder:
         t = time.perf_counter()
-        run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False)
+        run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False, drawing=DrawingProcess())
         sweep_s = time.perf_counter() - t
         t = time.perf_counter()
         run = Run(NAME, batch=4096, steps=steps, out=Path(folder) / "one")
+        run.drawing = DrawingProcess()       # as rcotorch run starts it
         run.advance(progress=False)
         run.finish(progress=False)
         one_s = time.perf_counter() - t
