@@ -700,25 +700,7 @@ class Run:
             from tqdm import tqdm
             bar = tqdm(total=len(parts) + 2, desc="verdict", unit="part", mininterval=0, disable=None,
                        file=sys.stderr, bar_format="{desc}: {n_fmt}/{total_fmt} parts, {elapsed}{postfix}")
-        waits, sent = [], 0.0
-
-        def send(held_out: bool) -> None:
-            """The run's figures to the drawing process, which draws them while this one goes on: after the
-            intervals, those that do not show validation (drawn while the run validates); after validation, the
-            rest (drawn while the run makes its summary and the scenario's own figures). None reads the summary."""
-            nonlocal sent
-            if not (figures and self.drawing is not None and self.drawing.started):
-                return
-            from .figure_data import HELD_OUT_FIGURES, RUN_FIGURES, run_figure_data
-            t = time.perf_counter()
-            if not self.validation_on:         # one job: every figure
-                only, more = None, False
-            elif held_out:
-                only, more = HELD_OUT_FIGURES, False
-            else:
-                only, more = [n for n in RUN_FIGURES if n not in HELD_OUT_FIGURES], True
-            waits.append(self.drawing.draw(run_figure_data(self, held_out=held_out, only=only), more=more))
-            sent += time.perf_counter() - t
+        waits, sent = [], 0.0                  # the drawing process's jobs, and the seconds taken to send them
         try:
             self._start_monitor()
             if self.sums.pending_log():
@@ -729,12 +711,12 @@ class Run:
                     self._replay_progress = functools.partial(_say_share, bar, what)
                 part()
                 self._replay_progress = None
-                if part == self._replayed:
-                    send(held_out=False)
+                if figures and part == self._replayed:
+                    sent += self._send_figures(waits, held_out=False)
                 if bar is not None:
                     bar.update(1)
-            if self.validation_on:
-                send(held_out=True)
+            if figures and self.validation_on:
+                sent += self._send_figures(waits, held_out=True)
             run_pngs = None
             if waits:
                 run_pngs = lambda: {name: png for wait in waits for name, png in wait().items()}   # noqa: E731
@@ -775,6 +757,24 @@ class Run:
         if close:
             self.close()
         return summary
+
+    def _send_figures(self, waits: list, held_out: bool) -> float:
+        """Send the run's figures to the drawing process (where one was handed to the run), which draws them while
+        this one goes on: after the intervals, those that do not show validation (drawn while the run validates),
+        after validation the rest (drawn while the run makes its summary and the scenario's own figures); neither
+        reads the summary. Adds the job's wait to ``waits``; returns the seconds taken."""
+        if self.drawing is None or not self.drawing.started:
+            return 0.0
+        from .figure_data import HELD_OUT_FIGURES, RUN_FIGURES, run_figure_data
+        t = time.perf_counter()
+        if not self.validation_on:         # one job: every figure
+            only, more = None, False
+        elif held_out:
+            only, more = HELD_OUT_FIGURES, False
+        else:
+            only, more = [n for n in RUN_FIGURES if n not in HELD_OUT_FIGURES], True
+        waits.append(self.drawing.draw(run_figure_data(self, held_out=held_out, only=only), more=more))
+        return time.perf_counter() - t
 
     def _own_figures(self) -> bool:
         """Whether the scenario draws figures of its own (``Scenario.figures``; drawn in this process)."""
