@@ -539,18 +539,23 @@ def test_a_drawing_process_draws_the_same_bytes_and_the_run_draws_them_itself_wh
     run.close()
 
 
+# a command run in a fresh process (argv: its output folder, then 'process' or 'none'): with 'none' the command
+# finds no drawing process (as off Linux) and draws its figures itself
+WITHOUT_DRAWING = ("import sys\nfrom rcotorch.run.cli import main\n"
+                   "import rcotorch.run.drawing as drawing\n"
+                   "if sys.argv[2] == 'none':\n"
+                   "    class Absent(drawing.DrawingProcess):\n"
+                   "        def __init__(self):\n"
+                   "            self.pid = self._jobs = self._results = None\n"
+                   "    drawing.DrawingProcess = Absent\n")
+
+
 def test_rcotorch_run_draws_its_figures_in_a_process_that_imports_matplotlib_beside_the_run(tmp_path):
     """``rcotorch run`` leaves its figures to the drawing process: the run's own process never imports
     matplotlib, and the figures are the bytes the run draws without that process."""
     import subprocess
     import sys
-    script = ("import sys\nfrom rcotorch.run.cli import main\n"
-              "import rcotorch.run.drawing as drawing\n"
-              "if sys.argv[2] == 'none':\n"
-              "    class Absent(drawing.DrawingProcess):\n"
-              "        def __init__(self):\n"
-              "            self.pid = self._jobs = self._results = None\n"
-              "    drawing.DrawingProcess = Absent\n"
+    script = (WITHOUT_DRAWING +
               "code = main(['run', 'sdof-stiffness', '--steps', '600', '--batch', '2', '--quiet',\n"
               "             '--out', sys.argv[1]])\n"
               "print(code, 'matplotlib' in sys.modules)\n")
@@ -577,13 +582,7 @@ def test_rcotorch_sweep_draws_its_figures_in_a_process_that_imports_matplotlib_b
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"scenario": "sdof-stiffness", "steps": 300, "seeds": 2,
                                   "grid": {"dK": [0.3, 0.5]}}))
-    script = ("import sys\nfrom rcotorch.run.cli import main\n"
-              "import rcotorch.run.drawing as drawing\n"
-              "if sys.argv[2] == 'none':\n"
-              "    class Absent(drawing.DrawingProcess):\n"
-              "        def __init__(self):\n"
-              "            self.pid = self._jobs = self._results = None\n"
-              "    drawing.DrawingProcess = Absent\n"
+    script = (WITHOUT_DRAWING +
               "code = main(['sweep', sys.argv[3], '--out', sys.argv[1]])\n"
               "print(code, 'matplotlib' in sys.modules)\n")
     lines = {}

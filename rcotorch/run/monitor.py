@@ -582,14 +582,7 @@ def draw_sweep_figures(rows: list[Mapping[str, Any]], swept: list[str], scenario
     draws them while the caller goes on, else here when the returned function is called; that function returns
     their PNG bytes {name: bytes}. ``scenario``: a name or object (the units and the name in the titles)."""
     from .figure_data import sweep_figure_data
-    if isinstance(scenario, str):
-        from ..errors import RcoError
-        from . import scenario as scenarios
-        try:
-            scenario = scenarios.get(scenario)
-        except RcoError:                  # a name no scenario has: no units
-            scenario = None
-    data = sweep_figure_data(rows, swept, scenario)
+    data = sweep_figure_data(rows, swept, _scenario(scenario) if isinstance(scenario, str) else scenario)
     if drawing is not None and drawing.started:
         return drawing.draw(data)
 
