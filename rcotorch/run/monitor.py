@@ -513,15 +513,19 @@ def quantiles(values: np.ndarray, qs: Iterable[float]) -> list[float]:
 
 def _column_means(a: np.ndarray) -> np.ndarray:
     """The mean of each column over its finite entries (NaN for none), without numpy's warning."""
-    ok = np.isfinite(a)
-    n = ok.sum(0)
-    return np.where(n > 0, np.where(ok, a, 0.0).sum(0) / np.maximum(n, 1), math.nan)
+    return _means(a, np.isfinite(a), 0)
 
 
 def _row_means(a: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """The mean of each row of ``a`` over the entries ``ok`` (NaN for none)."""
-    n = ok.sum(1)
-    return np.where(n > 0, np.where(ok, a, 0.0).sum(1) / np.maximum(n, 1), math.nan)
+    return _means(a, ok, 1)
+
+
+def _means(a: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
+    """The means of ``a`` along ``axis`` over the entries ``ok`` (NaN where there is none), without numpy's
+    warning."""
+    n = ok.sum(axis)
+    return np.where(n > 0, np.where(ok, a, 0.0).sum(axis) / np.maximum(n, 1), math.nan)
 
 
 def _finite(v: np.ndarray) -> np.ndarray:
