@@ -160,14 +160,26 @@ def markdown(results: dict, sweeps: dict | None) -> str:
     if sweeps:
         lines += ["", "| sweep of sdof-stiffness, 2000 steps | seconds | against | goal | met |",
                   "|---|---|---|---|---|",
-                  f"| {sweeps['members']} members in {sweeps['shards']} shards | {f2(sweeps['sweep_s'])} | | under "
-                  f"{sweeps['goal_s']} s | {yes(sweeps)} |"]
+                  f"| {sweeps['members']} members in {sweeps['shards']} shards{_workers(sweeps.get('workers'))} | "
+                  f"{f2(sweeps['sweep_s'])} | | under {sweeps['goal_s']} s | {yes(sweeps)} |"]
         big = sweeps.get("large")
         if big:
-            lines.append(f"| {big['members']} members in {big['shards']} shards | {f2(big['sweep_s'])} | one batch "
-                         f"of {big['members']}: {f2(big['one_batch_s'])} s ({big['ratio']:.1f}x) | within "
-                         f"{big['goal']}x | {yes(big)} |")
+            lines.append(f"| {big['members']} members in {big['shards']} shards{_workers(big.get('workers'))} | "
+                         f"{f2(big['sweep_s'])} | one batch of {big['members']}{_threads(big.get('threads'))}: "
+                         f"{f2(big['one_batch_s'])} s ({big['ratio']:.1f}x) | within {big['goal']}x | {yes(big)} |")
+            if "sweep_s_one_worker" in big:
+                lines.append(f"| the same, one after another in one process | {f2(big['sweep_s_one_worker'])} | one "
+                             f"batch{_threads(big['threads_one_worker'])}: {f2(big['one_batch_s_one_worker'])} s "
+                             f"({big['ratio_one_worker']:.1f}x) | | |")
     return "\n".join(lines)
+
+
+def _workers(n: int | None) -> str:
+    return "" if n is None else f", {n} worker{'s' if n != 1 else ''}"
+
+
+def _threads(n: int | None) -> str:
+    return "" if n is None else f" on {n} thread{'s' if n != 1 else ''}"
 
 
 def main(argv=None) -> dict:

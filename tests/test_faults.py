@@ -152,6 +152,37 @@ def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(tmp_
     assert estimates(out) == estimates(tmp_path / "full")
 
 
+def test_sigterm_stops_a_sweep_whose_shards_run_in_worker_processes_and_its_resume_equals_an_uninterrupted_one(
+        tmp_path, monkeypatch):
+    """Two shards run at once, each in a process of its own: the signal to the sweep reaches both (forwarded),
+    each saves its checkpoint, the sweep exits 143 with one message, and the resume finishes them."""
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 1500\nseeds = 4\nshard_size = 1\n')
+    out = tmp_path / "sweep"
+    flags = ["--threads", "1", "--engine", "torch"]
+    monkeypatch.setenv("RCOTORCH_ENGINE", "torch")
+    proc = _cli("sweep", str(cfg), "--out", str(out), "--workers", "2", *flags)
+    _stepping(proc, out / "shard_0000")
+    _stepping(proc, out / "shard_0001")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    resume = f"rcotorch sweep {cfg} --out {out} --resume"
+    assert f"resume with: {resume}" in err and "Traceback" not in err
+    assert err.count("SIGTERM received") == 1, err               # said once, by the sweep
+    for shard in ("shard_0000", "shard_0001"):
+        assert 0 < load_checkpoint(out / shard / "checkpoint.pt")["graph"]["k"] < 1500
+        assert not (out / shard / "summary.json").exists()
+    assert not (out / "shard_0002").exists() and not (out / "shard_0003").exists()     # never started
+    assert main(["sweep", str(cfg), "--out", str(out), "--resume", "--workers", "2", *flags]) == 0
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "full"), "--workers", "1", *flags]) == 0
+
+    def estimates(folder):
+        return [{k: v for k, v in row.items() if k.startswith("est_")}
+                for row in json.loads((folder / "sweep.json").read_text())]
+    assert estimates(out) == estimates(tmp_path / "full")
+
+
 # --- a full disk --------------------------------------------------------------------------------------------
 def test_a_full_disk_under_the_event_writer_exits_2_with_one_line(tmp_path, monkeypatch, capsys):
     """The TensorBoard event file meets the full disk first: one line on stderr, the traceback in the log."""

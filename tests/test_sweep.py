@@ -9,8 +9,8 @@ import pytest
 
 from rcotorch import ConfigError
 from rcotorch.run.cli import main
-from rcotorch.run.runner import Run
-from rcotorch.run.sweep import Sweep, run_sweep
+from rcotorch.run.runner import Run, preload
+from rcotorch.run.sweep import Sweep, local_workers, make_run, run_shard, run_sweep
 
 SPEC = dict(scenario="sdof-stiffness-damping", steps=400, seeds=[5, 9], shard_size=3,
             grid={"dK": [-0.4, 0.3], "Ts": [0.01, 0.02]}, random={"dC": {"uniform": [0.0, 1.0]}}, samples=1,
@@ -48,6 +48,74 @@ def test_sweep_members_equal_separate_runs(tmp_path):
     assert len(table) == 8 and {"member", "dK", "Ts", "dC", "seed", "est_dK", "err_dC", "diverged"} <= set(table[0])
     assert json.loads((tmp_path / "sweep.json").read_text()) == rows
     assert (tmp_path / "shard_0000").is_dir() and (tmp_path / "members" / "member_000007").is_dir()
+
+
+def test_shards_in_worker_processes_equal_shards_run_here(tmp_path, capsys):
+    """The local backend's forked workers give the same table, bit for bit, as the shards run one after another
+    in this process, and what each shard printed reaches this process's output."""
+    here = run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "here", progress=False, workers=1)
+    apart = run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "apart", progress=True, workers=2)
+    assert apart == here and len({r["shard"] for r in apart}) == 4
+    assert (tmp_path / "apart" / "sweep.csv").read_text() == (tmp_path / "here" / "sweep.csv").read_text()
+    out = capsys.readouterr().out
+    assert all(f"shard {i}/4: done in" in out for i in (1, 2, 3, 4))
+
+
+def test_the_workers_default_to_one_per_core_and_never_outnumber_the_shards(monkeypatch):
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert local_workers(None, 10, "cpu") == 4 and local_workers(None, 3, "cpu") == 3
+    assert local_workers(8, 5, "cpu") == 5 and local_workers(1, 5, "cpu") == 1
+    assert local_workers(None, 10, "cuda") == 1 and local_workers(4, 10, "cuda:0") == 1
+
+
+def test_worker_processes_load_nothing_a_shard_needs_again(tmp_path):
+    """``preload`` imports what a shard's run imports as it steps and ends, so that a forked worker loads none
+    of it again (a shard run after it here imports no module)."""
+    sweep = Sweep.from_dict(dict(SPEC, shard_size=8))
+    shard = sweep.shards()[0]
+    run = make_run(sweep.scenario, shard, 400, sweep.dtype, "cpu", str(tmp_path / "shard"))
+    preload()
+    before = set(sys.modules)
+    run_shard(sweep.scenario, shard, 400, sweep.dtype, "cpu", str(tmp_path / "shard"), run=run)
+    assert set(sys.modules) - before == set()
+
+
+@pytest.mark.parametrize("fault", ["config", "internal", "killed"])
+def test_a_shard_that_fails_in_its_worker_fails_the_sweep_with_its_error(fault, tmp_path, monkeypatch):
+    """A shard's error comes back from its process as the same exception (an internal one with the traceback
+    of where it was raised as a note); a process that dies without a word is named with its signal."""
+    import os
+    import signal
+
+    import rcotorch.run.sweep as sweep_module
+    real = sweep_module.run_shard
+
+    def failing(scenario, shard, *args, **kwargs):
+        if shard["index"] == 1:
+            if fault == "config":
+                raise ConfigError("shard 1: a setting it cannot take")
+            if fault == "internal":
+                raise ZeroDivisionError("inside shard 1")
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(scenario, shard, *args, **kwargs)
+    monkeypatch.setattr(sweep_module, "run_shard", failing)
+    expected = {"config": (ConfigError, "a setting it cannot take"), "internal": (ZeroDivisionError, "inside"),
+                "killed": (RuntimeError, "its process was killed by signal 9 before it sent its result")}[fault]
+    with pytest.raises(expected[0], match=expected[1]) as caught:
+        run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "sweep", progress=False, workers=2)
+    if fault == "internal":
+        assert any("in its process" in note and "failing" in note for note in caught.value.__notes__)
+    assert (tmp_path / "sweep" / "shard_0000").is_dir()
+
+
+def test_workers_must_be_a_positive_integer(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="workers must be a positive integer"):
+        run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "s", progress=False, workers=0)
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 20\n')
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "cli"), "--workers", "0"]) == 2
+    assert "--workers must be a positive integer, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()
 
 
 def test_ray_backend_equals_local(tmp_path):

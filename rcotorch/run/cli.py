@@ -139,6 +139,9 @@ def _add_shards(p, what: str, kind: str) -> None:
                    "local one)")
     p.add_argument("--out", help=f"output folder (default runs/{kind}-SCENARIO)")
     p.add_argument("--resume", action="store_true", help=f"continue an interrupted {what} in --out")
+    p.add_argument("--workers", type=int, metavar="N", help="shards run at once by the local backend, each in a "
+                   "process of its own on one thread (default: one per CPU core; 1: one after another in this "
+                   "process, on --threads threads)")
     _add_common(p)
 
 
@@ -500,7 +503,8 @@ def _shards_control(args, session: Session):
     """How ``rcotorch sweep`` and ``rcotorch tune`` drive their shards: ``--overwrite``, ``--resume`` and the
     output folder the session opened (the stop request is added once the signals are caught, ``_in_shards``)."""
     from .control import RunControl
-    return RunControl(overwrite=args.overwrite, resume=args.resume, folder=session.folder)
+    _positive(args.workers, "--workers")
+    return RunControl(overwrite=args.overwrite, resume=args.resume, folder=session.folder, workers=args.workers)
 
 
 def cmd_sweep(args, session: Session) -> int:

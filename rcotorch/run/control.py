@@ -41,11 +41,16 @@ class RunControl:
     folder : rcotorch.run.outputs.OutputFolder, optional
         The output folder, made by the caller, who closes it (and may log into it meanwhile). None: the work
         makes and closes its own.
+    workers : int, optional
+        How many shards the local backend runs at once, each in a process of its own forked from this one
+        (one CPU thread each). None: one per core this process may use (at most one per shard) on Linux and the
+        CPU, else 1; 1 runs the shards one after another in this process.
 
     Raises
     ------
     ConfigError
-        If both ``overwrite`` and ``resume`` are set, or ``stop`` is not callable.
+        If both ``overwrite`` and ``resume`` are set, ``stop`` is not callable or ``workers`` is not a positive
+        integer.
     """
 
     progress: bool = True
@@ -53,12 +58,16 @@ class RunControl:
     resume: bool = False
     stop: Callable[[], bool] | None = None
     folder: OutputFolder | None = None
+    workers: int | None = None
 
     def __post_init__(self):
         if self.overwrite and self.resume:
             raise ConfigError("choose one of --overwrite and --resume")
         if self.stop is not None and not callable(self.stop):
             raise ConfigError(f"stop must be a function that returns True to stop (or None), got {self.stop!r}")
+        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
+                                         or self.workers < 1):
+            raise ConfigError(f"workers must be a positive integer (or None), got {self.workers!r}")
 
     @property
     def mode(self) -> str:
@@ -68,14 +77,14 @@ class RunControl:
     @classmethod
     def given(cls, control: RunControl | None, progress: bool = True, overwrite: bool = False,
               resume: bool = False, stop: Callable[[], bool] | None = None,
-              folder: OutputFolder | None = None) -> RunControl:
+              folder: OutputFolder | None = None, workers: int | None = None) -> RunControl:
         """The record a function that takes both ``control=`` and the loose keywords runs with.
 
         Parameters
         ----------
         control : RunControl or None
             The record the caller gave, if any.
-        progress, overwrite, resume, stop, folder : optional
+        progress, overwrite, resume, stop, folder, workers : optional
             The keywords the caller gave, as for the record's fields.
 
         Returns
@@ -90,12 +99,14 @@ class RunControl:
             (both ``overwrite`` and ``resume``).
         """
         if control is None:
-            return cls(progress=progress, overwrite=overwrite, resume=resume, stop=stop, folder=folder)
+            return cls(progress=progress, overwrite=overwrite, resume=resume, stop=stop, folder=folder,
+                       workers=workers)
         if not isinstance(control, cls):
             raise ConfigError(f"control must be a {cls.__name__}, got {type(control).__name__}")
         given = [name for name, value, default in (("progress", progress, True), ("overwrite", overwrite, False),
                                                    ("resume", resume, False)) if value != default]
-        given += [name for name, value in (("stop", stop), ("folder", folder)) if value is not None]
+        given += [name for name, value in (("stop", stop), ("folder", folder), ("workers", workers))
+                  if value is not None]
         if given:
             raise ConfigError(f"give {', '.join(given)} in control= or as keywords, not both")
         return control

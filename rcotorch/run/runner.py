@@ -809,6 +809,19 @@ def prefetch(figures: bool) -> None:
     threading.Thread(target=load, name="rcotorch-imports", daemon=True).start()
 
 
+# What a run without figures imports as it steps and ends (its TensorBoard records, validation), in ``preload``.
+RUN_MODULES = ("rcotorch.verdict.validation", "torch.utils.tensorboard.summary", "tensorboard.compat.proto.event_pb2",
+               "tensorboard.compat.proto.summary_pb2", "tensorboard.plugins.hparams.api_pb2",
+               "tensorboard.plugins.hparams.metadata", "google_crc32c", "torch.utils.serialization")
+
+
+def preload() -> None:
+    """Import at once what a run without figures imports as it steps and ends (``RUN_MODULES``): a process that
+    forks the runs of a sweep's shards loads them once, before it forks, instead of in every forked process."""
+    for module in RUN_MODULES:
+        importlib.import_module(module)
+
+
 def member_truth(truth, batch: int) -> list:
     """A truth value (shared or per member) as one value per member."""
     return list(truth) if isinstance(truth, (list, tuple)) else [truth] * batch

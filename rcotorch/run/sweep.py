@@ -3,7 +3,8 @@
 A sweep names a scenario, a grid and/or random draws over its settings, and seeds. Members that share the
 settings fixing the graph's structure (sample time, orders, nu) form a group; each group is cut into shards
 of at most ``shard_size`` members, and each shard is one batched run. The ``local`` backend runs the shards
-in this process, the ``ray`` backend as Ray tasks (on a local instance or an existing cluster); both run the
+on this machine, several at once in forked processes (``workers``) or one after another in this process, the
+``ray`` backend as Ray tasks (on a local instance or an existing cluster); both run the
 same shards, so their tables are identical. Member b of a shard equals a batch-of-one run with its settings.
 
 Config file (TOML or JSON)::
@@ -32,6 +33,7 @@ import io
 import itertools
 import json
 import math
+import os
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -399,15 +401,17 @@ def shard_rows(shard: Mapping[str, Any], summary: Mapping[str, Any]) -> list[dic
 
 def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: str | Path | None = None,
               ray_address: str | None = None, progress: bool = True, overwrite: bool = False,
-              resume: bool = False, stop=None, folder=None, control: RunControl | None = None, drawing=None
-              ) -> list[dict[str, Any]]:
+              resume: bool = False, stop=None, folder=None, control: RunControl | None = None, drawing=None,
+              workers: int | None = None) -> list[dict[str, Any]]:
     """Run every shard and return the merged table (sorted by member); writes sweep.csv/json under ``out``.
 
     ``out`` (default ``runs/sweep-SCENARIO``) must not hold results unless ``overwrite`` (replace the sweep
     there) or ``resume`` (continue the interrupted sweep there, with the same config). ``stop()`` is asked
     between steps (Ctrl-C, SIGTERM, SIGHUP): the running shard saves a checkpoint and ``Interrupted`` is raised.
     ``folder``: an ``OutputFolder`` for ``out`` made by the caller, who closes it (and may log into it
-    meanwhile). ``control``: these five (``progress``, ``overwrite``, ``resume``, ``stop``, ``folder``) as one
+    meanwhile). ``workers``: how many shards the local backend runs at once, each in a forked process
+    (``RunControl.workers``; None: one per usable core, 1: one after another in this process). ``control``:
+    these six (``progress``, ``overwrite``, ``resume``, ``stop``, ``folder``, ``workers``) as one
     ``rcotorch.run.control.RunControl``, given instead of them. ``drawing``: a ``rcotorch.run.drawing.DrawingProcess``
     that draws the sweep's figures while the sweep writes its table (``rcotorch sweep`` starts one before it
     imports torch); without it they are drawn here. A sweep refused (an ``RcoError``) before its first shard wrote
@@ -417,7 +421,7 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
     control = RunControl.given(control, progress=progress, overwrite=overwrite, resume=resume, stop=stop,
-                               folder=folder)
+                               folder=folder, workers=workers)
     shards = sweep.shards()  # validates everything before any work
     sc = sweep.scenario
     steps = sweep.steps                  # None: each shard's scenario default for its settings
@@ -440,7 +444,9 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
             folder.add_child(name)
         folder.register()
         if backend == "local":
-            rows = _run_local(sweep, shards, steps, device, shard_out, runs, control)
+            n = local_workers(control.workers, len(shards), device)
+            rows = (_run_local(sweep, shards, steps, device, shard_out, runs, control) if n == 1 else
+                    _run_forked(sweep, shards, steps, device, shard_out, runs, control, n))
         else:
             del runs
             rows = _run_ray(sweep, shards, steps, device, shard_out, ray_address, control)
@@ -469,7 +475,7 @@ def _run_local(sweep, shards, steps, device, shard_out, runs, control: RunContro
     for s, o, r in zip(shards, shard_out, runs):
         label = f"shard {s['index'] + 1}/{len(shards)}"
         if control.progress:
-            print(f"{label}: {len(s['members'])} members", flush=True)
+            print(f"{label}: {_members(len(s['members']))}", flush=True)
         start = time.perf_counter()
         part = run_shard(sweep.scenario, s, steps, sweep.dtype, device, o, run=None if Path(o).exists() else r,
                          stop=control.stop, desc=label if control.progress else None)
@@ -477,6 +483,171 @@ def _run_local(sweep, shards, steps, device, shard_out, runs, control: RunContro
             print(f"{label}: done in {time.perf_counter() - start:.1f} s; {_health_counts(part)}", flush=True)
         rows += part
     return rows
+
+
+def local_workers(asked: int | None, shards: int, device: str) -> int:
+    """How many shards the local backend runs at once: ``asked`` (at most one per shard), or where None one per
+    core this process may use; 1 off Linux (no fork) and on a GPU (one device, and CUDA does not survive a
+    fork)."""
+    if not sys.platform.startswith("linux") or not hasattr(os, "fork") or not str(device).startswith("cpu"):
+        return 1
+    if asked is None:
+        asked = len(os.sched_getaffinity(0))
+    return max(1, min(asked, shards))
+
+
+def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunControl, workers: int
+                ) -> list[dict[str, Any]]:
+    """The shards run ``workers`` at a time, each in a process forked from this one (``_shard_process``) that
+    runs it on one thread and sends back its rows. ``control.stop`` is asked while waiting: when it says
+    True, the running shards are sent SIGTERM (each saves its checkpoint, as a shard run here would) and no more
+    start; a shard that fails stops the others likewise, and its error is raised here once they ended."""
+    import select
+    import signal
+    import time
+
+    from .runner import preload
+    preload()                                  # imported once here, not in every shard's process
+    todo = list(zip(shards, shard_out, runs))
+    running: dict[int, list] = {}              # read end of a shard's pipe -> [pid, shard, start, chunks]
+    parts: dict[int, list] = {}
+    stopped = failure = None
+    told = False
+    try:
+        while todo or running:
+            if not told and (failure is not None or (control.stop is not None and control.stop())):
+                told = True                    # stop what runs, start nothing more
+                todo.clear()
+                for pid, *_ in running.values():
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGTERM)
+            while todo and len(running) < workers:
+                s, o, r = todo.pop(0)
+                if control.progress:
+                    print(f"shard {s['index'] + 1}/{len(shards)}: {_members(len(s['members']))}", flush=True)
+                fd, pid = _fork_shard(sweep, s, steps, device, o, None if Path(o).exists() else r)
+                running[fd] = [pid, s, time.perf_counter(), []]
+            ready = select.select(list(running), [], [], 0.1)[0] if running else []
+            for fd in ready:
+                chunk = os.read(fd, 1 << 20)
+                if chunk:
+                    running[fd][3].append(chunk)
+                    continue
+                pid, s, start, chunks = running.pop(fd)
+                os.close(fd)
+                status = os.waitpid(pid, 0)[1]
+                kind, value = _shard_outcome(b"".join(chunks), status, s)
+                if kind == "rows":
+                    parts[s["index"]] = value
+                    if control.progress:
+                        print(f"shard {s['index'] + 1}/{len(shards)}: done in {time.perf_counter() - start:.1f} s; "
+                              f"{_health_counts(value)}", flush=True)
+                elif kind == "stopped":
+                    stopped = stopped or value
+                else:
+                    failure = failure or value
+    except BaseException:
+        for fd, (pid, *_) in running.items():      # a second signal, or an error here: end them at once
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, 0)
+            os.close(fd)
+        raise
+    if failure is not None:
+        raise failure
+    if stopped is not None:
+        raise stopped
+    return [row for i in sorted(parts) for row in parts[i]]
+
+
+def _fork_shard(sweep, shard, steps, device, out, run) -> tuple[int, int]:
+    """Fork the process that runs one shard (``_shard_process``); the read end of its pipe and its pid."""
+    import warnings
+    r, w = os.pipe()
+    with warnings.catch_warnings():     # Python 3.12+ warns of forking with threads: the child uses none of theirs
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:                        # pragma: no cover - the child ends in os._exit
+        os.close(r)
+        _shard_process(w, sweep, shard, steps, device, out, run)
+    os.close(w)
+    return r, pid
+
+
+def _shard_process(w: int, sweep, shard, steps, device, out, run) -> None:
+    """In the forked process: run the shard on one thread with its own stop request (Ctrl-C, SIGTERM or SIGHUP,
+    which the sweep forwards), write the pickled outcome to ``w`` and end. The outcome: ('rows', rows),
+    ('stopped', (step, checkpoint)) or ('error', (exception or None, traceback)), then what the shard printed on
+    stdout and on stderr, which the sweep prints where its own output goes (a notebook's cell, a test's capture)."""
+    import pickle
+    import signal
+    import threading
+    import traceback
+    status = 3
+    try:
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
+                signal.signal(sig, lambda *_: stop.set())
+        printed = sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
+        import torch
+        torch.set_num_threads(1)
+        from .runner import Interrupted
+        try:
+            outcome: tuple = ("rows", run_shard(sweep.scenario, shard, steps, sweep.dtype, device, out, run=run,
+                                                stop=stop.is_set))
+        except Interrupted as e:
+            outcome = ("stopped", (e.step, None if e.checkpoint is None else str(e.checkpoint)))
+        except BaseException as e:
+            outcome = ("error", (e, traceback.format_exc()))
+        texts = tuple(p.getvalue() for p in printed)
+        try:
+            data = pickle.dumps(outcome + texts)
+            pickle.loads(data)                  # an exception that does not come back whole comes as its text
+        except Exception:
+            text = outcome[1][1] if outcome[0] == "error" else traceback.format_exc()
+            data = pickle.dumps(("error", (None, text)) + texts)
+        view = memoryview(data)
+        while view:
+            view = view[os.write(w, view):]
+        status = 0
+    finally:
+        os._exit(status)
+
+
+def _shard_outcome(data: bytes, status: int, shard) -> tuple[str, Any]:
+    """What a shard's process sent (``_shard_process``), after printing what the shard printed: ('rows', rows),
+    ('stopped', Interrupted) or ('error', the exception to raise here)."""
+    import pickle
+
+    from .runner import Interrupted
+    where = f"sweep shard {shard['index']} (members {shard['members'][0]}..{shard['members'][-1]})"
+    try:
+        kind, value, printed, said = pickle.loads(data)
+    except Exception:
+        how = (f"was killed by signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status)
+               else f"exited with status {os.WEXITSTATUS(status)}")
+        return "error", RuntimeError(f"{where}: its process {how} before it sent its result")
+    for text, stream in ((printed, sys.stdout), (said, sys.stderr)):
+        if text:
+            stream.write(text)
+            stream.flush()
+    if kind == "stopped":
+        step, checkpoint = value
+        return kind, Interrupted(step, None if checkpoint is None else Path(checkpoint))
+    if kind == "error":
+        error, text = value
+        if error is None:
+            error = RuntimeError(f"{where} failed in its process:\n{text}")
+        elif not isinstance(error, RcoError):
+            error.add_note(f"{where}, in its process:\n{text}")
+        return kind, error
+    return kind, value
+
+
+def _members(n: int) -> str:
+    return f"{n} member" if n == 1 else f"{n} members"
 
 
 def _health_counts(rows: list[dict[str, Any]]) -> str:
