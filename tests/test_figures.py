@@ -462,6 +462,28 @@ def test_a_sweep_figure_of_close_values_draws_them_apart_in_full_with_medians_an
         pytest.approx([0.0, 0.0, 0.2, 0.2, 0.4, 0.4, 0.6, 0.6])
 
 
+def test_a_sweep_over_an_integer_setting_labels_its_ticks_as_integers_and_draws_its_ranges_as_one_collection():
+    """nu = 5..68, four seeds each: the tick labels read '10', '20', ... (not '1e+01'), and the range over the
+    members at each value is one bar per value, all in one collection, from the members' least to greatest."""
+    rng = np.random.default_rng(0)
+    rows = [{"member": 4 * i + s, "nu": nu, "seed": s, "est_dK": -0.4 + 0.01 * rng.standard_normal(),
+             "truth_dK": -0.4, "status": "converged"} for i, nu in enumerate(range(5, 69)) for s in range(4)]
+    for r in rows:
+        r["err_dK"] = r["est_dK"] - r["truth_dK"]
+    fig = sweep_figures(rows, ["nu"], "sdof-stiffness")["sweep_nu"]
+    FigureCanvasAgg(fig).draw()
+    est = fig.axes[0]
+    labels = [t.get_text() for t in fig.axes[-1].get_xticklabels() if t.get_text()]
+    assert labels and all(text == f"{float(text):.0f}" for text in labels), labels
+    assert "10" in labels or "20" in labels
+    [bars] = [c for c in est.collections if c.get_label() == "range over members"]
+    segments = bars.get_segments()
+    assert len(segments) == 64
+    for nu, seg in zip(range(5, 69), segments):
+        v = [r["est_dK"] for r in rows if r["nu"] == nu]
+        assert seg[0][0] == seg[1][0] == nu and (seg[0][1], seg[1][1]) == pytest.approx((min(v), max(v)))
+
+
 def test_the_parents_uncollected_garbage_is_not_finalized_in_a_forked_drawing(tmp_path):
     """An object in a reference cycle that the caller has dropped but not yet collected (its finalizer would
     release a file of the caller's): the forked drawing collects nothing, so the finalizer runs once, in the

@@ -622,7 +622,10 @@ class FullTicks(Formatter):
             return "0"
         # the spacing's own significant digits (1 for 0.002, 2 for 0.0025), then those of x down to its last one
         own = next((n for n in range(1, 16) if abs(float(f"{step:.{n}g}") - step) <= 1e-9 * step), 15)
-        digits = int(np.floor(np.log10(abs(x)))) - int(np.floor(np.log10(step))) + own
+        power = int(np.floor(np.log10(abs(x))))
+        digits = power - int(np.floor(np.log10(step))) + own
+        if 0 <= power < 5:                      # every digit before the point: '10', '20', not '1e+01'
+            digits = max(digits, power + 1)
         return f"{x:.{min(max(digits, 1), 15)}g}"
 
 
@@ -641,12 +644,15 @@ def _median_and_range(ax, groups, y: np.ndarray) -> np.ndarray:
     values with the range of the members' values as a bar at each; returns the medians (NaN where none is
     finite)."""
     medians = np.full(len(groups), np.nan)
+    bars = []                                      # (value, lowest, highest): one collection for every bar
     for i, (value, idx) in enumerate(groups):
         v = y[idx][np.isfinite(y[idx])]
         if v.size:
             medians[i] = float(np.median(v))
-            ax.vlines(value, v.min(), v.max(), color="tab:blue", lw=5, alpha=0.2, zorder=2,
-                      label="range over members" if i == 0 else None)
+            bars.append((value, v.min(), v.max()))
+    if bars:
+        at, low, high = np.array(bars).T
+        ax.vlines(at, low, high, color="tab:blue", lw=5, alpha=0.2, zorder=2, label="range over members")
     xs = np.array([g[0] for g in groups])
     shown = np.isfinite(medians)
     ax.plot(xs[shown], medians[shown], color="tab:blue", lw=1.2, marker="_", ms=16, mew=2, zorder=4,
