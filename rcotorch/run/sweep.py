@@ -726,16 +726,17 @@ def _run_ray(sweep, shards, steps, device, shard_out, address, control: RunContr
 
 
 def write_table(rows: list[dict[str, Any]], out: Path) -> None:
-    """``sweep.json`` and ``sweep.csv`` (one row per member), each written atomically."""
+    """``sweep.json`` (a list, one member's row per line) and ``sweep.csv`` (one row per member), each written
+    atomically."""
     from .outputs import write_text
     out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "sweep.json", json.dumps(rows, indent=1) + "\n")
+    write_text(out / "sweep.json", "[\n" + ",\n".join(json.dumps(r) for r in rows) + "\n]\n")
     columns = list(dict.fromkeys(c for r in rows for c in r))          # each column once, in the order met
     text = io.StringIO(newline="")
-    w = csv.DictWriter(text, fieldnames=columns)
-    w.writeheader()
+    w = csv.writer(text)
+    w.writerow(columns)
     for r in rows:
-        w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+        w.writerow(["" if (v := r.get(c)) is None else v for c in columns])
     write_text(out / "sweep.csv", text.getvalue())
 
 
