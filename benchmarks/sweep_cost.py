@@ -80,6 +80,7 @@ def large(steps: int, threads: int) -> dict:
     cores = local_workers(None, 64, "cpu")
 
     def sweep_s(workers: int) -> float:
+        torch.set_num_threads(threads)       # a worker runs on one thread whatever this process has
         with tempfile.TemporaryDirectory() as folder:
             t = time.perf_counter()
             run_sweep(Sweep.from_dict(spec), out=Path(folder) / "sweep", progress=False, drawing=DrawingProcess(),
