@@ -172,3 +172,38 @@ def test_scores_summed_stretch_by_stretch_equal_those_of_the_whole_traces(monkey
     np.testing.assert_array_equal(one.refined.numpy(), full.refined[:, :1].numpy())
     for key in ("rmse", "fit_percent", "rmse_initial", "fit_percent_initial"):
         np.testing.assert_array_equal(getattr(one, key).numpy(), getattr(full, key).numpy())
+
+
+def test_the_state_fit_of_a_linear_loop_stops_after_its_first_step_and_a_nonlinear_one_takes_every_pass(
+        monkeypatch):
+    """The refined model's outputs are affine in its initial state where the loop is linear (an LTI known model,
+    a static gain): one Gauss-Newton step is the least-squares state, so the second pass stops at its first
+    simulation, which lands where the step predicted, and the refined model scores the measurement noise. A cubic
+    feature makes the refined model's loop nonlinear: its passes run in full (the initial model, theta = 0, stays
+    linear). A theta of the wrong shape is refused, naming the estimator."""
+    import rcotorch.verdict.validation as validation
+
+    calls = []
+    real = validation._simulate
+    monkeypatch.setattr(validation, "_simulate", lambda g, steps, x0: calls.append(1) or real(g, steps, x0))
+    g = _refined(batch=1)
+    sim = _refined(steps=1, batch=1)
+    tr = sim.run(3000, record={"w": "excitation.out", "y": "measurement.out"})
+    data = rt.Recorded(np.concatenate([tr["w"][:, 0], tr["y"][:, 0]], 1), {"w": 0, "y": 1}, dt=TS)
+    gd = rt.refinement(_sdof(K_MODEL, ["w", "u"]), rt.RCOEstimator.static_gain({"y0": 1}, p0=100.0), data=data,
+                       nu=200)
+    gd.run(2000)
+    v = validate(gd, rows=(2000, 3000), fit_steps=200)
+    n = gd.role("known").x.shape[1]
+    assert len(calls) == 2 * ((1 + n) + 1)        # per model: one pass and the next one's first simulation
+    assert v.state_fitted and float(v.rmse[0]) < 1.3 * NOISE
+    del g
+    calls.clear()
+    ident = rt.RCOEstimator.static_gain({"y0": 1}, features=[rt.features.power("y0", 3)], p0=100.0)
+    gn = rt.refinement(_sdof(K_MODEL, ["w", "u"]), ident, data=data, nu=200)
+    gn.run(2000)
+    ident.hold(torch.tensor([[50.0]], dtype=torch.float64))
+    validate(gn, rows=(2000, 3000), fit_steps=200)
+    assert len(calls) == 2 * (1 + n) + (1 + n) + 1     # the refined model's passes in full, the initial one's not
+    with pytest.raises(rt.errors.DimensionError, match="estimator 'identified'.*must be \\(1, 1\\).*got \\(1, 2\\)"):
+        ident.hold(torch.tensor([[0.0, 50.0]], dtype=torch.float64))

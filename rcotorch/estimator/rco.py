@@ -1128,10 +1128,18 @@ class RCOEstimator(Block):
         Parameters
         ----------
         eta : torch.Tensor
-            (B, n_theta), in the order of ``theta_names``.
+            (B, n_theta) or (1, n_theta) for every member, in the order of ``theta_names``.
+
+        Raises
+        ------
+        DimensionError
+            If ``eta`` has another shape.
         """
         pm = self.parameter_map
         flat = self.theta.reshape(self.theta.shape[0], -1).clone()
+        if eta.dim() != 2 or eta.shape[1] != pm.n_params or eta.shape[0] not in (1, flat.shape[0]):
+            raise DimensionError(f"estimator '{self.name}': the free parameters must be ({flat.shape[0]}, "
+                                 f"{pm.n_params}) (batch, one per name of {self.theta_names}), got {tuple(eta.shape)}")
         # Theta[e] = eta[param_of_entry[e]] for every unpinned entry e
         flat[:, pm.unpinned_entries] = eta.to(flat.dtype)[:, pm.param_of_unpinned]
         self.set_state(theta=flat.reshape(self.theta.shape).contiguous())

@@ -320,7 +320,10 @@ def _fit_state(graph, steps: int, passes: int = 2) -> tuple[torch.Tensor | None,
 
 def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: int, passes: int
               ) -> tuple[torch.Tensor | None, bool]:
-    """``_fit_state``'s Gauss-Newton passes, each simulation of ``graph`` from ``start``."""
+    """``_fit_state``'s Gauss-Newton passes, each simulation of ``graph`` from ``start``. A pass whose first
+    simulation lands where the last step's linearization predicted (to a tenth of the square root of the dtype's
+    epsilon, relative to the residual it started from: the outputs are affine in the state, as with a linear known
+    model in a linear loop) ends the fit there: the last step was already the least-squares one."""
     x0 = x.detach().clone().to(torch.float64)
     B, n = x0.shape
     moved = list(getattr(graph.role("known"), "fitted_states", None) or range(n))
@@ -329,9 +332,13 @@ def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: 
     def simulate(x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         _restore(graph, start)
         return _simulate(graph, steps, x0)
+    predicted = before = None      # the residual the last step's linearization predicts, and the one it left
+    tol = 0.1 * torch.finfo(x.dtype).eps ** 0.5
     for _ in range(passes):
         y, y_hat = simulate(x0.to(x.dtype))
         r = (y - y_hat).permute(1, 0, 2).reshape(B, -1)                       # (B, steps * width)
+        if predicted is not None and bool(((r - predicted).norm(dim=1) <= tol * before).all()):
+            break                  # the outputs are affine in the state: the last step was the least-squares one
         scale = 1e-6 * torch.clamp(x0.abs().amax(1, keepdim=True), min=1.0)
         S = torch.zeros(B, r.shape[1], n, dtype=torch.float64, device=x0.device)
         for i in moved:
@@ -346,6 +353,8 @@ def _fit_from(graph, x: torch.Tensor, start: Mapping[str, torch.Tensor], steps: 
         S = torch.where(ok.reshape(-1, 1, 1), S, 0.0)
         delta = torch.linalg.pinv(S, rtol=1e-10) @ torch.where(ok.reshape(-1, 1), r, 0.0).unsqueeze(-1)
         x0 = x0 + delta.squeeze(-1)
+        predicted = r - (S @ delta).squeeze(-1)
+        before = r.norm(dim=1) + torch.finfo(x.dtype).tiny
         if not bool(torch.isfinite(x0).all()):
             return None, False
     return x0.to(x.dtype), bool(fitted.all())
