@@ -22,16 +22,24 @@ def _overlaps(a, b) -> bool:
 
 
 def _legends_clear_of_axes(fig) -> None:
-    """Every legend of the figure lies outside every axes' plotting area (after a drawing laid them out)."""
+    """Every legend of the figure lies outside every axes' plotting area and its x label, and within the
+    figure (after a drawing laid them out)."""
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
     renderer = canvas.get_renderer()
-    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    legends = list(fig.legends) + [leg for sub in fig.subfigs for leg in sub.legends]
+    legends += [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
     assert legends
+    whole = fig.bbox
     for legend in legends:
         box = legend.get_window_extent(renderer)
+        inside = whole.x0 - 1 <= box.x0 and box.x1 <= whole.x1 + 1 and whole.y0 - 1 <= box.y0 <= box.y1 <= whole.y1 + 1
+        assert inside, (legend, box, whole)
         for ax in fig.axes:
             assert not _overlaps(box, ax.get_window_extent(renderer)), (legend, ax)
+            label = ax.xaxis.label
+            if label.get_text():
+                assert not _overlaps(box, label.get_window_extent(renderer)), (legend, label.get_text())
 
 
 @pytest.fixture(scope="module")

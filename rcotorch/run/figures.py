@@ -138,8 +138,10 @@ def _model_error_figure(d, xlabel: str, log_t: bool) -> Figure:
     on the replayed window), member 0."""
     t = d.t
     trace = d.trace
-    fig = Figure(figsize=(7.5, 5.6 if trace else 3.4), layout="constrained")
-    axes = fig.subplots(2 if trace else 1, 1, squeeze=False)[:, 0]
+    fig = Figure(figsize=(7.5, 6.4 if trace else 3.4), layout="constrained")
+    # a panel per subfigure, each with its legend below it, for which the layout makes room
+    parts = fig.subfigures(2, 1, height_ratios=[1.35, 1.0]) if trace else [fig]
+    axes = [part.subplots() for part in parts]
     ax = axes[0]
     z = d.z_rms
     labels = ["refined model, during the run"] if z.shape[1] == 1 else [f"member {b}" for b in d.members[:z.shape[1]]]
@@ -157,7 +159,7 @@ def _model_error_figure(d, xlabel: str, log_t: bool) -> Figure:
     shown = _members_shown(len(d.members), d.batch)
     _title(ax, _named(d, f"model error (rms over each log interval){shown}"))
     ax.grid(alpha=0.3, which="both")
-    _legend_below(fig, ax, axes=ax)
+    _legend_below(parts[0], ax)
     if trace:
         where, k, z_init, z_ref, n_y = trace
         ax = axes[1]
@@ -170,7 +172,7 @@ def _model_error_figure(d, xlabel: str, log_t: bool) -> Figure:
         output = f", output {output_names(d, n_y)[0]}" if n_y > 1 else ""
         _title(ax, f"z of the initial and the refined model on the {where}, member 0{output}")
         ax.grid(alpha=0.3)
-        _legend_below(fig, ax, axes=ax)
+        _legend_below(parts[1], ax)
     return fig
 
 
@@ -443,6 +445,8 @@ def _title(ax, text: str, fontsize: float | None = None) -> None:
     the axes' width, so that no title runs off the figure."""
     size = FontProperties(size=fontsize or matplotlib.rcParams["axes.titlesize"]).get_size_in_points()
     fig = ax.get_figure()
+    if not hasattr(fig, "get_figwidth"):              # a subfigure: the figure it belongs to
+        fig = fig.figure
     wide = fig.get_figwidth() * 72.0
     # the axes' width once laid out (about its width before the layout over the default subplot share, 0.775)
     # and a little beyond its edges, within the figure less the room of the tick labels and the y label
