@@ -126,55 +126,36 @@ def test_an_ignored_signal_stays_ignored():
         signal.signal(signal.SIGHUP, previous)
 
 
-def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(tmp_path, monkeypatch):
+@pytest.mark.parametrize("config, workers, running, unstarted", [
+    ("seeds = 2\n", [], ["shard_0000"], []),
+    ("seeds = 4\nshard_size = 1\n", ["--workers", "2"], ["shard_0000", "shard_0001"], ["shard_0002", "shard_0003"]),
+], ids=["in-process", "workers"])
+def test_sigterm_stops_a_sweep_and_its_resume_equals_an_uninterrupted_sweep(config, workers, running, unstarted,
+                                                                             tmp_path, monkeypatch):
+    """One shard in the sweep's process, or two at once in worker processes (the signal forwarded to each): the
+    running shards save their checkpoints, the sweep exits 143 saying so once, and the resume finishes them."""
     cfg = tmp_path / "sweep.toml"
-    # On PyTorch about 4 s of steps; the signal, sent when the first shard's TensorBoard file appears, stops it
-    # within its first 10 steps (measured).
-    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 1500\nseeds = 2\n')
+    # On PyTorch about 4 s of steps; the signal, sent when the shards' TensorBoard files appear, stops them
+    # within their first 10 steps (measured).
+    cfg.write_text(f'scenario = "sdof-stiffness"\nsteps = 1500\n{config}')
     out = tmp_path / "sweep"
     flags = ["--threads", "1", "--engine", "torch"]
     monkeypatch.setenv("RCOTORCH_ENGINE", "torch")         # main sets it from --engine; restored afterwards
-    proc = _cli("sweep", str(cfg), "--out", str(out), *flags)
-    _stepping(proc, out / "shard_0000")
+    proc = _cli("sweep", str(cfg), "--out", str(out), *workers, *flags)
+    for shard in running:
+        _stepping(proc, out / shard)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err
     resume = f"rcotorch sweep {cfg} --out {out} --resume"
     assert f"resume with: {resume}" in err and "Traceback" not in err
-    assert 0 < load_checkpoint(out / "shard_0000" / "checkpoint.pt")["graph"]["k"] < 1500
-    assert _last_log_line(out).endswith(f"stopped by SIGTERM; resume with: {resume}")
-    assert main(["sweep", str(cfg), "--out", str(out), "--resume", *flags]) == 0
-    assert main(["sweep", str(cfg), "--out", str(tmp_path / "full"), *flags]) == 0
-
-    def estimates(folder):
-        return [{k: v for k, v in row.items() if k.startswith("est_")}
-                for row in json.loads((folder / "sweep.json").read_text())]
-    assert estimates(out) == estimates(tmp_path / "full")
-
-
-def test_sigterm_stops_a_sweep_whose_shards_run_in_worker_processes_and_its_resume_equals_an_uninterrupted_one(
-        tmp_path, monkeypatch):
-    """Two shards run at once, each in a process of its own: the signal to the sweep reaches both (forwarded),
-    each saves its checkpoint, the sweep exits 143 with one message, and the resume finishes them."""
-    cfg = tmp_path / "sweep.toml"
-    cfg.write_text('scenario = "sdof-stiffness"\nsteps = 1500\nseeds = 4\nshard_size = 1\n')
-    out = tmp_path / "sweep"
-    flags = ["--threads", "1", "--engine", "torch"]
-    monkeypatch.setenv("RCOTORCH_ENGINE", "torch")
-    proc = _cli("sweep", str(cfg), "--out", str(out), "--workers", "2", *flags)
-    _stepping(proc, out / "shard_0000")
-    _stepping(proc, out / "shard_0001")
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 143, err
-    resume = f"rcotorch sweep {cfg} --out {out} --resume"
-    assert f"resume with: {resume}" in err and "Traceback" not in err
-    assert err.count("SIGTERM received") == 1, err               # said once, by the sweep
-    for shard in ("shard_0000", "shard_0001"):
+    assert err.count("SIGTERM received") == 1, err
+    for shard in running:
         assert 0 < load_checkpoint(out / shard / "checkpoint.pt")["graph"]["k"] < 1500
         assert not (out / shard / "summary.json").exists()
-    assert not (out / "shard_0002").exists() and not (out / "shard_0003").exists()     # never started
-    assert main(["sweep", str(cfg), "--out", str(out), "--resume", "--workers", "2", *flags]) == 0
+    assert not any((out / shard).exists() for shard in unstarted)
+    assert _last_log_line(out).endswith(f"stopped by SIGTERM; resume with: {resume}")
+    assert main(["sweep", str(cfg), "--out", str(out), "--resume", *workers, *flags]) == 0
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "full"), "--workers", "1", *flags]) == 0
 
     def estimates(folder):
