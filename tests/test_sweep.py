@@ -108,6 +108,15 @@ def test_a_shard_that_fails_in_its_worker_fails_the_sweep_with_its_error(fault, 
     assert (tmp_path / "sweep" / "shard_0000").is_dir()
 
 
+def test_a_stop_before_a_shard_has_started_in_a_worker_stops_the_sweep(tmp_path):
+    """A stop request that comes before any worker runs a shard (or once the running ones ended without being
+    stopped) leaves shards unstarted: the sweep is interrupted, never finished with part of its members."""
+    from rcotorch.run.runner import Interrupted
+    with pytest.raises(Interrupted):
+        run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "sweep", progress=False, workers=2, stop=lambda: True)
+    assert not (tmp_path / "sweep" / "sweep.csv").exists() and not (tmp_path / "sweep" / "shard_0000").exists()
+
+
 def test_workers_must_be_a_positive_integer(tmp_path, capsys):
     with pytest.raises(ConfigError, match="workers must be a positive integer"):
         run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "s", progress=False, workers=0)

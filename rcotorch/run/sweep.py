@@ -34,6 +34,7 @@ import itertools
 import json
 import math
 import os
+import signal
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -503,7 +504,6 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
     True, the running shards are sent SIGTERM (each saves its checkpoint, as a shard run here would) and no more
     start; a shard that fails stops the others likewise, and its error is raised here once they ended."""
     import select
-    import signal
     import time
 
     from .runner import preload
@@ -512,11 +512,11 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
     running: dict[int, list] = {}              # read end of a shard's pipe -> [pid, shard, start, chunks]
     parts: dict[int, list] = {}
     stopped = failure = None
-    told = False
+    told = left = False
     try:
         while todo or running:
             if not told and (failure is not None or (control.stop is not None and control.stop())):
-                told = True                    # stop what runs, start nothing more
+                told, left = True, bool(todo)  # stop what runs, start nothing more
                 todo.clear()
                 for pid, *_ in running.values():
                     with contextlib.suppress(ProcessLookupError):
@@ -558,38 +558,51 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
         raise failure
     if stopped is not None:
         raise stopped
+    if left:              # stopped before every shard started, where no running shard was still stopping
+        from .runner import Interrupted
+        raise Interrupted(None, None)
     return [row for i in sorted(parts) for row in parts[i]]
+
+
+# the signals that stop a sweep (Ctrl-C, SIGTERM, SIGHUP), which a shard's process answers by stopping its run
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])}
 
 
 def _fork_shard(sweep, shard, steps, device, out, run) -> tuple[int, int]:
     """Fork the process that runs one shard (``_shard_process``); the read end of its pipe and its pid."""
     import warnings
     r, w = os.pipe()
-    with warnings.catch_warnings():     # Python 3.12+ warns of forking with threads: the child uses none of theirs
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
-    if pid == 0:                        # pragma: no cover - the child ends in os._exit
-        os.close(r)
-        _shard_process(w, sweep, shard, steps, device, out, run)
+    # the stop signals wait until the forked process has its own handlers (a signal meanwhile would reach this
+    # process's handlers in it, and the shard would not hear of it)
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        with warnings.catch_warnings():     # Python 3.12+ warns of forking with threads: the child uses none
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+        if pid == 0:                        # pragma: no cover - the child ends in os._exit
+            os.close(r)
+            _shard_process(w, sweep, shard, steps, device, out, run, blocked)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
     os.close(w)
     return r, pid
 
 
-def _shard_process(w: int, sweep, shard, steps, device, out, run) -> None:
+def _shard_process(w: int, sweep, shard, steps, device, out, run, mask) -> None:
     """In the forked process: run the shard on one thread with its own stop request (Ctrl-C, SIGTERM or SIGHUP,
     which the sweep forwards), write the pickled outcome to ``w`` and end. The outcome: ('rows', rows),
     ('stopped', (step, checkpoint)) or ('error', (exception or None, traceback)), then what the shard printed on
     stdout and on stderr, which the sweep prints where its own output goes (a notebook's cell, a test's capture)."""
     import pickle
-    import signal
     import threading
     import traceback
     status = 3
     try:
         stop = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
-            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:
+        for sig in STOP_SIGNALS:
+            if signal.getsignal(sig) is not signal.SIG_IGN:
                 signal.signal(sig, lambda *_: stop.set())
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)      # a signal held back since the fork arrives now
         printed = sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
         import torch
         torch.set_num_threads(1)
