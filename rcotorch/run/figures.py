@@ -31,6 +31,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
+from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
@@ -724,10 +726,16 @@ def _scenario(which):
 
 def png(fig) -> bytes:
     """The figure as PNG bytes at ``DPI``, laid out tightly unless it has a layout of its own (one drawing); a
-    figure that pyplot made is closed (removed from pyplot's list). A constrained layout is computed before the
+    figure that pyplot made is closed (removed from pyplot's list). A figure of its own (not pyplot's) is laid out
+    and drawn on one Agg canvas at ``DPI``. A constrained layout is computed before the
     drawing: it sizes the axes with the tick labels the locators pick at the axes' size before the layout. Where
     they pick other ticks at the laid-out size (-0.075 for -0.05, a wider label), the drawing lays the figure out
     again with those; where they pick the same, that second layout would change nothing and is left out."""
+    if fig.canvas.manager is None and type(fig.canvas) is FigureCanvasBase:
+        # laid out and drawn by one Agg renderer at the PNG's resolution: the text's extents that the layout
+        # measures are those the drawing reuses, instead of being measured again by a renderer of its own
+        FigureCanvasAgg(fig)
+        fig.set_dpi(DPI)
     engine = fig.get_layout_engine()
     if engine is None:
         fig.set_layout_engine("tight")             # laid out while it is drawn
