@@ -9,8 +9,8 @@ import pytest
 
 from rcotorch import ConfigError
 from rcotorch.run.cli import main
-from rcotorch.run.runner import Run, preload
-from rcotorch.run.sweep import Sweep, local_workers, make_run, run_shard, run_sweep
+from rcotorch.run.runner import Run
+from rcotorch.run.sweep import Sweep, local_workers, run_sweep
 
 SPEC = dict(scenario="sdof-stiffness-damping", steps=400, seeds=[5, 9], shard_size=3,
             grid={"dK": [-0.4, 0.3], "Ts": [0.01, 0.02]}, random={"dC": {"uniform": [0.0, 1.0]}}, samples=1,
@@ -70,14 +70,29 @@ def test_the_workers_default_to_one_per_core_and_never_outnumber_the_shards(monk
 
 def test_worker_processes_load_nothing_a_shard_needs_again(tmp_path):
     """``preload`` imports what a shard's run imports as it steps and ends, so that a forked worker loads none
-    of it again (a shard run after it here imports no module)."""
-    sweep = Sweep.from_dict(dict(SPEC, shard_size=8))
-    shard = sweep.shards()[0]
-    run = make_run(sweep.scenario, shard, 400, sweep.dtype, "cpu", str(tmp_path / "shard"))
+    of it again: in a fresh process, a shard run after it imports no module (without it, TensorBoard's records
+    and validation, about 0.1 s in every worker)."""
+    import subprocess
+    script = f"""
+import sys
+from rcotorch.run.runner import preload
+from rcotorch.run.sweep import Sweep, make_run, run_shard
+sweep = Sweep.from_dict({dict(SPEC, shard_size=8)!r})
+shard = sweep.shards()[0]
+out = {str(tmp_path)!r} + "/" + sys.argv[1]
+run = make_run(sweep.scenario, shard, 400, sweep.dtype, "cpu", out)
+if sys.argv[1] == "preload":
     preload()
-    before = set(sys.modules)
-    run_shard(sweep.scenario, shard, 400, sweep.dtype, "cpu", str(tmp_path / "shard"), run=run)
-    assert set(sys.modules) - before == set()
+before = set(sys.modules)
+run_shard(sweep.scenario, shard, 400, sweep.dtype, "cpu", out, run=run)
+print(sorted(set(sys.modules) - before))
+"""
+    def loaded(how):
+        done = subprocess.run([sys.executable, "-c", script, how], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip()
+    assert loaded("preload") == "[]"
+    assert "rcotorch.verdict.validation" in loaded("no")          # what the preload spares each worker
 
 
 @pytest.mark.parametrize("fault", ["config", "internal", "killed"])
