@@ -75,7 +75,6 @@ def large(steps: int, threads: int) -> dict:
     sweep on a worker per core against the batch on a thread per core, and the sweep on one worker (this process)
     against the batch on ``threads`` threads."""
     from rcotorch.run.runner import Run
-    from rcotorch.run.sweep import local_workers
     spec = {"scenario": NAME, "steps": steps, "seeds": 64, "grid": {"nu": list(range(5, 69))}}
     cores = local_workers(None, 64, "cpu")
 
