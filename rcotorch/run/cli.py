@@ -27,12 +27,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, OutputError, RcoError, SettingError
+from .control import STOP_SIGNALS
 
 EXIT_PASS, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
-# The signals that stop a run or sweep at the next step boundary, with a checkpoint (exit code 128 + the
-# signal's number: 130, 143, 129), by the names the messages use.
-STOP_SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM",
-                **({signal.SIGHUP: "SIGHUP"} if hasattr(signal, "SIGHUP") else {})}
 
 
 def _settings(pairs: list[str]) -> dict[str, str]:

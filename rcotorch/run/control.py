@@ -11,6 +11,7 @@ only where that folder holds a sweep); a sweep hands each shard's run its ``stop
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -19,6 +20,12 @@ from ..errors import ConfigError
 
 if TYPE_CHECKING:
     from .outputs import OutputFolder
+
+
+# The signals that stop a run or sweep at the next step boundary, with a checkpoint (exit code 128 + the
+# signal's number: 130, 143, 129), by the names the messages use; a sweep's workers answer them too.
+STOP_SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM",
+                **({signal.SIGHUP: "SIGHUP"} if hasattr(signal, "SIGHUP") else {})}
 
 
 @dataclass(frozen=True)

@@ -39,15 +39,13 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..errors import ConfigError, RcoError
 from . import scenario as scenarios
-
-if TYPE_CHECKING:
-    from .control import RunControl
+from .control import STOP_SIGNALS, RunControl
 
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
@@ -417,7 +415,6 @@ def run_sweep(sweep: Sweep, backend: str = "local", device: str = "cpu", out: st
     that draws the sweep's figures while the sweep writes its table (``rcotorch sweep`` starts one before it
     imports torch); without it they are drawn here. A sweep refused (an ``RcoError``) before its first shard wrote
     anything leaves the folder as it found it."""
-    from .control import RunControl
     from .outputs import OutputFolder
     if backend not in ("local", "ray"):
         raise ConfigError(f"backend must be 'local' or 'ray', got {backend!r}")
@@ -562,10 +559,6 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
         from .runner import Interrupted
         raise Interrupted(None, None)
     return [row for i in sorted(parts) for row in parts[i]]
-
-
-# the signals that stop a sweep (Ctrl-C, SIGTERM, SIGHUP), which a shard's process answers by stopping its run
-STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM, *([signal.SIGHUP] if hasattr(signal, "SIGHUP") else [])}
 
 
 def _fork_shard(sweep, shard, steps, device, out, run) -> tuple[int, int]:
