@@ -3,6 +3,7 @@ measured by the scripts in benchmarks/, not here)."""
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from bench_scripts import ROOT, run_script
@@ -215,3 +216,24 @@ def test_the_cost_of_a_run_in_the_docs_is_the_table_the_script_prints():
     assert table.startswith("| scenario |") and "| 4096 members in 64 shards, " in table
     assert "one after another in one process" in table
     assert table in (ROOT / "docs" / "cli.md").read_text()
+
+
+@pytest.mark.parametrize("case", ["sdof-discrete", "sdof-continuous"])
+def test_the_offline_copy_of_the_interval_rule_gives_the_runs_intervals(tmp_path, case):
+    """benchmarks/interval_rules.py records every member's interval inputs and writes the rule again in NumPy:
+    on the records it gives the run's own intervals and statuses, and so the coverage the case measured (a case
+    with the output error's step only, and one with the model class's bias against the physics as well)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("interval_rules", ROOT / "benchmarks" / "interval_rules.py")
+    rules = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rules)
+    rec = rules.capture(case, 12, tmp_path)
+    assert rules.reproduces(rec)
+    keys = rec["intervals"]["keys"]
+    assert {"d", "sd_d", "sd_o", "model", "t"} <= set(keys["dC"])
+    bias = float(np.median(np.abs(keys["dC"]["model"]) / keys["dC"]["sd_r"]))    # the physics' bias in sd of dC
+    assert (bias > 0.5) if case == "sdof-continuous" else (bias < 0.05)
+    scored = rules.score(rec, rules.shipped)
+    for key, row in rec["coverage"]["estimates"].items():
+        assert scored["estimates"][key]["coverage"] == pytest.approx(row["coverage"], abs=1e-3, nan_ok=True)
+    assert scored["shares"]["converged"] == pytest.approx(rec["coverage"]["shares"]["converged"], abs=1e-3)
