@@ -36,9 +36,26 @@ from pathlib import Path
 import numpy as np
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))   # the coverage cases, shared with the tests
+import coverage_cases  # noqa: E402
 from coverage_cases import CASES, coverage  # noqa: E402
 
 RECORDS = Path(__file__).parent / "runs" / "interval_rules"
+
+
+def static_lam1(members: int, out: Path, steps: int = 5000) -> dict:
+    """The exact static regression of tests/test_intervals.py under lam = 1 (the refinement's estimate is the whole
+    run's least-squares one, the output error's optimum that of the window alone, several times less precise)."""
+    from test_intervals import _regression_graph
+
+    import rcotorch as rt
+    theta = [0.7, -1.3, 0.2]
+    g = _regression_graph(theta, 0.1, seed=list(range(1, members + 1)))
+    names = [f"theta[{n}]" for n in g.role("estimator").theta_names]
+    return rt.refine(g, steps, out=out, overwrite=True, figures=False, validation=False, progress=False,
+                     truth=dict(zip(names, theta))).summary
+
+
+STUDY = {**CASES, "static-lam1": (static_lam1, {}, 5000)}     # the coverage cases and this one
 STATUSES = ("converged", "not_converged", "diverged", "undetermined", "biased")
 
 
@@ -73,7 +90,9 @@ def capture(name: str, members: int, out: Path) -> dict:
             keys[key] = row
         got["intervals"] = {"keys": keys, "settles": pc.settles.cpu().numpy(),
                             "correlated": None if pc.correlated is None else pc.correlated.cpu().numpy(),
-                            "widening": None if pc.widening is None else pc.widening.cpu().numpy()}
+                            "widening": None if pc.widening is None else pc.widening.cpu().numpy(),
+                            "offset": None if pc.offset is None else pc.offset.cpu().numpy(),
+                            "offset_cov": None if pc.offset_cov is None else pc.offset_cov.cpu().numpy()}
         return found
 
     def recorded_decide(status, z_ratio, z_tol, explained=None, determined=None, biased=None, worse=None,
@@ -86,18 +105,25 @@ def capture(name: str, members: int, out: Path) -> dict:
         return final
 
     ci.estimate_intervals, Health.decide = recorded_intervals, staticmethod(recorded_decide)
+    extra = name not in CASES              # a case of this study only, lent to coverage() for the run
+    if extra:
+        coverage_cases.CASES[name] = STUDY[name]
     try:
         result = coverage(name, members, out)
     finally:
         ci.estimate_intervals, Health.decide = intervals, staticmethod(decide)
+        if extra:
+            del coverage_cases.CASES[name]
     summary = json.loads((out / name / "summary.json").read_text())
     got["truth"] = {k: np.asarray(v, dtype=float) for k, v in summary["truth"].items()}
     got["coverage"] = result
     return got
 
 
-def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
-    """``estimate_intervals``'s rule on the records: {key: (below, above)}, determined, biased, drifting."""
+def widened(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+    """The refinement's own interval with the widenings of ``estimate_intervals`` (the output error's step and its
+    interval, the physics, the drift) and no more (the library's rule until the window's optimum came in):
+    {key: (below, above)}, determined, biased, drifting."""
     import rcotorch.verdict.intervals as ci
     q = ci.quantile(ci.LEVEL)
     rows, corr = rec["intervals"]["keys"], rec["intervals"]["correlated"]
@@ -151,11 +177,53 @@ def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     return sides, det, biased, drifting
 
 
+def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+    """``estimate_intervals``'s rule on the records: ``widened``'s, its sides replaced by the window's
+    output-error optimum's where the joint test rejects or the optimum is the more precise, held beside them where
+    the residuals are correlated or the drift stands out: {key: (below, above)}, determined, biased, drifting."""
+    from scipy.stats import chi2
+
+    import rcotorch.verdict.intervals as ci
+    q = ci.quantile(ci.LEVEL)
+    base, _, biased, drifting = widened(rec)
+    I = rec["intervals"]
+    det = I["settles"].copy()
+    B = det.size
+    if I["offset"] is None or I["offset_cov"] is None:
+        return base, _, biased, drifting
+    corr = np.zeros(B, bool) if I["correlated"] is None else I["correlated"]
+    widening = np.where(corr, I["widening"], 1.0) if I["widening"] is not None else np.ones(B)
+    D, S = I["offset"], I["offset_cov"]
+    n = D.shape[1]
+    ok = np.isfinite(D).all(1) & np.isfinite(S).reshape(B, -1).all(1)
+    D0 = np.where(ok[:, None], D, 0.0)
+    stat = np.einsum("bi,bij,bj->b", D0, np.linalg.pinv(np.where(ok[:, None, None], S, np.eye(n))), D0)
+    p = np.where(ok, chi2.sf(np.maximum(stat, 0), n), np.nan)
+    sides = {}
+    with np.errstate(invalid="ignore"):
+        for key, r in I["keys"].items():
+            v, sd_r = r["v"], r["sd_r"]
+            hw, size = q * sd_r, np.maximum(np.abs(v), r["scale"])
+            model = np.where(np.isfinite(r["model"]), r["model"], 0.0) if "model" in r else np.zeros(B)
+            centre, sd_o = r["d"] - model, r["sd_o"] * widening
+            use = np.isfinite(centre) & np.isfinite(sd_o) & np.isfinite(hw) & ((p < ci.OPTIMUM_P) | (sd_o <= sd_r))
+            lo = np.where(use, np.clip(q * sd_o - centre, 0, None), hw)
+            hi = np.where(use, np.clip(q * sd_o + centre, 0, None), hw)
+            hold = corr.copy()
+            if "t" in r:
+                hold |= np.isfinite(r["t"]) & np.isfinite(hw) & (np.abs(r["t"]) > ci.OPTIMUM_DRIFT_Z * r["sd_t"])
+            lo, hi = np.where(hold, np.maximum(lo, base[key][0]), lo), np.where(hold, np.maximum(hi, base[key][1]), hi)
+            lo, hi = np.where(np.isfinite(sd_r), lo, np.nan), np.where(np.isfinite(sd_r), hi, np.nan)
+            det &= np.isfinite(lo + hi) & (np.maximum(lo, hi) <= ci.REL_TOL * size)
+            sides[key] = (lo, hi)
+    return sides, det, biased, drifting
+
+
 def output_error_first(rec: dict, hold: float = 1.0) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     """The candidate rule of the module's docstring on the records."""
     import rcotorch.verdict.intervals as ci
     q = ci.quantile(ci.LEVEL)
-    base, det, _, drifting = shipped(rec)
+    base, det, _, drifting = widened(rec)
     I = rec["intervals"]
     B = det.size
     corr = np.zeros(B, bool) if I["correlated"] is None else I["correlated"]
@@ -220,16 +288,16 @@ def reproduces(rec: dict) -> bool:
     return same and bool((verdict(rec, det, biased, drifting) == rec["final"]).all())
 
 
-RULES = {"shipped": shipped, "output-error-first": output_error_first}
+RULES = {"shipped": shipped, "widened": widened, "output-error-first": output_error_first}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--capture", action="store_true", help="run the cases and record their members' inputs")
-    p.add_argument("--case", action="append", choices=sorted(CASES))
+    p.add_argument("--case", action="append", choices=sorted(STUDY))
     p.add_argument("--members", type=int, default=1000)
     args = p.parse_args()
-    names = args.case or list(CASES)
+    names = args.case or list(STUDY)
     RECORDS.mkdir(parents=True, exist_ok=True)
     if args.capture:
         for name in names:

@@ -167,18 +167,21 @@ def test_the_residual_warning_is_silent_on_an_exact_noise_free_run_and_speaks_on
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case, most", [("friction-strong", 0.985), ("impedance-noise", 1.0),
-                                        ("twodof-discrete", 1.0), ("duffing", 1.0)])
-def test_converged_means_covered_off_the_exact_model_over_200_seeds(case, most, tmp_path):
+@pytest.mark.parametrize("case, most, members", [("friction-strong", 0.985, 200), ("impedance-noise", 1.0, 200),
+                                                 ("twodof-discrete", 1.0, 200), ("duffing", 0.985, 200),
+                                                 ("sdof-damping-noise", 0.985, 1000)])
+def test_converged_means_covered_off_the_exact_model_over_200_seeds(case, most, members, tmp_path):
     """Hard cases of the interval coverage (coverage_cases.py), 200 members with their own streams: friction with
     strong excitation (a non-smooth basis whose estimates still carry their start's error), the impedance with 5%
-    noise, the exact model with lam = 1 (a recursion that forgets its start slowly) and a Duffing truth built in
-    Python (a continuous nonlinear truth, a cubic feature). Among the members called converged the 95% intervals
-    hold the truth in at least 90%, and at most 98.5% for friction (with about 180 converged members a coverage's
-    sampling error is about 1.6%; lam = 1 and the Duffing truth are wider than nominal, as docs/intervals.md
-    says, and the impedance's 70 or so converged members cannot tell 98% from all), and at least a third of the
-    members are converged."""
-    r = coverage(case, 200, tmp_path)
+    noise, the exact model with lam = 1 (a recursion that forgets its start slowly), a Duffing truth built in
+    Python (a continuous nonlinear truth, a cubic feature), and 1000 members (a few seconds) of
+    ``sdof-stiffness-damping`` with 5% noise (a closed-loop bias of a few of the output-error step's sd, which the
+    widened intervals alone held in 88% of members: 200 cannot tell that from 90%). Among the members called
+    converged the 95% intervals hold the truth in at least 90%, and at most 98.5% (with about 180 converged members
+    a coverage's sampling error is about 1.6%; lam = 1 is wider than nominal, as docs/intervals.md says, and the
+    impedance's 70 or so converged members cannot tell 98% from all), and at least a third of the members are
+    converged."""
+    r = coverage(case, members, tmp_path)
     assert r["shares"]["converged"] >= 1 / 3, r["shares"]
     for key, row in r["estimates"].items():
         assert 0.90 <= row["coverage"] <= most, (key, row)

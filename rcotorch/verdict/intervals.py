@@ -73,6 +73,8 @@ DRIFT_FAR = 2.0          # a drift beyond this many half-widths is a member stil
 DRIFT_Z = 1.96           # ... where it is also beyond this many of its own standard deviations
 DRIFT_HOLD_Z = 0.5       # a drift beyond this many of its standard deviations: the interval holds its end ...
 DRIFT_NOISE = 1.0        # ... and this many of its standard deviations past it
+OPTIMUM_P = 0.2          # the joint test's p-value below which the window's output-error optimum replaces the estimate
+OPTIMUM_DRIFT_Z = 1.0    # a drift beyond this many of its sd: the interval holds the widened one beside the optimum's
 JOIN_COPIES = True       # step the replay's copies inside one graph, sharing what they compute alike (``_join``)
 
 
@@ -1182,12 +1184,14 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     any_off, any_sampled, drifting = torch.zeros_like(det), torch.zeros_like(det), torch.zeros_like(det)
     drifts = {}
     factor = torch.full(det.shape, OFFSET_FACTOR, dtype=torch.float64)
-    if pc.correlated is not None:
-        factor = torch.where(pc.correlated.cpu(), OFFSET_FACTOR_CORRELATED, factor)
+    correlated = torch.zeros_like(det) if pc.correlated is None else pc.correlated.cpu()
+    factor = torch.where(correlated, OFFSET_FACTOR_CORRELATED, factor)
+    p_optimum = optimum_test(pc)
     for key, v in values.items():
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
         hw = q * var.clamp_min(0).sqrt()
+        hw_random = hw
         scale = float((scales or {}).get(key, 0.0))
         size = torch.clamp(v.abs(), min=scale)
         d, low, high, off, bias = _output_error_reach(pc, g, hw, size, factor, q, moved, widened, key)
@@ -1208,18 +1212,22 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             off = off | (flag & ~sampled)
         hw = hw + extra
         lo_w, hi_w = hw + low, hw + high
+        drifts_on = torch.zeros_like(det)
         if transient is not None:
             t = torch.einsum("bi,bi->b", g, transient[0])
             sd_t = _sd(g, transient[1])
             found = torch.isfinite(t) & torch.isfinite(hw)
             moving = found & (t.abs() > DRIFT_Z * sd_t)
             held = found & (t.abs() > DRIFT_HOLD_Z * sd_t)
+            drifts_on = found & (t.abs() > OPTIMUM_DRIFT_Z * sd_t)
             drifts[key] = torch.where(moving, t, 0.0)
             far = moving & (t.abs() > DRIFT_FAR * torch.maximum(lo_w, hi_w)) & (t.abs() > NEGLIGIBLE * size)
             drifting |= far
             reach = torch.where(held & ~far, t.abs() + DRIFT_NOISE * sd_t, 0.0)   # towards est - t
             lo_w = torch.where(t > 0, lo_w + reach, lo_w)
             hi_w = torch.where(t < 0, hi_w + reach, hi_w)
+        if p_optimum is not None:
+            lo_w, hi_w = _from_optimum(pc, g, hw_random, lo_w, hi_w, p_optimum, correlated | drifts_on, q)
         finite = torch.isfinite(var)
         below[key] = torch.where(finite, lo_w, math.nan)
         above[key] = torch.where(finite, hi_w, math.nan)
@@ -1276,6 +1284,45 @@ def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tens
         widened |= hold & ((low > 0) | (high > 0))
     widened |= widen
     return torch.where(widen, d, 0.0), low, high, off, bias
+
+
+def optimum_test(pc: ParameterCovariance) -> torch.Tensor | None:
+    """(B,) the p-value of the joint test that the refinement's estimate and the window's output-error optimum
+    estimate the same parameters: the step d = ``pc.offset`` against its covariance S = ``pc.offset_cov`` (that of
+    the difference of the two estimates), d^T S^+ d chi-squared with n degrees of freedom (Hausman's test); NaN
+    where the step is not known (None where the run has none)."""
+    if pc.offset is None or pc.offset_cov is None:
+        return None
+    d, S = pc.offset.cpu(), pc.offset_cov.cpu()
+    B, n = d.shape
+    ok = torch.isfinite(d).all(1) & torch.isfinite(S).reshape(B, -1).all(1)
+    eye = torch.eye(n, dtype=torch.float64)
+    d0 = torch.where(ok.reshape(-1, 1), d, 0.0)
+    stat = torch.einsum("bi,bij,bj->b", d0, torch.linalg.pinv(torch.where(ok.reshape(-1, 1, 1), S, eye)), d0)
+    return torch.where(ok, chi2_upper_tail(n, stat.clamp_min(0)), math.nan)
+
+
+def _from_optimum(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, below: torch.Tensor, above: torch.Tensor,
+                  p: torch.Tensor, hold: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """One estimate's sides from the window's output-error optimum (``estimate_intervals``): where the joint test
+    rejects (``p`` below ``OPTIMUM_P``) or the optimum is at least as precise as the estimate, the interval is
+    the optimum's, est + d - g b +- q sd_o (g b the model class's bias against the physics where measured; sd_o
+    widened by the residuals' correlation where the whiteness test rejects), reaching the estimate if it does not
+    hold it; elsewhere the estimate's own est +- ``hw``. Where ``hold`` (correlated residuals, a drift beyond
+    ``OPTIMUM_DRIFT_Z`` of its sd), the interval also holds the sides ``below`` and ``above`` of the widenings."""
+    d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+    centre = d
+    if pc.sampling is not None:
+        model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
+        centre = d - torch.where(torch.isfinite(model), model, 0.0)
+    sd_o = _sd(g, pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov)
+    if pc.widening is not None and pc.correlated is not None:
+        sd_o = sd_o * torch.where(pc.correlated.cpu(), pc.widening.cpu(), 1.0)
+    have = torch.isfinite(centre) & torch.isfinite(sd_o) & torch.isfinite(hw)
+    use = have & ((p < OPTIMUM_P) | (sd_o <= hw / q))
+    low = torch.where(use, (q * sd_o - centre).clamp_min(0), hw)
+    high = torch.where(use, (q * sd_o + centre).clamp_min(0), hw)
+    return torch.where(hold, torch.maximum(low, below), low), torch.where(hold, torch.maximum(high, above), high)
 
 
 def _sd(g: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
