@@ -1167,8 +1167,14 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     deviations and ``DRIFT_FAR`` half-widths (and ``NEGLIGIBLE`` of the estimate's size), the member is
     *drifting* (not converged).
 
-    An interval is therefore not always symmetric about its estimate: ``below`` and ``above`` hold its two
-    sides, ``half_width`` half its width.
+    Last, the interval is chosen between the estimate's and the window's output-error optimum's
+    (``_from_optimum``): where the joint test of the two (``optimum_test``) rejects at ``OPTIMUM_P`` or the
+    optimum is the more precise, est + d - g b +- q sd_o reaching the estimate, else est +- q sd; where the
+    residuals are correlated or the drift exceeds ``OPTIMUM_DRIFT_Z`` of its sd, it also holds the widened
+    interval above. The biases and the drift found above stay the verdict's findings.
+
+    An interval is therefore not always symmetric about its estimate (it may end at it): ``below`` and ``above``
+    hold its two sides, ``half_width`` half its width.
 
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
