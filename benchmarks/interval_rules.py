@@ -95,10 +95,8 @@ def capture(name: str, members: int, out: Path) -> dict:
                             "offset_cov": None if pc.offset_cov is None else pc.offset_cov.cpu().numpy()}
         return found
 
-    def recorded_decide(status, z_ratio, z_tol, explained=None, determined=None, biased=None, worse=None,
-                        drifting=None):
-        final = decide(status, z_ratio, z_tol, explained=explained, determined=determined, biased=biased,
-                       worse=worse, drifting=drifting)
+    def recorded_decide(status, z_ratio, z_tol, determined=None, worse=None, **rest):
+        final = decide(status, z_ratio, z_tol, determined=determined, worse=worse, **rest)
         if determined is not None:            # the second call: the intervals' part of the verdict
             got.update(settled=status.cpu().numpy(), final=final.cpu().numpy(),
                        worse=None if worse is None else worse.cpu().numpy())

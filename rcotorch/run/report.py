@@ -71,11 +71,13 @@ def health_line(summary: Mapping[str, Any]) -> str:
 
 
 def member_reasons(verdict: Mapping[str, torch.Tensor], criteria: Criteria, worse: torch.Tensor | None,
-         found: ci.Intervals | None) -> list[str | None]:
+         found: ci.Intervals | None, white: torch.Tensor | None = None) -> list[str | None]:
     """Per member, why it is not converged, undetermined or biased, in a few words (None for a converged or
-    diverged member: a diverged one has its ``reason``)."""
+    diverged member: a diverged one has its ``reason``). A z_ratio above the tolerance with ``white`` residuals
+    is not a reason (``Health.decide``)."""
     code = verdict["status"].cpu().tolist()
     ratio = verdict["z_ratio"].cpu().tolist()
+    white_ = white.cpu().tolist() if white is not None else [False] * len(code)
     drifting = found.drifting.tolist() if found is not None and found.drifting is not None else [False] * len(code)
     worse_ = worse.tolist() if worse is not None else [False] * len(code)
     out: list[str | None] = []
@@ -86,7 +88,7 @@ def member_reasons(verdict: Mapping[str, torch.Tensor], criteria: Criteria, wors
                 out.append("fits worse than the initial model")
             elif drifting[b]:
                 out.append("still drifting beyond its interval")
-            elif not ratio[b] <= criteria.z_tol:
+            elif not ratio[b] <= criteria.z_tol and not white_[b]:
                 out.append(f"z_ratio above {criteria.z_tol:g}")
             else:
                 out.append(f"theta_change above {criteria.theta_tol:g}")

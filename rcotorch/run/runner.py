@@ -485,14 +485,17 @@ class Run:
         worse = fits_worse(met)
         dev = verdict["status"].device
         z_tol = self.health.criteria.z_tol
-        settled = Health.decide(verdict["status"], verdict["z_ratio"], z_tol, explained=explained)
+        white = None if res is None else (res.whiteness_p >= ci.WHITE_P).to(dev)     # NaN: not tested, not white
+        theta_ok = verdict["theta_change"] <= self.health.criteria.theta_tol
+        settled = Health.decide(verdict["status"], verdict["z_ratio"], z_tol, explained=explained, white=white,
+                                theta_ok=theta_ok)
         verdict["status"] = Health.decide(
             settled, verdict["z_ratio"], z_tol, determined=determined,
             biased=None if found is None or found.biased is None else found.biased.to(dev),
             drifting=None if found is None or found.drifting is None else found.drifting.to(dev),
             worse=None if worse is None else worse.to(dev))
         health = self.health.report(verdict)
-        health["why"] = self._plain(member_reasons(verdict, self.health.criteria, worse, found))
+        health["why"] = self._plain(member_reasons(verdict, self.health.criteria, worse, found, white))
         if worse is not None:
             health["fits_worse"] = self._plain(worse.tolist())
         if found is not None:

@@ -354,13 +354,16 @@ class Health:
     @staticmethod
     def decide(status: torch.Tensor, z_ratio: torch.Tensor, z_tol: float, explained: torch.Tensor | None = None,
                determined: torch.Tensor | None = None, biased: torch.Tensor | None = None,
-               worse: torch.Tensor | None = None, drifting: torch.Tensor | None = None) -> torch.Tensor:
+               worse: torch.Tensor | None = None, drifting: torch.Tensor | None = None,
+               white: torch.Tensor | None = None, theta_ok: torch.Tensor | None = None) -> torch.Tensor:
         """Every member's final status (index into STATUSES) from the checks' ``status`` and what the end of the
         run found, each (B,) bool where given:
 
         * a member not converged only because theta still moved over the window, where that move is what its
           own random error explains (``explained``, ``rcotorch.verdict.intervals.change_explained``) and its
-          z_ratio is within ``z_tol``, is converged;
+          z_ratio is within ``z_tol``, is converged; so is one whose theta settled (``theta_ok``: its
+          theta_change within the tolerance, or ``explained``) and whose z_ratio is above ``z_tol`` only with
+          residuals that are white (``white``: the model error is what the measurement noise leaves);
         * a converged member whose estimates still drift by more than their intervals (``drifting``) is not
           converged;
         * a converged member is ``undetermined`` where the data did not determine an estimate (``determined``
@@ -369,7 +372,11 @@ class Health:
           (``worse``) is not converged."""
         code = {s: STATUSES.index(s) for s in STATUSES}
         if explained is not None:
-            settled = (status == code["not_converged"]) & explained & (z_ratio <= z_tol)
+            z_ok = z_ratio <= z_tol
+            if white is not None:
+                z_ok = z_ok | (white & torch.isfinite(z_ratio))
+            moved_ok = explained if theta_ok is None else explained | theta_ok
+            settled = (status == code["not_converged"]) & moved_ok & z_ok
             status = torch.where(settled, code["converged"], status)
         if drifting is not None:
             status = torch.where((status == code["converged"]) & drifting, code["not_converged"], status)
