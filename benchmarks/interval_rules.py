@@ -118,10 +118,11 @@ def capture(name: str, members: int, out: Path) -> dict:
     return got
 
 
-def widened(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+def widened(rec: dict, parts: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     """The refinement's own interval with the widenings of ``estimate_intervals`` (the output error's step and its
     interval, the physics, the drift) and no more (the library's rule until the window's optimum came in):
-    {key: (below, above)}, determined, biased, drifting."""
+    {key: (below, above)}, determined, biased, drifting. ``parts`` (where given) receives per estimate its flags
+    and bias: {key: (off, sampled, bias)} (off: biased by the output error's step, sampled: by the model class)."""
     import rcotorch.verdict.intervals as ci
     q = ci.quantile(ci.LEVEL)
     rows, corr = rec["intervals"]["keys"], rec["intervals"]["correlated"]
@@ -136,12 +137,14 @@ def widened(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
             v, hw = r["v"], q * r["sd_r"]
             size = np.maximum(np.abs(v), r["scale"])
             low, high, off, moved = np.zeros(B), np.zeros(B), np.zeros(B, bool), np.zeros(B)
+            bias = np.full(B, np.nan)
             model = r.get("model")
             if "d" in r:
                 d = r["d"]
                 beyond = fin(d) & fin(hw) & (np.abs(d) > factor * hw)
                 widen = beyond if corr is None else beyond | (corr & fin(d))
                 off = beyond & (np.abs(d) > ci.BIAS_TOL * size)
+                bias = np.where(off, -d, bias)
                 if "sd_d" in r:
                     hold = fin(d) & fin(hw) & (np.abs(d) > ci.OFFSET_HOLD_Z * r["sd_d"]) & ~widen
                     centre = d if model is None else d - np.where(fin(model), model, 0.0)
@@ -158,6 +161,7 @@ def widened(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
                 high = np.where(known & ~flag, np.maximum(high, reach), high)
                 sampled = flag & (np.abs(model) >= np.abs(moved))
                 off = off | (flag & ~sampled)
+                bias = np.where(flag, total, bias)
             lo, hi = hw + np.abs(moved) + low, hw + np.abs(moved) + high
             if "t" in r:
                 t, sd_t = r["t"], r["sd_t"]
@@ -172,6 +176,8 @@ def widened(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
             det &= fin(lo + hi) & (np.maximum(lo, hi) <= ci.REL_TOL * size)
             biased |= off | sampled
             sides[key] = (lo, hi)
+            if parts is not None:
+                parts[key] = (off, sampled, bias)
     return sides, det, biased, drifting
 
 
@@ -183,7 +189,8 @@ def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
 
     import rcotorch.verdict.intervals as ci
     q = ci.quantile(ci.LEVEL)
-    base, _, biased, drifting = widened(rec)
+    parts: dict = {}
+    base, _, biased, drifting = widened(rec, parts)
     I = rec["intervals"]
     det = I["settles"].copy()
     B = det.size
@@ -197,7 +204,7 @@ def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     D0 = np.where(ok[:, None], D, 0.0)
     stat = np.einsum("bi,bij,bj->b", D0, np.linalg.pinv(np.where(ok[:, None, None], S, np.eye(n))), D0)
     p = np.where(ok, chi2.sf(np.maximum(stat, 0), n), np.nan)
-    sides = {}
+    sides, flagged = {}, np.zeros(B, bool)
     with np.errstate(invalid="ignore"):
         for key, r in I["keys"].items():
             v, sd_r = r["v"], r["sd_r"]
@@ -213,8 +220,12 @@ def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
             lo, hi = np.where(hold, np.maximum(lo, base[key][0]), lo), np.where(hold, np.maximum(hi, base[key][1]), hi)
             lo, hi = np.where(np.isfinite(sd_r), lo, np.nan), np.where(np.isfinite(sd_r), hi, np.nan)
             det &= np.isfinite(lo + hi) & (np.maximum(lo, hi) <= ci.REL_TOL * size)
+            off, sampled, bias = parts[key]
+            shift = np.where(np.isfinite(bias), bias, 0.0)
+            held_bias = off & ~sampled & (shift <= lo) & (-shift <= hi)    # a closed-loop bias the interval holds
+            flagged |= (off & ~held_bias) | sampled
             sides[key] = (lo, hi)
-    return sides, det, biased, drifting
+    return sides, det, flagged, drifting
 
 
 def output_error_first(rec: dict, hold: float = 1.0) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:

@@ -1189,15 +1189,13 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
     widened = torch.zeros_like(det)
     any_off, any_sampled, drifting = torch.zeros_like(det), torch.zeros_like(det), torch.zeros_like(det)
     drifts = {}
-    factor = torch.full(det.shape, OFFSET_FACTOR, dtype=torch.float64)
     correlated = torch.zeros_like(det) if pc.correlated is None else pc.correlated.cpu()
-    factor = torch.where(correlated, OFFSET_FACTOR_CORRELATED, factor)
+    factor = torch.where(correlated, OFFSET_FACTOR_CORRELATED, torch.full_like(X[:, 0, 0], OFFSET_FACTOR))
     p_optimum = optimum_test(pc)
     for key, v in values.items():
         g = grads[key].cpu()
         var = torch.einsum("bi,bij,bj->b", g, X, g)
         hw = q * var.clamp_min(0).sqrt()
-        hw_random = hw
         scale = float((scales or {}).get(key, 0.0))
         size = torch.clamp(v.abs(), min=scale)
         d, low, high, off, bias = _output_error_reach(pc, g, hw, size, factor, q, moved, widened, key)
@@ -1233,7 +1231,9 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             lo_w = torch.where(t > 0, lo_w + reach, lo_w)
             hi_w = torch.where(t < 0, hi_w + reach, hi_w)
         if p_optimum is not None:
-            lo_w, hi_w = _from_optimum(pc, g, hw_random, lo_w, hi_w, p_optimum, correlated | drifts_on, q)
+            lo_w, hi_w = _from_optimum(pc, g, q * var.clamp_min(0).sqrt(), lo_w, hi_w, p_optimum,
+                                       correlated | drifts_on, q)
+            off, bias = _bias_held(off, sampled, bias, lo_w, hi_w)
         finite = torch.isfinite(var)
         below[key] = torch.where(finite, lo_w, math.nan)
         above[key] = torch.where(finite, hi_w, math.nan)
@@ -1329,6 +1329,16 @@ def _from_optimum(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, be
     low = torch.where(use, (q * sd_o - centre).clamp_min(0), hw)
     high = torch.where(use, (q * sd_o + centre).clamp_min(0), hw)
     return torch.where(hold, torch.maximum(low, below), low), torch.where(hold, torch.maximum(high, above), high)
+
+
+def _bias_held(off: torch.Tensor, sampled: torch.Tensor, bias: torch.Tensor, below: torch.Tensor,
+               above: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``off`` and ``bias`` less the biases the interval holds: a bias the output error's step found (a
+    closed-loop bias, not the model class's own, ``sampled``) whose physics' value est - bias lies inside the
+    interval (its sides ``below``, ``above``) is covered by it, not flagged."""
+    shift = torch.where(torch.isfinite(bias), bias, 0.0)
+    held = off & ~sampled & (shift <= below) & (-shift <= above)
+    return off & ~held, torch.where(held, math.nan, bias)
 
 
 def _sd(g: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
