@@ -10,6 +10,8 @@ numbers recorded; every rule below is then scored on the records in a second, wi
 * ``shipped``: the rule of ``rcotorch.verdict.intervals`` written again in NumPy, with its constants read from
   that module; the score checks that it gives the run's own intervals and statuses, so that a change of the rule
   that is not made here too is seen;
+* ``reaching``: the rule before the one shipped, whose optimum's interval was extended to hold the estimate
+  and was held beside the widened one wherever the drift stood out;
 * ``output-error-first``: the interval about the output error's optimum less the model class's bias,
   est + d - g b +- q sd_o w (w the correlated residuals' widening where the whiteness test rejects), extended to
   hold the estimate, wherever the step stands out from its noise (|d| > ``hold`` sd_d) or the optimum is the more
@@ -181,10 +183,12 @@ def widened(rec: dict, parts: dict | None = None) -> tuple[dict, np.ndarray, np.
     return sides, det, biased, drifting
 
 
-def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+def shipped(rec: dict, reaching: bool = False) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     """``estimate_intervals``'s rule on the records: ``widened``'s, its sides replaced by the window's
     output-error optimum's where the joint test rejects or the optimum is the more precise, held beside them where
-    the residuals are correlated or the drift stands out: {key: (below, above)}, determined, biased, drifting."""
+    the residuals are correlated or the drift stands out (and, about the optimum, disagrees with it): {key: (below,
+    above)}, determined, biased, drifting. ``reaching``: the rule before, whose optimum's interval reached the
+    estimate and held the widened one wherever the drift stood out."""
     from scipy.stats import chi2
 
     import rcotorch.verdict.intervals as ci
@@ -212,11 +216,14 @@ def shipped(rec: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
             model = np.where(np.isfinite(r["model"]), r["model"], 0.0) if "model" in r else np.zeros(B)
             centre, sd_o = r["d"] - model, r["sd_o"] * widening
             use = np.isfinite(centre) & np.isfinite(sd_o) & np.isfinite(hw) & ((p < ci.OPTIMUM_P) | (sd_o <= sd_r))
-            lo = np.where(use, np.clip(q * sd_o - centre, 0, None), hw)
-            hi = np.where(use, np.clip(q * sd_o + centre, 0, None), hw)
+            lo, hi = np.where(use, q * sd_o - centre, hw), np.where(use, q * sd_o + centre, hw)
+            if reaching:
+                lo, hi = np.where(use, np.clip(lo, 0, None), hw), np.where(use, np.clip(hi, 0, None), hw)
             hold = corr.copy()
             if "t" in r:
-                hold |= np.isfinite(r["t"]) & np.isfinite(hw) & (np.abs(r["t"]) > ci.OPTIMUM_DRIFT_Z * r["sd_t"])
+                drifts = np.isfinite(r["t"]) & np.isfinite(hw) & (np.abs(r["t"]) > ci.OPTIMUM_DRIFT_Z * r["sd_t"])
+                apart = drifts & (np.abs(r["t"] + centre) > ci.OPTIMUM_AGREE * q * sd_o)
+                hold |= drifts if reaching else np.where(use, apart, drifts)
             lo, hi = np.where(hold, np.maximum(lo, base[key][0]), lo), np.where(hold, np.maximum(hi, base[key][1]), hi)
             lo, hi = np.where(np.isfinite(sd_r), lo, np.nan), np.where(np.isfinite(sd_r), hi, np.nan)
             det &= np.isfinite(lo + hi) & (np.maximum(lo, hi) <= ci.REL_TOL * size)
@@ -297,7 +304,8 @@ def reproduces(rec: dict) -> bool:
     return same and bool((verdict(rec, det, biased, drifting) == rec["final"]).all())
 
 
-RULES = {"shipped": shipped, "widened": widened, "output-error-first": output_error_first}
+RULES = {"shipped": shipped, "reaching": lambda rec: shipped(rec, reaching=True), "widened": widened,
+         "output-error-first": output_error_first}
 
 
 def main() -> None:

@@ -177,19 +177,20 @@ def test_the_residual_warning_is_silent_on_an_exact_noise_free_run_and_speaks_on
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case, most, members", [("friction-strong", 0.985, 200), ("impedance-noise", 1.0, 200),
-                                                 ("twodof-discrete", 1.0, 200), ("duffing", 0.985, 200),
-                                                 ("sdof-damping-noise", 0.985, 1000)])
+                                                 ("twodof-discrete", 0.98, 1000), ("duffing", 0.985, 200),
+                                                 ("sdof-damping-noise", 0.98, 1000), ("drag", 0.98, 1000)])
 def test_converged_means_covered_off_the_exact_model_over_200_seeds(case, most, members, tmp_path):
     """Hard cases of the interval coverage (coverage_cases.py), 200 members with their own streams: friction with
     strong excitation (a non-smooth basis whose estimates still carry their start's error), the impedance with 5%
-    noise, the exact model with lam = 1 (a recursion that forgets its start slowly), a Duffing truth built in
-    Python (a continuous nonlinear truth, a cubic feature), and 1000 members (a few seconds) of
+    noise, a Duffing truth built in Python (a continuous nonlinear truth, a cubic feature); and 1000 members (a
+    few seconds each) of the exact model with lam = 1 (a recursion that forgets its start slowly), of
     ``sdof-stiffness-damping`` with 5% noise (a closed-loop bias of a few of the output-error step's sd, which the
-    widened intervals alone held in 88% of members: 200 cannot tell that from 90%). Among the members called
-    converged the 95% intervals hold the truth in at least 90%, and at most 98.5% (with about 180 converged members
-    a coverage's sampling error is about 1.6%; lam = 1 is wider than nominal, as docs/intervals.md says, and the
-    impedance's 70 or so converged members cannot tell 98% from all), and at least a third of the members are
-    converged."""
+    widened intervals alone held in 88% of members: 200 cannot tell that from 90%) and of the drag truth built in
+    Python, where intervals that also reached the estimate, or held the widened interval wherever the estimate
+    drifted, covered 0.98-0.99. Among the members called converged the 95% intervals hold the truth in at least
+    90%, and at most 98% over 1000 members, 98.5% over 200 (with about 180 converged members a coverage's
+    sampling error is about 1.6%; the impedance's 100 or so converged members cannot tell 98% from all), and at
+    least a third of the members are converged."""
     r = coverage(case, members, tmp_path)
     assert r["shares"]["converged"] >= 1 / 3, r["shares"]
     for key, row in r["estimates"].items():
@@ -261,15 +262,15 @@ def test_noise_above_z_tol_with_white_residuals_does_not_keep_a_member_unconverg
     settled and the intervals held the truth. With residuals that pass the whiteness test the z_ratio is what the
     noise leaves: the members are converged and their intervals hold the truth (dk = -0.4, dc = 0.9)."""
     est = {"dk": lambda g: -g.role("estimator").theta[:, 0, 0], "dc": lambda g: -g.role("estimator").theta[:, 0, 1]}
-    res = rt.refine(_deck(0.03, 16), 20000, est, truth={"dk": -0.4, "dc": 0.9}, out=tmp_path / "deck",
+    res = rt.refine(_deck(0.03, 64), 20000, est, truth={"dk": -0.4, "dc": 0.9}, out=tmp_path / "deck",
                     figures=False, validation=False, progress=False)
     h = res.summary["health"]
     assert min(h["z_ratio"]) > 0.1 and all(h["residuals_white"])
-    assert h["status"].count("converged") >= 15, h["status"]
-    conv = [s == "converged" for s in h["status"]]
-    for key, t in (("dk", -0.4), ("dc", 0.9)):
-        inside = ((res.lower[key] <= t) & (t <= res.upper[key])).tolist()
-        assert sum(i for i, c in zip(inside, conv) if c) >= sum(conv) - 2, (key, inside)
+    assert h["status"].count("converged") >= 60, h["status"]
+    conv = torch.tensor([s == "converged" for s in h["status"]])
+    for key, t in (("dk", -0.4), ("dc", 0.9)):     # 0.96 and 0.94 over 400 members
+        inside = (res.lower[key] <= t) & (t <= res.upper[key])
+        assert float(inside[conv].double().mean()) >= 0.88, (key, inside.tolist())
     assert "z_ratio above" not in health_line(res.summary)
 
 

@@ -265,6 +265,23 @@ def test_a_batchs_estimates_are_summarized_over_the_members_that_did_not_diverge
     assert "1..1e+300" in next(line for line in result_table(every).splitlines() if line.startswith("estimates.k"))
 
 
+def test_an_interval_to_one_side_of_its_estimate_is_printed_with_its_ends():
+    """A one-member interval about the window's output-error optimum need not hold the estimate: the table prints
+    its ends (an 'estimate -below +above' would print a negative side), a symmetric one as '± half-width' and a
+    lopsided one that holds the estimate by its two sides."""
+    from rcotorch.run.report import result_table
+    base = {"batch": 1, "truth": {}, "metrics": {}, "requirements": {}, "warnings": [],
+            "health": {"status": "converged", "counts": {"converged": 1}, "theta_change": 0.0, "z_ratio": 0.01}}
+
+    def row(lower, upper):
+        s = {**base, "estimates": {"k": 1.0}, "intervals": {"k": {"level": 0.95, "lower": lower, "upper": upper}}}
+        return next(line for line in result_table(s).splitlines() if line.startswith("estimates.k"))
+    assert "1 [1.02, 1.1]" in row(1.02, 1.1)
+    assert "1 [0.9, 0.99]" in row(0.9, 0.99)
+    assert "1 ± 0.1" in row(0.9, 1.1)
+    assert "1 -0.1 +0.3" in row(0.9, 1.3)
+
+
 def test_refine_into_a_folder_that_holds_a_run_names_its_own_arguments(tmp_path):
     """The Python call is told what to pass (overwrite=True, another out), not the command's options."""
     import rcotorch as rt

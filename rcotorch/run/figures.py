@@ -319,9 +319,9 @@ def _estimate_panel(ax, d, key: str, t: np.ndarray, v: np.ndarray) -> None:
                             label=f"{found.level:.0%} band over time" if i == 0 and found is not None else None)
     if found is not None and key in found.estimate and len(t):
         est = found.estimate[key][:lines.shape[1]]
-        sides = np.stack([est - found.lower[key][:len(est)], found.upper[key][:len(est)] - est])
-        ax.errorbar(np.full(len(est), t[-1]), est, yerr=sides, fmt="none", ecolor="k", elinewidth=1.5, capsize=4,
-                    zorder=4, label=f"{found.level:.0%} interval at the end")
+        lower, upper = found.lower[key][:len(est)], found.upper[key][:len(est)]   # need not hold the estimate
+        ax.errorbar(np.full(len(est), t[-1]), (lower + upper) / 2, yerr=(upper - lower) / 2, fmt="none", ecolor="k",
+                    elinewidth=1.5, capsize=4, zorder=4, label=f"{found.level:.0%} interval at the end")
         bias = found.bias.get(key)
         if bias is not None:                   # a biased estimate: where the physics' parameter lies
             b = bias[:len(est)]

@@ -151,13 +151,16 @@ def _fmt(v) -> str:
 
 def _fmt_interval(v, interval: Mapping[str, Any] | None) -> str:
     """An estimate with its interval: 'value ± half-width' for one member ('value -below +above' where the
-    interval is not symmetric about it), the values' range and the median half-width for a batch."""
+    interval is not symmetric about it, 'value [lower, upper]' where it does not hold the value: the data place
+    the parameter to one side of the estimate), the values' range and the median half-width for a batch."""
     if interval is None:
         return _fmt(v)
     lo, hi = interval["lower"], interval["upper"]
     if not isinstance(v, list):
         if lo is None or hi is None or v is None:
             return _fmt(v)
+        if not lo <= v <= hi:
+            return _fmt(v) + f" [{lo:.4g}, {hi:.4g}]"
         if abs((hi - v) - (v - lo)) <= 0.05 * (hi - lo):
             return _fmt(v) + f" ± {(hi - lo) / 2:.2g}"
         return _fmt(v) + f" -{v - lo:.2g} +{hi - v:.2g}"

@@ -74,7 +74,8 @@ DRIFT_Z = 1.96           # ... where it is also beyond this many of its own stan
 DRIFT_HOLD_Z = 0.5       # a drift beyond this many of its standard deviations: the interval holds its end ...
 DRIFT_NOISE = 1.0        # ... and this many of its standard deviations past it
 OPTIMUM_P = 0.2          # the joint test's p-value below which the window's output-error optimum replaces the estimate
-OPTIMUM_DRIFT_Z = 1.0    # a drift beyond this many of its sd: the interval holds the widened one beside the optimum's
+OPTIMUM_DRIFT_Z = 1.0    # a drift beyond this many of its sd: the widened interval is held beside the estimate's ...
+OPTIMUM_AGREE = 0.5      # ... and beside the optimum's where est - drift lies beyond this many of its half-widths
 JOIN_COPIES = True       # step the replay's copies inside one graph, sharing what they compute alike (``_join``)
 
 
@@ -1105,8 +1106,8 @@ class Intervals:
     bias_reason: list[str | None] | None = None
     drifting: torch.Tensor | None = None   # (B,) bool: an estimate still drifts by more than its interval
     drift: dict[str, torch.Tensor] | None = None   # the estimates' part of the remaining transient (0 if none)
-    below: dict[str, torch.Tensor] | None = None   # how far each interval reaches below its estimate (B,)
-    above: dict[str, torch.Tensor] | None = None   # ... and above it; both half_width where None
+    below: dict[str, torch.Tensor] | None = None   # how far each interval reaches below its estimate (B,) ...
+    above: dict[str, torch.Tensor] | None = None   # ... and above it (< 0: it lies to the other side); None: half_width
 
     def lower(self, key: str) -> torch.Tensor:
         return self.estimate[key] - (self.below or self.half_width)[key]
@@ -1169,12 +1170,13 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
 
     Last, the interval is chosen between the estimate's and the window's output-error optimum's
     (``_from_optimum``): where the joint test of the two (``optimum_test``) rejects at ``OPTIMUM_P`` or the
-    optimum is the more precise, est + d - g b +- q sd_o reaching the estimate, else est +- q sd; where the
-    residuals are correlated or the drift exceeds ``OPTIMUM_DRIFT_Z`` of its sd, it also holds the widened
-    interval above. The biases and the drift found above stay the verdict's findings.
+    optimum is the more precise, est + d - g b +- q sd_o, else est +- q sd; where the residuals are correlated
+    or the drift exceeds ``OPTIMUM_DRIFT_Z`` of its sd (and disagrees with the optimum), it also holds the
+    widened interval above. The biases and the drift found above stay the verdict's findings.
 
-    An interval is therefore not always symmetric about its estimate (it may end at it): ``below`` and ``above``
-    hold its two sides, ``half_width`` half its width.
+    An interval is therefore not always symmetric about its estimate, nor need it hold it: ``below`` and
+    ``above`` hold its two sides (est - below, est + above; one of them negative where the interval lies to
+    one side of the estimate), ``half_width`` half its width.
 
     A member's estimates are *determined* when its parameter recursion settles (``pc.settles``) and every
     interval's half-width is at most ``rel_tol`` times max(|estimate|, scale), ``scales[key]`` a size the
@@ -1216,14 +1218,14 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             off = off | (flag & ~sampled)
         hw = hw + extra
         lo_w, hi_w = hw + low, hw + high
-        drifts_on = torch.zeros_like(det)
+        drift = torch.full_like(hw, math.nan)            # the drift where it exceeds OPTIMUM_DRIFT_Z of its sd
         if transient is not None:
             t = torch.einsum("bi,bi->b", g, transient[0])
             sd_t = _sd(g, transient[1])
             found = torch.isfinite(t) & torch.isfinite(hw)
             moving = found & (t.abs() > DRIFT_Z * sd_t)
             held = found & (t.abs() > DRIFT_HOLD_Z * sd_t)
-            drifts_on = found & (t.abs() > OPTIMUM_DRIFT_Z * sd_t)
+            drift = torch.where(found & (t.abs() > OPTIMUM_DRIFT_Z * sd_t), t, math.nan)
             drifts[key] = torch.where(moving, t, 0.0)
             far = moving & (t.abs() > DRIFT_FAR * torch.maximum(lo_w, hi_w)) & (t.abs() > NEGLIGIBLE * size)
             drifting |= far
@@ -1231,8 +1233,8 @@ def estimate_intervals(graph, estimates: Callable[[object], Mapping[str, torch.T
             lo_w = torch.where(t > 0, lo_w + reach, lo_w)
             hi_w = torch.where(t < 0, hi_w + reach, hi_w)
         if p_optimum is not None:
-            lo_w, hi_w = _from_optimum(pc, g, q * var.clamp_min(0).sqrt(), lo_w, hi_w, p_optimum,
-                                       correlated | drifts_on, q)
+            lo_w, hi_w = _from_optimum(pc, g, q * var.clamp_min(0).sqrt(), lo_w, hi_w, p_optimum, correlated,
+                                       drift, q)
             off, bias = _bias_held(off, sampled, bias, lo_w, hi_w)
         finite = torch.isfinite(var)
         below[key] = torch.where(finite, lo_w, math.nan)
@@ -1309,13 +1311,19 @@ def optimum_test(pc: ParameterCovariance) -> torch.Tensor | None:
 
 
 def _from_optimum(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, below: torch.Tensor, above: torch.Tensor,
-                  p: torch.Tensor, hold: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
+                  p: torch.Tensor, correlated: torch.Tensor, drift: torch.Tensor,
+                  q: float) -> tuple[torch.Tensor, torch.Tensor]:
     """One estimate's sides from the window's output-error optimum (``estimate_intervals``): where the joint test
     rejects (``p`` below ``OPTIMUM_P``) or the optimum is at least as precise as the estimate, the interval is
     the optimum's, est + d - g b +- q sd_o (g b the model class's bias against the physics where measured; sd_o
-    widened by the residuals' correlation where the whiteness test rejects), reaching the estimate if it does not
-    hold it; elsewhere the estimate's own est +- ``hw``. Where ``hold`` (correlated residuals, a drift beyond
-    ``OPTIMUM_DRIFT_Z`` of its sd), the interval also holds the sides ``below`` and ``above`` of the widenings."""
+    widened by the residuals' correlation where the whiteness test rejects), which need not hold the estimate
+    (the estimate's closed-loop bias is what the data correct); elsewhere the estimate's own est +- ``hw``.
+
+    The interval also holds the sides ``below`` and ``above`` of the widenings where the residuals are
+    ``correlated`` (the linearized step may stop short of the optimum) and where the estimate drifts (``drift``,
+    NaN where it does not exceed ``OPTIMUM_DRIFT_Z`` of its sd): about the estimate always, about the optimum
+    only where the drift's own correction est - drift lies more than ``OPTIMUM_AGREE`` of the optimum's
+    half-widths from it (the window's optimum does not depend on the recursion's drift where the two agree)."""
     d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
     centre = d
     if pc.sampling is not None:
@@ -1326,8 +1334,11 @@ def _from_optimum(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, be
         sd_o = sd_o * torch.where(pc.correlated.cpu(), pc.widening.cpu(), 1.0)
     have = torch.isfinite(centre) & torch.isfinite(sd_o) & torch.isfinite(hw)
     use = have & ((p < OPTIMUM_P) | (sd_o <= hw / q))
-    low = torch.where(use, (q * sd_o - centre).clamp_min(0), hw)
-    high = torch.where(use, (q * sd_o + centre).clamp_min(0), hw)
+    low = torch.where(use, q * sd_o - centre, hw)
+    high = torch.where(use, q * sd_o + centre, hw)
+    drifts = torch.isfinite(drift)
+    apart = drifts & ((drift + centre).abs() > OPTIMUM_AGREE * q * sd_o)
+    hold = correlated.cpu() | torch.where(use, apart, drifts)
     return torch.where(hold, torch.maximum(low, below), low), torch.where(hold, torch.maximum(high, above), high)
 
 
