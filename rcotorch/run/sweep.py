@@ -496,60 +496,65 @@ def local_workers(asked: int | None, shards: int, device: str) -> int:
 
 def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunControl, workers: int
                 ) -> list[dict[str, Any]]:
-    """The shards run ``workers`` at a time, each in a process forked from this one (``_shard_process``) that
-    runs it on one thread and sends back its rows. ``control.stop`` is asked while waiting: when it says
-    True, the running shards are sent SIGTERM (each saves its checkpoint, as a shard run here would) and no more
-    start; a shard that fails stops the others likewise, and its error is raised here once they ended."""
+    """The shards run ``workers`` at a time in as many worker processes forked from this one (``_Worker``), each
+    taking shard after shard from this process, running it on one thread and sending back its rows: a worker
+    keeps what its first shard loaded and touched, where a process forked for every shard would copy it again.
+    ``control.stop`` is asked while waiting: when it says True, the running shards are sent SIGTERM (each saves
+    its checkpoint, as a shard run here would) and no more start; a shard that fails stops the others likewise,
+    and its error is raised here once they ended."""
     import select
     import time
 
     from .runner import preload
-    preload()                                  # imported once here, not in every shard's process
-    todo = list(zip(shards, shard_out, runs))
-    running: dict[int, list] = {}              # read end of a shard's pipe -> [pid, shard, start, chunks]
+    preload()                                  # imported once here, not in every worker
+    todo = list(range(len(shards)))
+    pool: dict[int, _Worker] = {}              # read end of a worker's results -> the worker
     parts: dict[int, list] = {}
     stopped = failure = None
     told = left = False
     try:
-        while todo or running:
-            if not told and (failure is not None or (control.stop is not None and control.stop())):
+        if not (control.stop is not None and control.stop()):
+            for _ in range(min(workers, len(todo))):
+                worker = _Worker(sweep, shards, steps, device, shard_out, runs)
+                pool[worker.results] = worker
+        while pool or todo:
+            if not told and (failure is not None or not pool or (control.stop is not None and control.stop())):
                 told, left = True, bool(todo)  # stop what runs, start nothing more
                 todo.clear()
-                for pid, *_ in running.values():
-                    with contextlib.suppress(ProcessLookupError):
-                        os.kill(pid, signal.SIGTERM)
-            while todo and len(running) < workers:
-                s, o, r = todo.pop(0)
-                if control.progress:
-                    print(f"shard {s['index'] + 1}/{len(shards)}: {_members(len(s['members']))}", flush=True)
-                fd, pid = _fork_shard(sweep, s, steps, device, o, None if Path(o).exists() else r)
-                running[fd] = [pid, s, time.perf_counter(), []]
-            ready = select.select(list(running), [], [], 0.1)[0] if running else []
-            for fd in ready:
-                chunk = os.read(fd, 1 << 20)
-                if chunk:
-                    running[fd][3].append(chunk)
-                    continue
-                pid, s, start, chunks = running.pop(fd)
-                os.close(fd)
-                status = os.waitpid(pid, 0)[1]
-                kind, value = _shard_outcome(b"".join(chunks), status, s)
-                if kind == "rows":
-                    parts[s["index"]] = value
+                for worker in pool.values():
+                    worker.stop()
+            for worker in pool.values():
+                if worker.shard is None and todo:
+                    i = todo.pop(0)
                     if control.progress:
-                        print(f"shard {s['index'] + 1}/{len(shards)}: done in {time.perf_counter() - start:.1f} s; "
-                              f"{_health_counts(value)}", flush=True)
-                elif kind == "stopped":
-                    stopped = stopped or value
-                else:
-                    failure = failure or value
+                        print(f"shard {i + 1}/{len(shards)}: {_members(len(shards[i]['members']))}", flush=True)
+                    worker.send(i, fresh=not Path(shard_out[i]).exists(), start=time.perf_counter())
+                elif worker.shard is None:
+                    worker.stop()              # nothing more to do: it ends
+            ready = select.select(list(pool), [], [], 0.1)[0] if pool else []
+            for fd in ready:
+                worker = pool[fd]
+                for data in worker.read():
+                    s = shards[worker.shard]
+                    kind, value = _shard_outcome(data, 0, s)
+                    if kind == "rows":
+                        parts[s["index"]] = value
+                        if control.progress:
+                            print(f"shard {s['index'] + 1}/{len(shards)}: done in "
+                                  f"{time.perf_counter() - worker.start:.1f} s; {_health_counts(value)}", flush=True)
+                    elif kind == "stopped":
+                        stopped = stopped or value
+                    else:
+                        failure = failure or value
+                    worker.shard = None
+                if worker.ended:
+                    status = worker.close()
+                    del pool[fd]
+                    if worker.shard is not None:    # it died within a shard, without a word
+                        failure = failure or _shard_outcome(b"", status, shards[worker.shard])[1]
     except BaseException:
-        for fd, (pid, *_) in running.items():      # a second signal, or an error here: end them at once
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
-            with contextlib.suppress(ChildProcessError):
-                os.waitpid(pid, 0)
-            os.close(fd)
+        for worker in pool.values():           # a second signal, or an error here: end them at once
+            worker.kill()
         raise
     if failure is not None:
         raise failure
@@ -561,31 +566,86 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
     return [row for i in sorted(parts) for row in parts[i]]
 
 
-def _fork_shard(sweep, shard, steps, device, out, run) -> tuple[int, int]:
-    """Fork the process that runs one shard (``_shard_process``); the read end of its pipe and its pid."""
-    import warnings
-    r, w = os.pipe()
-    # the stop signals wait until the forked process has its own handlers (a signal meanwhile would reach this
-    # process's handlers in it, and the shard would not hear of it)
-    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        with warnings.catch_warnings():     # Python 3.12+ warns of forking with threads: the child uses none
-            warnings.simplefilter("ignore", DeprecationWarning)
-            pid = os.fork()
-        if pid == 0:                        # pragma: no cover - the child ends in os._exit
-            os.close(r)
-            _shard_process(w, sweep, shard, steps, device, out, run, blocked)
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-    os.close(w)
-    return r, pid
+class _Worker:
+    """One process forked from the sweep's (``_worker``) that runs the shards it is sent, one at a time. Jobs go
+    down one pipe (a shard's index, and whether its run built here is to be used, as five bytes), outcomes come
+    back up another (a length, then ``_worker``'s pickled outcome)."""
+
+    def __init__(self, sweep, shards, steps, device, shard_out, runs) -> None:
+        import warnings
+        jobs_r, self.jobs = os.pipe()
+        self.results, results_w = os.pipe()
+        self.shard: int | None = None          # the shard it runs, None while it waits for one
+        self.start = 0.0
+        self.ended = False
+        self._buffer = b""
+        # the stop signals wait until the forked process has its own handlers (a signal meanwhile would reach this
+        # process's handlers in it, and the shard would not hear of it)
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            with warnings.catch_warnings():  # Python 3.12+ warns of forking with threads: the child uses none
+                warnings.simplefilter("ignore", DeprecationWarning)
+                self.pid = os.fork()
+            if self.pid == 0:                # pragma: no cover - the child ends in os._exit
+                os.close(self.jobs)
+                os.close(self.results)
+                _worker(jobs_r, results_w, sweep, shards, steps, device, shard_out, runs, blocked)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        os.close(jobs_r)
+        os.close(results_w)
+
+    def send(self, shard: int, fresh: bool, start: float) -> None:
+        self.shard, self.start = shard, start
+        os.write(self.jobs, shard.to_bytes(4, "little") + bytes([fresh]))
+
+    def read(self) -> list[bytes]:
+        """The outcomes that came whole since the last call; ``ended`` once the worker closed its end."""
+        chunk = os.read(self.results, 1 << 20)
+        if not chunk:
+            self.ended = True
+        self._buffer += chunk
+        frames = []
+        while len(self._buffer) >= 8 and len(self._buffer) >= 8 + int.from_bytes(self._buffer[:8], "little"):
+            n = int.from_bytes(self._buffer[:8], "little")
+            frames.append(self._buffer[8:8 + n])
+            self._buffer = self._buffer[8 + n:]
+        return frames
+
+    def stop(self) -> None:
+        """No more shards: a running one is sent SIGTERM (it saves its checkpoint), a waiting worker ends."""
+        if self.shard is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGTERM)
+        if self.jobs >= 0:
+            os.close(self.jobs)
+            self.jobs = -1
+
+    def close(self) -> int:
+        """Wait for the ended process; its wait status."""
+        if self.jobs >= 0:
+            os.close(self.jobs)
+            self.jobs = -1
+        os.close(self.results)
+        return os.waitpid(self.pid, 0)[1]
+
+    def kill(self) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self.pid, signal.SIGKILL)
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(self.pid, 0)
+        for fd in (self.jobs, self.results):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
 
-def _shard_process(w: int, sweep, shard, steps, device, out, run, mask) -> None:
-    """In the forked process: run the shard on one thread with its own stop request (Ctrl-C, SIGTERM or SIGHUP,
-    which the sweep forwards), write the pickled outcome to ``w`` and end. The outcome: ('rows', rows),
-    ('stopped', (step, checkpoint)) or ('error', (exception or None, traceback)), then what the shard printed on
-    stdout and on stderr, which the sweep prints where its own output goes (a notebook's cell, a test's capture)."""
+def _worker(jobs: int, results: int, sweep, shards, steps, device, shard_out, runs, mask) -> None:
+    """In a forked worker: with its own stop request (Ctrl-C, SIGTERM or SIGHUP, which the sweep forwards), run
+    each shard sent on ``jobs`` on one thread and write its outcome to ``results`` (its length, then the pickled
+    outcome: ('rows', rows), ('stopped', (step, checkpoint)) or ('error', (exception or None, traceback)), then
+    what the shard printed on stdout and on stderr, which the sweep prints where its own output goes: a
+    notebook's cell, a test's capture); end at the end of the jobs, at a stop, or after a shard that failed."""
     import pickle
     import threading
     import traceback
@@ -596,30 +656,50 @@ def _shard_process(w: int, sweep, shard, steps, device, out, run, mask) -> None:
             if signal.getsignal(sig) is not signal.SIG_IGN:
                 signal.signal(sig, lambda *_: stop.set())
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)      # a signal held back since the fork arrives now
-        printed = sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
         import torch
         torch.set_num_threads(1)
         from .runner import Interrupted
-        try:
-            outcome: tuple = ("rows", run_shard(sweep.scenario, shard, steps, sweep.dtype, device, out, run=run,
-                                                stop=stop.is_set))
-        except Interrupted as e:
-            outcome = ("stopped", (e.step, None if e.checkpoint is None else str(e.checkpoint)))
-        except BaseException as e:
-            outcome = ("error", (e, traceback.format_exc()))
-        texts = tuple(p.getvalue() for p in printed)
-        try:
-            data = pickle.dumps(outcome + texts)
-            pickle.loads(data)                  # an exception that does not come back whole comes as its text
-        except Exception:
-            text = outcome[1][1] if outcome[0] == "error" else traceback.format_exc()
-            data = pickle.dumps(("error", (None, text)) + texts)
-        view = memoryview(data)
-        while view:
-            view = view[os.write(w, view):]
+        while not stop.is_set():
+            job = _read_exactly(jobs, 5)
+            if job is None:
+                break
+            i, fresh = int.from_bytes(job[:4], "little"), bool(job[4])
+            run, runs[i] = runs[i] if fresh else None, None     # a finished run is not kept
+            printed = sys.stdout, sys.stderr = io.StringIO(), io.StringIO()
+            try:
+                outcome: tuple = ("rows", run_shard(sweep.scenario, shards[i], steps, sweep.dtype, device,
+                                                    shard_out[i], run=run, stop=stop.is_set))
+            except Interrupted as e:
+                outcome = ("stopped", (e.step, None if e.checkpoint is None else str(e.checkpoint)))
+            except BaseException as e:
+                outcome = ("error", (e, traceback.format_exc()))
+            del run
+            texts = tuple(p.getvalue() for p in printed)
+            try:
+                data = pickle.dumps(outcome + texts)
+                pickle.loads(data)              # an exception that does not come back whole comes as its text
+            except Exception:
+                text = outcome[1][1] if outcome[0] == "error" else traceback.format_exc()
+                data = pickle.dumps(("error", (None, text)) + texts)
+            view = memoryview(len(data).to_bytes(8, "little") + data)
+            while view:
+                view = view[os.write(results, view):]
+            if outcome[0] != "rows":
+                break
         status = 0
     finally:
         os._exit(status)
+
+
+def _read_exactly(fd: int, n: int) -> bytes | None:
+    """``n`` bytes from ``fd``, or None at its end."""
+    data = b""
+    while len(data) < n:
+        chunk = os.read(fd, n - len(data))
+        if not chunk:
+            return None
+        data += chunk
+    return data
 
 
 def _shard_outcome(data: bytes, status: int, shard) -> tuple[str, Any]:
