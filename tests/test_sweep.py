@@ -123,6 +123,26 @@ def test_a_shard_that_fails_in_its_worker_fails_the_sweep_with_its_error(fault, 
     assert (tmp_path / "sweep" / "shard_0000").is_dir()
 
 
+def test_a_worker_that_dies_between_its_shards_fails_the_sweep_naming_the_shard_it_was_given(tmp_path, monkeypatch):
+    """A worker runs shard after shard; one killed after its first shard, as it waits for the next (here by its
+    own hand as it reads the job), leaves that next shard unfinished: the sweep fails naming it and the signal,
+    as for a worker killed within a shard, and never waits for it."""
+    import os
+    import signal
+
+    import rcotorch.run.sweep as sweep_module
+    real, calls = sweep_module._read_exactly, []
+
+    def dying(fd, n):
+        calls.append(fd)                 # this list is the worker's own copy after the fork
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(fd, n)
+    monkeypatch.setattr(sweep_module, "_read_exactly", dying)
+    with pytest.raises(RuntimeError, match="its process was killed by signal 9 before it sent its result"):
+        run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "sweep", progress=False, workers=2)
+
+
 def test_a_stop_before_a_shard_has_started_in_a_worker_stops_the_sweep(tmp_path):
     """A stop request that comes before any worker runs a shard (or once the running ones ended without being
     stopped) leaves shards unstarted: the sweep is interrupted, never finished with part of its members."""

@@ -596,8 +596,11 @@ class _Worker:
         os.close(results_w)
 
     def send(self, shard: int, fresh: bool, start: float) -> None:
+        """Hand it shard ``shard``. A worker that died since its last shard is found at the end of its results
+        (``read``), and the shard named as the one it did not finish."""
         self.shard, self.start = shard, start
-        os.write(self.jobs, shard.to_bytes(4, "little") + bytes([fresh]))
+        with contextlib.suppress(BrokenPipeError):
+            os.write(self.jobs, shard.to_bytes(4, "little") + bytes([fresh]))
 
     def read(self) -> list[bytes]:
         """The outcomes that came whole since the last call; ``ended`` once the worker closed its end."""
@@ -703,7 +706,7 @@ def _read_exactly(fd: int, n: int) -> bytes | None:
 
 
 def _shard_outcome(data: bytes, status: int, shard) -> tuple[str, Any]:
-    """What a shard's process sent (``_shard_process``), after printing what the shard printed: ('rows', rows),
+    """What a worker sent for a shard (``_worker``), after printing what the shard printed: ('rows', rows),
     ('stopped', Interrupted) or ('error', the exception to raise here)."""
     import pickle
 
