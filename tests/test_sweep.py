@@ -131,14 +131,16 @@ def test_a_worker_that_dies_between_its_shards_fails_the_sweep_naming_the_shard_
     import signal
 
     import rcotorch.run.sweep as sweep_module
-    real, calls = sweep_module._read_exactly, []
+    real, calls = sweep_module.read_frame, []
+    parent = os.getpid()
 
-    def dying(fd, n):
-        calls.append(fd)                 # this list is the worker's own copy after the fork
-        if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGKILL)
-        return real(fd, n)
-    monkeypatch.setattr(sweep_module, "_read_exactly", dying)
+    def dying(fd):
+        if os.getpid() != parent:        # in a worker: its second job read kills it
+            calls.append(fd)             # this list is the worker's own copy after the fork
+            if len(calls) == 2:
+                os.kill(os.getpid(), signal.SIGKILL)
+        return real(fd)
+    monkeypatch.setattr(sweep_module, "read_frame", dying)
     with pytest.raises(RuntimeError, match="its process was killed by signal 9 before it sent its result"):
         run_sweep(Sweep.from_dict(SPEC), out=tmp_path / "sweep", progress=False, workers=2)
 

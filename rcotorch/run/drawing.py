@@ -23,6 +23,8 @@ import threading
 import warnings
 from collections.abc import Callable
 
+from .pipes import read_frame, write_frame
+
 NICE = 10      # the drawing process's niceness above the run's (about a tenth of a core where both want one)
 
 
@@ -71,7 +73,7 @@ class DrawingProcess:
         index = None
         if self.started:
             try:
-                _write_frame(self._jobs, pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL))
+                write_frame(self._jobs, pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL))
                 index = self._sent
                 self._sent += 1
             except OSError:                  # the process has ended
@@ -93,7 +95,7 @@ class DrawingProcess:
         """The PNG bytes of job ``index``, reading the results in order; None where the process ended (or failed)
         before it sent them. The process is reaped once every result sent is read."""
         while index >= self._read and self._results is not None:
-            frame = _read_frame(self._results)
+            frame = read_frame(self._results)
             if frame is None:
                 self._reap()
                 break
@@ -127,28 +129,6 @@ class DrawingProcess:
             self.pid = None
 
 
-def _write_frame(fd: int, payload: bytes) -> None:
-    """One message on a pipe: its length (8 bytes, little-endian), then its bytes."""
-    view = memoryview(len(payload).to_bytes(8, "little") + payload)
-    while view:
-        view = view[os.write(fd, view):]
-
-
-def _read_frame(fd: int) -> bytes | None:
-    """The next message on a pipe (``_write_frame``); None where the pipe ended before a whole one."""
-    def exactly(n: int) -> bytes | None:
-        parts, left = [], n
-        while left:
-            chunk = os.read(fd, min(left, 1 << 20))
-            if not chunk:
-                return None
-            parts.append(chunk)
-            left -= len(chunk)
-        return b"".join(parts)
-    head = exactly(8)
-    return None if head is None else exactly(int.from_bytes(head, "little"))
-
-
 def _serve(jobs: int, results: int) -> None:
     """In the forked process: read the figure data from ``jobs`` while importing the figures (a thread reads every
     job as it comes, so that a job sent while this draws never waits on the pipe); draw each job in a process of
@@ -168,7 +148,7 @@ def _serve(jobs: int, results: int) -> None:
 
         def read() -> None:
             while True:
-                frame = _read_frame(jobs)
+                frame = read_frame(jobs)
                 got.put(frame)
                 if frame is None:
                     return
@@ -176,12 +156,12 @@ def _serve(jobs: int, results: int) -> None:
         def forward() -> None:
             while (job := drawn.get()) is not None:
                 pid, pipe = job
-                payload = _read_frame(pipe)
+                payload = read_frame(pipe)
                 os.close(pipe)
                 _, status = os.waitpid(pid, 0)
                 if payload is None or status != 0:
                     os._exit(1)
-                _write_frame(results, payload)
+                write_frame(results, payload)
         threading.Thread(target=read, daemon=True).start()
         forwarder = threading.Thread(target=forward, daemon=True)
         forwarder.start()
@@ -210,7 +190,7 @@ def _draw_apart(figures, frame: bytes) -> tuple[int, int]:
         try:
             os.close(r)
             data = pickle.loads(frame)
-            _write_frame(w, pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL))
+            write_frame(w, pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL))
             code = 0
         finally:
             os._exit(code)

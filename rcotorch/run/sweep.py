@@ -46,6 +46,7 @@ import numpy as np
 from ..errors import ConfigError, RcoError
 from . import scenario as scenarios
 from .control import STOP_SIGNALS, RunControl
+from .pipes import read_frame, write_frame
 
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 CONFIG_KEYS = {"scenario", "steps", "seeds", "seed", "shard_size", "fixed", "grid", "random", "samples",
@@ -534,7 +535,8 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
             ready = select.select(list(pool), [], [], 0.1)[0] if pool else []
             for fd in ready:
                 worker = pool[fd]
-                for data in worker.read():
+                data = worker.read()
+                if data is not None:
                     s = shards[worker.shard]
                     kind, value = _shard_outcome(data, 0, s)
                     if kind == "rows":
@@ -568,8 +570,8 @@ def _run_forked(sweep, shards, steps, device, shard_out, runs, control: RunContr
 
 class _Worker:
     """One process forked from the sweep's (``_worker``) that runs the shards it is sent, one at a time. Jobs go
-    down one pipe (a shard's index, and whether its run built here is to be used, as five bytes), outcomes come
-    back up another (a length, then ``_worker``'s pickled outcome)."""
+    down one pipe (a shard's index, and whether its run built here is to be used), outcomes come back up another
+    (``_worker``'s pickled outcome), each a message of ``rcotorch.run.pipes``."""
 
     def __init__(self, sweep, shards, steps, device, shard_out, runs) -> None:
         import warnings
@@ -578,7 +580,6 @@ class _Worker:
         self.shard: int | None = None          # the shard it runs, None while it waits for one
         self.start = 0.0
         self.ended = False
-        self._buffer = b""
         # the stop signals wait until the forked process has its own handlers (a signal meanwhile would reach this
         # process's handlers in it, and the shard would not hear of it)
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
@@ -600,20 +601,14 @@ class _Worker:
         (``read``), and the shard named as the one it did not finish."""
         self.shard, self.start = shard, start
         with contextlib.suppress(BrokenPipeError):
-            os.write(self.jobs, shard.to_bytes(4, "little") + bytes([fresh]))
+            write_frame(self.jobs, shard.to_bytes(4, "little") + bytes([fresh]))
 
-    def read(self) -> list[bytes]:
-        """The outcomes that came whole since the last call; ``ended`` once the worker closed its end."""
-        chunk = os.read(self.results, 1 << 20)
-        if not chunk:
-            self.ended = True
-        self._buffer += chunk
-        frames = []
-        while len(self._buffer) >= 8 and len(self._buffer) >= 8 + int.from_bytes(self._buffer[:8], "little"):
-            n = int.from_bytes(self._buffer[:8], "little")
-            frames.append(self._buffer[8:8 + n])
-            self._buffer = self._buffer[8 + n:]
-        return frames
+    def read(self) -> bytes | None:
+        """The outcome the worker sent (a worker writes each whole, so that it is read at once where the pipe has
+        data), or None, and ``ended``, where the worker closed its end."""
+        frame = read_frame(self.results)
+        self.ended = frame is None
+        return frame
 
     def stop(self) -> None:
         """No more shards: a running one is sent SIGTERM (it saves its checkpoint), a waiting worker ends."""
@@ -663,7 +658,7 @@ def _worker(jobs: int, results: int, sweep, shards, steps, device, shard_out, ru
         torch.set_num_threads(1)
         from .runner import Interrupted
         while not stop.is_set():
-            job = _read_exactly(jobs, 5)
+            job = read_frame(jobs)
             if job is None:
                 break
             i, fresh = int.from_bytes(job[:4], "little"), bool(job[4])
@@ -684,25 +679,12 @@ def _worker(jobs: int, results: int, sweep, shards, steps, device, shard_out, ru
             except Exception:
                 text = outcome[1][1] if outcome[0] == "error" else traceback.format_exc()
                 data = pickle.dumps(("error", (None, text)) + texts)
-            view = memoryview(len(data).to_bytes(8, "little") + data)
-            while view:
-                view = view[os.write(results, view):]
+            write_frame(results, data)
             if outcome[0] != "rows":
                 break
         status = 0
     finally:
         os._exit(status)
-
-
-def _read_exactly(fd: int, n: int) -> bytes | None:
-    """``n`` bytes from ``fd``, or None at its end."""
-    data = b""
-    while len(data) < n:
-        chunk = os.read(fd, n - len(data))
-        if not chunk:
-            return None
-        data += chunk
-    return data
 
 
 def _shard_outcome(data: bytes, status: int, shard) -> tuple[str, Any]:
