@@ -1273,7 +1273,7 @@ def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tens
     if pc.offset is None:
         return zero, zero, zero, off, bias
     low, high = zero, zero
-    d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+    d, centre, sd_o = _optimum(pc, g)
     moved[key] = d
     beyond = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > factor * hw)
     widen = beyond if pc.correlated is None else beyond | (pc.correlated.cpu() & torch.isfinite(d))
@@ -1282,16 +1282,25 @@ def _output_error_reach(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tens
     if pc.offset_cov is not None:   # a smaller move beyond its own noise: hold the optimum's own interval
         sd_d = _sd(g, pc.offset_cov)
         hold = torch.isfinite(d) & torch.isfinite(hw) & (d.abs() > OFFSET_HOLD_Z * sd_d) & ~widen
-        sd_o = _sd(g, pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov)
-        centre = d                  # the optimum, less the model class's own bias where the physics measured it
-        if pc.sampling is not None:
-            model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
-            centre = d - torch.where(torch.isfinite(model), model, 0.0)
         low = torch.where(hold, (q * sd_o - centre - hw).clamp_min(0), 0.0)
         high = torch.where(hold, (q * sd_o + centre - hw).clamp_min(0), 0.0)
         widened |= hold & ((low > 0) | (high > 0))
     widened |= widen
     return torch.where(widen, d, 0.0), low, high, off, bias
+
+
+def _optimum(pc: ParameterCovariance, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """One estimate's part of the window's output-error optimum (gradient ``g``): the estimate's move to it
+    d = g ``pc.offset``, the physics' value less the estimate as the data place it, d - g b (g b the model class's
+    own bias where the physics measured it), and the optimum's standard deviation (``pc.optimum_cov``, else
+    ``pc.offset_cov``; None where neither is known)."""
+    d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
+    centre = d
+    if pc.sampling is not None:
+        model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
+        centre = d - torch.where(torch.isfinite(model), model, 0.0)
+    cov = pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov
+    return d, centre, None if cov is None else _sd(g, cov)
 
 
 def optimum_test(pc: ParameterCovariance) -> torch.Tensor | None:
@@ -1324,21 +1333,16 @@ def _from_optimum(pc: ParameterCovariance, g: torch.Tensor, hw: torch.Tensor, be
     NaN where it does not exceed ``OPTIMUM_DRIFT_Z`` of its sd): about the estimate always, about the optimum
     only where the drift's own correction est - drift lies more than ``OPTIMUM_AGREE`` of the optimum's
     half-widths from it (the window's optimum does not depend on the recursion's drift where the two agree)."""
-    d = torch.einsum("bi,bi->b", g, pc.offset.cpu())
-    centre = d
-    if pc.sampling is not None:
-        model = torch.einsum("bi,bi->b", g, pc.sampling.cpu())
-        centre = d - torch.where(torch.isfinite(model), model, 0.0)
-    sd_o = _sd(g, pc.offset_cov if pc.optimum_cov is None else pc.optimum_cov)
-    if pc.widening is not None and pc.correlated is not None:
-        sd_o = sd_o * torch.where(pc.correlated.cpu(), pc.widening.cpu(), 1.0)
+    _, centre, sd_o = _optimum(pc, g)
+    if pc.widening is not None:
+        sd_o = sd_o * torch.where(correlated, pc.widening.cpu(), 1.0)
     have = torch.isfinite(centre) & torch.isfinite(sd_o) & torch.isfinite(hw)
     use = have & ((p < OPTIMUM_P) | (sd_o <= hw / q))
     low = torch.where(use, q * sd_o - centre, hw)
     high = torch.where(use, q * sd_o + centre, hw)
     drifts = torch.isfinite(drift)
     apart = drifts & ((drift + centre).abs() > OPTIMUM_AGREE * q * sd_o)
-    hold = correlated.cpu() | torch.where(use, apart, drifts)
+    hold = correlated | torch.where(use, apart, drifts)
     return torch.where(hold, torch.maximum(low, below), low), torch.where(hold, torch.maximum(high, above), high)
 
 
