@@ -4,7 +4,10 @@
 #define REPLAY_SIZES
 #define WS_LANES 64      /* window_sums: members side by side in a group ... */
 #define WS_LANES_SMALL 8 /* ... or in a batch smaller than that */
+#define WS_AHEAD 2       /* window_sums: the records this many steps ahead are prefetched */
+#define WS_LANE _Pragma("omp simd") for (int64_t l = 0; l < NB; l++) /* a loop over a group's lanes */
 #define MF_BLOCK 64 /* markov_filter: members a block */
+#define MF_AHEAD 2  /* ... and its rows this many steps ahead prefetched */
 #define RS_BLOCK 256 /* residual_sums: members a block */
 #define RS_LANES 8  /* ... members side by side in its lagged sums */
 #define RS_LAGS 6   /* ... and lags at a time (the six sums written out below) */
@@ -61,12 +64,19 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1 && B >= 256) reduction(| : fail)
 #endif
     {
-        /* per lane l: acc[p * NB + l] the pairs' sums, g[k * NB + l], the scores' ring (L, n), their sums */
-        double *acc = malloc(sizeof(double) * NB * (np + K + (L + 2) * n + 2 * n * n + nz));
-        fail |= !acc;
-        if (acc) {
-            double *g = acc + np * NB, *rl = g + K * NB, *sv = rl + L * n * NB, *Sv = sv + n * NB;
-            double *sg = Sv + n * NB, *mv2 = sg + n * n * NB, *wz = mv2 + n * n * NB;
+        /* per lane l, each an array over the lanes: acc the pairs' sums, g the row, the scores' ring (L, n), this
+         * step's scores sv, their moving sum Sv, the ring's sum Sr, the score sums sg and mv2; the step's records
+         * as lanes (zl, mvl, psl, dl), eps (el), norm (nl), m, W z / m (wz), whether the step counts (in) and each
+         * lane's first measured step (ol) */
+        const int64_t nd = NB * (np + K + (L + 3) * n + 2 * n * n + 2 * nz + 2 * nj + nz + n + 2) + NB;
+        double *acc = malloc(sizeof(double) * nd);
+        int64_t *ol = malloc(sizeof(int64_t) * NB);
+        fail |= !acc || !ol;
+        if (acc && ol) {
+            double *g = acc + np * NB, *rl = g + K * NB, *sv = rl + L * n * NB, *Sv = sv + n * NB, *Sr = Sv + n * NB;
+            double *sg = Sr + n * NB, *mv2 = sg + n * n * NB, *wz = mv2 + n * n * NB, *zl = wz + nz * NB;
+            double *mvl = zl + nz * NB, *psl = mvl + nj * NB, *dl = psl + nj * NB, *el = dl + nz * NB;
+            double *nl = el + n * NB, *m = nl + NB, *in = m + NB;
 #ifdef _OPENMP
 #pragma omp for schedule(static)
 #endif
@@ -75,8 +85,12 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
                 for (int64_t p = 0; p < np; p++)
                     for (int64_t l = 0; l < NB; l++)
                         acc[p * NB + l] = l < nb ? gram[(b0 + l) * K * K + pa[p] * K + pc[p]] : 0.0;
-                for (int64_t l = 0; l < NB; l++)
+                for (int64_t l = 0; l < NB; l++) {
+                    const int64_t b = b0 + (l < nb ? l : nb - 1);
+                    ol[l] = l < nb ? own[b] : INT64_MAX / 2; /* a lane past the batch never measures */
+                    nl[l] = norm ? norm[b] : 0.0;
                     for (int64_t i = 0; i < n; i++) {
+                        el[i * NB + l] = eps[b * n + i];
                         for (int64_t j = 0; j < L; j++)
                             rl[(j * n + i) * NB + l] = l < nb ? ring[((b0 + l) * L + j) * n + i] : 0.0;
                         for (int64_t j = 0; j < n; j++) {
@@ -84,83 +98,137 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
                             mv2[(i * n + j) * NB + l] = l < nb ? moving[((b0 + l) * n + i) * n + j] : 0.0;
                         }
                     }
+                }
                 int64_t head = 0; /* the ring's oldest entry */
                 for (int64_t t = 0; t < C; t++) {
-                    for (int64_t l = 0; l < NB; l++) {
-                        const int64_t b = b0 + l, at = t0 + t - (l < nb ? own[b] : t0 + t + 1);
-                        if (l >= nb || at < 0 || at >= measured) {
-                            for (int64_t k = 0; k < K; k++) g[k * NB + l] = 0.0;
-                            for (int64_t i = 0; i < n; i++) sv[i * NB + l] = 0.0;
-                            continue;
-                        }
-                        const double *zt = z + (t * B + b) * nz, *mv = moved + (t * B + b) * nj,
-                                     *ps = psi + (t * B + b) * nj, *e = eps + b * n;
-                        double m = 1.0;
-                        if (norm) {
-                            double q = 0.0;
-                            for (int64_t r = 0; r < nz; r++)
-                                for (int64_t s2 = 0; s2 < nz; s2++)
-                                    for (int64_t i = 0; i < n; i++)
-                                        q += ps[r * n + i] * W[r * nz + s2] * ps[s2 * n + i];
-                            m = sqrt(1.0 + q * norm[b]);
-                        }
-                        /* x / m, written x where m is 1 (the same number, without a division) */
-#define WS_BY_M(x) (norm ? (x) / m : (x))
-                        for (int64_t r = 0; r < nz; r++) {
-                            for (int64_t i = 0; i < n; i++) {
-                                double j = (mv[r * n + i] - zt[r]) / e[i];
-                                g[(r * n + i) * NB + l] = j;
-                                g[(nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(ps[r * n + i]);
-                                g[(2 * nj + 2 * nz + r * n + i) * NB + l] = WS_BY_M(j);
-                            }
-                            g[(nj + r) * NB + l] = zt[r];
-                            g[(nj + nz + r) * NB + l] = d ? d[(t * B + b) * nz + r] : 0.0;
-                            g[(3 * nj + 2 * nz + r) * NB + l] = WS_BY_M(zt[r]);
-                        }
-                        for (int64_t r = 0; r < nz; r++) {
-                            wz[r] = 0.0;
-                            for (int64_t s2 = 0; s2 < nz; s2++) wz[r] += W[r * nz + s2] * WS_BY_M(zt[s2]);
-                        }
+                    /* the ring's sum, oldest first, at the stretch's start and each time the ring comes round;
+                     * between, carried on: less the entry that leaves, plus the one that enters */
+                    if (head == 0)
                         for (int64_t i = 0; i < n; i++) {
-                            double a = 0.0;
-                            for (int64_t r = 0; r < nz; r++) a += WS_BY_M(ps[r * n + i]) * wz[r];
-                            sv[i * NB + l] = a;
+                            double *restrict S = Sr + i * NB;
+                            WS_LANE S[l] = 0.0;
+                            for (int64_t j = 0; j < L; j++) {
+                                const double *restrict r = rl + (j * n + i) * NB;
+                                WS_LANE S[l] += r[l];
+                            }
                         }
-#undef WS_BY_M
+                    /* the step's records as lanes (a lane past the batch reads the last member's); the records
+                     * of a later step asked for meanwhile (a step's rows lie far apart: no stride to guess) */
+                    const int64_t row = t * B + b0;
+                    if (t + WS_AHEAD < C) {
+                        const int64_t ahead = row + WS_AHEAD * B;
+                        for (int64_t c = 0; c < nb * nj; c += 8) {
+                            __builtin_prefetch(moved + ahead * nj + c);
+                            __builtin_prefetch(psi + ahead * nj + c);
+                        }
+                        for (int64_t c = 0; c < nb * nz; c += 8) {
+                            __builtin_prefetch(z + ahead * nz + c);
+                            if (d) __builtin_prefetch(d + ahead * nz + c);
+                        }
                     }
+                    WS_LANE {
+                        const int64_t k = row + (l < nb ? l : nb - 1);
+                        for (int64_t r = 0; r < nz; r++) {
+                            zl[r * NB + l] = z[k * nz + r];
+                            dl[r * NB + l] = d ? d[k * nz + r] : 0.0;
+                        }
+                        for (int64_t c = 0; c < nj; c++) {
+                            mvl[c * NB + l] = moved[k * nj + c];
+                            psl[c * NB + l] = psi[k * nj + c];
+                        }
+                    }
+                    const int64_t now = t0 + t;
+                    WS_LANE in[l] = (now - ol[l] >= 0) & (now - ol[l] < measured);
+                    WS_LANE m[l] = 1.0;
+                    if (norm) {
+                        double q[NB];
+                        WS_LANE q[l] = 0.0;
+                        for (int64_t r = 0; r < nz; r++)
+                            for (int64_t s2 = 0; s2 < nz; s2++)
+                                for (int64_t i = 0; i < n; i++) {
+                                    const double w = W[r * nz + s2];
+                                    const double *restrict pr = psl + (r * n + i) * NB, *restrict ps2 = psl + (s2 * n + i) * NB;
+                                    WS_LANE q[l] += pr[l] * w * ps2[l];
+                                }
+                        WS_LANE m[l] = sqrt(1.0 + q[l] * nl[l]);
+                    }
+                    /* x / m, written x where m is 1 (the same number, without a division); 0 where the step does
+                     * not count */
+#define WS_BY_M(x) (norm ? (x) / m[l] : (x))
+#define WS_IN(x) (in[l] != 0.0 ? (x) : 0.0)
+                    for (int64_t r = 0; r < nz; r++) {
+                        for (int64_t i = 0; i < n; i++) {
+                            const int64_t c = r * n + i;
+                            double *restrict gj = g + c * NB, *restrict gp = g + (nj + 2 * nz + c) * NB;
+                            double *restrict gm = g + (2 * nj + 2 * nz + c) * NB;
+                            const double *restrict mv = mvl + c * NB, *restrict ps = psl + c * NB;
+                            const double *restrict zr = zl + r * NB, *restrict e = el + i * NB;
+                            WS_LANE {
+                                const double j = (mv[l] - zr[l]) / e[l];
+                                gj[l] = WS_IN(j);
+                                gp[l] = WS_IN(WS_BY_M(ps[l]));
+                                gm[l] = WS_IN(WS_BY_M(j));
+                            }
+                        }
+                        double *restrict gz = g + (nj + r) * NB, *restrict gd = g + (nj + nz + r) * NB;
+                        double *restrict gzm = g + (3 * nj + 2 * nz + r) * NB;
+                        const double *restrict zr = zl + r * NB, *restrict dr = dl + r * NB;
+                        WS_LANE {
+                            gz[l] = WS_IN(zr[l]);
+                            gd[l] = WS_IN(dr[l]);
+                            gzm[l] = WS_IN(WS_BY_M(zr[l]));
+                        }
+                    }
+                    for (int64_t r = 0; r < nz; r++) {
+                        double *restrict o = wz + r * NB;
+                        WS_LANE o[l] = 0.0;
+                        for (int64_t s2 = 0; s2 < nz; s2++) {
+                            const double w = W[r * nz + s2];
+                            const double *restrict zs = zl + s2 * NB;
+                            WS_LANE o[l] += w * WS_BY_M(zs[l]);
+                        }
+                    }
+                    for (int64_t i = 0; i < n; i++) {
+                        double *restrict o = sv + i * NB;
+                        WS_LANE o[l] = 0.0;
+                        for (int64_t r = 0; r < nz; r++) {
+                            const double *restrict ps = psl + (r * n + i) * NB, *restrict w = wz + r * NB;
+                            WS_LANE o[l] += WS_BY_M(ps[l]) * w[l];
+                        }
+                        WS_LANE o[l] = WS_IN(o[l]);
+                    }
+#undef WS_BY_M
+#undef WS_IN
                     for (int64_t p = 0; p < np; p++) {
                         double *restrict o = acc + p * NB;
                         const double *restrict x = g + pa[p] * NB, *restrict y = g + pc[p] * NB;
-                        for (int64_t l = 0; l < NB; l++) o[l] += x[l] * y[l];
+                        WS_LANE o[l] += x[l] * y[l];
                     }
-                    /* the scores: S the sum of the ring's L and this one, oldest first (the ring's entries head
-                     * .. L - 1, then 0 .. head - 1); this one replaces the ring's oldest */
+                    /* the scores: S the sum of the ring's L and this one; this one replaces the ring's oldest */
                     for (int64_t i = 0; i < n; i++) {
-                        double S[NB];
-                        for (int64_t l = 0; l < NB; l++) S[l] = 0.0;
-                        for (int64_t j = head; j < L; j++) {
-                            const double *restrict r = rl + (j * n + i) * NB;
-                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
-                        }
-                        for (int64_t j = 0; j < head; j++) {
-                            const double *restrict r = rl + (j * n + i) * NB;
-                            for (int64_t l = 0; l < NB; l++) S[l] += r[l];
-                        }
-                        for (int64_t l = 0; l < NB; l++) Sv[i * NB + l] = S[l] + sv[i * NB + l];
+                        const double *restrict S = Sr + i * NB, *restrict s = sv + i * NB;
+                        double *restrict o = Sv + i * NB;
+                        WS_LANE o[l] = S[l] + s[l];
                     }
                     for (int64_t i = 0; i < n; i++)
                         for (int64_t j = 0; j < n; j++) {
                             double *restrict a1 = sg + (i * n + j) * NB, *restrict a2 = mv2 + (i * n + j) * NB;
                             const double *restrict si = sv + i * NB, *restrict sj = sv + j * NB;
                             const double *restrict Si = Sv + i * NB, *restrict Sj = Sv + j * NB;
-                            for (int64_t l = 0; l < NB; l++) {
+                            WS_LANE {
                                 a1[l] += si[l] * sj[l];
                                 a2[l] += Si[l] * Sj[l];
                             }
                         }
                     if (L > 0) {
-                        for (int64_t i = 0; i < n; i++)
-                            for (int64_t l = 0; l < NB; l++) rl[(head * n + i) * NB + l] = sv[i * NB + l];
+                        for (int64_t i = 0; i < n; i++) {
+                            double *restrict r = rl + (head * n + i) * NB, *restrict S = Sr + i * NB;
+                            const double *restrict s = sv + i * NB;
+                            WS_LANE {
+                                S[l] = S[l] - r[l] + s[l];
+                                r[l] = s[l];
+                            }
+                        }
                         head = (head + 1) % L;
                     }
                 }
@@ -176,8 +244,9 @@ static int RFN(window_sums)(int64_t C, int64_t B, int64_t nz, int64_t n, int64_t
                         }
                     }
             }
-            free(acc);
         }
+        free(acc);
+        free(ol);
     }
     free(pa);
     return fail;
@@ -213,7 +282,10 @@ static int RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out
                             for (int64_t j = 0; j < n_phi; j++)
                                 bx[(i * n_out + o) * nq + l * n_phi + j] =
                                     beta[((bshared ? 0 : b0 + l) * nu + i) * n_out + o];
-                for (int64_t t = 0; t < T; t++)
+                for (int64_t t = 0; t < T; t++) {
+                    /* the row a later step adds, asked for meanwhile (a step's rows lie far apart) */
+                    if (t + MF_AHEAD < T)
+                        for (int64_t q = 0; q < nq; q += 8) __builtin_prefetch(phi + (t + MF_AHEAD + s0) * row + b0 * n_phi + q);
                     for (int64_t o = 0; o < n_out; o++) {
                         double *restrict a = acc;
                         for (int64_t q = 0; q < nq; q++) a[q] = 0.0;
@@ -229,6 +301,7 @@ static int RFN(markov_filter)(int64_t T, int64_t B, int64_t n_phi, int64_t n_out
                             for (int64_t l = 0; l < nb; l++)
                                 for (int64_t j = 0; j < n_phi; j++) out[l * n_out * n_phi + j] = a[l * n_phi + j];
                     }
+                }
             }
             free(bx);
         }
