@@ -644,11 +644,15 @@ def _worker(jobs: int, results: int, sweep, shards, steps, device, shard_out, ru
     outcome: ('rows', rows), ('stopped', (step, checkpoint)) or ('error', (exception or None, traceback)), then
     what the shard printed on stdout and on stderr, which the sweep prints where its own output goes: a
     notebook's cell, a test's capture); end at the end of the jobs, at a stop, or after a shard that failed."""
+    import gc
     import pickle
     import threading
     import traceback
     status = 3
     try:
+        # what the sweep made before the fork (its imports, every shard's run) is out of the collector's reach here:
+        # a collection would walk it again and again, and copy every page it touches
+        gc.freeze()
         stop = threading.Event()
         for sig in STOP_SIGNALS:
             if signal.getsignal(sig) is not signal.SIG_IGN:
