@@ -833,6 +833,9 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
     from .monitor import SESSION, EventFile, final_values, setting_text, write_session
     from .outputs import MANIFEST, list_in_manifest
     sc = sweep.scenario
+    by_shard: dict[int, list] = {}                      # each shard's rows, in the table's order
+    for r in rows:
+        by_shard.setdefault(r["shard"], []).append(r)
     if len(rows) <= HPARAMS_MEMBERS_MAX:
         swept = list(sweep.grid) + list(sweep.random) + ["seed"]
         settings = set(sc.settings)
@@ -846,7 +849,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
                 last[index] = 0
                 continue
             whys = (shard.get("health") or {}).get("why")
-            part = sorted(r["member"] for r in rows if r["shard"] == index)   # the shard's members, in its order
+            part = sorted(r["member"] for r in by_shard.get(index, ()))   # the shard's members, in its order
             if isinstance(whys, list) and len(whys) == len(part):
                 why.update(zip(part, whys))
         for r in rows:
@@ -863,7 +866,7 @@ def write_hparams(rows: list[dict[str, Any]], sweep: Sweep, out: Path, shard_dir
             f"{HPARAMS_MEMBERS_MAX} members get one row per member). The table of every member (settings, seed, "
             f"estimates, errors, status) is {out / 'sweep.csv'} (and sweep.json).")
     for index, folder in enumerate(shard_dirs):
-        part = [r for r in rows if r["shard"] == index]
+        part = by_shard.get(index)
         if not part:
             continue
         summary = json.loads((folder / "summary.json").read_text())
