@@ -2,6 +2,7 @@
 the axes, a logarithmic time axis where the estimates settle early, the initial model's error beside the refined
 one's, a sweep's estimates and errors against its swept settings."""
 
+import dataclasses
 import os
 import signal
 import threading
@@ -13,6 +14,7 @@ from matplotlib.collections import PathCollection
 from matplotlib.colors import to_rgba
 
 from rcotorch.run import figures as figures_module
+from rcotorch.run.figure_data import run_figure_data
 from rcotorch.run.figures import draw_meanwhile, frequency_figure, log_time_axis, png, pngs, run_figures, sweep_figures
 from rcotorch.run.runner import Run
 
@@ -208,15 +210,21 @@ def test_figures_shared_out_to_forked_processes_are_the_same_bytes_in_the_same_o
     run = Run("sdof-stiffness", steps=200, batch=3, out=tmp_path / "r", log_every=20)
     run.advance(progress=False)
     expected = _one_by_one(run_figures(run))
-    shares = figures_module._shares(run_figures(run), 2)
+    shares = figures_module._shares({name: len(fig.axes) for name, fig in run_figures(run).items()}, 2)
     assert len(shares) == 2 and sorted(sum(shares, [])) == sorted(expected)
     assert shares[0][0] == "estimates"                     # the most axes, drawn by the caller
     drawn = pngs(run_figures(run))
     assert drawn == expected and list(drawn) == list(expected)
-    apart = figures_module._DrawnApart(run_figures(run))
+    apart = figures_module._DrawnApart(lambda: run_figures(run))
     assert apart.pid is not None and apart() == expected and not apart.drawn_here
+    data = run_figure_data(run)
+    made_apart = figures_module.draw(data)             # each share made and drawn in a process of its own
+    assert made_apart == expected and list(made_apart) == list(expected)
+    assert figures_module.draw(dataclasses.replace(data, only=("residuals", "estimates"))) == \
+        {name: expected[name] for name in ("estimates", "residuals")}
     forked_in_thread = []
-    thread = threading.Thread(target=lambda: forked_in_thread.append(figures_module._DrawnApart(run_figures(run))))
+    thread = threading.Thread(target=lambda: forked_in_thread.append(
+        figures_module._DrawnApart(lambda: run_figures(run))))
     thread.start()
     thread.join()
     child = forked_in_thread[0].pid
@@ -234,7 +242,7 @@ def test_a_figure_that_fails_in_a_forked_process_raises_its_error_in_the_caller(
     good = Figure()
     good.subplots().plot([0, 1], [1, 0])
     figs = {"good": good, "broken": Broken()}
-    apart = figures_module._DrawnApart({"broken": figs["broken"]})
+    apart = figures_module._DrawnApart(lambda: {"broken": figs["broken"]})
     assert apart.pid is not None
     with pytest.raises(ValueError, match=f"cannot draw in {os.getpid()}$"):   # drawn again here, failing here
         apart()
@@ -254,14 +262,14 @@ def test_a_forked_drawing_stopped_by_sigterm_never_runs_the_callers_handler_and_
     marker = tmp_path / "handler ran"
     previous = signal.signal(signal.SIGTERM, lambda *_: marker.write_text(str(os.getpid())))
     try:
-        apart = figures_module._DrawnApart({"f": fig})
+        apart = figures_module._DrawnApart(lambda: {"f": fig})
         os.kill(apart.pid, signal.SIGTERM)              # at once: before or while it draws
         child = apart.pid
         assert apart() == {"f": expected} and apart.drawn_here
         assert not marker.exists()
         with pytest.raises(ChildProcessError):
             os.waitpid(child, os.WNOHANG)               # reaped
-        unwaited = figures_module._DrawnApart({"f": make()})
+        unwaited = figures_module._DrawnApart(lambda: {"f": make()})
         unwaited.cancel()
         assert unwaited.pid is None and unwaited.r is None
     finally:
@@ -511,7 +519,7 @@ def test_the_parents_uncollected_garbage_is_not_finalized_in_a_forked_drawing(tm
     a, b = Held(), Held()
     a.other, b.other = b, a
     del a, b
-    apart = figures_module._DrawnApart({"f": fig})
+    apart = figures_module._DrawnApart(lambda: {"f": fig})
     assert apart.pid is not None
     apart()
     assert not apart.drawn_here and not marker.exists()

@@ -3,7 +3,7 @@
 ``rcotorch run`` starts it first, before it imports torch: while the run imports torch, builds its graph and
 steps, the drawing process imports matplotlib and the figures on a core of its own, and at the end of the run it
 draws the figure data the run sends it (``rcotorch.run.figure_data.RunFigureData``: NumPy arrays and text) on
-every core it may use (``rcotorch.run.figures.pngs``) and sends back their PNG bytes. ``rcotorch sweep`` starts
+every core it may use (``rcotorch.run.figures.draw``) and sends back their PNG bytes. ``rcotorch sweep`` starts
 one the same way for the sweep's figures (``rcotorch.run.figure_data.SweepFigureData``), which it draws while the
 sweep writes its table and HParams sessions. It never imports torch.
 Where it cannot start (off Linux, no process to spare) or fails, the run draws its figures itself, the same
@@ -86,8 +86,8 @@ class DrawingProcess:
             out = None if index is None else self._result(index)
             if out is None:
                 self.close()
-                from .figures import figures_of, pngs
-                out = pngs(figures_of(data))
+                from .figures import draw
+                out = draw(data)
             return out
         return wait
 
@@ -190,7 +190,7 @@ def _draw_apart(figures, frame: bytes) -> tuple[int, int]:
         try:
             os.close(r)
             data = pickle.loads(frame)
-            write_frame(w, pickle.dumps(figures.pngs(figures.figures_of(data)), protocol=pickle.HIGHEST_PROTOCOL))
+            write_frame(w, pickle.dumps(figures.draw(data), protocol=pickle.HIGHEST_PROTOCOL))
             code = 0
         finally:
             os._exit(code)

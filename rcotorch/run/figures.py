@@ -17,6 +17,7 @@ for the whole process, so only figures made without it can be drawn off the main
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import io
 import os
@@ -39,7 +40,14 @@ from matplotlib.font_manager import FontProperties  # noqa: E402
 from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
 from matplotlib.ticker import Formatter, NullLocator  # noqa: E402
 
-from .figure_data import MAX_LINES, TRACE, SweepFigureData, shown_name, sweep_figure_data  # noqa: E402
+from .figure_data import (  # noqa: E402
+    MAX_LINES,
+    RUN_FIGURES,
+    TRACE,
+    SweepFigureData,
+    shown_name,
+    sweep_figure_data,
+)
 
 DPI = 110
 TRUTH_STYLE = dict(color="k", ls="--", lw=1.4, zorder=6)              # on top of every estimate
@@ -802,13 +810,37 @@ def _close(fig) -> None:
         plt.close(fig)
 
 
+def draw(data) -> dict[str, bytes]:
+    """{name: PNG bytes} of the figures of figure data (``figures_of``). A run's figures are shared out among the
+    cores the process may use before they are made: each share is made and drawn in a forked process of its own
+    (``_DrawnApart``), the first share here, so that making the figures is shared out as well as drawing them
+    (a sweep's figure, and figures already made, go to ``pngs``)."""
+    names = [] if isinstance(data, SweepFigureData) else \
+        [n for n in RUN_FIGURES if data.only is None or n in data.only]
+    weight = {n: 2 * max(1, len(data.series)) if n == "estimates" else 2 for n in names}   # about their axes
+    shares = _shares(weight, min(len(names), _cores()))
+    if len(shares) < 2:
+        return pngs(figures_of(data))
+    made = [lambda share=share: figures_of(dataclasses.replace(data, only=tuple(share))) for share in shares]
+    apart = [_DrawnApart(make) for make in made[1:]]
+    out: dict[str, bytes] = {}
+    try:
+        out.update((name, png(fig)) for name, fig in made[0]().items())
+        for wait in apart:
+            out.update(wait())
+    finally:
+        for wait in apart:
+            wait.cancel()
+    return {name: out[name] for name in names if name in out}
+
+
 def pngs(figs: dict) -> dict[str, bytes]:
     """{name: PNG bytes} of {name: figure}. Where the process may use more than one core (Linux), the figures
     are shared out, balanced by their number of axes, and all shares but one are drawn at once in forked
     processes (``_DrawnApart``); the bytes are those drawn here."""
     names = list(figs)
-    shares = _shares(figs, min(len(names), _cores()))
-    apart = [_DrawnApart({name: figs[name] for name in share}) for share in shares[1:]]
+    shares = _shares({name: len(fig.axes) for name, fig in figs.items()}, min(len(names), _cores()))
+    apart = [_DrawnApart(lambda share=share: {name: figs[name] for name in share}) for share in shares[1:]]
     out: dict[str, bytes] = {}
     try:
         if shares:
@@ -830,15 +862,15 @@ def _cores() -> int:
     return len(os.sched_getaffinity(0))
 
 
-def _shares(figs: dict, n: int) -> list[list[str]]:
-    """The figures' names in ``n`` shares of about equal work (a figure's axes count as its work), largest
+def _shares(work: Mapping[str, int], n: int) -> list[list[str]]:
+    """The names of ``work`` ({figure: its work, e.g. its axes}) in ``n`` shares of about equal work, largest
     first."""
     shares: list[list[str]] = [[] for _ in range(max(1, n))]
-    work = [0] * len(shares)
-    for name in sorted(figs, key=lambda k: -len(figs[k].axes)):
-        i = work.index(min(work))
+    sums = [0] * len(shares)
+    for name in sorted(work, key=lambda k: -work[k]):
+        i = sums.index(min(sums))
         shares[i].append(name)
-        work[i] += max(1, len(figs[name].axes))
+        sums[i] += max(1, work[name])
     return [share for share in shares if share]
 
 
@@ -846,14 +878,15 @@ _STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 class _DrawnApart:
-    """Draw ``figs`` in a forked process; calling the object waits for their PNG bytes, and draws them here
-    instead where the process failed. The forked process only draws (matplotlib's Agg, no torch), writes the
-    bytes to a pipe and ends at once (``os._exit``: nothing of the parent's is flushed or closed twice), with the
-    default action for SIGINT and SIGTERM, so that the run's own handlers (which save a checkpoint) never run
-    there. ``cancel`` ends it where it was not waited for; ``drawn_here`` says whether the caller drew them."""
+    """Draw the figures ``make()`` returns ({name: figure}) in a forked process, which makes them; calling the
+    object waits for their PNG bytes, and makes and draws them here instead where the process failed. The forked
+    process only makes and draws (matplotlib's Agg, no torch), writes the bytes to a pipe and ends at once
+    (``os._exit``: nothing of the parent's is flushed or closed twice), with the default action for SIGINT and
+    SIGTERM, so that the run's own handlers (which save a checkpoint) never run there. ``cancel`` ends it where
+    it was not waited for; ``drawn_here`` says whether the caller drew them."""
 
-    def __init__(self, figs: dict):
-        self.figs, self.pid, self.r = figs, None, None
+    def __init__(self, make: Callable[[], dict]):
+        self.make, self.pid, self.r = make, None, None
         self.drawn_here = False
         r, w = os.pipe()
         # SIGINT and SIGTERM wait until the forked process has its own actions for them
@@ -871,7 +904,7 @@ class _DrawnApart:
             if pid != 0:
                 signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         if pid == 0:
-            _draw_and_exit(figs, r, w, blocked)
+            _draw_and_exit(make, r, w, blocked)
         os.close(w)
         self.pid, self.r = pid, r
 
@@ -885,7 +918,7 @@ class _DrawnApart:
             self.pid = None
         if status != 0:
             self.drawn_here = True
-            return {name: png(fig) for name, fig in self.figs.items()}
+            return {name: png(fig) for name, fig in self.make().items()}
         return pickle.loads(data)
 
     def cancel(self) -> None:
@@ -898,9 +931,9 @@ class _DrawnApart:
             self.pid = None
 
 
-def _draw_and_exit(figs: dict, r: int, w: int, blocked) -> None:
-    """In the forked process: draw ``figs``, write their pickled PNG bytes to ``w`` and end, with status 0 only
-    where all of that succeeded."""
+def _draw_and_exit(make: Callable[[], dict], r: int, w: int, blocked) -> None:
+    """In the forked process: make the figures and draw them, write their pickled PNG bytes to ``w`` and end,
+    with status 0 only where all of that succeeded."""
     code = 1
     try:
         gc.disable()        # no collection here: the finalizers of the parent's garbage (files, folders) stay its own
@@ -908,7 +941,7 @@ def _draw_and_exit(figs: dict, r: int, w: int, blocked) -> None:
         for sig in _STOPS:
             signal.signal(sig, signal.SIG_DFL)
         signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
-        data = pickle.dumps({name: png(fig) for name, fig in figs.items()})
+        data = pickle.dumps({name: png(fig) for name, fig in make().items()})
         with os.fdopen(w, "wb") as f:
             f.write(data)
         code = 0
