@@ -207,3 +207,26 @@ def test_the_state_fit_of_a_linear_loop_stops_after_its_first_step_and_a_nonline
     assert len(calls) == 2 * (1 + n) + (1 + n) + 1     # the refined model's passes in full, the initial one's not
     with pytest.raises(rt.errors.DimensionError, match="estimator 'identified'.*must be \\(1, 1\\).*got \\(1, 2\\)"):
         ident.hold(torch.tensor([[0.0, 50.0]], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("engine", ["native", "torch"])
+def test_the_refined_and_initial_models_simulated_in_one_graph_give_the_numbers_of_separate_simulations(
+        engine, monkeypatch):
+    """Validation runs the initial model as a copy of the estimator and known model joined to the refined
+    model's graph, reading the physical system, excitation and noise from it: bit for bit the rmse, fits, fitted
+    states and traces of one simulation after the other (what a graph whose step hooks forbid joining gets)."""
+    from rcotorch.verdict import intervals
+    g = _refined(steps=1500)
+    g.engine = engine
+    joined = []
+    join = intervals._join
+    monkeypatch.setattr(intervals, "_join", lambda *a, **k: joined.append(a[4]) or join(*a, **k))
+    one = validate(g, 600)
+    assert joined == ["initial"]
+    monkeypatch.setattr(intervals, "_hooks_leave", lambda *a: False)
+    apart = validate(g, 600)
+    assert joined == ["initial"]                      # no join the second time
+    for key in ("rmse", "rmse_initial", "fit_percent", "fit_percent_initial", "x0", "x0_initial", "measured",
+                "refined", "initial"):
+        assert torch.equal(getattr(one, key), getattr(apart, key)), key
+    assert float(one.rmse_initial.min()) > 2 * float(one.rmse.max())    # two models, not one twice

@@ -21,12 +21,14 @@ for the refined model and, in the same way, for the initial model (theta at its 
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
 
 from ..errors import ConfigError
+from . import intervals
 from .intervals import snapshot
 
 FIT_STEPS = 50           # samples that fix the initial state (excluded from the scores)
@@ -192,21 +194,23 @@ def validate(graph, steps: int | None = None, *, rows: tuple[int, int] | None = 
     initial_eta = est.theta_free().detach().clone()        # after the reset: the initial parameters
     if offset is not None:
         _continue_sources(base, offset)
-    scored, traces, states = {}, {}, {}
+    etas = {"refined": refined_eta, "initial": initial_eta}
+    states = {}
     fitted_both = True
     start = snapshot(base)
-    for which, eta in (("refined", refined_eta), ("initial", initial_eta)):    # in one graph, from one state
+    for which, eta in etas.items():                   # each fitted in one graph, from one state
         _restore(base, start)
         _freeze(base, eta)
         x0, fitted = _fit_state(base, fit_steps)
         fitted_both = fitted_both and fitted
         states[which] = x0
-        if x0 is not None:
-            base.role("known").x.copy_(x0)
-        scores = _Scores(fit_steps, keep)
-        _stream(base, steps, scores.add)
-        traces[which], traces["measured"] = scores.kept["y_hat"], scores.kept["y"]
-        scored[which] = scores.result()
+    scores = {which: _Scores(fit_steps, keep) for which in etas}
+    measured = base.role_signal("measured")
+    for predictions in _simulations(base, start, etas, states):
+        _stream(base, steps, {"y": measured, **predictions}, functools.partial(_score, scores, list(predictions)))
+    traces = {which: s.kept["y_hat"] for which, s in scores.items()}
+    traces["measured"] = scores["refined"].kept["y"]
+    scored = {which: s.result() for which, s in scores.items()}
     return Validation(source=source, steps=steps, fit_steps=fit_steps, rmse=scored["refined"][0],
                       rmse_initial=scored["initial"][0], fit_percent=scored["refined"][1],
                       fit_percent_initial=scored["initial"][1], state_fitted=fitted_both, x0=states["refined"],
@@ -222,17 +226,21 @@ class _Scores:
         self.fit, self.keep, self.at = fit_steps, keep, 0
         self.sums: dict[str, torch.Tensor] = {}
         self.parts: dict[str, list] = {"y": [], "y_hat": []}
+        self.squares: torch.Tensor | None = None       # y^2 of a stretch, kept from stretch to stretch
 
     def add(self, y: torch.Tensor, y_hat: torch.Tensor) -> None:
-        """The next stretch's y and y_hat, (C, B, width) float64."""
+        """The next stretch's y and y_hat, (C, B, width) float64. ``y_hat`` is overwritten (z, then z^2, in its
+        place): a stretch is megabytes at a large batch, and a new array for each product costs its pages."""
         kept = slice(None) if self.keep is None else slice(0, self.keep)
         self.parts["y"].append(y[:, kept].clone())
         self.parts["y_hat"].append(y_hat[:, kept].clone())
         lo = max(0, self.fit - self.at)
         self.at += y.shape[0]
-        y, z = y[lo:], (y - y_hat)[lo:]
-        for key, value in (("zz", (z * z).sum((0, 2))), ("y", y.sum(0)), ("yy", (y * y).sum(0)),
-                           ("n", torch.tensor(y.shape[0]))):
+        y, z = y[lo:], torch.sub(y, y_hat, out=y_hat)[lo:]
+        if self.squares is None or self.squares.shape != y.shape:
+            self.squares = torch.empty_like(y)
+        for key, value in (("zz", torch.mul(z, z, out=z).sum((0, 2))), ("y", y.sum(0)),
+                           ("yy", torch.mul(y, y, out=self.squares).sum(0)), ("n", torch.tensor(y.shape[0]))):
             self.sums[key] = value if key not in self.sums else self.sums[key] + value
 
     @property
@@ -265,10 +273,49 @@ def _freeze(graph, eta: torch.Tensor) -> None:
 STRETCH_BYTES = 1 << 23   # the simulation records y and y_hat in stretches of about this many bytes each
 
 
-def _stream(graph, steps: int, take) -> None:
-    """Run ``graph`` (changed) ``steps`` steps, handing each stretch's y and y_hat, (C, B, width) float64, to
-    ``take``; the stretches are recorded into the same buffers."""
-    signals = {"y": graph.role_signal("measured"), "y_hat": graph.role_signal("prediction")}
+def _simulations(base, start: Mapping[str, torch.Tensor], etas: Mapping[str, torch.Tensor],
+                 states: Mapping[str, torch.Tensor | None]):
+    """Set ``base`` up for the simulations of the models held at ``etas`` ({which: eta}), each from ``start`` and
+    its known model's state ``states[which]`` (None: as in ``start``), and yield for each simulation {which: the
+    signal of its prediction}. Where the graph's step hooks allow it (``intervals._hooks_leave``), one simulation
+    runs them all: the first in ``base`` itself, each other as a copy of the blocks it changes (its estimator and
+    the model it feeds back through) joined to ``base`` (``intervals._join``), reading the physical system, the
+    excitation and the noise from ``base``'s blocks, which compute the same numbers; else one after another."""
+    est, known = base.role("estimator"), base.roles["known"]
+    prediction = base.role_signal("prediction")
+    structure = (list(base.blocks), dict(base.sources))
+    own = intervals._own_blocks(structure, {est.name}, [prediction])
+    joined = intervals._hooks_leave(base.hooks, own, est.name)
+    first, *rest = etas
+    for which in etas if not joined else [first]:
+        _restore(base, start)
+        _freeze(base, etas[which])
+        if states[which] is not None:
+            base.role("known").x.copy_(states[which])
+        if not joined:
+            yield {which: prediction}
+    if not joined:
+        return
+    signals = {first: prediction}
+    for which in rest:
+        block = functools.partial(intervals._held_block, base, est.name, etas[which])
+        # the copy's known model (joined under a name of its own; the signal names it) starts from its own state
+        at = intervals._join(base, structure, own, [prediction, (known, "x")], which, block)
+        signals[which] = at[prediction]
+        if states[which] is not None and known in own:
+            base.blocks[at[(known, "x")][0]].x.copy_(states[which])
+    yield signals
+
+
+def _score(scores: Mapping[str, _Scores], names: list, rec: Mapping[str, torch.Tensor]) -> None:
+    """Add a stretch's record (``_stream``) to the scores of each of ``names``: y against its prediction."""
+    for which in names:
+        scores[which].add(rec["y"], rec[which])
+
+
+def _stream(graph, steps: int, signals: Mapping[str, tuple[str, str]], take) -> None:
+    """Run ``graph`` (changed) ``steps`` steps, handing each stretch's record of ``signals`` ({name: signal}),
+    {name: (C, B, width) float64}, to ``take``; the stretches are recorded into the same buffers."""
     widths = {k: graph.blocks[blk].outputs[port] for k, (blk, port) in signals.items()}
     stretch = max(1, min(steps, STRETCH_BYTES // (8 * graph.batch_size * max(widths.values()))))
     bufs = {k: torch.empty(stretch, graph.batch_size, w, dtype=_dtype(graph), device=graph.k.device)
@@ -276,7 +323,7 @@ def _stream(graph, steps: int, take) -> None:
     for done in range(0, steps, stretch):
         C = min(stretch, steps - done)
         graph.advance(C, record={signals[k]: b[:C] for k, b in bufs.items()})
-        take(bufs["y"][:C].to(torch.float64), bufs["y_hat"][:C].to(torch.float64))
+        take({k: b[:C].to(torch.float64) for k, b in bufs.items()})
 
 
 def _simulate(g, steps: int, x0: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
