@@ -671,3 +671,32 @@ def test_the_drawing_process_yields_a_core_the_run_needs_and_gets_its_data_befor
     one.finish(progress=False)                  # no drawing process: drawn here, in one go
     for name in names:
         assert (tmp_path / "r" / name).read_bytes() == (tmp_path / "one" / name).read_bytes(), name
+
+
+def test_a_log_axis_over_decades_draws_its_minor_grid_as_lines_on_every_axes_that_shares_it():
+    """On a log axis spanning more than a decade the minor grid is one set of lines at the places matplotlib's
+    minor locator picks (2..9 times each power of ten inside the limits), on each of two axes sharing that axis,
+    and no minor ticks; an axis within a decade (whose minor ticks are labelled) keeps its minor ticks."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+    fig = Figure(layout="constrained")
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    for ax in (top, bottom):
+        ax.plot([1.0, 2.0e3], [0.0, 1.0])
+        ax.set_xscale("log")
+        ax.grid(alpha=0.3, which="both")
+    short = Figure()
+    near = short.subplots()
+    near.semilogy([0.0, 1.0], [2.0, 7.0])
+    png(fig)
+    png(short)
+    lo, hi = top.get_xlim()
+    expected = sorted(m * 10.0 ** e for e in range(-1, 5) for m in range(2, 10) if lo < m * 10.0 ** e < hi)
+    for ax in (top, bottom):
+        grids = [c for c in ax.collections if isinstance(c, LineCollection)]
+        assert len(grids) == 1
+        places = sorted(seg[0][0] for seg in grids[0].get_segments())
+        np.testing.assert_allclose(places, expected, rtol=1e-12)
+        assert grids[0].get_alpha() == 0.3
+        assert len(ax.xaxis.get_minorticklocs()) == 0
+    assert len(near.yaxis.get_minorticklocs()) > 0 and not any(isinstance(c, LineCollection) for c in near.collections)

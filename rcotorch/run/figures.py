@@ -763,22 +763,24 @@ def png(fig) -> bytes:
 def _minor_grid_as_lines(fig) -> None:
     """On a log axis spanning more than a decade (its minor ticks unlabelled), the minor grid drawn as one set of
     lines at the minor ticks' places, in their style, and no minor ticks: each tick is a handful of artists that
-    the layout measures and the drawing updates, a third of a figure's time where its axes are logarithmic."""
+    the layout measures and the drawing updates, a third of a figure's time where its axes are logarithmic. Every
+    axis is read before any locator is changed: axes that share an axis share its locator."""
+    found = []
     for ax in fig.axes:
         for axis, transform in ((ax.xaxis, ax.get_xaxis_transform()), (ax.yaxis, ax.get_yaxis_transform())):
             if axis.get_scale() != "log" or isinstance(axis.get_minor_locator(), NullLocator):
                 continue
             lo, hi = sorted(axis.get_view_interval())
-            if not 0 < 10 * lo < hi:
-                continue
-            places = [v for v in axis.get_minor_locator().tick_values(lo, hi) if lo < v < hi]
-            grid = axis.get_minor_ticks(1)[0].gridline
-            axis.set_minor_locator(NullLocator())
-            if grid.get_visible() and places:
-                ends = [[(v, 0.0), (v, 1.0)] if axis is ax.xaxis else [(0.0, v), (1.0, v)] for v in places]
-                ax.add_collection(LineCollection(ends, transform=transform, colors=grid.get_color(),
-                                                 linewidths=grid.get_linewidth(), linestyles=grid.get_linestyle(),
-                                                 alpha=grid.get_alpha(), zorder=axis.get_zorder()), autolim=False)
+            if 0 < 10 * lo < hi:
+                places = [v for v in axis.get_minor_locator().tick_values(lo, hi) if lo < v < hi]
+                found.append((ax, axis, transform, places, axis.get_minor_ticks(1)[0].gridline))
+    for ax, axis, transform, places, grid in found:
+        axis.set_minor_locator(NullLocator())
+        if grid.get_visible() and places:
+            ends = [[(v, 0.0), (v, 1.0)] if axis is ax.xaxis else [(0.0, v), (1.0, v)] for v in places]
+            ax.add_collection(LineCollection(ends, transform=transform, colors=grid.get_color(),
+                                             linewidths=grid.get_linewidth(), linestyles=grid.get_linestyle(),
+                                             alpha=grid.get_alpha(), zorder=axis.get_zorder()), autolim=False)
 
 
 def warm() -> None:
