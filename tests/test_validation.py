@@ -215,15 +215,15 @@ def test_the_refined_and_initial_models_simulated_in_one_graph_give_the_numbers_
     """Validation runs the initial model as a copy of the estimator and known model joined to the refined
     model's graph, reading the physical system, excitation and noise from it: bit for bit the rmse, fits, fitted
     states and traces of one simulation after the other (what a graph whose step hooks forbid joining gets)."""
-    from rcotorch.verdict import intervals
+    from rcotorch.verdict import joined as joined_module
     g = _refined(steps=1500)
     g.engine = engine
     joined = []
-    join = intervals._join
-    monkeypatch.setattr(intervals, "_join", lambda *a, **k: joined.append(a[4]) or join(*a, **k))
+    join = joined_module.join
+    monkeypatch.setattr(joined_module, "join", lambda *a, **k: joined.append(a[4]) or join(*a, **k))
     one = validate(g, 600)
     assert joined == ["initial"]
-    monkeypatch.setattr(intervals, "_hooks_leave", lambda *a: False)
+    monkeypatch.setattr(joined_module, "hooks_leave", lambda *a: False)
     apart = validate(g, 600)
     assert joined == ["initial"]                      # no join the second time
     for key in ("rmse", "rmse_initial", "fit_percent", "fit_percent_initial", "x0", "x0_initial", "measured",

@@ -47,6 +47,7 @@ import torch
 from ..engine import kernels
 from ..errors import ConfigError
 from . import sampling
+from .joined import held_block, hooks_leave, join, own_blocks
 
 LEVEL = 0.95             # the default confidence level
 REL_TOL = 0.5            # determined: each interval's half-width at most this fraction of max(|estimate|, scale)
@@ -76,7 +77,7 @@ DRIFT_NOISE = 1.0        # ... and this many of its standard deviations past it
 OPTIMUM_P = 0.2          # the joint test's p-value below which the window's output-error optimum replaces the estimate
 OPTIMUM_DRIFT_Z = 1.0    # a drift beyond this many of its sd: the widened interval is held beside the estimate's ...
 OPTIMUM_AGREE = 0.5      # ... and beside the optimum's where est - drift lies beyond this many of its half-widths
-JOIN_COPIES = True       # step the replay's copies inside one graph, sharing what they compute alike (``_join``)
+JOIN_COPIES = True       # step the replay's copies inside one graph, sharing what they compute alike (``joined``)
 
 
 @dataclass
@@ -258,7 +259,7 @@ class _Copies:
     given (``physics``) a copy with its physical blocks in place of the graph's (``_physics_copy``). Each
     stretch's records land in buffers kept from stretch to stretch.
 
-    Where the graph has no step hooks, the other copies run inside the base copy's graph (``_join``): of each,
+    Where the graph has no step hooks, the other copies run inside the base copy's graph (``joined.join``): of each,
     only the blocks that differ from the base copy's and that its recorded signal depends on (for a moved
     parameter: the estimator and the model it feeds back through), reading every other signal (the excitation,
     the measured system, recorded data) from the base copy's blocks. The signals are the same numbers as
@@ -298,12 +299,12 @@ class _Copies:
         # each copy: the graph that steps it and where its signals are in that graph
         self.copies = {"base": (self.base, {sig: sig for sig in self._signals("base")})}
         structure = (list(self.base.blocks), dict(self.base.sources))        # before any copy joins it
-        plans = {name: ({est.name}, functools.partial(_held_block, self.base, est.name, value))
+        plans = {name: ({est.name}, functools.partial(held_block, self.base, est.name, value))
                  for name, value in holds.items()}
         if swap:
             plans["physical"] = (set(swap), functools.partial(_physics_block, self.base, physics, swap))
-        own = {name: _own_blocks(structure, changed, self._signals(name)) for name, (changed, _) in plans.items()}
-        self.joined = JOIN_COPIES and _hooks_leave(self.base.hooks, set().union(*own.values()), est.name)
+        own = {name: own_blocks(structure, changed, self._signals(name)) for name, (changed, _) in plans.items()}
+        self.joined = JOIN_COPIES and hooks_leave(self.base.hooks, set().union(*own.values()), est.name)
         if not self.joined:
             for name, value in holds.items():
                 self.copies[name] = (_held_copy(self.base, value), {sig: sig for sig in self._signals(name)})
@@ -312,7 +313,7 @@ class _Copies:
                                            {sig: sig for sig in self._signals("physical")})
         else:
             for name, (_, block) in plans.items():
-                self.copies[name] = (self.base, _join(self.base, structure, own[name], self._signals(name), name,
+                self.copies[name] = (self.base, join(self.base, structure, own[name], self._signals(name), name,
                                                       block))
         self.graphs = list({id(g): g for g, _ in self.copies.values()}.values())
         self.moved = [name for name in self.copies if name.startswith("moved")]
@@ -555,75 +556,6 @@ def physical_blocks(graph) -> dict[str, str] | None:
         if blk == name and src not in (w_blk, *model):
             out[src] = None
     return out
-
-
-def _own_blocks(structure: tuple[list, Mapping], changed: set[str], signals: list) -> set[str]:
-    """The blocks a copy whose blocks ``changed`` differ from the graph's (``structure``: its block names and
-    wiring) needs of its own for its ``signals``: those ``changed`` drives (through any input) of those the
-    signals' blocks read (through any input)."""
-    _, sources = structure
-    readers: dict[str, set[str]] = {}
-    feeders: dict[str, set[str]] = {}
-    for (dst, _), (src, _) in sources.items():
-        readers.setdefault(src, set()).add(dst)
-        feeders.setdefault(dst, set()).add(src)
-
-    def closure(start: set[str], step: dict[str, set[str]]) -> set[str]:
-        out, todo = set(start), list(start)
-        while todo:
-            for nxt in step.get(todo.pop(), ()):
-                if nxt not in out:
-                    out.add(nxt)
-                    todo.append(nxt)
-        return out
-    return closure(changed, readers) & closure({sig[0] for sig in signals}, feeders)
-
-
-def _hooks_leave(hooks: list, own: set[str], est_name: str) -> bool:
-    """Whether every step hook promises to leave the blocks ``own`` alone (``Graph.add_hook``: its ``acts_on``),
-    the estimator excepted where the hook keeps theta (``keeps_theta``): every copy holds theta, so that what
-    such a hook changes in an estimator does not change what the copy puts out. Only then may the copies run
-    inside one graph, where the hooks act on the base copy's blocks alone."""
-    for hook in hooks:
-        acts = getattr(hook, "acts_on", None)
-        if acts is None:
-            return False
-        mine = own - {est_name} if getattr(hook, "keeps_theta", False) else own
-        if set(acts) & mine:
-            return False
-    return True
-
-
-def _join(base, structure: tuple[list, Mapping], own: set[str], signals: list, tag: str,
-          block: Callable[[str], Any]) -> dict:
-    """Add to ``base`` (a frozen copy not yet stepped; ``structure``: its block names and wiring before any copy
-    joined it) the blocks ``own`` of a copy of it (``_own_blocks``; ``block(name)``: that copy's block ``name``,
-    in the state base's has), renamed '<name>__<tag>' (or with more underscores where base has that name). They
-    read every other signal from base's blocks, which compute the same numbers. Returns {signal of the copy: the
-    signal of base that carries it}."""
-    names, sources = structure
-    rename = {}
-    for name in own:                       # a name no block of base has (more underscores where one had it)
-        new = f"{name}__{tag}"
-        while new in base.blocks or new in rename.values():
-            new = f"{name}_{new[len(name):]}"
-        rename[name] = new
-    blocks = []
-    for name in [name for name in names if name in own]:                  # in the graph's order
-        blk = block(name)
-        blk.name = rename[name]
-        blocks.append(blk)
-    wiring = {(rename[dst], p): (rename.get(src, src), q) for (dst, p), (src, q) in sources.items() if dst in own}
-    base.extend(blocks, wiring)
-    return {sig: (rename.get(sig[0], sig[0]), sig[1]) for sig in signals}
-
-
-def _held_block(base, est_name: str, eta: torch.Tensor, name: str):
-    """A copy of ``base``'s block ``name``, the estimator holding theta at ``eta``."""
-    blk = copy.deepcopy(base.blocks[name])
-    if name == est_name:
-        blk.hold(eta)
-    return blk
 
 
 def _physics_block(base, physics, swap: Mapping[str, Any], name: str):

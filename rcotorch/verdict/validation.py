@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import ConfigError
-from . import intervals
+from . import joined
 from .intervals import snapshot
 
 FIT_STEPS = 50           # samples that fix the initial state (excluded from the scores)
@@ -277,30 +277,30 @@ def _simulations(base, start: Mapping[str, torch.Tensor], etas: Mapping[str, tor
                  states: Mapping[str, torch.Tensor | None]):
     """Set ``base`` up for the simulations of the models held at ``etas`` ({which: eta}), each from ``start`` and
     its known model's state ``states[which]`` (None: as in ``start``), and yield for each simulation {which: the
-    signal of its prediction}. Where the graph's step hooks allow it (``intervals._hooks_leave``), one simulation
+    signal of its prediction}. Where the graph's step hooks allow it (``joined.hooks_leave``), one simulation
     runs them all: the first in ``base`` itself, each other as a copy of the blocks it changes (its estimator and
-    the model it feeds back through) joined to ``base`` (``intervals._join``), reading the physical system, the
+    the model it feeds back through) joined to ``base`` (``joined.join``), reading the physical system, the
     excitation and the noise from ``base``'s blocks, which compute the same numbers; else one after another."""
     est, known = base.role("estimator"), base.roles["known"]
     prediction = base.role_signal("prediction")
     structure = (list(base.blocks), dict(base.sources))
-    own = intervals._own_blocks(structure, {est.name}, [prediction])
-    joined = intervals._hooks_leave(base.hooks, own, est.name)
+    own = joined.own_blocks(structure, {est.name}, [prediction])
+    together = joined.hooks_leave(base.hooks, own, est.name)
     first, *rest = etas
-    for which in etas if not joined else [first]:
+    for which in etas if not together else [first]:
         _restore(base, start)
         _freeze(base, etas[which])
         if states[which] is not None:
             base.role("known").x.copy_(states[which])
-        if not joined:
+        if not together:
             yield {which: prediction}
-    if not joined:
+    if not together:
         return
     signals = {first: prediction}
     for which in rest:
-        block = functools.partial(intervals._held_block, base, est.name, etas[which])
+        block = functools.partial(joined.held_block, base, est.name, etas[which])
         # the copy's known model (joined under a name of its own; the signal names it) starts from its own state
-        at = intervals._join(base, structure, own, [prediction, (known, "x")], which, block)
+        at = joined.join(base, structure, own, [prediction, (known, "x")], which, block)
         signals[which] = at[prediction]
         if states[which] is not None and known in own:
             base.blocks[at[(known, "x")][0]].x.copy_(states[which])
