@@ -814,47 +814,46 @@ def _close(fig) -> None:
 
 def draw(data) -> dict[str, bytes]:
     """{name: PNG bytes} of the figures of figure data (``figures_of``). A run's figures are shared out among the
-    cores the process may use before they are made: each share is made and drawn in a forked process of its own
-    (``_DrawnApart``), the first share here, so that making the figures is shared out as well as drawing them
-    (a sweep's figure, and figures already made, go to ``pngs``)."""
+    cores the process may use before they are made, each share made and drawn in a process of its own
+    (``_drawn_in_shares``), so that making the figures is shared out as well as drawing them (a sweep's figure,
+    and figures already made, go to ``pngs``)."""
     names = [] if isinstance(data, SweepFigureData) else \
         [n for n in RUN_FIGURES if data.only is None or n in data.only]
     weight = {n: 2 * max(1, len(data.series)) if n == "estimates" else 2 for n in names}   # about their axes
     shares = _shares(weight, min(len(names), _cores()))
     if len(shares) < 2:
         return pngs(figures_of(data))
-    made = [lambda share=share: figures_of(dataclasses.replace(data, only=tuple(share))) for share in shares]
-    apart = [_DrawnApart(make) for make in made[1:]]
-    out: dict[str, bytes] = {}
-    try:
-        out.update((name, png(fig)) for name, fig in made[0]().items())
-        for wait in apart:
-            out.update(wait())
-    finally:
-        for wait in apart:
-            wait.cancel()
+    out = _drawn_in_shares([lambda share=share: figures_of(dataclasses.replace(data, only=tuple(share)))
+                            for share in shares])
     return {name: out[name] for name in names if name in out}
 
 
 def pngs(figs: dict) -> dict[str, bytes]:
     """{name: PNG bytes} of {name: figure}. Where the process may use more than one core (Linux), the figures
     are shared out, balanced by their number of axes, and all shares but one are drawn at once in forked
-    processes (``_DrawnApart``); the bytes are those drawn here."""
+    processes (``_drawn_in_shares``); the bytes are those drawn here."""
     names = list(figs)
     shares = _shares({name: len(fig.axes) for name, fig in figs.items()}, min(len(names), _cores()))
-    apart = [_DrawnApart(lambda share=share: {name: figs[name] for name in share}) for share in shares[1:]]
+    out = _drawn_in_shares([lambda share=share: {name: figs[name] for name in share} for share in shares])
+    for name in names:
+        _close(figs[name])
+    return {name: out[name] for name in names}
+
+
+def _drawn_in_shares(makers: list[Callable[[], dict]]) -> dict[str, bytes]:
+    """{name: PNG bytes} of the figures each of ``makers`` returns ({name: figure}): the first share made and
+    drawn here, each other in a forked process at the same time (``_DrawnApart``)."""
+    apart = [_DrawnApart(make) for make in makers[1:]]
     out: dict[str, bytes] = {}
     try:
-        if shares:
-            out.update((name, png(figs[name])) for name in shares[0])
+        if makers:
+            out.update((name, png(fig)) for name, fig in makers[0]().items())
         for wait in apart:
             out.update(wait())
     finally:
         for wait in apart:
             wait.cancel()
-    for name in names:
-        _close(figs[name])
-    return {name: out[name] for name in names}
+    return out
 
 
 def _cores() -> int:
