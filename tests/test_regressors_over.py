@@ -133,3 +133,32 @@ def test_a_held_estimator_moves_its_histories_as_a_zero_gain_does(case, engine):
     assert torch.equal(a.z_r, z_r) and not torch.equal(b.z_r, z_r)       # the held one made no step of the cost
     a.reset(3)
     assert not a.held
+
+
+@pytest.mark.parametrize("mask, tie", [([[1.0, 0.0]], None), ([[0.0, 1.0]], None), (None, [[0, -1]]),
+                                       (None, [[-1, 4]])])
+def test_a_pinned_entrys_regressor_is_not_filtered_and_the_others_are_the_whole_filters_bit_for_bit(mask, tie):
+    """Where entries of Theta are pinned (a mask, or a negative tie label), the native kernel filters only the
+    regressor columns a parameter holds, one call per column; the regressors of eta are those of the whole
+    filter, bit for bit."""
+    from rcotorch.engine import kernels
+    from rcotorch.estimator import rco
+    g = _sdof(rt.RCOEstimator.static_gain({"y0": 2}, p0=1e3, mask=mask, tie=tie), nu=20)
+    est = g.role("estimator")
+    g.engine = "torch"
+    g.advance(40)
+    history = est.regressor_history()
+    sig = g.sources[(est.name, "y0")]
+    rows, u = [], []
+    for _ in range(30):
+        g.advance(1)
+        rows.append(g.last[sig].clone())
+        u.append(g.last[(est.name, "u")].clone())
+    rows, u = torch.stack(rows), torch.stack(u)
+    mf, widths = kernels.markov_filter, []
+    with mock.patch.object(kernels, "markov_filter", lambda *a: widths.append(a[0].shape[2]) or mf(*a)):
+        got = est.regressors_over(history, {"y0": rows}, u, 0, 30)
+    assert widths == [1]                                  # one column of phi filtered: the one a parameter holds
+    with mock.patch.object(rco.RCOEstimator, "_markov_held_entries", lambda *a: None):
+        whole = est.regressors_over(history, {"y0": rows}, u, 0, 30)
+    assert torch.equal(got, whole)

@@ -1033,7 +1033,9 @@ class RCOEstimator(Block):
         # per Markov parameter over a stretch of steps short enough to stay in cache (beta per member or shared)
         T, n_out = stop - start, self.n_z * self.n_u
         beta = self.beta.to(f64).reshape(self.beta.shape[0], nu, n_out, 1)
-        psi = kernels.markov_filter(phi, beta[..., 0], start - fd - lo, T)        # on the CPU; else in PyTorch:
+        psi = self._markov_held_entries(phi, beta[..., 0], start - fd - lo, T)
+        if psi is None:
+            psi = kernels.markov_filter(phi, beta[..., 0], start - fd - lo, T)    # on the CPU; else in PyTorch:
         if psi is None and nu >= CONVOLVE_NU:
             psi = _markov_convolution(phi[start - fd - nu + 1 - lo:stop - fd - lo], beta, B)
         elif psi is None:
@@ -1047,6 +1049,28 @@ class RCOEstimator(Block):
                     part.addcmul_(beta[:, i], phi[at + t0:at + t1].unsqueeze(2))
         psi = psi.reshape(T * B, self.n_z, self.n_u * self.n_phi)
         return self.parameter_map.regressor_of_eta(psi).reshape(stop - start, B, self.n_z, -1)
+
+    def _markov_held_entries(self, phi: torch.Tensor, beta: torch.Tensor, s0: int, T: int) -> torch.Tensor | None:
+        """``kernels.markov_filter`` of the entries of Theta that hold a parameter only, the pinned ones 0: one call
+        per regressor column, over the rows of u whose entry in that column is not pinned (the same sums, term
+        by term, as the whole filter gives them). None where no entry is pinned (the whole filter is the same
+        work) or the kernel does not apply."""
+        held = self.parameter_map.unpinned
+        if bool(held.all()):
+            return None
+        B, nb = phi.shape[1], beta.shape[0]
+        by_row = beta.reshape(nb, self.nu, self.n_z, self.n_u)
+        psi = phi.new_zeros(T, B, self.n_z, self.n_u, self.n_phi)
+        for j in range(self.n_phi):
+            rows = held[:, j].nonzero().flatten().tolist()
+            if not rows:
+                continue
+            part = kernels.markov_filter(phi[..., j:j + 1].contiguous(),
+                                         by_row[..., rows].reshape(nb, self.nu, -1).contiguous(), s0, T)
+            if part is None:
+                return None
+            psi[:, :, :, rows, j] = part.reshape(T, B, self.n_z, len(rows))
+        return psi.reshape(T, B, self.n_z * self.n_u, self.n_phi)
 
     def _phi_over(self, history, inputs, u: torch.Tensor, lo: int, stop: int, ahead: int = 0) -> torch.Tensor:
         """phi at the recorded steps lo .. stop - 1, as ``output`` builds it, (ahead + stop - lo, B, n_phi) float64,
